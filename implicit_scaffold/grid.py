@@ -1,0 +1,138 @@
+"""Voxel grids: an index array plus a transform (origin, spacing, shape).
+
+Voxel ``(i, j, k)`` has its centre at ``origin + (i, j, k) * spacing``; arrays over a
+grid are C-ordered with shape ``(nx, ny, nz)``, so z varies fastest. Units are mm.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ScaffoldError
+
+#: bytes per voxel that a full pipeline run keeps alive at its peak: lattice field,
+#: blended field, patient field and scaffold field (float32 each), masks and the
+#: marching-cubes work arrays.
+PIPELINE_BYTES_PER_VOXEL = 28
+
+
+@dataclass(frozen=True)
+class Grid:
+    """A regular voxel grid.
+
+    Parameters
+    ----------
+    origin : (3,) tuple of float, mm
+        Centre of voxel ``(0, 0, 0)``.
+    spacing : float, mm
+        Edge length of a (cubic) voxel.
+    shape : (3,) tuple of int
+        Number of voxels along x, y and z.
+    """
+
+    origin: tuple[float, float, float]
+    spacing: float
+    shape: tuple[int, int, int]
+
+    def __post_init__(self):
+        if not (np.isfinite(self.spacing) and self.spacing > 0):
+            raise ScaffoldError(f"voxel size must be a positive number of mm, got {self.spacing!r}")
+        if len(self.shape) != 3 or min(self.shape) < 1:
+            raise ScaffoldError(f"grid shape must be three positive counts, got {self.shape!r}")
+
+    @classmethod
+    def covering(cls, lo, hi, spacing: float, pad: int = 1) -> "Grid":
+        """The grid of voxel size `spacing` whose voxels cover the box ``[lo, hi]``.
+
+        The box is centred in the grid, and `pad` extra layers of voxels lie
+        outside it on every side (marching cubes needs one "outside" layer to
+        close the surface).
+
+        Parameters
+        ----------
+        lo, hi : (3,) array_like of float, mm
+            Corners of the box.
+        spacing : float, mm
+        pad : int
+        """
+        lo = np.asarray(lo, dtype=np.float64)
+        hi = np.asarray(hi, dtype=np.float64)
+        if not (np.isfinite(spacing) and spacing > 0):
+            raise ScaffoldError(
+                f"voxel size must be a positive number of mm, got {spacing!r}; pass e.g. --voxel 0.04")
+        size = hi - lo
+        inner = np.maximum(np.ceil(size / spacing - 1e-9), 1).astype(np.int64)
+        shape = inner + 2 * pad
+        centre = (lo + hi) / 2
+        origin = centre - (shape - 1) / 2 * spacing
+        return cls(tuple(float(v) for v in origin), float(spacing), tuple(int(v) for v in shape))
+
+    @property
+    def size(self) -> int:
+        """Number of voxels."""
+        return int(np.prod(self.shape, dtype=np.int64))
+
+    @property
+    def lo(self) -> np.ndarray:
+        """Lower corner of the grid's voxel region (not of the first centre), mm."""
+        return np.asarray(self.origin) - self.spacing / 2
+
+    @property
+    def hi(self) -> np.ndarray:
+        """Upper corner of the grid's voxel region, mm."""
+        return np.asarray(self.origin) + (np.asarray(self.shape) - 0.5) * self.spacing
+
+    @property
+    def voxel_volume(self) -> float:
+        """Volume of one voxel, mm³."""
+        return self.spacing ** 3
+
+    def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Voxel-centre coordinates along x, y and z, mm (float64)."""
+        return tuple(self.origin[a] + np.arange(self.shape[a]) * self.spacing for a in range(3))
+
+    def points(self, index_lo=(0, 0, 0), index_hi=None) -> np.ndarray:
+        """Voxel centres of the sub-block ``[index_lo, index_hi)``, as ``(m, 3)`` float64, mm."""
+        index_hi = self.shape if index_hi is None else index_hi
+        ax = [self.origin[a] + np.arange(index_lo[a], index_hi[a]) * self.spacing for a in range(3)]
+        return np.stack(np.meshgrid(*ax, indexing="ij"), axis=-1).reshape(-1, 3)
+
+    def points_to_indices(self, points) -> np.ndarray:
+        """Nearest voxel index of each point, ``(m, 3)`` int64 (not clipped to the grid)."""
+        p = np.asarray(points, dtype=np.float64)
+        return np.rint((p - np.asarray(self.origin)) / self.spacing).astype(np.int64)
+
+    def indices_to_points(self, indices) -> np.ndarray:
+        """Voxel centres of integer indices, ``(m, 3)`` float64, mm."""
+        return np.asarray(self.origin) + np.asarray(indices, dtype=np.float64) * self.spacing
+
+    def memory_estimate(self, bytes_per_voxel: int = PIPELINE_BYTES_PER_VOXEL) -> int:
+        """Bytes a pipeline run over this grid holds at its peak (an estimate)."""
+        return self.size * int(bytes_per_voxel)
+
+
+def available_memory() -> int:
+    """Bytes of memory this process can still take (free plus reclaimable cache)."""
+    import psutil
+
+    return int(psutil.virtual_memory().available)
+
+
+def check_memory(grid: Grid, bytes_per_voxel: int = PIPELINE_BYTES_PER_VOXEL,
+                 available: int | None = None) -> int:
+    """Raise a :class:`ScaffoldError` before allocating a grid that cannot fit.
+
+    Returns
+    -------
+    int
+        The estimate, bytes.
+    """
+    need = grid.memory_estimate(bytes_per_voxel)
+    have = available_memory() if available is None else int(available)
+    if need > have:
+        raise ScaffoldError(
+            f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
+            f"{need / 2**30:.1f} GiB but only {have / 2**30:.1f} GiB is free; "
+            f"use a larger --voxel (e.g. {grid.spacing * (need / have) ** (1 / 3) * 1.1:.3g} mm)")
+    return need

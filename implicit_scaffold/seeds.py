@@ -1,0 +1,60 @@
+"""Seeds: the points whose Voronoi cells become the scaffold's pores (paper §2.2, §3)."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .errors import ScaffoldError
+
+
+def seed_count(volume: float, porosity: float, pore_size: float) -> int:
+    """The paper's seed count: the void volume over the volume of one spherical pore.
+
+    ``n = V · P / (π Dp³ / 6)``, rounded to the nearest integer.
+
+    Parameters
+    ----------
+    volume : float, mm³
+        Volume the seeds populate (the bounding box in the paper).
+    porosity : float
+        Target porosity, a fraction in (0, 1).
+    pore_size : float, mm
+        Target pore diameter ``Dp``.
+
+    Returns
+    -------
+    int
+        At least 2.
+
+    Examples
+    --------
+    >>> seed_count(1000.0, 0.8, 5.0), seed_count(1000.0, 0.8, 0.5)
+    (12, 12223)
+    """
+    if not (pore_size > 0 and math.isfinite(pore_size)):
+        raise ScaffoldError(f"pore size must be a positive number of mm, got {pore_size!r}")
+    if not (0 < porosity < 1):
+        raise ScaffoldError(f"porosity must lie in (0, 1), got {porosity!r}")
+    return max(2, int(round(volume * porosity / (math.pi * pore_size ** 3 / 6))))
+
+
+def uniform_seeds(lo, hi, n: int, rng: np.random.Generator) -> np.ndarray:
+    """`n` points uniform in the box ``[lo, hi]`` (the paper's *Populate 3D*).
+
+    Parameters
+    ----------
+    lo, hi : (3,) array_like of float, mm
+    n : int
+    rng : numpy.random.Generator
+        Passed down from the caller's ``--seed``; no global state.
+
+    Returns
+    -------
+    (n, 3) float64 ndarray, mm
+    """
+    if n < 2:
+        raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {n}; pass --seeds 2 or more")
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    return lo + rng.random((int(n), 3)) * (hi - lo)

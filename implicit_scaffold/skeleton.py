@@ -1,0 +1,250 @@
+"""Scaled skeleton, pores and channels (stage 4, paper §2.2).
+
+For cell ``c`` (centroid ``g_c``) and its face ``f`` (area centroid ``g_f``):
+
+- window rim ``f' = g_f + Sf (f - g_f)``: the face scaled about its own centroid,
+  the same for both cells that share ``f``;
+- pore cage face ``f'' = g_c + Sv (f - g_c)``: the face of the cell scaled about
+  the cell's centroid;
+- rails: vertex ``k`` of ``f''`` to vertex ``k`` of ``f'``.
+
+The pore of ``c`` is the cell scaled by Sv; the channel through ``f`` is the
+frustum between ``f''`` and ``f'``. Their union is the void; its boundary, the
+lattice surface, is exactly the channels' side quads (the paper's quad meshes).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .cells import Cells, polygon_properties
+from .errors import ScaffoldError
+
+
+def closed_form_porosity(sf: float, sv: float) -> float:
+    """Porosity of the unsmoothed lattice, independent of the seeds.
+
+    ``P0 = Sv³ + (1 - Sv)(Sf² + Sf·Sv + Sv²)``: the pores hold ``Sv³`` of every cell,
+    and the channel of face ``f`` is a frustum of height ``(1 - Sv) h_f`` with end
+    areas ``Sv² A_f`` and ``Sf² A_f``, while ``Σ_f A_f h_f = 3 V``.
+    """
+    return sv ** 3 + (1 - sv) * (sf ** 2 + sf * sv + sv ** 2)
+
+
+def check_scale(name: str, value: float) -> float:
+    """Validate a scale factor: a number strictly between 0 and 1."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--{name} must be a number between 0 and 1 (exclusive), got {value!r}") from None
+    if not (0.0 < v < 1.0):
+        raise ScaffoldError(f"--{name} must lie strictly between 0 and 1, got {v:g}; try --{name} 0.75")
+    return v
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """The scaled skeleton of a tessellation and the void's convex pieces.
+
+    Attributes
+    ----------
+    cells : Cells
+    sf, sv : float
+    rims : (m, 3) float64 ndarray, mm
+        Window rim vertices, laid out like ``cells.face_vertices``.
+    cages : (m, 3) float64 ndarray, mm
+        Pore cage vertices, laid out like ``cells.face_vertices``.
+    quads : (nq, 4, 3) float64 ndarray, mm
+        Side quads of the channels, ``(cage k, cage k+1, rim k+1, rim k)`` reordered
+        so that they wind counter-clockwise about the normal pointing into the solid.
+    quad_normals : (nq, 3) float64 ndarray
+    quad_face : (nq,) int64 ndarray
+        Face whose channel each quad bounds.
+    piece_start : (npieces + 1,) int64 ndarray
+        Pieces are the ``n`` pores, then one channel per face. Piece ``i`` is the
+        intersection of half-spaces ``planes[piece_start[i]:piece_start[i + 1]]``.
+    planes : (npl, 4) float64 ndarray
+        ``(nx, ny, nz, d)``: inside where ``n · x <= d``.
+    piece_lo, piece_hi : (npieces, 3) float64 ndarray, mm
+        Bounding boxes of the pieces.
+    """
+
+    cells: Cells
+    sf: float
+    sv: float
+    rims: np.ndarray
+    cages: np.ndarray
+    quads: np.ndarray
+    quad_normals: np.ndarray
+    quad_face: np.ndarray
+    piece_start: np.ndarray
+    planes: np.ndarray
+    piece_lo: np.ndarray
+    piece_hi: np.ndarray
+
+    @property
+    def porosity_closed_form(self) -> float:
+        return closed_form_porosity(self.sf, self.sv)
+
+    @property
+    def rails(self) -> np.ndarray:
+        """Rails, ``(m, 2, 3)`` mm: cage vertex to rim vertex."""
+        return np.stack([self.cages, self.rims], axis=1)
+
+    @property
+    def n_pores(self) -> int:
+        return self.cells.n
+
+
+def _next_in_polygon(start: np.ndarray) -> np.ndarray:
+    nxt = np.arange(start[-1]) + 1
+    nxt[start[1:] - 1] = start[:-1]
+    return nxt
+
+
+def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
+    """Build rims, cages, rails, the channels' side quads and the void's pieces.
+
+    Parameters
+    ----------
+    cells : Cells
+    sf, sv : float
+        Face and cell scale factors, each in (0, 1).
+
+    Returns
+    -------
+    Skeleton
+    """
+    sf = check_scale("sf", sf)
+    sv = check_scale("sv", sv)
+    start = cells.face_start
+    nf = len(cells.face_cell)
+    counts = np.diff(start)
+    vert_face = np.repeat(np.arange(nf), counts)
+    F = cells.face_vertices
+    g_f = cells.face_centroids[vert_face]
+    g_c = cells.centroids[cells.face_cell][vert_face]
+    rims = g_f + sf * (F - g_f)
+    cages = g_c + sv * (F - g_c)
+
+    nxt = _next_in_polygon(start)
+    quads = np.stack([cages, cages[nxt], rims[nxt], rims], axis=1)
+    area_vec = 0.5 * np.cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
+    area = np.linalg.norm(area_vec, axis=1)
+    normals = area_vec / np.where(area > 0, area, 1)[:, None]
+    # the channel's axis point at this quad's height: outward is away from it
+    fn = cells.face_normals[vert_face]
+    cage_c = cells.centroids[cells.face_cell] + sv * (cells.face_centroids - cells.centroids[cells.face_cell])
+    axis_mid = 0.5 * (cage_c + cells.face_centroids)[vert_face]
+    qc = quads.mean(axis=1)
+    radial = (qc - axis_mid) - np.einsum("ij,ij->i", qc - axis_mid, fn)[:, None] * fn
+    flip = np.einsum("ij,ij->i", normals, radial) < 0
+    quads[flip] = quads[flip][:, ::-1]
+    normals[flip] *= -1
+    quad_face = vert_face.copy()
+    good = area > 1e-12 * float(np.max(cells.hi - cells.lo)) ** 2
+    quads, normals, quad_face = quads[good], normals[good], quad_face[good]
+
+    # pieces: pores (one plane per cage face), then channels (cage end, rim end, sides)
+    n = cells.n
+    pore_planes = np.concatenate([cells.face_normals,
+                                  np.einsum("ij,ij->i", cells.face_normals, cage_c)[:, None]], axis=1)
+    order = np.argsort(cells.face_cell, kind="stable")
+    pore_planes = pore_planes[order]
+    pore_start = np.concatenate([[0], np.cumsum(np.bincount(cells.face_cell, minlength=n))])
+
+    side = np.concatenate([normals, np.einsum("ij,ij->i", normals, quads[:, 0])[:, None]], axis=1)
+    side_count = np.bincount(quad_face, minlength=nf)
+    side_order = np.argsort(quad_face, kind="stable")
+    side = side[side_order]
+    side_start = np.concatenate([[0], np.cumsum(side_count)])
+    cage_end = np.concatenate([-cells.face_normals,
+                               -np.einsum("ij,ij->i", cells.face_normals, cage_c)[:, None]], axis=1)
+    rim_end = np.concatenate([cells.face_normals,
+                              np.einsum("ij,ij->i", cells.face_normals, cells.face_centroids)[:, None]], axis=1)
+    ch_count = side_count + 2
+    ch_start = np.concatenate([[0], np.cumsum(ch_count)])
+    ch_planes = np.empty((ch_start[-1], 4))
+    ch_planes[ch_start[:-1]] = cage_end
+    ch_planes[ch_start[:-1] + 1] = rim_end
+    pos = np.repeat(ch_start[:-1] + 2 - side_start[:-1], side_count) + np.arange(side_start[-1])
+    ch_planes[pos] = side
+    planes = np.concatenate([pore_planes, ch_planes])
+    piece_start = np.concatenate([pore_start, pore_start[-1] + ch_start[1:]])
+
+    cell_of_vertex = cells.face_cell[vert_face]
+    pore_lo = np.full((n, 3), np.inf)
+    pore_hi = np.full((n, 3), -np.inf)
+    np.minimum.at(pore_lo, cell_of_vertex, cages)
+    np.maximum.at(pore_hi, cell_of_vertex, cages)
+    both = np.concatenate([cages, rims])
+    both_face = np.concatenate([vert_face, vert_face])
+    ch_lo = np.full((nf, 3), np.inf)
+    ch_hi = np.full((nf, 3), -np.inf)
+    np.minimum.at(ch_lo, both_face, both)
+    np.maximum.at(ch_hi, both_face, both)
+    return Skeleton(cells=cells, sf=sf, sv=sv, rims=rims, cages=cages, quads=quads,
+                    quad_normals=normals, quad_face=quad_face, piece_start=piece_start,
+                    planes=planes, piece_lo=np.concatenate([pore_lo, ch_lo]),
+                    piece_hi=np.concatenate([pore_hi, ch_hi]))
+
+
+def piece_volumes(skeleton: Skeleton) -> tuple[np.ndarray, np.ndarray]:
+    """Volumes of the pores and of the channels, from their boundary polygons.
+
+    Divergence theorem over each piece's faces: the cage polygons for a pore; the
+    cage end, rim end and side quads for a channel. Independent of the closed form.
+
+    Returns
+    -------
+    pores : (n,) float64 ndarray, mm³
+    channels : (nf,) float64 ndarray, mm³
+    """
+    cells = skeleton.cells
+    start = cells.face_start
+    n, nf = cells.n, len(cells.face_cell)
+    cn, ca, cc = polygon_properties(skeleton.cages, start)
+    flux = ca * np.einsum("ij,ij->i", cn, cc) / 3
+    pores = np.bincount(cells.face_cell, weights=flux, minlength=n)
+    rn, ra, rc = polygon_properties(skeleton.rims, start)
+    q = skeleton.quads.reshape(-1, 3)
+    qstart = np.arange(0, len(q) + 1, 4)
+    qn, qa, qc = polygon_properties(q, qstart)
+    side = np.bincount(skeleton.quad_face, weights=qa * np.einsum("ij,ij->i", qn, qc) / 3, minlength=nf)
+    # the cage end faces into the pore (reversed), the rim end faces out
+    channels = side - flux + ra * np.einsum("ij,ij->i", rn, rc) / 3
+    return pores, channels
+
+
+def voronoi_edges(cells: Cells, *, walls: bool = False) -> np.ndarray:
+    """The unique edges of the tessellation, as ``(ne, 2, 3)`` float64 segments, mm.
+
+    Edges that lie in a box wall (the box's own outline) are left out unless `walls`.
+    """
+    start = cells.face_start
+    nxt = _next_in_polygon(start)
+    a = cells.face_vertices
+    b = cells.face_vertices[nxt]
+    scale = float(np.max(cells.hi - cells.lo))
+    tol = 1e-7 * scale
+    ka = np.round(a / tol).astype(np.int64)
+    kb = np.round(b / tol).astype(np.int64)
+    # order each edge's ends lexicographically so both directions share a key
+    diff = kb - ka
+    first_nonzero = np.argmax(diff != 0, axis=1)
+    less = diff[np.arange(len(diff)), first_nonzero] >= 0
+    p = np.where(less[:, None], a, b)
+    q = np.where(less[:, None], b, a)
+    key = np.concatenate([np.where(less[:, None], ka, kb), np.where(less[:, None], kb, ka)], 1)
+    _, idx = np.unique(key, axis=0, return_index=True)
+    idx = np.sort(idx)
+    seg = np.stack([p[idx], q[idx]], axis=1)
+    if not walls:
+        on_wall = np.zeros(len(seg), bool)
+        for axis in range(3):
+            for bound in (cells.lo[axis], cells.hi[axis]):
+                on_wall |= np.all(np.abs(seg[:, :, axis] - bound) < tol, axis=1)
+        seg = seg[~on_wall]
+    length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
+    return seg[length > tol]

@@ -1,0 +1,75 @@
+import numpy as np
+import pytest
+
+from implicit_scaffold.errors import ScaffoldError
+from implicit_scaffold.skeleton import (closed_form_porosity, piece_volumes, scaled_skeleton,
+                                        voronoi_edges)
+
+
+@pytest.mark.parametrize("sf, sv", [(0.25, 0.25), (0.5, 0.5), (0.75, 0.75), (0.9, 0.4), (0.3, 0.8)])
+def test_piece_volumes_sum_to_closed_form(cube_cells, sf, sv):
+    sk = scaled_skeleton(cube_cells, sf, sv)
+    pores, channels = piece_volumes(sk)
+    p0 = sv ** 3 + (1 - sv) * (sf ** 2 + sf * sv + sv ** 2)
+    assert (pores.sum() + channels.sum()) / 1000.0 == pytest.approx(p0, rel=1e-9)
+    np.testing.assert_allclose(pores, sv ** 3 * cube_cells.volumes, rtol=1e-9)
+    assert np.all(channels > 0)
+
+
+def test_closed_form_values():
+    # DESIGN.md: Sf = Sv = 0.25 / 0.5 / 0.75 -> 15.6 / 50.0 / 84.4 %
+    assert [round(100 * closed_form_porosity(s, s), 1) for s in (0.25, 0.5, 0.75)] == [15.6, 50.0, 84.4]
+
+
+def test_rims_lie_in_their_face_and_match_across_it(cube_cells):
+    c = cube_cells
+    sk = scaled_skeleton(c, 0.6, 0.7)
+    for f in range(0, len(c.face_cell), 7):
+        rim = sk.rims[c.face_start[f]:c.face_start[f + 1]]
+        # in the face's plane
+        np.testing.assert_allclose((rim - c.face_centroids[f]) @ c.face_normals[f], 0, atol=1e-9)
+        # the face scaled by Sf about its centroid
+        np.testing.assert_allclose(rim - c.face_centroids[f], 0.6 * (c.face(f) - c.face_centroids[f]),
+                                   atol=1e-12)
+    key = {(int(o), int(n)): f for f, (o, n) in enumerate(zip(c.face_cell, c.face_neighbor)) if n >= 0}
+    for (o, n), f in key.items():
+        g = key.get((n, o))
+        if g is not None:
+            a = sk.rims[c.face_start[f]:c.face_start[f + 1]]
+            b = sk.rims[c.face_start[g]:c.face_start[g + 1]]
+            assert np.array_equal(a, b[::-1])
+
+
+def test_quads_are_planar_and_point_into_the_solid(cube_cells):
+    sk = scaled_skeleton(cube_cells, 0.75, 0.75)
+    q = sk.quads
+    # planar: all four vertices on the plane of the first
+    off = np.einsum("ijk,ik->ij", q - q[:, :1], sk.quad_normals)
+    assert np.abs(off).max() < 1e-9
+    # a point just outside a quad (along its normal) lies in no piece of the void
+    mid = q.mean(axis=1) + 1e-6 * sk.quad_normals
+    inside = np.zeros(len(mid), bool)
+    for i in range(len(sk.piece_start) - 1):
+        pl = sk.planes[sk.piece_start[i]:sk.piece_start[i + 1]]
+        inside |= np.all(mid @ pl[:, :3].T - pl[:, 3] <= 0, axis=1)
+    assert inside.mean() < 0.001
+
+
+@pytest.mark.parametrize("bad", [0.0, 1.0, -0.2, 1.5, float("nan")])
+def test_scale_factors_must_lie_in_open_interval(cube_cells, bad):
+    with pytest.raises(ScaffoldError, match="between 0 and 1"):
+        scaled_skeleton(cube_cells, bad, 0.5)
+
+
+def test_voronoi_edges_of_cubes():
+    from implicit_scaffold.cells import voronoi_cells
+
+    # 2 x 2 x 2 cubes in a 2 mm box: interior edges are the 3 axis-parallel crosses
+    g = np.array([0.5, 1.5])
+    seeds = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    cells = voronoi_cells(seeds, [0, 0, 0], [2, 2, 2])
+    edges = voronoi_edges(cells)
+    lengths = np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1)
+    # each of the 3 central lines x=1,y=1 (etc.) is cut into 2 unit edges at the centre
+    assert len(edges) == 6
+    np.testing.assert_allclose(lengths, 1.0, atol=1e-6)
