@@ -33,7 +33,7 @@ def seed_count(volume: float, porosity: float, pore_size: float) -> int:
     (12, 12223)
     """
     if not (pore_size > 0 and math.isfinite(pore_size)):
-        raise ScaffoldError(f"pore size must be a positive number of mm, got {pore_size!r}")
+        raise ScaffoldError(f"--pore-size must be a positive number of mm, got {pore_size!r}")
     if not (0 < porosity < 1):
         raise ScaffoldError(f"porosity must lie in (0, 1), got {porosity!r}")
     return max(2, int(round(volume * porosity / (math.pi * pore_size ** 3 / 6))))

@@ -1,0 +1,339 @@
+"""The pipeline end to end: ``generate(**options)`` builds a scaffold and its report.
+
+Every stage is a function of its own module; this one only validates options,
+chooses defaults, calls the stages in order and gathers the report.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass, field as dc_field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import __version__, opencl
+from .errors import ScaffoldError
+from .field import blend_field, check_porosity, remove_fragments, scaffold_field, solve_level
+from .grid import Grid, check_memory
+from .progress import Progress
+from .skeleton import check_scale, closed_form_porosity
+
+STYLES = ("paper", "struts")
+MESH_FORMATS = (".stl", ".ply", ".obj", ".3mf")
+FIELD_FORMATS = (".npy",)
+#: default grids are capped at this many voxels so the default run stays quick;
+#: a finer --voxel is always honoured (within memory)
+DEFAULT_MAX_VOXELS = 24_000_000
+#: voxels across the median wall when the voxel size is left to the tool
+VOXELS_PER_WALL = 4.0
+
+
+@dataclass(frozen=True)
+class Params:
+    """Validated options of one run (units mm)."""
+
+    shape: str = "box"
+    size: Any = 10.0
+    seeds: int | None = None
+    pore_size: float = 0.6
+    porosity: float | None = 0.8
+    sf: float = 0.75
+    sv: float = 0.75
+    style: str = "paper"
+    blend: float | None = None
+    voxel: float | None = None
+    seed: int = 0
+    remove_fragments: bool = True
+
+
+@dataclass
+class Result:
+    """Everything a run built.
+
+    Attributes
+    ----------
+    params : Params
+    report : dict
+        The same dict as the JSON report.
+    cells : Cells
+    skeleton : Skeleton or None
+        The paper style's skeleton; None for struts.
+    edges : (ne, 2, 3) ndarray or None
+        The struts' axes; None for the paper style.
+    grid : Grid
+    field : (nx, ny, nz) float32 ndarray, mm
+        The scaffold's signed distance, negative in the solid.
+    patient_sdf : (nx, ny, nz) float32 ndarray, mm
+    mesh : trimesh.Trimesh or None
+    """
+
+    params: Params
+    report: dict
+    cells: Any
+    skeleton: Any
+    edges: Any
+    grid: Grid
+    field: np.ndarray
+    patient_sdf: np.ndarray
+    patient: Any
+    mesh: Any = None
+    timings: dict = dc_field(default_factory=dict)
+
+
+def _positive(name: str, value, *, allow_none=True, example="") -> float | None:
+    if value is None and allow_none:
+        return None
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}{example}")
+    return v
+
+
+def validate(**options) -> Params:
+    """Check every option and return them as :class:`Params`; raise :class:`ScaffoldError` otherwise."""
+    unknown = set(options) - set(Params.__dataclass_fields__)
+    if unknown:
+        raise ScaffoldError(f"unknown option(s): {', '.join(sorted(unknown))}")
+    p = Params(**options)
+    style = str(p.style).lower()
+    if style not in STYLES:
+        raise ScaffoldError(f"unknown --style {p.style!r}; use paper or struts")
+    seeds = p.seeds
+    if seeds is not None:
+        try:
+            seeds = int(seeds)
+        except (TypeError, ValueError):
+            raise ScaffoldError(f"--seeds must be a whole number, got {p.seeds!r}") from None
+        if seeds < 2:
+            raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {seeds}; pass --seeds 2 or more")
+    porosity = check_porosity(p.porosity)
+    if style == "struts" and porosity is None:
+        raise ScaffoldError("--style struts solves the strut radius from --porosity; give a target such as 0.8")
+    blend = p.blend
+    if blend is not None:
+        try:
+            blend = float(blend)
+        except (TypeError, ValueError):
+            raise ScaffoldError(f"--blend must be a width in mm (0 for sharp creases), got {p.blend!r}") from None
+        if not (math.isfinite(blend) and blend >= 0):
+            raise ScaffoldError(f"--blend must be a width >= 0 mm, got {p.blend!r}")
+    try:
+        seed = int(p.seed)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--seed must be a whole number, got {p.seed!r}") from None
+    if seed < 0:
+        raise ScaffoldError(f"--seed must be >= 0, got {seed}")
+    return Params(shape=p.shape, size=p.size, seeds=seeds,
+                  pore_size=_positive("pore-size", p.pore_size, allow_none=False, example="; e.g. --pore-size 0.6"),
+                  porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
+                  blend=blend, voxel=_positive("voxel", p.voxel, example="; e.g. --voxel 0.04"), seed=seed,
+                  remove_fragments=bool(p.remove_fragments))
+
+
+def _default_voxel(wall: float, box_volume: float) -> float:
+    h = wall / VOXELS_PER_WALL
+    cap = (box_volume / DEFAULT_MAX_VOXELS) ** (1 / 3)
+    return float(max(h, cap))
+
+
+def _report_stats(values) -> dict:
+    v = np.asarray(values, np.float64)
+    return {"mean": float(v.mean()), "p10": float(np.percentile(v, 10)), "median": float(np.median(v))}
+
+
+def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
+             **options) -> Result:
+    """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
+
+    Parameters
+    ----------
+    output : str or Path, optional
+        Where to write: a mesh (``.stl``, ``.ply``, ``.obj``, ``.3mf``) or the scaffold's
+        signed distance (``.npy``); the JSON report goes beside it (``.json``).
+    mesh : bool
+        False stops after the field (no marching cubes).
+    patient : object, optional
+        A patient geometry (see :mod:`.patient`); by default ``shape`` and ``size``.
+    verbose : bool
+        Print stage progress on stderr.
+    **options
+        shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
+        remove_fragments (see :class:`Params`).
+
+    Returns
+    -------
+    Result
+    """
+    from .cells import voronoi_cells
+    from .lattice import lattice_sdf, struts_field
+    from .metrics import cell_metrics, trabecular_thicknesses
+    from .patient import patient_sdf as eval_patient, primitive
+    from .seeds import seed_count, uniform_seeds
+    from .skeleton import scaled_skeleton, voronoi_edges
+
+    params = validate(**options)
+    out_path = Path(output) if output is not None else None
+    if out_path is not None:
+        from .mesh import check_writable
+
+        ext = out_path.suffix.lower()
+        if ext not in MESH_FORMATS + FIELD_FORMATS:
+            raise ScaffoldError(f"cannot write {out_path.name}: use one of "
+                                f"{', '.join(MESH_FORMATS + FIELD_FORMATS)}")
+        if ext in MESH_FORMATS and not mesh:
+            raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
+        check_writable(out_path)
+    if patient is None:
+        patient = primitive(params.shape, params.size)
+    lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
+    box_volume = float(np.prod(hi - lo))
+    # everything that can be checked before the work starts is checked now
+    opencl.context()
+    if params.voxel is not None:
+        check_memory(Grid.covering(lo, hi, params.voxel))
+    prog = Progress(verbose)
+
+    p0 = closed_form_porosity(params.sf, params.sv)
+    if params.seeds is not None:
+        n = params.seeds
+    else:
+        n = seed_count(box_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
+    rng = np.random.default_rng(params.seed)
+
+    with prog.stage("seeds", f"{n}"):
+        seeds = uniform_seeds(lo, hi, n, rng)
+    with prog.stage("cells"):
+        cells = voronoi_cells(seeds, lo, hi)
+    walls = trabecular_thicknesses(cells, params.sv)
+    wall = float(np.median(walls)) if walls.size else float(np.min(hi - lo)) * (1 - params.sv)
+    wall_p10 = float(np.percentile(walls, 10)) if walls.size else wall
+    voxel = params.voxel if params.voxel is not None else _default_voxel(wall, box_volume)
+    grid = Grid.covering(lo, hi, voxel)
+    check_memory(grid)
+
+    skeleton = edges = None
+    with prog.stage("skeleton"):
+        if params.style == "paper":
+            skeleton = scaled_skeleton(cells, params.sf, params.sv)
+        else:
+            edges = voronoi_edges(cells)
+    with prog.stage("patient"):
+        s_p = eval_patient(patient, grid)
+        inside = s_p < 0
+        n_inside = int(np.count_nonzero(inside))
+        if n_inside == 0:
+            raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
+    h = grid.spacing
+    level = 0.0
+    if params.style == "paper":
+        k = params.blend if params.blend is not None else 0.5 * wall_p10
+        # estimate of the offset: the porosity change spread over the lattice surface
+        area = float(np.linalg.norm(np.cross(skeleton.quads[:, 2] - skeleton.quads[:, 0],
+                                             skeleton.quads[:, 3] - skeleton.quads[:, 1]), axis=1).sum() / 2)
+        t_est = 0.0 if params.porosity is None else (p0 - params.porosity) * box_volume / max(area, 1e-12)
+        cutoff = 2 * abs(t_est) + k + 3 * h
+        for _ in range(6):
+            with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
+                base = lattice_sdf(skeleton, grid, cutoff=cutoff, progress=prog.bar("lattice"))
+            with prog.stage("blend", f"k = {k:.4g} mm"):
+                base = blend_field(base, h, k)
+            with prog.stage("offset"):
+                level = 0.0 if params.porosity is None else solve_level(base, inside, params.porosity)
+            # every value that the level and the blend read must be unclamped
+            if abs(level) + k + 2 * h <= cutoff:
+                break
+            cutoff = 2 * (abs(level) + k + 2 * h)
+    else:
+        length = float(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).sum())
+        r_est = math.sqrt((1 - params.porosity) * box_volume / (math.pi * max(length, 1e-12)))
+        k = params.blend if params.blend is not None else 0.25 * r_est
+        cutoff = 2 * r_est + 4 * k + 3 * h
+        for _ in range(6):
+            with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
+                base = struts_field(edges, grid, cutoff=cutoff, blend=k, progress=prog.bar("lattice"))
+            with prog.stage("offset"):
+                level = solve_level(base, inside, params.porosity)
+            # the smooth minimum sums the edges nearer than the cut-off: keep it well clear
+            if level + 6 * k + 2 * h <= cutoff:
+                break
+            cutoff = 2 * (level + 6 * k + 2 * h)
+
+    with prog.stage("scaffold"):
+        s = scaffold_field(base, s_p, level=level, out=base)
+        del base
+        fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
+        solid = int(np.count_nonzero(s < 0))
+        porosity_voxel = 1.0 - solid / n_inside
+
+    report: dict[str, Any] = {
+        "version": __version__,
+        "rng_seed": params.seed,
+        "patient": getattr(patient, "describe", lambda: type(patient).__name__.lower())(),
+        "patient_volume_mm3": float(patient.volume),
+        "box_volume_mm3": box_volume,
+        "seeds": int(n),
+        "pore_size_target_mm": params.pore_size if params.seeds is None else None,
+        "sf": params.sf,
+        "sv": params.sv,
+        "style": params.style,
+        "porosity_closed_form": p0,
+        "porosity_target": params.porosity,
+        "blend_mm": float(k),
+        "voxel_mm": float(h),
+        "grid_shape": list(grid.shape),
+        "grid_origin_mm": list(grid.origin),
+        "cutoff_mm": float(cutoff),
+        "porosity_voxel": porosity_voxel,
+        "fragments_removed": fragments,
+        "wall_thickness_mm": _report_stats(walls) if walls.size else None,
+    }
+    if params.style == "paper":
+        report["surface_offset_mm"] = float(level)
+    else:
+        report["strut_radius_mm"] = float(level)
+    report.update(cell_metrics(cells, params.sf, params.sv))
+
+    result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
+                    field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
+    if mesh:
+        from .mesh import mesh_field, mesh_summary
+
+        with prog.stage("mesh"):
+            result.mesh = mesh_field(s, grid)
+            summary = mesh_summary(result.mesh)
+        report.update({
+            "triangles": summary["triangles"],
+            "watertight": summary["watertight"],
+            "winding_consistent": summary["winding_consistent"],
+            "bodies": summary["bodies"],
+            "mesh_volume_mm3": summary["volume_mm3"],
+            "surface_area_mm2": summary["surface_area_mm2"],
+            "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
+        })
+    if out_path is not None:
+        with prog.stage("write"):
+            write_outputs(result, out_path)
+    report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
+    if out_path is not None:
+        from .mesh import write_json
+
+        write_json(report, out_path.with_suffix(".json"))
+    return result
+
+
+def write_outputs(result: Result, path: Path) -> None:
+    """Write the mesh or the field to `path` (atomically); the JSON is written by :func:`generate`."""
+    from .mesh import write_field, write_mesh
+
+    if path.suffix.lower() == ".npy":
+        write_field(result.field, path)
+    else:
+        write_mesh(result.mesh, path)
+
+
+def params_dict(params: Params) -> dict:
+    return asdict(params)

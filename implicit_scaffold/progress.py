@@ -1,0 +1,47 @@
+"""Progress on stderr: one line per stage, a bar for the tiled stages (quiet when asked or not a terminal)."""
+from __future__ import annotations
+
+import sys
+import time
+from contextlib import contextmanager
+
+
+class Progress:
+    """Reports stages as they run and keeps their wall-clock times.
+
+    Parameters
+    ----------
+    enabled : bool
+        Print to stderr; the times are kept either way.
+    """
+
+    def __init__(self, enabled: bool = False):
+        self.enabled = enabled
+        self.timings: dict[str, float] = {}
+        self._bar_enabled = enabled and sys.stderr.isatty()
+
+    @contextmanager
+    def stage(self, name: str, detail: str = ""):
+        if self.enabled:
+            print(f"  {name}{' (' + detail + ')' if detail else ''} ...", file=sys.stderr, flush=True)
+        t0 = time.perf_counter()
+        yield
+        self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+
+    def bar(self, label: str):
+        """A callback ``(done, total)`` for tiled work; draws a bar with an ETA on a terminal."""
+        if not self._bar_enabled:
+            return None
+        from tqdm import tqdm
+
+        state = {}
+
+        def update(done: int, total: int):
+            if "bar" not in state:
+                state["bar"] = tqdm(total=total, desc=f"  {label}", unit="tile", leave=False,
+                                    file=sys.stderr)
+            state["bar"].update(done - state["bar"].n)
+            if done >= total:
+                state["bar"].close()
+
+        return update
