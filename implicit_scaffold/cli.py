@@ -58,6 +58,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--keep-fragments", action="store_true",
                    help="keep solid pieces not attached to the main body (removed by default)")
     g.add_argument("--seed", type=int, default=0, help="random seed; same inputs and seed, same bytes (default 0)")
+    g.add_argument("--report", metavar="HTML", default=None,
+                   help="also write a visual report: pictures, histograms, targets against measured values")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
     sub.add_parser("info", help="versions and the OpenCL device")
@@ -68,18 +70,29 @@ def _generate(args) -> int:
     from .pipeline import generate
 
     t0 = time.perf_counter()
+    if args.report is not None:
+        from .mesh import check_writable
+
+        if not args.report.lower().endswith((".html", ".htm")):
+            raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {args.report!r}")
+        check_writable(args.report, formats=(".html", ".htm"))
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
     result = generate(output=args.output, verbose=not args.quiet, shape=args.shape, size=args.size,
                       seeds=args.seeds, pore_size=args.pore_size, porosity=porosity, sf=args.sf, sv=args.sv,
                       style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
                       remove_fragments=not args.keep_fragments)
+    if args.report is not None:
+        from .report import write_run_report
+
+        write_run_report(result, args.report)
     if not args.quiet:
         r = result.report
         offset = (f"surface offset {r['surface_offset_mm']:+.4f} mm" if "surface_offset_mm" in r
                   else f"strut radius {r['strut_radius_mm']:.4f} mm")
         target = "none" if r["porosity_target"] is None else f"{r['porosity_target']:.3f}"
         lines = [
-            f"wrote {args.output} and {result_json(args.output)}",
+            f"wrote {args.output} and {result_json(args.output)}"
+            + (f" and {args.report}" if args.report else ""),
             f"  seeds {r['seeds']}, Sf {r['sf']:g}, Sv {r['sv']:g}, style {r['style']}",
             f"  {offset}, blend {r['blend_mm']:.4f} mm",
             f"  voxel {r['voxel_mm']:.4f} mm, grid {'x'.join(str(v) for v in r['grid_shape'])}",

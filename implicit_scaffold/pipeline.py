@@ -303,7 +303,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         from .mesh import mesh_field, mesh_summary
 
         with prog.stage("mesh"):
-            result.mesh = mesh_field(s, grid)
+            # mesh_summary below checks closure and winding; no need to check twice
+            result.mesh = mesh_field(s, grid, check=False)
             summary = mesh_summary(result.mesh)
         report.update({
             "triangles": summary["triangles"],

@@ -101,3 +101,17 @@ def test_info(capsys):
     assert main(["info"]) == 0
     out = capsys.readouterr().out
     assert "OpenCL device:" in out and "kernels:" in out
+
+
+def test_generate_with_report(tmp_path):
+    out, page = tmp_path / "s.stl", tmp_path / "r.html"
+    assert main(["generate", "-o", str(out), "--seeds", "30", "--size", "3", "--voxel", "0.1", "-q",
+                 "--report", str(page)]) == 0
+    text = page.read_text()
+    assert text.count("data:image/png;base64,") >= 4 and "porosity" in text
+
+
+def test_report_needs_html_name(tmp_path, capsys):
+    assert main(["generate", "-o", str(tmp_path / "s.stl"), "--seeds", "20", "--report",
+                 str(tmp_path / "r.pdf")]) == 2
+    assert "HTML" in capsys.readouterr().err and list(tmp_path.iterdir()) == []

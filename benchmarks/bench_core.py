@@ -1,0 +1,126 @@
+"""Issue 2 benchmarks: B1 "paper cube", the paper's Fig. 9, B3 "peer" (PoreSpy's voronoi_edges).
+
+    python benchmarks/bench_core.py [--runs 3] [--only b1,fig9,b3]
+
+Each figure is the median of --runs runs after a warm-up, each run in a fresh process
+(so its peak memory is its own). 2-core machines are noisy: read the medians.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import median_runs, run_isolated, table  # noqa: E402
+
+B1 = """
+import time, tempfile, os
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold import opencl
+from implicit_scaffold.lattice import lattice_sdf
+opencl.context()
+d = tempfile.mkdtemp()
+t0 = time.perf_counter()
+r = implicit_scaffold.generate(seeds=500, sf=0.75, sv=0.75, porosity=0.8, voxel=0.04,
+                               output=os.path.join(d, 'b1.stl'))
+total = time.perf_counter() - t0
+# the kernel alone, on the same skeleton, grid and cut-off (binning and upload included)
+t1 = time.perf_counter()
+lattice_sdf(r.skeleton, r.grid, cutoff=r.report['cutoff_mm'])
+kernel = time.perf_counter() - t1
+_out = {'total_s': total, 'kernel_s': kernel, 'mvox_s': r.grid.size / kernel / 1e6,
+        'stages': r.report['timings_s'], 'grid': 'x'.join(map(str, r.grid.shape)),
+        'porosity_voxel': r.report['porosity_voxel'], 'porosity_mesh': r.report['porosity_mesh'],
+        'triangles': r.report['triangles'], 'bodies': r.report['bodies'], 'watertight': r.report['watertight']}
+"""
+
+FIG9 = """
+import implicit_scaffold
+r = implicit_scaffold.generate(seeds=500, sf={s}, sv={s}, porosity=None, voxel=0.04, mesh=False)
+_out = {{'porosity_voxel': r.report['porosity_voxel'], 'closed_form': r.report['porosity_closed_form'],
+         'blend_mm': r.report['blend_mm'], 'total_s': sum(r.report['timings_s'].values())}}
+"""
+
+PORESPY = """
+import time
+import numpy as np
+import porespy as ps
+np.random.seed(0)
+t0 = time.perf_counter()
+im = ps.generators.voronoi_edges(shape=[200, 200, 200], ncells=500, r=2)
+t = time.perf_counter() - t0
+_out = {'time_s': t, 'porosity': float(im.mean())}
+"""
+
+OURS_STRUTS = """
+import time
+import implicit_scaffold
+from implicit_scaffold import opencl
+opencl.context()
+t0 = time.perf_counter()
+r = implicit_scaffold.generate(style='struts', seeds=500, size=10.0, voxel=0.05, porosity={p},
+                               mesh=False, remove_fragments=False)
+t = time.perf_counter() - t0
+_out = {{'time_s': t, 'porosity': r.report['porosity_voxel'], 'grid': 'x'.join(map(str, r.grid.shape)),
+         'radius_mm': r.report['strut_radius_mm'], 'lattice_s': r.report['timings_s']['lattice']}}
+"""
+
+
+def b1(runs):
+    med, _ = median_runs(B1, runs)
+    print(f"\nB1 paper cube: 10 mm cube, 500 seeds, Sf = Sv = 0.75, P = 0.8, voxel 0.04 mm "
+          f"(grid {med['grid']}), median of {runs} runs after a warm-up")
+    rows = [[k, f"{v:.3f}"] for k, v in med["stages"].items()]
+    rows += [["end to end (generate, incl. writing STL + JSON)", f"{med['total_s']:.2f}"],
+             ["lattice kernel alone", f"{med['kernel_s']:.3f}"]]
+    print(table(rows, ["stage", "seconds"]))
+    print(table([[f"{med['mvox_s']:.1f}", f"{med['peak_rss_mb']:.0f}", f"{med['porosity_voxel']:.4f}",
+                  f"{med['porosity_mesh']:.4f}", med["triangles"], med["bodies"], med["watertight"]]],
+                ["kernel Mvoxel/s", "peak RSS MB", "porosity voxel", "porosity mesh", "triangles",
+                 "bodies", "watertight"]))
+    print(f"targets: end to end <= 10 s: {'met' if med['total_s'] <= 10 else 'NOT met'}; "
+          f"kernel >= 30 Mvoxel/s: {'met' if med['mvox_s'] >= 30 else 'NOT met'}")
+
+
+def fig9(runs):
+    paper = {0.25: 17.4, 0.5: 47.8, 0.75: 79.6}
+    rows = []
+    for s, pp in paper.items():
+        med, _ = median_runs(FIG9.format(s=s), 1, warmup=0)
+        rows.append([f"{s:g}", f"{pp:.1f}", f"{100 * med['closed_form']:.1f}",
+                     f"{100 * med['porosity_voxel']:.1f}", f"{med['blend_mm']:.4f}"])
+    print("\nFig. 9: porosity of the 10 mm cube, 500 seeds, --porosity none, default blend, voxel 0.04 mm "
+          "(deterministic: one run each)")
+    print(table(rows, ["Sf = Sv", "paper %", "closed form P0 %", "measured (voxels) %", "blend mm"]))
+
+
+def b3(runs):
+    ps_med, _ = median_runs(PORESPY, runs)
+    ours, _ = median_runs(OURS_STRUTS.format(p=ps_med["porosity"]), runs)
+    print(f"\nB3 peer: porespy.generators.voronoi_edges(shape=[200]*3, ncells=500, r=2) against our struts "
+          f"field (500 seeds, 10 mm at 0.05 mm = 200^3 inside, grid {ours['grid']}), solved for PoreSpy's "
+          f"porosity; median of {runs} runs after a warm-up")
+    print(table([["PoreSpy voronoi_edges", f"{ps_med['time_s']:.2f}", f"{ps_med['porosity']:.4f}", "", ""],
+                 ["implicit_scaffold struts", f"{ours['time_s']:.2f}", f"{ours['porosity']:.4f}",
+                  f"{ours['lattice_s']:.2f}", f"{ours['radius_mm']:.4f}"]],
+                ["", "seconds", "porosity", "kernel s", "strut radius mm"]))
+    ratio = ps_med["time_s"] / ours["time_s"]
+    print(f"ratio PoreSpy / ours: {ratio:.1f}x (target >= 20x: {'met' if ratio >= 20 else 'NOT met'})")
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--runs", type=int, default=3)
+    ap.add_argument("--only", default="b1,fig9,b3")
+    args = ap.parse_args()
+    from implicit_scaffold import opencl
+
+    print(f"OpenCL device: {opencl.device().describe()}")
+    for name in args.only.split(","):
+        {"b1": b1, "fig9": fig9, "b3": b3}[name.strip()](args.runs)
+
+
+if __name__ == "__main__":
+    main()
