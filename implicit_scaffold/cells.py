@@ -138,31 +138,46 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
         raise ScaffoldError(f"voro++ returned {len(raw)} cells for {n} seeds; are two seeds identical?")
 
     volumes = np.array([c["volume"] for c in raw], dtype=np.float64)
-    polys, owner, neighbor = [], [], []
+    # flatten every cell's faces into one vertex array (each face its own copy)
+    verts_all, idx_all, counts, owner, neighbor = [], [], [], [], []
+    base = 0
     for c in raw:
-        verts = np.asarray(c["vertices"], dtype=np.float64)
+        verts_all.append(np.asarray(c["vertices"], dtype=np.float64))
         for face in c["faces"]:
             idx = face["vertices"]
-            p = verts[idx]
-            # drop repeated vertices: voro++ can emit edges of zero length
-            keep = np.linalg.norm(p - np.roll(p, 1, axis=0), axis=1) > 1e-12 * (1 + np.abs(p).max())
-            p = p[keep]
-            if len(p) < 3:
-                continue
-            polys.append(p)
+            idx_all.extend(i + base for i in idx)
+            counts.append(len(idx))
             owner.append(c["id"])
-            nb = int(face["adjacent_cell"])
-            neighbor.append(nb if nb >= 0 else -1)
+            neighbor.append(face["adjacent_cell"])
+        base += len(c["vertices"])
+    all_verts = np.concatenate(verts_all)[np.asarray(idx_all, dtype=np.int64)]
+    counts = np.asarray(counts, dtype=np.int64)
     owner = np.asarray(owner, dtype=np.int64)
-    neighbor = np.asarray(neighbor, dtype=np.int64)
+    neighbor = np.maximum(np.asarray(neighbor, dtype=np.int64), -1)
+    start = np.concatenate([[0], np.cumsum(counts)])
+    # drop repeated vertices: voro++ can emit edges of zero length
+    prev = np.arange(len(all_verts)) - 1
+    prev[start[:-1]] = start[1:] - 1
+    scale = 1e-12 * (1 + np.abs(all_verts).max())
+    keep = np.linalg.norm(all_verts - all_verts[prev], axis=1) > scale
+    face_of = np.repeat(np.arange(len(counts)), counts)
+    counts = np.bincount(face_of[keep], minlength=len(counts))
+    all_verts = all_verts[keep]
+    start = np.concatenate([[0], np.cumsum(counts)])
+    polys = [all_verts[start[f]:start[f + 1]] for f in range(len(counts))]
+    good = counts >= 3
+    polys = [p for p, g in zip(polys, good) if g]
+    owner, neighbor = owner[good], neighbor[good]
 
     # make both copies of a shared face identical: the lower cell's copy wins
-    index = {(int(o), int(nb)): f for f, (o, nb) in enumerate(zip(owner, neighbor)) if nb >= 0}
+    index = {(o, nb): f for f, (o, nb) in enumerate(zip(owner.tolist(), neighbor.tolist())) if nb >= 0}
     twin = np.full(len(polys), -1, np.int64)
-    for f, (o, nb) in enumerate(zip(owner, neighbor)):
-        if nb >= 0 and nb < o and (int(nb), int(o)) in index:
-            twin[f] = index[(int(nb), int(o))]
-            polys[f] = polys[twin[f]][::-1].copy()
+    for f, (o, nb) in enumerate(zip(owner.tolist(), neighbor.tolist())):
+        if 0 <= nb < o:
+            g = index.get((nb, o))
+            if g is not None:
+                twin[f] = g
+                polys[f] = polys[g][::-1].copy()
 
     counts = np.array([len(p) for p in polys], dtype=np.int64)
     start = np.concatenate([[0], np.cumsum(counts)])
