@@ -41,6 +41,25 @@ def build_parser() -> argparse.ArgumentParser:
                    help="built-in patient shape (default: box)")
     g.add_argument("--size", type=_size, default=10.0,
                    help="shape size in mm: one length or three (x y z in quotes); default 10")
+    pg = g.add_argument_group("patient geometry (instead of --shape)")
+    pg.add_argument("--patient", metavar="FILE", default=None,
+                    help="bone geometry: a mesh (.stl .obj .ply .off .3mf) or a volume (.nii .nii.gz .nrrd "
+                         ".mha .mhd, or a folder holding a DICOM series)")
+    pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
+    pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
+    pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
+                    help="units of a mesh file (default mm; a warning says when the size suggests others)")
+    pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                    default=None, help="keep the part of the bone inside this box (mm)")
+    pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
+                    metavar=("PX", "PY", "PZ", "NX", "NY", "NZ", "QX", "QY", "QZ", "MX", "MY", "MZ"),
+                    help="two osteotomy planes, point and normal each (mm); the segment between them is kept")
+    pg.add_argument("--seeds-in", choices=["box", "patient"], default="box",
+                    help="box: uniform in the bounding box (the paper); patient: only where the patient is, "
+                         "plus one cell, with the seed count from the patient's volume (default box)")
+    pg.add_argument("--skin", type=float, default=0.0, help="solid shell this thick at the patient surface (mm)")
+    pg.add_argument("--smooth-cut", type=float, default=0.0,
+                    help="width of a smooth instead of sharp intersection with the patient (mm)")
     n = g.add_mutually_exclusive_group()
     n.add_argument("--seeds", type=int, default=None, help="number of seeds (Voronoi cells)")
     n.add_argument("--pore-size", type=float, default=0.6,
@@ -77,7 +96,20 @@ def _generate(args) -> int:
             raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {args.report!r}")
         check_writable(args.report, formats=(".html", ".htm"))
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
-    result = generate(output=args.output, verbose=not args.quiet, shape=args.shape, size=args.size,
+    patient = None
+    if args.patient is not None:
+        from .mesh import check_writable
+
+        check_writable(args.output)  # before a long load, not after
+        from .patient_io import load_patient
+
+        patient = load_patient(args.patient, label=args.label, threshold=args.threshold, units=args.units,
+                               clip=args.clip, cut_planes=args.cut_planes)
+    elif args.label is not None or args.threshold is not None or args.clip or args.cut_planes or args.units:
+        raise ScaffoldError("--label, --threshold, --units, --clip and --cut-planes apply to a --patient FILE; "
+                            "give one or drop them")
+    result = generate(output=args.output, verbose=not args.quiet, patient=patient, shape=args.shape,
+                      size=args.size, seeds_in=args.seeds_in, skin=args.skin, smooth_cut=args.smooth_cut,
                       seeds=args.seeds, pore_size=args.pore_size, porosity=porosity, sf=args.sf, sv=args.sv,
                       style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
                       remove_fragments=not args.keep_fragments)

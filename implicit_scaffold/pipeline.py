@@ -14,7 +14,8 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError
-from .field import blend_field, check_porosity, remove_fragments, scaffold_field, solve_level
+from .field import (blend_field, check_porosity, remove_fragments, sample, scaffold_field, solve_level,
+                    solve_level_cut)
 from .grid import Grid, check_memory
 from .progress import Progress
 from .skeleton import check_scale, closed_form_porosity
@@ -45,6 +46,9 @@ class Params:
     voxel: float | None = None
     seed: int = 0
     remove_fragments: bool = True
+    seeds_in: str = "box"
+    skin: float = 0.0
+    smooth_cut: float = 0.0
 
 
 @dataclass
@@ -127,11 +131,22 @@ def validate(**options) -> Params:
         raise ScaffoldError(f"--seed must be a whole number, got {p.seed!r}") from None
     if seed < 0:
         raise ScaffoldError(f"--seed must be >= 0, got {seed}")
+    seeds_in = str(p.seeds_in).lower()
+    if seeds_in not in ("box", "patient"):
+        raise ScaffoldError(f"--seeds-in takes box or patient, got {p.seeds_in!r}")
+    widths = {}
+    for name in ("skin", "smooth_cut"):
+        try:
+            widths[name] = float(getattr(p, name) or 0.0)
+        except (TypeError, ValueError):
+            raise ScaffoldError(f"--{name.replace('_', '-')} must be a width in mm, got {getattr(p, name)!r}") from None
+        if not (math.isfinite(widths[name]) and widths[name] >= 0):
+            raise ScaffoldError(f"--{name.replace('_', '-')} must be a width >= 0 mm, got {getattr(p, name)!r}")
     return Params(shape=p.shape, size=p.size, seeds=seeds,
                   pore_size=_positive("pore-size", p.pore_size, allow_none=False, example="; e.g. --pore-size 0.6"),
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, voxel=_positive("voxel", p.voxel, example="; e.g. --voxel 0.04"), seed=seed,
-                  remove_fragments=bool(p.remove_fragments))
+                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, **widths)
 
 
 def _default_voxel(wall: float, box_volume: float) -> float:
@@ -172,7 +187,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .lattice import lattice_sdf, struts_field
     from .metrics import cell_metrics, trabecular_thicknesses
     from .patient import patient_sdf as eval_patient, primitive
-    from .seeds import seed_count, uniform_seeds
+    from .seeds import seed_count, seeds_in_patient, uniform_seeds
     from .skeleton import scaled_skeleton, voronoi_edges
 
     params = validate(**options)
@@ -198,17 +213,25 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     prog = Progress(verbose)
 
     p0 = closed_form_porosity(params.sf, params.sv)
+    seed_volume = box_volume if params.seeds_in == "box" else float(patient.volume)
     if params.seeds is not None:
         n = params.seeds
     else:
-        n = seed_count(box_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
+        n = seed_count(seed_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
     rng = np.random.default_rng(params.seed)
 
-    with prog.stage("seeds", f"{n}"):
-        seeds = uniform_seeds(lo, hi, n, rng)
+    with prog.stage("seeds", f"{n} in the {params.seeds_in}"):
+        if params.seeds_in == "box":
+            seeds = uniform_seeds(lo, hi, n, rng)
+        else:
+            coarse, coarse_grid = _coarse_patient(patient)
+            seeds = seeds_in_patient(coarse, coarse_grid, lo, hi, n, rng,
+                                     margin=(float(patient.volume) / n) ** (1 / 3))
     with prog.stage("cells"):
         cells = voronoi_cells(seeds, lo, hi)
     walls = trabecular_thicknesses(cells, params.sv)
+    if params.seeds_in == "patient":
+        walls = walls[_faces_near_patient(cells, patient)]
     wall = float(np.median(walls)) if walls.size else float(np.min(hi - lo)) * (1 - params.sv)
     wall_p10 = float(np.percentile(walls, 10)) if walls.size else wall
     voxel = params.voxel if params.voxel is not None else _default_voxel(wall, box_volume)
@@ -242,7 +265,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             with prog.stage("blend", f"k = {k:.4g} mm"):
                 base = blend_field(base, h, k)
             with prog.stage("offset"):
-                level = 0.0 if params.porosity is None else solve_level(base, inside, params.porosity)
+                level = 0.0 if params.porosity is None else solve_level_cut(
+                    base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
             # every value that the level and the blend read must be unclamped
             if abs(level) + k + 2 * h <= cutoff:
                 break
@@ -256,14 +280,17 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
                 base = struts_field(edges, grid, cutoff=cutoff, blend=k, progress=prog.bar("lattice"))
             with prog.stage("offset"):
-                level = solve_level(base, inside, params.porosity)
+                level = solve_level_cut(base, s_p, params.porosity, skin=params.skin,
+                                        smooth_cut=params.smooth_cut)
             # the smooth minimum sums the edges nearer than the cut-off: keep it well clear
             if level + 6 * k + 2 * h <= cutoff:
                 break
             cutoff = 2 * (level + 6 * k + 2 * h)
 
+    # the cells that lie in the scaffold: their seed is inside the patient
+    cells_in = sample(s_p, grid, cells.seeds) < 0
     with prog.stage("scaffold"):
-        s = scaffold_field(base, s_p, level=level, out=base)
+        s = scaffold_field(base, s_p, level=level, skin=params.skin, smooth_cut=params.smooth_cut, out=base)
         del base
         fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
         solid = int(np.count_nonzero(s < 0))
@@ -275,7 +302,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         "patient": getattr(patient, "describe", lambda: type(patient).__name__.lower())(),
         "patient_volume_mm3": float(patient.volume),
         "box_volume_mm3": box_volume,
-        "seeds": int(n),
+        "seeds": int(len(seeds)),
+        "seeds_in": params.seeds_in,
+        "cells_in_scaffold": int(np.count_nonzero(cells_in)),
+        "skin_mm": params.skin,
+        "smooth_cut_mm": params.smooth_cut,
         "pore_size_target_mm": params.pore_size if params.seeds is None else None,
         "sf": params.sf,
         "sv": params.sv,
@@ -295,7 +326,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         report["surface_offset_mm"] = float(level)
     else:
         report["strut_radius_mm"] = float(level)
-    report.update(cell_metrics(cells, params.sf, params.sv))
+    report.update(cell_metrics(cells, params.sf, params.sv, cells_in))
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -324,6 +355,24 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
         write_json(report, out_path.with_suffix(".json"))
     return result
+
+
+def _coarse_patient(patient, cells_across: float = 64.0):
+    """The patient's signed distance on a coarse grid (for seeding), and that grid."""
+    lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
+    h = float(np.max(hi - lo)) / cells_across
+    grid = Grid.covering(lo, hi, h)
+    return np.asarray(patient.sdf_grid(grid), np.float32), grid
+
+
+def _faces_near_patient(cells, patient) -> np.ndarray:
+    """Interior faces (counted once) whose two cells' seeds lie in the patient (coarse test)."""
+    from .metrics import interior_face_pairs
+
+    coarse, grid = _coarse_patient(patient)
+    inside = sample(coarse, grid, cells.seeds) < 0
+    f = interior_face_pairs(cells)
+    return inside[cells.face_cell[f]] & inside[cells.face_neighbor[f]]
 
 
 def write_outputs(result: Result, path: Path) -> None:

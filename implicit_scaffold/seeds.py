@@ -58,3 +58,41 @@ def uniform_seeds(lo, hi, n: int, rng: np.random.Generator) -> np.ndarray:
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
     return lo + rng.random((int(n), 3)) * (hi - lo)
+
+
+def seeds_in_patient(patient_sdf: np.ndarray, grid, lo, hi, n: int, rng: np.random.Generator, *,
+                     margin: float) -> np.ndarray:
+    """Seeds uniform in the patient grown by `margin`, at the density of `n` per patient volume.
+
+    The margin (one cell) makes the cells cut by the patient surface whole Voronoi
+    cells rather than slivers of the bounding box's.
+
+    Parameters
+    ----------
+    patient_sdf : (nx, ny, nz) float ndarray, mm
+        The patient's signed distance on `grid` (a coarse grid is enough).
+    grid : Grid
+    lo, hi : (3,) array_like of float, mm
+        The box the seeds are drawn in (the cells' bounding box).
+    n : int
+        Seeds wanted inside the patient itself.
+    rng : numpy.random.Generator
+    margin : float, mm
+
+    Returns
+    -------
+    (m, 3) float64 ndarray, mm
+        ``m = n · V(patient + margin) / V(patient)`` points (at least 2) in ``[lo, hi]``.
+    """
+    from .field import sample
+
+    region = patient_sdf < margin
+    inside = max(int(np.count_nonzero(patient_sdf < 0)), 1)
+    m = max(2, int(round(n * np.count_nonzero(region) / inside)))
+    out, got = [], 0
+    while got < m:
+        cand = uniform_seeds(lo, hi, max(1024, 2 * (m - got)), rng)
+        keep = cand[sample(patient_sdf, grid, cand) < margin]
+        out.append(keep)
+        got += len(keep)
+    return np.concatenate(out)[:m]

@@ -93,3 +93,34 @@ def test_field_only():
     r = implicit_scaffold.generate(seeds=50, voxel=0.1, size=4.0, mesh=False)
     assert r.mesh is None and r.field.dtype == np.float32 and r.field.shape == r.grid.shape
     assert "triangles" not in r.report
+
+
+def test_seeds_in_patient_follow_the_patient_volume():
+    # a sphere holds pi/6 of its box: seeding only where it is (plus one cell) makes fewer
+    # seeds than the box formula, and the formula's count (of the sphere's volume) inside it
+    from implicit_scaffold.seeds import seed_count
+
+    r = implicit_scaffold.generate(shape="sphere", size=8.0, seeds_in="patient", pore_size=1.0,
+                                   voxel=0.1, porosity=0.7)
+    expected = seed_count(Sphere(8.0).volume, 0.7, 1.0)
+    box_count = seed_count(512.0, 0.7, 1.0)
+    assert expected < r.report["seeds"] < box_count
+    # Poisson count inside the sphere: within 4 standard deviations of the expected number
+    assert abs(r.report["cells_in_scaffold"] - expected) < 4 * np.sqrt(expected)
+    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005 and r.report["bodies"] == 1
+
+
+def test_skin_is_solid_and_porosity_still_met():
+    r = implicit_scaffold.generate(shape="cylinder", size=6.0, seeds=120, voxel=0.06, porosity=0.7, skin=0.3)
+    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005
+    # every voxel of the 0.3 mm shell (less half a voxel for the sampling) is solid
+    s_p = r.patient_sdf
+    shell = (s_p < -0.03) & (s_p > -0.27)
+    assert np.all(r.field[shell] < 0)
+    assert r.mesh.is_watertight and r.report["bodies"] == 1
+
+
+def test_smooth_cut_meets_porosity_and_stays_inside():
+    r = implicit_scaffold.generate(shape="sphere", size=6.0, seeds=150, voxel=0.06, porosity=0.7, smooth_cut=0.2)
+    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005
+    assert Sphere(6.0).sdf(r.mesh.vertices).max() <= r.grid.spacing
