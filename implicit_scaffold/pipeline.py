@@ -22,7 +22,8 @@ from .skeleton import check_scale, closed_form_porosity
 
 STYLES = ("paper", "struts")
 MESH_FORMATS = (".stl", ".ply", ".obj", ".3mf")
-FIELD_FORMATS = (".npy",)
+#: the scaffold's field (float32 signed distance, mm) or, for .tif, its binary solid
+FIELD_FORMATS = (".npy", ".vti", ".nii.gz", ".nii", ".nrrd", ".mha", ".tif", ".tiff", ".zarr")
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
@@ -195,13 +196,14 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if out_path is not None:
         from .mesh import check_writable
 
-        ext = out_path.suffix.lower()
-        if ext not in MESH_FORMATS + FIELD_FORMATS:
+        ext = output_format(out_path)
+        if ext is None:
             raise ScaffoldError(f"cannot write {out_path.name}: use one of "
                                 f"{', '.join(MESH_FORMATS + FIELD_FORMATS)}")
         if ext in MESH_FORMATS and not mesh:
             raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
         check_writable(out_path)
+        check_writable(report_path(out_path))
     if patient is None:
         patient = primitive(params.shape, params.size)
     lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
@@ -353,7 +355,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if out_path is not None:
         from .mesh import write_json
 
-        write_json(report, out_path.with_suffix(".json"))
+        write_json(report, report_path(out_path))
     return result
 
 
@@ -375,14 +377,31 @@ def _faces_near_patient(cells, patient) -> np.ndarray:
     return inside[cells.face_cell[f]] & inside[cells.face_neighbor[f]]
 
 
+def output_format(path) -> str | None:
+    """The mesh or field format that `path`'s name ends with (``.nii.gz`` as a whole), or None."""
+    name = Path(path).name.lower()
+    for ext in sorted(MESH_FORMATS + FIELD_FORMATS, key=len, reverse=True):
+        if name.endswith(ext):
+            return ext
+    return None
+
+
+def report_path(path) -> Path:
+    """The JSON report beside an output: ``scaffold.stl`` -> ``scaffold.json``, ``f.nii.gz`` -> ``f.json``."""
+    path = Path(path)
+    ext = output_format(path) or path.suffix
+    return path.with_name(path.name[: len(path.name) - len(ext)] + ".json")
+
+
 def write_outputs(result: Result, path: Path) -> None:
     """Write the mesh or the field to `path` (atomically); the JSON is written by :func:`generate`."""
-    from .mesh import write_field, write_mesh
+    from .export import write_volume
+    from .mesh import write_mesh
 
-    if path.suffix.lower() == ".npy":
-        write_field(result.field, path)
-    else:
+    if output_format(path) in MESH_FORMATS:
         write_mesh(result.mesh, path)
+    else:
+        write_volume(result.field, result.grid, path)
 
 
 def params_dict(params: Params) -> dict:
