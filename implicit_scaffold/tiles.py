@@ -1,0 +1,236 @@
+"""Tiled evaluation in bounded memory: slabs, an exact streamed quantile, fragments across slabs.
+
+A grid too large for memory is cut into slabs along x. Each slab owns the voxel planes
+``[x0, x1)`` and is computed with a halo of planes on either side, as wide as the
+blend and marching cubes read; a value depends only on its global index, so a slab
+gives the same bits as the whole grid. What needs the whole grid is gathered in
+passes that keep only small summaries:
+
+- the surface offset is a quantile of the field over the patient's voxels:
+  :class:`StreamQuantile` finds the exact order statistics in two passes over the
+  slabs (a radix select on the float32 bit patterns), so the level equals the one
+  :func:`~implicit_scaffold.field.solve_level` finds on the whole field, bit for bit;
+- the solid pieces not attached to the main body are found by labelling each slab and
+  joining labels across slab faces (:class:`SlabComponents`), with the same choice of
+  main body as :func:`~implicit_scaffold.field.remove_fragments` on the whole field.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ScaffoldError
+
+
+@dataclass(frozen=True)
+class Slab:
+    """Planes ``[x0, x1)`` owned by a slab, and ``[h0, h1)`` computed with its halo."""
+
+    x0: int
+    x1: int
+    h0: int
+    h1: int
+
+    @property
+    def owned(self) -> slice:
+        """The owned planes, as a slice into the halo'd array."""
+        return slice(self.x0 - self.h0, self.x1 - self.h0)
+
+
+def plan_slabs(shape, *, max_voxels: int, halo: int) -> list[Slab]:
+    """Cut a grid into slabs along x whose halo'd size stays within `max_voxels`.
+
+    Parameters
+    ----------
+    shape : (3,) tuple of int
+        The grid's voxels.
+    max_voxels : int
+        Voxels one slab may hold, halo included.
+    halo : int
+        Planes computed on either side of the owned ones (clipped at the grid).
+
+    Returns
+    -------
+    list of Slab
+
+    Raises
+    ------
+    ScaffoldError
+        Not even one plane and its halo fit.
+    """
+    nx, ny, nz = (int(v) for v in shape)
+    plane = ny * nz
+    thick = int(max_voxels) // plane - 2 * int(halo)
+    if thick < 1:
+        need = (1 + 2 * halo) * plane
+        raise ScaffoldError(f"one slab of the grid needs {need:,} voxels but the memory allows {int(max_voxels):,}; "
+                            "raise --max-memory or use a larger --voxel")
+    slabs = []
+    for x0 in range(0, nx, thick):
+        x1 = min(x0 + thick, nx)
+        slabs.append(Slab(x0, x1, max(0, x0 - halo), min(nx, x1 + halo)))
+    return slabs
+
+
+def blend_halo(spacing: float, k: float) -> int:
+    """Planes of halo that :func:`~implicit_scaffold.field.blend_field` reads on either side.
+
+    The Gaussian's radius in voxels, as scipy.ndimage truncates it.
+    """
+    from .field import BLEND_SIGMAS
+
+    sigma = k / BLEND_SIGMAS / spacing
+    if k <= 0 or sigma < 0.25:
+        return 0
+    return int(BLEND_SIGMAS * sigma + 0.5)
+
+
+def _ordered_keys(values: np.ndarray) -> np.ndarray:
+    """float32 values as uint32 keys in the same order (negative numbers reversed, -0 < +0)."""
+    bits = np.ascontiguousarray(values, np.float32).view(np.uint32)
+    return np.where(bits >> 31, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
+
+
+def _keys_to_values(keys: np.ndarray) -> np.ndarray:
+    keys = np.asarray(keys, np.uint32)
+    bits = np.where(keys >> 31, keys & np.uint32(0x7FFFFFFF), ~keys).astype(np.uint32)
+    return bits.view(np.float32)
+
+
+class StreamQuantile:
+    """Exact order statistics of float32 values seen slab by slab, in two passes.
+
+    Pass 1 (:meth:`count`) histograms the top 16 bits of each value's ordered key;
+    :meth:`select` then fixes the ranks wanted; pass 2 (:meth:`refine`) histograms
+    the low 16 bits of the values whose top bits hold those ranks. Memory: two
+    65,536-bin histograms per rank, whatever the number of values.
+    """
+
+    def __init__(self):
+        self.high = np.zeros(1 << 16, np.int64)
+        self.n = 0
+        self._ranks: tuple[int, ...] = ()
+        self._low: dict[int, np.ndarray] = {}
+
+    def count(self, values) -> None:
+        """Pass 1: add values (any shape)."""
+        keys = _ordered_keys(np.ravel(values))
+        self.high += np.bincount(keys >> 16, minlength=1 << 16)
+        self.n += keys.size
+
+    def select(self, *ranks: int) -> None:
+        """Fix the 0-based ranks wanted (after pass 1, before pass 2)."""
+        for r in ranks:
+            if not 0 <= r < self.n:
+                raise ValueError(f"rank {r} outside 0..{self.n - 1}")
+        self._ranks = tuple(int(r) for r in ranks)
+        self._cum = np.cumsum(self.high)
+        self._top = {r: int(np.searchsorted(self._cum, r, side="right")) for r in self._ranks}
+        self._low = {top: np.zeros(1 << 16, np.int64) for top in set(self._top.values())}
+
+    def refine(self, values) -> None:
+        """Pass 2: add the same values again (any order, any slabs)."""
+        keys = _ordered_keys(np.ravel(values))
+        top = keys >> 16
+        for t, hist in self._low.items():
+            hist += np.bincount(keys[top == t] & np.uint32(0xFFFF), minlength=1 << 16)
+
+    def values(self) -> list[float]:
+        """The values at the selected ranks, in the order they were given."""
+        out = []
+        for r in self._ranks:
+            t = self._top[r]
+            before = int(self._cum[t - 1]) if t > 0 else 0
+            low = int(np.searchsorted(np.cumsum(self._low[t]), r - before, side="right"))
+            out.append(float(_keys_to_values(np.array([(t << 16) | low], np.uint32))[0]))
+        return out
+
+
+def level_ranks(n_inside: int, porosity: float) -> tuple[int, int] | None:
+    """The two ranks whose midpoint is the level of :func:`~implicit_scaffold.field.solve_level`.
+
+    Returns None when the level lies beyond the values (no solid or all solid).
+    """
+    solid = int(round((1.0 - porosity) * n_inside))
+    if solid <= 0 or solid >= n_inside:
+        return None
+    return solid - 1, solid
+
+
+def level_from_ranks(below: float, above: float) -> float:
+    """The level between two consecutive order statistics, as :func:`solve_level` places it."""
+    return below + (above - below) / 2 if above > below else below
+
+
+class SlabComponents:
+    """6-connected solid pieces of a grid seen slab by slab, joined across slab faces.
+
+    Feed the slabs in order of x with :meth:`add` (the solid of the owned planes);
+    :meth:`finish` picks the main body as :func:`~implicit_scaffold.field.remove_fragments`
+    does on the whole grid (the largest piece; on a tie the one met first in C
+    order); :meth:`fragment_mask` then tells, slab by slab, which voxels to drop.
+    """
+
+    def __init__(self):
+        self._offsets: list[int] = []
+        self._sizes: list[np.ndarray] = []
+        self._parent = np.zeros(0, np.int64)
+        self._last_plane: np.ndarray | None = None
+        self._last_offset = 0
+        self.main: int | None = None
+
+    def _find(self, i: np.ndarray) -> np.ndarray:
+        root = np.asarray(i, np.int64).copy()
+        while True:
+            nxt = self._parent[root]
+            if np.array_equal(nxt, root):
+                return root
+            root = nxt
+
+    @staticmethod
+    def _label(solid: np.ndarray):
+        from scipy import ndimage
+
+        return ndimage.label(solid)
+
+    def add(self, solid: np.ndarray) -> None:
+        """Pass 1: the solid (bool, owned planes only) of the next slab along x."""
+        labels, count = self._label(solid)
+        offset = len(self._parent)
+        self._offsets.append(offset)
+        self._sizes.append(np.bincount(labels.ravel(), minlength=count + 1)[1:])
+        self._parent = np.concatenate([self._parent, np.arange(offset, offset + count, dtype=np.int64)])
+        first = labels[0]
+        if self._last_plane is not None:
+            both = (self._last_plane > 0) & (first > 0)
+            a = self._last_plane[both].astype(np.int64) - 1 + self._last_offset
+            b = first[both].astype(np.int64) - 1 + offset
+            pairs = np.unique(np.stack([a, b], axis=1), axis=0) if a.size else np.zeros((0, 2), np.int64)
+            for u, v in pairs:
+                ru, rv = int(self._find(u)), int(self._find(v))
+                if ru != rv:
+                    # the root met first in C order stays the root: it names the piece
+                    self._parent[max(ru, rv)] = min(ru, rv)
+        self._last_plane = labels[-1].copy()
+        self._last_offset = offset
+
+    def finish(self) -> int:
+        """Choose the main body; return the number of fragments (pieces but the main one)."""
+        if not len(self._parent):
+            self.main = None
+            return 0
+        roots = self._find(np.arange(len(self._parent)))
+        self._roots = roots
+        sizes = np.bincount(roots, weights=np.concatenate(self._sizes), minlength=len(self._parent))
+        # labels are numbered in C order within a slab and slabs come in x order, so the
+        # smallest root of equal size is the piece that whole-grid labelling numbers first
+        self.main = int(np.argmax(sizes))
+        return int(np.count_nonzero(sizes)) - 1
+
+    def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:
+        """Pass 2: voxels of slab `index` (same solid as given to :meth:`add`) to turn into void."""
+        labels, _ = self._label(solid)
+        global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index]
+                                                        + int(labels.max(initial=0))]])
+        return (labels > 0) & (global_root[labels] != self.main)

@@ -1,0 +1,101 @@
+"""Slabs give what the whole grid gives: the offset level and the fragments, bit for bit."""
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from implicit_scaffold.errors import ScaffoldError
+from implicit_scaffold.field import remove_fragments, solve_level
+from implicit_scaffold.tiles import (SlabComponents, StreamQuantile, level_from_ranks, level_ranks,
+                                     plan_slabs)
+
+
+def test_slabs_cover_every_plane_once_within_the_budget():
+    shape = (37, 11, 13)
+    slabs = plan_slabs(shape, max_voxels=9 * 11 * 13, halo=2)
+    owned = np.concatenate([np.arange(s.x0, s.x1) for s in slabs])
+    assert np.array_equal(owned, np.arange(37))
+    for s in slabs:
+        assert (s.h1 - s.h0) * 11 * 13 <= 9 * 11 * 13
+        assert s.h0 == max(0, s.x0 - 2) and s.h1 == min(37, s.x1 + 2)
+
+
+def test_no_plane_fits():
+    with pytest.raises(ScaffoldError, match="raise --max-memory"):
+        plan_slabs((10, 100, 100), max_voxels=20_000, halo=1)
+
+
+def _random_values(rng, n):
+    v = rng.normal(0, 0.2, n).astype(np.float32)
+    v[rng.integers(0, n, n // 20)] = 0.0            # ties at zero, both signs
+    v[rng.integers(0, n, n // 50)] = -0.0
+    v[rng.integers(0, n, n // 20)] = np.float32(0.25)  # a clamped value, repeated
+    return v
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_stream_quantile_is_exact(seed):
+    rng = np.random.default_rng(seed)
+    v = _random_values(rng, 50_000)
+    ranks = sorted(rng.integers(0, v.size, 4).tolist()) + [0, v.size - 1]
+    cuts = np.sort(rng.integers(0, v.size, 6))
+    q = StreamQuantile()
+    for part in np.split(v, cuts):
+        q.count(part)
+    q.select(*ranks)
+    for part in np.split(v[::-1], cuts):   # pass 2 in another order
+        q.refine(part)
+    expected = np.sort(v)[ranks]
+    assert np.array_equal(np.array(q.values(), np.float32), expected)
+
+
+def test_level_equals_solve_level_bit_for_bit():
+    rng = np.random.default_rng(5)
+    field = ndimage.gaussian_filter(rng.normal(size=(40, 30, 20)), 2).astype(np.float32)
+    inside = ndimage.gaussian_filter(rng.normal(size=field.shape), 3) < 0.02
+    slabs = plan_slabs(field.shape, max_voxels=7 * 30 * 20, halo=0)
+    for porosity in (0.3, 0.8, 0.97):
+        q = StreamQuantile()
+        for s in slabs:
+            q.count(field[s.x0:s.x1][inside[s.x0:s.x1]])
+        ranks = level_ranks(q.n, porosity)
+        q.select(*ranks)
+        for s in slabs:
+            q.refine(field[s.x0:s.x1][inside[s.x0:s.x1]])
+        assert level_from_ranks(*q.values()) == solve_level(field, inside, porosity)
+
+
+@pytest.mark.parametrize("thickness", [1, 3, 8, 40])
+def test_fragments_across_slabs_match_the_whole_grid(thickness):
+    rng = np.random.default_rng(thickness)
+    # a shifted smooth noise: many separate blobs of solid, some spanning slab faces
+    field = (ndimage.gaussian_filter(rng.normal(size=(40, 24, 18)), 1.5) + 0.05).astype(np.float32)
+    whole = field.copy()
+    removed = remove_fragments(whole, outside=1.0)
+    assert removed > 3    # the oracle has fragments to remove
+    slabs = plan_slabs(field.shape, max_voxels=thickness * 24 * 18, halo=0)
+    comp = SlabComponents()
+    for s in slabs:
+        comp.add(field[s.x0:s.x1] < 0)
+    assert comp.finish() == removed
+    tiled = field.copy()
+    for i, s in enumerate(slabs):
+        drop = comp.fragment_mask(i, field[s.x0:s.x1] < 0)
+        tiled[s.x0:s.x1][drop] = 1.0
+    assert np.array_equal(tiled, whole)
+
+
+@pytest.mark.parametrize("k", [0.0, 0.05, 0.13])
+def test_blend_of_a_slab_with_its_halo_is_the_whole_blend(k):
+    from implicit_scaffold.field import blend_field
+    from implicit_scaffold.tiles import blend_halo
+
+    rng = np.random.default_rng(9)
+    field = rng.normal(size=(45, 17, 19)).astype(np.float32)
+    h = 0.02
+    whole = blend_field(field, h, k)
+    halo = blend_halo(h, k)
+    # a halo one plane short of the Gaussian's reach would change the slab's edge values
+    assert halo >= 1 or k == 0
+    for s in plan_slabs(field.shape, max_voxels=(6 + 2 * halo) * 17 * 19, halo=halo):
+        part = blend_field(field[s.h0:s.h1], h, k)[s.owned]
+        assert np.array_equal(part, whole[s.x0:s.x1])
