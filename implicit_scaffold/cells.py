@@ -73,6 +73,40 @@ class Cells:
         return np.all((self.seeds - self.lo >= margin) & (self.hi - self.seeds >= margin), axis=1)
 
 
+#: peak bytes per seed while voro++ builds the cells and the skeleton is derived from them
+#: (measured: 54 KB at 20,000 and at 80,000 seeds; rounded up)
+BYTES_PER_SEED = 64 * 1024
+
+
+def check_seed_memory(n: int, pore_size: float | None = None, available: int | None = None) -> int:
+    """Raise a :class:`ScaffoldError` before building cells for more seeds than memory holds.
+
+    Parameters
+    ----------
+    n : int
+        Number of seeds.
+    pore_size : float, mm, optional
+        The target pore size that gave `n`, to suggest one that fits.
+    available : int, optional
+        Bytes free (default: what the machine has free now).
+
+    Returns
+    -------
+    int
+        The estimate, bytes.
+    """
+    from .grid import available_memory
+
+    need = int(n) * BYTES_PER_SEED
+    have = available_memory() if available is None else int(available)
+    if need > have:
+        fix = (f"use a larger --pore-size (e.g. {pore_size * (need / have) ** (1 / 3) * 1.1:.3g} mm)"
+               if pore_size else f"use fewer --seeds (at most {int(have / BYTES_PER_SEED):,})")
+        raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "
+                            f"{have / 2**30:.1f} GiB is free; {fix}")
+    return need
+
+
 def polygon_properties(vertices: np.ndarray, start: np.ndarray):
     """Newell normals, areas and area centroids of many planar polygons.
 

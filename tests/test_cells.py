@@ -48,3 +48,14 @@ def test_poisson_voronoi_mean_faces(cube_cells):
 def test_too_few_seeds():
     with pytest.raises(ScaffoldError, match="at least 2 seeds"):
         voronoi_cells(np.zeros((1, 3)), [0, 0, 0], [1, 1, 1])
+
+
+def test_too_many_seeds_for_memory_fail_before_the_work():
+    from implicit_scaffold.cells import BYTES_PER_SEED, check_seed_memory
+
+    # 2 M seeds on a machine with 8 GiB free: refused, with a pore size that would fit
+    with pytest.raises(ScaffoldError, match=r"2,000,000 seeds need about .* GiB .* --pore-size \(e\.g\. "):
+        check_seed_memory(2_000_000, pore_size=0.6, available=8 * 2**30)
+    with pytest.raises(ScaffoldError, match="fewer --seeds"):
+        check_seed_memory(2_000_000, available=8 * 2**30)
+    assert check_seed_memory(1000, available=8 * 2**30) == 1000 * BYTES_PER_SEED
