@@ -92,7 +92,9 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float) -> BlockLists:
     by = first[prim, 1] + (local // sz) % sy
     bz = first[prim, 2] + local % sz
     bid = (bx * counts[1] + by) * counts[2] + bz
-    order = np.lexsort((prim, bid))
+    # pairs come out grouped by primitive, in ascending order: a stable sort by
+    # block keeps each block's primitives ascending
+    order = np.argsort(bid, kind="stable")
     items = prim[order].astype(np.int32)
     offsets = np.zeros(nblocks + 1, np.int64)
     np.cumsum(np.bincount(bid, minlength=nblocks), out=offsets[1:])

@@ -5,10 +5,17 @@ channels' side quads), negative in the solid, clamped at ``±cutoff``. Struts
 style: ``struts_field`` is the smooth-minimum distance to the Voronoi edges; the
 solid is where it is below the strut radius.
 
-Both bin their primitives into blocks of voxels (:mod:`.blocks`) and evaluate the
-grid tile by tile; tiles are whole blocks aligned on the grid's voxel 0, and a
-voxel's value depends only on its global index, so neither the tiling nor the
-order of the primitives changes a value.
+Both bin their primitives into blocks of 8^3 voxels on the device
+(:func:`bin_on_device`): each block keeps the primitives that can matter to one
+of its voxels, sorted by their distance from the block's centre, so that a
+voxel's loop stops as soon as no later primitive can be nearer than its best.
+The paper style's sign comes from the nearest quad where that quad is nearest
+through its face, and from the convex pieces (binned on the host by
+:mod:`.blocks`) elsewhere. The kernels compute 16 voxels per work-item (8 along z
+in 2 rows along y) as one vector. The grid is evaluated tile by tile; tiles are
+whole blocks aligned on the grid's voxel 0, and a voxel's value depends only on
+its global index and its block's list, so neither the tiling nor the order of
+the primitives changes a value.
 """
 from __future__ import annotations
 
@@ -19,11 +26,14 @@ import numpy as np
 
 from . import opencl
 from .blocks import bin_boxes, block_counts
+from .errors import ScaffoldError
 from .grid import Grid
 from .skeleton import Skeleton
 
 #: block edge, voxels: a work-group computes one block
 BLOCK = 8
+#: float4 words per packed quad (kernels/lattice.cl, QUAD_WORDS)
+QUAD_WORDS = 9
 
 
 @dataclass(frozen=True)
@@ -37,12 +47,31 @@ class Primitives:
 
 
 def _pack_quads(skeleton: Skeleton, origin) -> Primitives:
+    """Quads in their own frames, as the row kernels read them (see ``kernels/lattice.cl``).
+
+    Frame of quad i: origin at vertex 0, ``U`` along the in-plane part of the
+    diagonal v0 -> v2, ``W = n x U``, and the unit normal ``n``; the kernel gets each
+    axis with its offset (``c = A . p + A.w``), the vertices and edges in (U, W)
+    coordinates, and the edges divided by their squared lengths.
+    """
     q = skeleton.quads - np.asarray(origin)
     n = skeleton.quad_normals
-    data = np.zeros((len(q), 5, 4), np.float32)
-    data[:, :4, :3] = q
-    data[:, 4, :3] = n
-    data[:, 4, 3] = np.einsum("ij,ij->i", n, q[:, 0])
+    d1 = q[:, 2] - q[:, 0]
+    u = d1 - np.einsum("ij,ij->i", d1, n)[:, None] * n
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    w = np.cross(n, u)
+    rel = q - q[:, :1]
+    xy = np.stack([np.einsum("ikj,ij->ik", rel, u), np.einsum("ikj,ij->ik", rel, w)], axis=-1)  # (m, 4, 2)
+    e = np.roll(xy, -1, axis=1) - xy
+    len2 = np.einsum("ikj,ikj->ik", e, e)
+    s = e / np.where(len2 > 0, len2, np.inf)[..., None]
+    data = np.zeros((len(q), QUAD_WORDS, 4), np.float32)
+    for row, axis in enumerate((u, w, n)):
+        data[:, row, :3] = axis
+        data[:, row, 3] = -np.einsum("ij,ij->i", axis, q[:, 0])
+    data[:, 3:5] = xy.reshape(-1, 2, 4)
+    data[:, 5:7] = e.reshape(-1, 2, 4)
+    data[:, 7:9] = s.reshape(-1, 2, 4)
     return Primitives("quads", data, q.min(axis=1), q.max(axis=1))
 
 
@@ -51,6 +80,12 @@ def _pack_pieces(skeleton: Skeleton, origin):
     planes = skeleton.planes.copy()
     # shifting the frame by -origin shifts d by -n.origin
     planes[:, 3] -= planes[:, :3] @ origin
+    # The two channels that meet at a window each have their own rim plane; in
+    # float32 the two may leave a gap of an ulp between them, where a voxel would
+    # be in neither. Every plane is widened by a few ulps: whatever that changes
+    # lies within the same few ulps of the surface, or of a window rim in a wall of
+    # the box (where float64 itself cannot tell which side a point is on).
+    planes[:, 3] += _ulps(np.abs(planes[:, 3]).max() + np.abs(origin).max(), 8)
     lo = skeleton.piece_lo - origin
     hi = skeleton.piece_hi - origin
     boxes = np.zeros((len(lo), 2, 4), np.float32)
@@ -61,36 +96,124 @@ def _pack_pieces(skeleton: Skeleton, origin):
     return boxes, planes.astype(np.float32), skeleton.piece_start.astype(np.int32), lo, hi
 
 
+def _ulps(magnitude: float, n: int) -> float:
+    """`n` float32 units in the last place at `magnitude` (mm)."""
+    return float(n * np.spacing(np.float32(max(magnitude, 1.0))))
+
+
 def _tiles(grid: Grid, tile_blocks: int):
     """Slabs along x of `tile_blocks` blocks, each ``(x0, x1)`` in voxels."""
     step = tile_blocks * BLOCK
     return [(x0, min(x0 + step, grid.shape[0])) for x0 in range(0, grid.shape[0], step)]
 
 
-def _launch(kernel, grid: Grid, buffers, scalars, *, tile_blocks, progress):
+def _default_tile_blocks(grid: Grid) -> int:
+    """Tiles of about 8 M voxels: few launches, a bounded device buffer."""
+    slab = BLOCK * grid.shape[1] * grid.shape[2]
+    return max(1, (8 << 20) // slab)
+
+
+def _launch_rows(kernel, grid: Grid, buffers, scalars, *, tile_blocks, progress):
+    """Run a row kernel (kernels/lattice.cl, ROW_ARGS) over `grid`, tile by tile."""
     import pyopencl as cl
 
     ctx, queue = opencl.context()
     cy, cz = block_counts(grid, BLOCK)[1:]
     out = np.empty(grid.shape, np.float32)
-    tiles = _tiles(grid, tile_blocks)
+    tiles = _tiles(grid, tile_blocks if tile_blocks is not None else _default_tile_blocks(grid))
     ny, nz = grid.shape[1:]
     pad = lambda n: -(-n // BLOCK) * BLOCK  # noqa: E731
     dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=4 * (tiles[0][1] - tiles[0][0]) * ny * nz)
     for i, (x0, x1) in enumerate(tiles):
         nx = x1 - x0
-        kernel(queue, (pad(nz), pad(ny), pad(nx)), (BLOCK, BLOCK, BLOCK),
-               dev_out, np.int32(x0), np.int32(0), np.int32(0), np.int32(nx), np.int32(ny), np.int32(nz),
+        # a work-item computes 8 voxels along z in 2 rows along y; a work-group, one block
+        kernel(queue, (cz, pad(ny) // 2, pad(nx)), (1, BLOCK // 2, BLOCK),
+               dev_out, np.int32(x0), np.int32(nx), np.int32(ny), np.int32(nz),
                np.int32(cy), np.int32(cz), np.float32(grid.spacing), *buffers, *scalars)
-        host = np.empty((nx, ny, nz), np.float32)
-        cl.enqueue_copy(queue, host, dev_out, is_blocking=True)
-        out[x0:x1] = host
+        cl.enqueue_copy(queue, out[x0:x1], dev_out, is_blocking=True)
         if progress is not None:
             progress(i + 1, len(tiles))
     return out
 
 
-def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: int = 4,
+def _slack(grid: Grid, *boxes) -> float:
+    """Margin for float32 rounding in distances between points of `grid` and primitives, mm.
+
+    Distances computed in float32 from coordinates of magnitude ``L`` are off by a
+    few ulps of ``L``; culling bounds are loosened by many more, so that rounding
+    can never drop a primitive that could be nearest.
+    """
+    extent = float(np.max(np.asarray(grid.shape) * grid.spacing))
+    for b in boxes:
+        if len(b):
+            extent = max(extent, float(np.abs(b).max()))
+    return 64 * _ulps(extent, 1)
+
+
+def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float):
+    """Bin primitives into blocks of voxels and sort each block's list, on the device.
+
+    ``kind`` is ``"quad"`` (lists cut to the quads that can be nearest for some
+    voxel of the block) or ``"seg"`` (every segment within the cut-off); see
+    ``quad_bin_*``, ``seg_bin_*`` and ``bin_sort`` in ``kernels/lattice.cl``. The
+    lists depend only on the primitives and the grid, neither on the primitives'
+    order nor on a tiling.
+
+    Parameters
+    ----------
+    kind : str
+    buffer : device buffer of the packed primitives
+    lo, hi : (m, 3) float ndarray, mm, relative to the grid's origin
+        Bounding boxes.
+    grid : Grid
+    cutoff : float, mm
+
+    Returns
+    -------
+    offsets, counts, items, keys : device buffers
+        Block ``b``'s primitives are ``items[offsets[b] : offsets[b] + counts[b]]``,
+        in ascending order of ``keys`` (their distance from the block's centre, mm),
+        ties by index.
+    """
+    import pyopencl as cl
+
+    ctx, queue = opencl.context()
+    bx, by, bz = block_counts(grid, BLOCK)
+    n_blocks = bx * by * bz
+    m = len(lo)
+    boxes = np.zeros((max(m, 1), 2, 4), np.float32)
+    boxes[:m, 0, :3] = lo
+    boxes[:m, 1, :3] = hi
+    common = [buffer, opencl.to_device(boxes.reshape(-1, 4)), np.int32(m),
+              np.int32(bx), np.int32(by), np.int32(bz), np.float32(grid.spacing),
+              np.float32(cutoff), np.float32(_slack(grid, lo, hi))]
+    rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
+    counts = cl.Buffer(ctx, rw, hostbuf=np.zeros(n_blocks, np.int32))
+    fill = cl.Buffer(ctx, rw, hostbuf=np.zeros(n_blocks, np.int32))
+    extra = []
+    if kind == "quad":
+        extra = [cl.Buffer(ctx, rw, hostbuf=np.full(n_blocks, np.float32(np.inf).view(np.int32), np.int32))]
+    if m:
+        opencl.kernel("lattice", f"{kind}_bin_count", BLOCK=BLOCK)(queue, (m,), None, *common, counts, *extra)
+    host_counts = np.empty(n_blocks, np.int32)
+    cl.enqueue_copy(queue, host_counts, counts, is_blocking=True)
+    offsets = np.zeros(n_blocks + 1, np.int64)
+    np.cumsum(host_counts, out=offsets[1:])
+    if offsets[-1] >= 2 ** 31:
+        raise ScaffoldError(f"the block lists hold {offsets[-1]} entries, too many for one pass; "
+                            "use a larger --voxel")
+    offsets_dev = opencl.to_device(offsets, np.int32)
+    items = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * max(int(offsets[-1]), 1))
+    keys = cl.Buffer(ctx, cl.mem_flags.READ_WRITE, size=4 * max(int(offsets[-1]), 1))
+    if m:
+        opencl.kernel("lattice", f"{kind}_bin_fill", BLOCK=BLOCK)(
+            queue, (m,), None, *common, *extra, offsets_dev, fill, items, keys)
+    opencl.kernel("lattice", "bin_sort", BLOCK=BLOCK)(
+        queue, (n_blocks,), None, offsets_dev, fill, items, keys, np.int32(n_blocks))
+    return offsets_dev, fill, items, keys
+
+
+def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: int | None = None,
                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Signed distance to the paper's lattice surface on `grid`, negative in the solid.
 
@@ -100,8 +223,9 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     grid : Grid
     cutoff : float, mm
         Distances beyond it are clamped to it (with their sign).
-    tile_blocks : int
-        Thickness of a tile along x, in blocks.
+    tile_blocks : int, optional
+        Thickness of a tile along x, in blocks; by default tiles of about 8 M voxels.
+        The values do not depend on it.
     progress : callable(done, total), optional
 
     Returns
@@ -111,19 +235,30 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     quads = _pack_quads(skeleton, grid.origin)
     boxes, planes, plane_start, lo, hi = _pack_pieces(skeleton, grid.origin)
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
-    qlists = bin_boxes(quads.lo, quads.hi, rel, block=BLOCK, cutoff=cutoff)
     plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3)
+    quad_buffer = opencl.to_device(quads.data.reshape(-1, 4))
+    qoffsets, qcounts, qitems, qkeys = bin_on_device("quad", quad_buffer, quads.lo, quads.hi, grid,
+                                                     cutoff=cutoff)
     kernel = opencl.kernel("lattice", "lattice_paper", BLOCK=BLOCK)
-    buffers = [opencl.to_device(qlists.offsets, np.int32), opencl.to_device(qlists.items, np.int32),
-               opencl.to_device(quads.data.reshape(-1, 4)),
+    buffers = [qoffsets, qcounts, qitems, qkeys, quad_buffer,
                opencl.to_device(plists.offsets, np.int32), opencl.to_device(plists.items, np.int32),
                opencl.to_device(boxes.reshape(-1, 4)), opencl.to_device(plane_start, np.int32),
                opencl.to_device(planes)]
-    return _launch(kernel, grid, buffers, [np.float32(cutoff)],
-                   tile_blocks=tile_blocks, progress=progress)
+    from pyopencl import cltypes
+
+    slack = _slack(grid, quads.lo, quads.hi)
+    # the box of the cells, shrunk by the slack: inside it a quad's side is the sign
+    cells = skeleton.cells
+    box_lo = np.asarray(cells.lo, np.float64) - np.asarray(grid.origin) + slack
+    box_hi = np.asarray(cells.hi, np.float64) - np.asarray(grid.origin) - slack
+    return _launch_rows(kernel, grid, buffers,
+                        [np.float32(cutoff), np.float32(slack), cltypes.make_float4(*box_lo, 0.0),
+                         cltypes.make_float4(*box_hi, 0.0)],
+                        tile_blocks=tile_blocks, progress=progress)
 
 
-def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float, tile_blocks: int = 4,
+def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
+                 tile_blocks: int | None = None,
                  progress: Callable[[int, int], None] | None = None) -> np.ndarray:
     """Smooth-minimum distance to the struts' axes on `grid`.
 
@@ -138,21 +273,30 @@ def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float, 
     cutoff : float, mm
     blend : float, mm
         The smoothing width ``k``.
+    tile_blocks : int, optional
+        Thickness of a tile along x, in blocks; by default tiles of about 8 M voxels.
+        The values do not depend on it.
+    progress : callable(done, total), optional
 
     Returns
     -------
     (nx, ny, nz) float32 ndarray, mm
     """
-    seg = np.asarray(edges, np.float64) - np.asarray(grid.origin)
+    seg = np.asarray(edges, np.float64).reshape(-1, 2, 3) - np.asarray(grid.origin)
+    ab = seg[:, 1] - seg[:, 0]
+    len2 = np.einsum("ij,ij->i", ab, ab)
     data = np.zeros((len(seg), 2, 4), np.float32)
-    data[:, :, :3] = seg
-    rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
-    lists = bin_boxes(seg.min(axis=1), seg.max(axis=1), rel, block=BLOCK, cutoff=cutoff)
+    data[:, 0, :3] = seg[:, 0]
+    data[:, 0, 3] = np.where(len2 > 0, 1 / np.where(len2 > 0, len2, 1), 0)
+    data[:, 1, :3] = ab
+    buffer = opencl.to_device(data.reshape(-1, 4))
+    offsets, counts, items, keys = bin_on_device("seg", buffer, seg.min(axis=1), seg.max(axis=1), grid,
+                                                 cutoff=cutoff)
     kernel = opencl.kernel("lattice", "lattice_struts", BLOCK=BLOCK)
-    buffers = [opencl.to_device(lists.offsets, np.int32), opencl.to_device(lists.items, np.int32),
-               opencl.to_device(data.reshape(-1, 4))]
-    return _launch(kernel, grid, buffers, [np.float32(cutoff), np.float32(blend)],
-                   tile_blocks=tile_blocks, progress=progress)
+    return _launch_rows(kernel, grid, [offsets, counts, items, keys, buffer],
+                        [np.float32(cutoff), np.float32(blend),
+                         np.float32(_slack(grid, seg.min(axis=1), seg.max(axis=1)))],
+                        tile_blocks=tile_blocks, progress=progress)
 
 
 # --- slow, obviously right references (the tests' oracles) -------------------------

@@ -581,14 +581,20 @@ def _write_stl(vertices, faces, fh) -> None:
     rec = np.dtype([("normal", "<f4", (3,)), ("vertex", "<f4", (3, 3)), ("attr", "<u2")])
     for f0 in range(0, len(faces), _FACE_CHUNK):
         tri = vertices[faces[f0:f0 + _FACE_CHUNK]]
-        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        a = tri[:, 1] - tri[:, 0]
+        b = tri[:, 2] - tri[:, 0]
+        # the cross product by components (np.cross's formula, without its copies)
+        n = np.empty_like(a)
+        n[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+        n[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+        n[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
         length = np.sqrt(np.einsum("ij,ij->i", n, n))
         np.divide(n, length[:, None], out=n, where=length[:, None] > 0)
         n[length == 0] = 0.0
         out = np.zeros(len(tri), dtype=rec)
         out["normal"] = n
         out["vertex"] = tri
-        fh.write(out.tobytes())
+        fh.write(out.view(np.uint8))
 
 
 def _write_ply(vertices, faces, fh) -> None:
