@@ -167,3 +167,155 @@ def primitive(shape: str, size=10.0):
 def patient_sdf(patient, grid: Grid) -> np.ndarray:
     """The patient's signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside."""
     return np.asarray(patient.sdf_grid(grid), dtype=np.float32)
+
+
+# --- surgical cuts -----------------------------------------------------------------
+
+#: voxels across the kept part when its bounds or volume are measured on a grid
+_CUT_CELLS = 64
+
+
+def cut_halfspaces(clip=None, cut_planes=None) -> np.ndarray:
+    """The half-spaces ``n . x <= d`` (unit ``n``) that keep what a surgeon keeps.
+
+    Parameters
+    ----------
+    clip : (6,) sequence of float, mm, optional
+        ``(xmin, ymin, zmin, xmax, ymax, zmax)``: keep what lies in this box.
+    cut_planes : (12,) sequence of float, mm, optional
+        Two osteotomy planes, point and normal each: keep the segment between them.
+
+    Returns
+    -------
+    (k, 4) float64 ndarray
+        Rows ``(nx, ny, nz, d)``; none when neither cut is given.
+    """
+    rows = []
+    if clip is not None:
+        c = np.asarray(clip, np.float64).ravel()
+        if c.shape != (6,) or not np.all(np.isfinite(c)):
+            raise ScaffoldError(f"--clip takes six numbers xmin ymin zmin xmax ymax zmax (mm), got {clip!r}")
+        if np.any(c[3:] <= c[:3]):
+            raise ScaffoldError(f"--clip box is empty: each max must exceed its min, got {c.tolist()}; "
+                                "give xmin ymin zmin xmax ymax zmax")
+        for a in range(3):
+            e = np.eye(3)[a]
+            rows += [[*(-e), -c[a]], [*e, c[3 + a]]]
+    if cut_planes is not None:
+        c = np.asarray(cut_planes, np.float64).ravel()
+        if c.shape != (12,) or not np.all(np.isfinite(c)):
+            raise ScaffoldError("--cut-planes takes twelve numbers: a point and a normal for each of two planes "
+                                f"(mm), got {cut_planes!r}")
+        p, n, q, m = c[0:3], c[3:6], c[6:9], c[9:12]
+        if np.linalg.norm(n) == 0 or np.linalg.norm(m) == 0:
+            raise ScaffoldError("--cut-planes normals must be non-zero vectors, e.g. 0 0 1")
+        n, m = n / np.linalg.norm(n), m / np.linalg.norm(m)
+        # keep the side of each plane that holds the other plane's point: the segment between them
+        for point, normal, other in ((p, n, q), (q, m, p)):
+            side = float(np.dot(other - point, normal))
+            if side == 0:
+                raise ScaffoldError("--cut-planes: each plane's point must lie off the other plane; "
+                                    "give two distinct osteotomy planes")
+            keep = normal if side > 0 else -normal
+            rows.append([*(-keep), -float(np.dot(keep, point))])
+    return np.asarray(rows, np.float64).reshape(-1, 4)
+
+
+def _halfspace_box(hs: np.ndarray, lo, hi):
+    """Shrink ``[lo, hi]`` by the half-spaces whose normal is along an axis (exact bounds there)."""
+    lo, hi = np.array(lo, np.float64), np.array(hi, np.float64)
+    for *n, d in hs:
+        a = int(np.argmax(np.abs(n)))
+        if abs(abs(n[a]) - 1) < 1e-12:
+            if n[a] > 0:
+                hi[a] = min(hi[a], d / n[a])
+            else:
+                lo[a] = max(lo[a], d / n[a])
+    return lo, hi
+
+
+class CutPatient:
+    """The part of a patient that a clip box and/or two osteotomy planes keep.
+
+    Its signed distance is ``max(s_base, max_i(n_i . x - d_i))``, its bounds those of
+    what is kept, and its volume that of what is kept: exact along grid lines for a
+    mesh (``base.volume_within``), counted on a fine grid otherwise.
+
+    Parameters
+    ----------
+    base : patient
+        Anything with ``lo``, ``hi``, ``volume`` and ``sdf_grid``.
+    halfspaces : (k, 4) float ndarray
+        From :func:`cut_halfspaces`.
+    what : str
+        The cut as the user gave it, for messages and the report.
+    """
+
+    def __init__(self, base, halfspaces, *, what: str = "cut"):
+        self.base = base
+        self.halfspaces = np.asarray(halfspaces, np.float64).reshape(-1, 4)
+        self.what = what
+        blo, bhi = np.asarray(base.lo, np.float64), np.asarray(base.hi, np.float64)
+        lo, hi = _halfspace_box(self.halfspaces, blo, bhi)
+        if np.any(hi <= lo):
+            self._miss(blo, bhi)
+        if hasattr(base, "volume_within"):
+            volume, klo, khi = base.volume_within(self.halfspaces, lo, hi)
+            if klo is None or volume <= 0:
+                self._miss(blo, bhi)
+            self.lo, self.hi, self._volume = klo, khi, float(volume)
+        else:
+            self.lo, self.hi, self._volume = self._measure(lo, hi, blo, bhi)
+
+    def _miss(self, blo, bhi):
+        span = ", ".join(f"{a} {lo:.4g}..{hi:.4g}" for a, lo, hi in zip("xyz", blo, bhi))
+        raise ScaffoldError(f"the {self.what} keeps none of the bone (it spans {span} mm); "
+                            "move the cut onto the bone")
+
+    def _measure(self, lo, hi, blo, bhi):
+        """Bounds (refined twice on coarse grids) and volume (voxel count) of what is kept."""
+        for _ in range(2):
+            h = float(np.max(hi - lo)) / _CUT_CELLS
+            grid = Grid.covering(lo, hi, h)
+            kept = self._sdf_on(grid) <= 0
+            if not kept.any():
+                self._miss(blo, bhi)
+            idx = np.argwhere(kept)
+            pts_lo = grid.indices_to_points(idx.min(axis=0)[None])[0]
+            pts_hi = grid.indices_to_points(idx.max(axis=0)[None])[0]
+            # a voxel centre stands for its whole voxel, and one more for what lies between centres
+            lo, hi = np.maximum(pts_lo - 1.5 * h, lo), np.minimum(pts_hi + 1.5 * h, hi)
+        h = float(np.max(hi - lo)) / (4 * _CUT_CELLS)
+        grid = Grid.covering(lo, hi, h)
+        volume = float(np.count_nonzero(self._sdf_on(grid) < 0)) * grid.voxel_volume
+        return lo, hi, volume
+
+    @property
+    def volume(self) -> float:
+        """Volume of what is kept, mm³."""
+        return self._volume
+
+    def describe(self) -> str:
+        base = getattr(self.base, "describe", lambda: type(self.base).__name__.lower())()
+        return f"{base}, {self.what}"
+
+    def cut_sdf_axes(self, x, y, z) -> np.ndarray:
+        """``max_i(n_i . x - d_i)`` at broadcastable coordinates, mm (negative where kept)."""
+        out = None
+        for nx, ny, nz, d in self.halfspaces:
+            v = nx * x + ny * y + nz * z - d
+            out = v if out is None else np.maximum(out, v)
+        return out
+
+    def _sdf_on(self, grid: Grid) -> np.ndarray:
+        out = np.asarray(self.base.sdf_grid(grid), np.float32)
+        ax, ay, az = grid.axes()
+        for x0 in range(0, grid.shape[0], 64):
+            x1 = min(x0 + 64, grid.shape[0])
+            cut = self.cut_sdf_axes(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
+            np.maximum(out[x0:x1], cut, out=out[x0:x1])
+        return out
+
+    def sdf_grid(self, grid: Grid) -> np.ndarray:
+        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside what is kept."""
+        return self._sdf_on(grid)

@@ -511,7 +511,6 @@ def load_volume(path, *, label=None, threshold=None) -> VolumePatient:
         Unreadable file, not a 3-D scalar volume, bad spacing or direction, or no bone voxel.
     """
     import SimpleITK as sitk
-    from scipy import ndimage
 
     path = Path(path)
     name = _name(path)

@@ -1,0 +1,114 @@
+"""Issue 3 benchmark: a scaffold in a 20 mm femoral shaft segment (jigsaw_femur.stl).
+
+    python benchmarks/bench_patient.py [--runs 1] [--warmup 0] [--voxel 0.05] [--no-figure]
+
+Two osteotomy planes at z = 210 and 230 mm keep a 20 mm segment of the shaft; pore size
+0.6 mm, porosity 0.7, voxel 0.05 mm (about 10^8 voxels). Prints the wall time and the
+peak resident memory of every stage (loading the mesh included), the median of --runs
+runs each in a fresh process, and saves a picture of the scaffold to
+benchmarks/figures/femur_shaft.png (drawn from every third voxel of its field, after
+the timings). Needs ../shared/data (see its README) and about 12 GB of free memory.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import median_runs, table  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+FIGURE = Path(__file__).resolve().parent / "figures" / "femur_shaft.png"
+
+RUN = """
+import os, tempfile, threading, time
+from contextlib import contextmanager
+import psutil
+import implicit_scaffold
+from implicit_scaffold import opencl, progress
+from implicit_scaffold.patient_io import load_patient
+
+proc = psutil.Process()
+state = {{'peak': 0, 'stop': False}}
+def sample():
+    while not state['stop']:
+        state['peak'] = max(state['peak'], proc.memory_info().rss)
+        time.sleep(0.02)
+threading.Thread(target=sample, daemon=True).start()
+peaks = {{}}
+@contextmanager
+def measured(name):
+    state['peak'] = proc.memory_info().rss
+    yield
+    state['peak'] = max(state['peak'], proc.memory_info().rss)
+    peaks[name] = max(peaks.get(name, 0), state['peak'] / 2**20)
+plain_stage = progress.Progress.stage
+@contextmanager
+def stage(self, name, detail=''):
+    with measured(name), plain_stage(self, name, detail):
+        yield
+progress.Progress.stage = stage
+
+opencl.context()
+with measured('load'):
+    patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
+out = os.path.join(tempfile.mkdtemp(), 'femur_shaft.stl')
+t0 = time.perf_counter()
+r = implicit_scaffold.generate(patient=patient, pore_size=0.6, porosity=0.7, voxel={voxel}, output=out,
+                               verbose=True)
+total = time.perf_counter() - t0 + patient.load_seconds
+rep = r.report
+_out = {{'total_s': total, 'stages': rep['timings_s'], 'peak_mb': peaks,
+        'grid': 'x'.join(map(str, rep['grid_shape'])), 'mvoxels': r.grid.size / 1e6,
+        'patient_volume_mm3': rep['patient_volume_mm3'], 'box_volume_mm3': rep['box_volume_mm3'],
+        'seeds': rep['seeds'], 'cells_in_scaffold': rep['cells_in_scaffold'],
+        'porosity_voxel': rep['porosity_voxel'], 'porosity_mesh': rep['porosity_mesh'],
+        'triangles': rep['triangles'], 'bodies': rep['bodies'], 'watertight': rep['watertight']}}
+if {figure!r}:
+    # the picture is 900 px across 27 mm: every third voxel of the same field draws the same scaffold
+    # with a tenth of the triangles (rendering all of them takes tens of GB off screen)
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.mesh import mesh_field
+    from implicit_scaffold.report import render_mesh
+    step = max(1, int(round(0.15 / r.grid.spacing)))
+    r.mesh = None
+    light = mesh_field(r.field[::step, ::step, ::step], Grid(r.grid.origin, r.grid.spacing * step,
+                       tuple(-(-n // step) for n in r.grid.shape)), check=False)
+    del r
+    os.makedirs(os.path.dirname({figure!r}), exist_ok=True)
+    with open({figure!r}, 'wb') as f:
+        f.write(render_mesh(light, size=(900, 900)))
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--warmup", type=int, default=0)
+    ap.add_argument("--voxel", type=float, default=0.05)
+    ap.add_argument("--no-figure", action="store_true")
+    args = ap.parse_args(argv)
+    femur = DATA / "jigsaw_femur.stl"
+    if not femur.is_file():
+        print(f"needs {femur} (the shared data folder); nothing measured", file=sys.stderr)
+        return 1
+    code = RUN.format(femur=str(femur), voxel=args.voxel, figure="" if args.no_figure else str(FIGURE))
+    med, _ = median_runs(code, args.runs, warmup=args.warmup)
+    stages = med["stages"]
+    rows = [[name, f"{stages[name]:.2f}", f"{med['peak_mb'].get(name, float('nan')):.0f}"] for name in stages]
+    rows.append(["total", f"{med['total_s']:.2f}", f"{med['peak_rss_mb']:.0f}"])
+    print(f"femoral shaft segment z 210..230 mm of jigsaw_femur.stl: pore size 0.6 mm, porosity 0.7, "
+          f"voxel {args.voxel} mm, grid {med['grid']} ({med['mvoxels']:.1f} Mvoxels); median of {args.runs}")
+    print(table(rows, ["stage", "time s", "peak RSS MiB"]))
+    print(f"patient volume {med['patient_volume_mm3']:.1f} mm3, box volume {med['box_volume_mm3']:.1f} mm3, "
+          f"seeds {med['seeds']:.0f}, cells in scaffold {med['cells_in_scaffold']:.0f}")
+    print(f"porosity voxels {med['porosity_voxel']:.4f}, mesh {med['porosity_mesh']:.4f}; "
+          f"triangles {med['triangles']:.0f}, bodies {med['bodies']:.0f}, watertight {med['watertight']}")
+    if not args.no_figure:
+        print(f"figure: {FIGURE}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,179 @@
+"""Mesh patients: signed distance against analytic shapes and brute force, robust sign, cuts, scaffold inside."""
+import math
+
+import numpy as np
+import pytest
+import trimesh
+
+from implicit_scaffold import generate
+from implicit_scaffold.grid import Grid
+from implicit_scaffold.patient import CutPatient, Cylinder, Sphere, cut_halfspaces
+from implicit_scaffold.patient_mesh import (inside_votes, mesh_patient_from_trimesh, triangle_distance,
+                                            triangle_distance_reference)
+
+
+def sphere_mesh(size=10.0, subdivisions=5):
+    """The analytic Sphere(size) as a mesh: centred in [0, size]^3."""
+    m = trimesh.creation.icosphere(subdivisions=subdivisions, radius=size / 2)
+    m.apply_translation([size / 2] * 3)
+    return m
+
+
+def cylinder_mesh(size=10.0, sections=256):
+    """The analytic Cylinder(size) as a mesh: axis z through (size/2, size/2), z in [0, size]."""
+    m = trimesh.creation.cylinder(radius=size / 2, height=size, sections=sections)
+    m.apply_translation([size / 2] * 3)
+    return m
+
+
+def brute_distance(points, triangles):
+    """Distance to the nearest triangle by trimesh's closest-point routine (an independent oracle)."""
+    p = np.asarray(points, np.float64)
+    best = np.full(len(p), np.inf)
+    for t in np.asarray(triangles, np.float64):
+        q = trimesh.triangles.closest_point(np.repeat(t[None], len(p), axis=0), p)
+        best = np.minimum(best, np.linalg.norm(q - p, axis=1))
+    return best
+
+
+@pytest.mark.parametrize("make, analytic", [(sphere_mesh, Sphere), (cylinder_mesh, Cylinder)])
+def test_mesh_sdf_matches_analytic_shape(make, analytic):
+    mesh = make()
+    patient = mesh_patient_from_trimesh(mesh, name="shape.stl")
+    exact = analytic(10.0)
+    np.testing.assert_allclose(patient.lo, exact.lo, atol=1e-9)
+    np.testing.assert_allclose(patient.hi, exact.hi, atol=1e-9)
+    # a closed mesh's volume is its own exact volume; the facets lose a little against the shape
+    assert patient.closed and patient.volume == pytest.approx(abs(mesh.volume), rel=1e-12)
+    assert patient.volume == pytest.approx(exact.volume, rel=2e-3)
+    grid = Grid.covering(exact.lo, exact.hi, 0.25)
+    h = grid.spacing
+    got = patient.sdf_grid(grid)
+    want = exact.sdf_grid(grid)
+    assert got.dtype == np.float32 and got.shape == grid.shape
+    assert np.max(np.abs(got - want)) < 0.5 * h
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("make, shape", [(sphere_mesh, "sphere"), (cylinder_mesh, "cylinder")])
+def test_mesh_scaffold_porosity_matches_analytic(make, shape):
+    opts = dict(seeds=60, porosity=None, voxel=0.2, seed=3, mesh=False)
+    ref = generate(shape=shape, size=10.0, **opts)
+    got = generate(patient=mesh_patient_from_trimesh(make(), name=f"{shape}.stl"), **opts)
+    assert got.grid == ref.grid
+    assert abs(got.report["porosity_voxel"] - ref.report["porosity_voxel"]) < 0.01
+
+
+def test_sign_survives_holes_duplicates_and_flips():
+    clean = sphere_mesh(subdivisions=4)
+    rng = np.random.default_rng(5)
+    faces = clean.faces.copy()
+    # flip the winding of half the faces, duplicate some, punch holes by deleting others
+    flip = rng.random(len(faces)) < 0.5
+    faces[flip] = faces[flip][:, ::-1]
+    holes = rng.choice(len(faces), 8, replace=False)
+    dup = rng.choice(len(faces), 40, replace=False)
+    faces = np.concatenate([np.delete(faces, holes, axis=0), faces[dup]])
+    broken = trimesh.Trimesh(clean.vertices, faces, process=False)
+    assert not broken.is_watertight
+    grid = Grid.covering([0, 0, 0], [10, 10, 10], 0.2)
+    want = mesh_patient_from_trimesh(clean, name="clean").sdf_grid(grid) < 0
+    patient = mesh_patient_from_trimesh(broken, name="broken")
+    assert not patient.closed
+    got = patient.sdf_grid(grid) < 0
+    assert np.mean(got == want) >= 0.999
+    # its volume is integrated along lines instead: close to the clean one
+    assert patient.volume == pytest.approx(abs(clean.volume), rel=0.01)
+
+
+def test_sign_counts_a_line_through_a_vertex_once():
+    # a box whose vertices and edges sit exactly on grid lines: every line grazes edges
+    box = trimesh.creation.box(extents=[2, 2, 2])
+    box.apply_translation([1, 1, 1])
+    grid = Grid((0.0, 0.0, 0.0), 0.5, (5, 5, 5))
+    inside, odd = inside_votes(np.asarray(box.vertices), np.asarray(box.faces), grid)
+    assert odd == 0
+    want = Grid.points(grid).reshape(5, 5, 5, 3)
+    strict = np.all((want > 0) & (want < 2), axis=-1)
+    # voxels strictly inside are inside and those strictly outside are outside
+    assert inside[strict].all()
+    assert not inside[np.any((want < 0) | (want > 2), axis=-1)].any()
+
+
+def test_kernel_distance_equals_brute_force():
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(0.5, 2.5, (25, 1, 3))
+    triangles = centres + rng.normal(0, 0.5, (25, 3, 3))
+    V = triangles.reshape(-1, 3)
+    F = np.arange(len(V)).reshape(-1, 3)
+    grid = Grid((-0.37, -0.41, -0.29), 0.13, (29, 31, 27))  # odd sizes: partial blocks and tiles
+    got = triangle_distance(V, F, grid)
+    points = grid.points()
+    want = brute_distance(points, triangles)
+    # the two oracles agree with each other
+    sel = slice(None, None, 97)
+    np.testing.assert_allclose(triangle_distance_reference(points[sel], triangles), want[sel], atol=1e-9)
+    got = got.reshape(-1)
+    band = want <= 3 * grid.spacing
+    assert band.sum() > 1000 and (~band).sum() > 1000
+    # exact within the band (float32 coordinates relative to the grid origin)
+    assert np.max(np.abs(got[band] - want[band])) < 1e-4
+    # far from it: the distance to one real triangle, so never below the true one, and within a voxel
+    # of it (a feature transform's nearest band voxel may see another nearest triangle near a medial axis)
+    assert np.all(got[~band] >= want[~band] - 1e-4)
+    assert np.max(got[~band] - want[~band]) < grid.spacing
+
+
+@pytest.mark.slow
+def test_clipped_mesh_volume_and_bounds_exact():
+    cube = trimesh.creation.box(extents=[2, 2, 2])
+    cube.apply_translation([1, 1, 1])
+    base = mesh_patient_from_trimesh(cube, name="cube")
+    # the plane x + y + z = 3 through the centre halves the cube (central symmetry)
+    half = CutPatient(base, [[*(np.ones(3) / math.sqrt(3)), 3 / math.sqrt(3)]])
+    assert half.volume == pytest.approx(4.0, rel=1e-4)
+    clip = CutPatient(base, cut_halfspaces(clip=(-1, 0.5, 0.25, 1.5, 5, 1.75)))
+    assert clip.volume == pytest.approx(1.5 * 1.5 * 1.5, rel=1e-9)
+    np.testing.assert_allclose(clip.lo, [0, 0.5, 0.25], atol=1e-3)
+    np.testing.assert_allclose(clip.hi, [1.5, 2, 1.75], atol=1e-3)
+    # two osteotomy planes, normals either way: the slab 0.5 <= z <= 1.25
+    slab = CutPatient(base, cut_halfspaces(cut_planes=(0, 0, 0.5, 0, 0, 1, 0, 0, 1.25, 0, 0, 1)))
+    assert slab.volume == pytest.approx(4 * 0.75, rel=1e-9)
+    assert slab.lo[2] == pytest.approx(0.5) and slab.hi[2] == pytest.approx(1.25)
+
+
+def test_cut_sdf_keeps_only_the_segment():
+    base = mesh_patient_from_trimesh(cylinder_mesh(), name="cyl")
+    cut = CutPatient(base, cut_halfspaces(cut_planes=(0, 0, 3, 0, 0, -1, 0, 0, 7, 0, 0, 1)))
+    grid = Grid.covering(cut.lo, cut.hi, 0.25)
+    assert grid.lo[2] < 3 < grid.origin[2] + grid.spacing and grid.hi[2] > 7 > grid.hi[2] - 2 * grid.spacing
+    s = cut.sdf_grid(grid)
+    z = grid.axes()[2]
+    want = np.maximum(Cylinder(10).sdf_grid(grid), np.maximum(3 - z, z - 7)[None, None, :])
+    assert np.max(np.abs(s - want)) < 0.5 * grid.spacing
+    # exact cylinder segment of radius 5 and length 4, less the 256-gon's facets
+    assert cut.volume == pytest.approx(math.pi * 25 * 4, rel=2e-3)
+
+
+def test_cut_of_an_analytic_patient_counts_its_volume():
+    # patients without volume_within (analytic, volumes) are measured on a grid
+    cap = CutPatient(Sphere(10), cut_halfspaces(clip=(-1, -1, 7, 11, 11, 11)))
+    # a cap of height 3 of a ball of radius 5: pi h^2 (3 r - h) / 3
+    assert cap.volume == pytest.approx(math.pi * 3 ** 2 * (3 * 5 - 3) / 3, rel=0.01)
+    assert cap.lo[2] == pytest.approx(7) and cap.hi[2] == pytest.approx(10, abs=0.5)
+
+
+@pytest.mark.slow
+def test_scaffold_lies_inside_mesh_patient():
+    patient = mesh_patient_from_trimesh(cylinder_mesh(), name="cyl")
+    r = generate(patient=patient, seeds=50, porosity=0.7, voxel=0.2, seed=1)
+    assert r.mesh.is_watertight
+    s = Cylinder(10).sdf(np.asarray(r.mesh.vertices))
+    assert np.max(s) <= r.grid.spacing
+
+
+def test_same_mesh_same_bytes():
+    patient = mesh_patient_from_trimesh(sphere_mesh(subdivisions=3), name="s")
+    grid = Grid.covering(patient.lo, patient.hi, 0.3)
+    a, b = patient.sdf_grid(grid), patient.sdf_grid(grid)
+    assert a.tobytes() == b.tobytes()
