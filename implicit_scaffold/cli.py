@@ -1,4 +1,4 @@
-"""Command line: ``implicit-scaffold generate``, ``implicit-scaffold info``.
+"""Command line: ``implicit-scaffold generate``, ``analyze`` and ``info``.
 
 A thin layer over the public API. Bad input prints one line on stderr and exits
 with code 2; nothing is written then.
@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+import warnings
 
 from . import __version__
 from .errors import ScaffoldError
@@ -19,6 +20,17 @@ def _size(text: str):
         vals = [float(v) for v in parts]
     except ValueError:
         raise argparse.ArgumentTypeError(f"--size takes one or three lengths in mm, got {text!r}") from None
+    return vals[0] if len(vals) == 1 else tuple(vals)
+
+
+def _spacing(text: str):
+    parts = text.replace(",", " ").split()
+    try:
+        vals = [float(v) for v in parts]
+    except ValueError:
+        vals = []
+    if len(vals) not in (1, 3):
+        raise argparse.ArgumentTypeError(f"--spacing takes one or three lengths in mm, got {text!r}")
     return vals[0] if len(vals) == 1 else tuple(vals)
 
 
@@ -35,8 +47,54 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="build a scaffold and write its mesh (or field) and JSON report")
     g.add_argument("-o", "--output", required=True,
-                   help="output file: .stl .ply .obj .3mf (mesh) or .npy (signed distance); "
+                   help="output file: .stl .ply .obj .3mf (mesh); .npy .vti .nii.gz .nii .nrrd .mha .zarr "
+                        "(signed distance, float32 mm) or .tif (binary solid, for ImageJ/BoneJ); "
                         "the JSON report is written beside it")
+    g.add_argument("--report", metavar="HTML", default=None,
+                   help="also write a visual report: pictures, histograms, targets against measured values")
+    _add_build_options(g)
+
+    sl = sub.add_parser("slice", help="write the layer images a DLP/SLA printer takes (PNG stack), no mesh",
+                        description="Build a scaffold (same options as generate) and write its layers as "
+                                    "8-bit PNG images at the printer's pixel pitch and layer height, with "
+                                    "anti-aliased edges from the field, and stack.json with the geometry.")
+    sl.add_argument("-o", "--output", required=True, metavar="DIR",
+                    help="a new folder for the layers (it appears only once the stack is complete)")
+    sl.add_argument("--pixel", type=float, default=None, help="printer pixel pitch in mm (default: the voxel)")
+    sl.add_argument("--layer", type=float, default=None, help="layer height in mm (default: the voxel)")
+    _add_build_options(sl)
+
+    sw = sub.add_parser("sweep", help="reproduce the paper's experiments (CSV + PNG per figure)",
+                        description="Porosity against Sf and Sv (Fig. 10) and against the seed count (Fig. 11), "
+                                    "seeds, pore size, interconnection, channel size and trabecular thickness "
+                                    "against the target pore size (Fig. 13, 14, 17, 19), on the 10 mm cube.")
+    sw.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the CSV and PNG files")
+    sw.add_argument("--quick", action="store_true", help="a coarse version (about a minute on 2 cores)")
+    sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    sw.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+    a = sub.add_parser("analyze", help="voxel morphometry of any scaffold mesh or binary volume",
+                       description="Measure a scaffold (from this tool or any other) or bone as bone "
+                                   "morphometry does: strut thickness and pore diameter by maximal spheres, "
+                                   "connectivity density, interconnected porosity, fragments, BS/BV.")
+    a.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off) or a binary volume (.nrrd .nii "
+                                ".nii.gz .mha .mhd .tif, or a folder of .tif slices; solid = non-zero)")
+    a.add_argument("--voxel", type=float, default=None,
+                   help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
+                        "resampled to it (default: the volume's own spacing)")
+    a.add_argument("--spacing", type=_spacing, default=None,
+                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
+    a.add_argument("-o", "--output", metavar="JSON", default=None, help="write the measures as JSON")
+    a.add_argument("--report", metavar="HTML", default=None,
+                   help="also write a visual report: picture, section, histograms, measures")
+    a.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+    sub.add_parser("info", help="versions and the OpenCL device")
+    return parser
+
+
+def _add_build_options(g) -> None:
+    """The options that say what to build, shared by generate and slice."""
     g.add_argument("--shape", default="box", choices=["box", "cylinder", "sphere"],
                    help="built-in patient shape (default: box)")
     g.add_argument("--size", type=_size, default=10.0,
@@ -74,33 +132,35 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--blend", type=float, default=None,
                    help="smoothing width k in mm; 0 keeps creases sharp (default: half the thin walls)")
     g.add_argument("--voxel", type=float, default=None, help="voxel size in mm (default: from the walls)")
-    g.add_argument("--keep-fragments", action="store_true",
-                   help="keep solid pieces not attached to the main body (removed by default)")
+    frag = g.add_mutually_exclusive_group()
+    frag.add_argument("--remove-fragments", dest="keep_fragments", action="store_false",
+                      help="drop solid pieces not attached to the main body (the default)")
+    frag.add_argument("--keep-fragments", dest="keep_fragments", action="store_true",
+                      help="keep solid pieces not attached to the main body")
+    g.set_defaults(keep_fragments=False)
     g.add_argument("--seed", type=int, default=0, help="random seed; same inputs and seed, same bytes (default 0)")
-    g.add_argument("--report", metavar="HTML", default=None,
-                   help="also write a visual report: pictures, histograms, targets against measured values")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
-    sub.add_parser("info", help="versions and the OpenCL device")
-    return parser
+
+def _check_report(path) -> None:
+    from .mesh import check_writable
+
+    if not path.lower().endswith((".html", ".htm")):
+        raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {path!r}")
+    check_writable(path, formats=(".html", ".htm"))
 
 
-def _generate(args) -> int:
+def _build(args, *, output=None, mesh=True, morphometry=True):
+    """Run the pipeline with the build options of `args` (generate and slice share them)."""
     from .pipeline import generate
 
-    t0 = time.perf_counter()
-    if args.report is not None:
-        from .mesh import check_writable
-
-        if not args.report.lower().endswith((".html", ".htm")):
-            raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {args.report!r}")
-        check_writable(args.report, formats=(".html", ".htm"))
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
     patient = None
     if args.patient is not None:
         from .mesh import check_writable
 
-        check_writable(args.output)  # before a long load, not after
+        if output is not None:
+            check_writable(output)  # before a long load, not after
         from .patient_io import load_patient
 
         patient = load_patient(args.patient, label=args.label, threshold=args.threshold, units=args.units,
@@ -108,11 +168,18 @@ def _generate(args) -> int:
     elif args.label is not None or args.threshold is not None or args.clip or args.cut_planes or args.units:
         raise ScaffoldError("--label, --threshold, --units, --clip and --cut-planes apply to a --patient FILE; "
                             "give one or drop them")
-    result = generate(output=args.output, verbose=not args.quiet, patient=patient, shape=args.shape,
-                      size=args.size, seeds_in=args.seeds_in, skin=args.skin, smooth_cut=args.smooth_cut,
-                      seeds=args.seeds, pore_size=args.pore_size, porosity=porosity, sf=args.sf, sv=args.sv,
-                      style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
-                      remove_fragments=not args.keep_fragments)
+    return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
+                    shape=args.shape, size=args.size, seeds_in=args.seeds_in, skin=args.skin,
+                    smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
+                    sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
+                    remove_fragments=not args.keep_fragments)
+
+
+def _generate(args) -> int:
+    t0 = time.perf_counter()
+    if args.report is not None:
+        _check_report(args.report)
+    result = _build(args, output=args.output)
     if args.report is not None:
         from .report import write_run_report
 
@@ -140,10 +207,126 @@ def _generate(args) -> int:
     return 0
 
 
-def result_json(output) -> str:
-    from pathlib import Path
+#: rows of the analyze table: key, label, unit
+_ANALYZE_ROWS = (
+    ("porosity_voxel", "porosity (voxels)", ""),
+    ("porosity_mesh", "porosity (mesh)", ""),
+    ("strut_thickness_mm", "strut thickness, max spheres", "mm"),
+    ("pore_diameter_mm", "pore diameter, max spheres", "mm"),
+    ("connectivity_density_per_mm3", "connectivity density", "mm^-3"),
+    ("euler_characteristic", "Euler characteristic", ""),
+    ("interconnected_porosity", "interconnected share of the void", ""),
+    ("fragments", "fragments (pieces besides the main one)", ""),
+    ("surface_area_mm2", "surface area", "mm^2"),
+    ("bs_bv_per_mm", "BS/BV", "mm^-1"),
+)
 
-    return str(Path(output).with_suffix(".json"))
+
+def analyze_table(report: dict) -> str:
+    """The measures as an aligned text table."""
+    rows = []
+    for key, label, unit in _ANALYZE_ROWS:
+        if key not in report:
+            continue
+        v = report[key]
+        if isinstance(v, dict):
+            text = "—" if v.get("mean") is None else f"mean {v['mean']:.4g}, sd {v['sd']:.4g}, max {v['max']:.4g}"
+        elif v is None:
+            text = "—"
+        elif isinstance(v, float):
+            text = f"{v:.4g}"
+        else:
+            text = str(v)
+        rows.append((label, f"{text} {unit}".rstrip()))
+    width = max(len(r[0]) for r in rows)
+    return "\n".join(f"  {a.ljust(width)}  {b}" for a, b in rows)
+
+
+def _analyze(args) -> int:
+    from .morphometry import analyze_file
+
+    t0 = time.perf_counter()
+    if args.output is not None:
+        from .mesh import check_writable
+
+        check_writable(args.output, formats=(".json",))
+    if args.report is not None:
+        _check_report(args.report)
+    result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing)
+    r = result.report
+    r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
+    if args.output is not None:
+        from .mesh import write_json
+
+        write_json(r, args.output)
+    if args.report is not None:
+        from .report import write_analysis_report
+
+        write_analysis_report(result, args.report)
+    if not args.quiet:
+        grid = "x".join(str(v) for v in r["grid_shape"])
+        head = f"{r['source']}: {r['kind']}, voxel {r['voxel_mm']:.4g} mm, grid {grid}, region {r['region']}"
+        if r.get("resampled"):
+            head += f"; resampled {r['resampled']}"
+        written = [p for p in (args.output, args.report) if p]
+        lines = [head, analyze_table(r)]
+        if written:
+            lines.append("wrote " + " and ".join(written))
+        lines.append(f"  time {time.perf_counter() - t0:.1f} s")
+        print("\n".join(lines))
+    return 0
+
+
+def result_json(output) -> str:
+    from .pipeline import report_path
+
+    return str(report_path(output))
+
+
+def _slice(args) -> int:
+    from .progress import Progress
+    from .slices import check_stack_output, write_slices
+
+    t0 = time.perf_counter()
+    check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built
+    result = _build(args, mesh=False, morphometry=False)
+    prog = Progress(not args.quiet)
+    with prog.stage("slices"):
+        stack = write_slices(result.field, result.grid, args.output, pixel=args.pixel, layer=args.layer,
+                             progress=prog.bar("slices"))
+    if not args.quiet:
+        r = result.report
+        print("\n".join([
+            f"wrote {stack.layers} layers of {stack.width}x{stack.height} pixels and stack.json to {args.output}",
+            f"  pixel {stack.pixel_mm:.4g} mm, layer {stack.layer_mm:.4g} mm, origin "
+            + " ".join(f"{v:.4f}" for v in stack.origin_mm) + " mm",
+            f"  porosity: target {'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f')}, "
+            f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack.solid_volume_mm3:.4g} mm3, "
+            f"voxels {int((result.field < 0).sum()) * result.grid.voxel_volume:.4g} mm3",
+            f"  time: {time.perf_counter() - t0:.1f} s",
+        ]))
+    return 0
+
+
+def _sweep(args) -> int:
+    from .progress import Progress
+    from .sweep import run_sweep
+
+    t0 = time.perf_counter()
+    prog = Progress(not args.quiet)
+    with prog.stage("sweep", "quick" if args.quick else "full"):
+        out = run_sweep(args.output, quick=args.quick, seed=args.seed, progress=prog.bar("runs"))
+    if not args.quiet:
+        print(f"wrote {len(out['files'])} files to {args.output} in {time.perf_counter() - t0:.1f} s")
+        for name in sorted(out["figures"]):
+            fig = out["figures"][name]
+            print(f"  {name}: {fig['csv']}, {fig['png']}")
+    return 0
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None):
+    # one line on stderr, like the errors, instead of a file name and a source line
+    print(f"implicit-scaffold: warning: {message}", file=sys.stderr, flush=True)
 
 
 def _info(args) -> int:
@@ -163,10 +346,11 @@ def main(argv=None) -> int:
     """Entry point; returns the exit code (0, or 2 for bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "info": _info}
     try:
-        if args.command == "generate":
-            return _generate(args)
-        return _info(args)
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            return commands[args.command](args)
     except ScaffoldError as exc:
         print(f"implicit-scaffold: error: {exc}", file=sys.stderr)
         return 2

@@ -11,3 +11,30 @@ class ScaffoldError(ValueError):
 
 class OpenCLUnavailableError(ScaffoldError, RuntimeError):
     """No OpenCL platform or device could be found."""
+
+
+class ScaffoldWarning(UserWarning):
+    """Something was built, but not as asked: the message says what and how to fix it."""
+
+
+def positive_mm(name: str, value, *, example: str | None = None) -> float:
+    """`value` as a positive, finite length in mm, or a :class:`ScaffoldError` naming option `--name`.
+
+    Parameters
+    ----------
+    name : str
+        The command-line option, without its dashes (``voxel``, ``pixel``, ``pore-size``).
+    value : object
+    example : str, optional
+        A value to suggest, e.g. ``"0.04"``.
+    """
+    import math
+
+    hint = f"; e.g. --{name} {example}" if example else ""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}{hint}") from None
+    if not (math.isfinite(v) and v > 0):
+        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}{hint}")
+    return v

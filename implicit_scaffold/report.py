@@ -48,7 +48,8 @@ def render_mesh(mesh, *, size=(900, 700), cut: bool = False) -> bytes:
         centre = surf.center
         # the half nearest the iso camera goes, showing the inside face-on
         surf = surf.clip(normal=(1, 1, 1), origin=centre, invert=True)
-    plotter.add_mesh(surf, color="#e6d8bd", smooth_shading=True, specular=0.25)
+    # sharp edges (flat-faced meshes from other tools) keep their crease instead of a smeared normal
+    plotter.add_mesh(surf, color="#e6d8bd", smooth_shading=True, split_sharp_edges=True, specular=0.25)
     plotter.camera_position = "iso"
     plotter.camera.zoom(1.15)
     img = plotter.screenshot(return_img=True)
@@ -93,14 +94,24 @@ def histogram(values, *, title: str, xlabel: str, marks: dict | None = None, bin
     return _png(fig)
 
 
-def histogram_from_counts(edges, counts, *, title: str, xlabel: str) -> bytes:
-    """A histogram already counted (bin edges and counts), as PNG bytes."""
+def histogram_from_counts(edges, counts, *, title: str, xlabel: str, marks: dict | None = None) -> bytes:
+    """A histogram already counted (bin edges and counts), as PNG bytes, with labelled marks.
+
+    The counts are shown as shares of all voxels (%), so that volumes of any size compare.
+    """
     fig, ax = _figure()
     edges = np.asarray(edges, float)
-    ax.bar(edges[:-1], counts, width=np.diff(edges), align="edge", color="#b9a27a", edgecolor="white")
+    counts = np.asarray(counts, float)
+    share = 100.0 * counts / max(counts.sum(), 1.0)
+    ax.bar(edges[:-1], share, width=np.diff(edges), align="edge", color="#b9a27a", edgecolor="white")
+    ax.set_ylim(0, max(share.max(), 1e-9) * 1.12)
+    for label, x in (marks or {}).items():
+        if x is not None:
+            ax.axvline(x, color="#c0392b", lw=1.5, ls="--")
+            ax.text(x, ax.get_ylim()[1] * 0.97, f" {label}", color="#c0392b", va="top", fontsize=8)
     ax.set_title(title)
     ax.set_xlabel(xlabel)
-    ax.set_ylabel("voxels")
+    ax.set_ylabel("share of the voxels (%)")
     return _png(fig)
 
 
@@ -118,7 +129,14 @@ def targets_table(report: dict) -> list[tuple[str, str, str]]:
     """Rows (quantity, target, measured) for the page."""
     rows = [("porosity", _fmt(report.get("porosity_target")),
              f"{_fmt(report.get('porosity_voxel'))} (voxels), {_fmt(report.get('porosity_mesh'))} (mesh)")]
-    ps = report.get("pore_size_mm") or {}
+    ps = report.get("pore_size_mm")
+    if not isinstance(ps, dict):  # an analysed file has no cells: only the voxel measures
+        return rows[:1] + [r for r in _measured_rows(report)]
+    return rows + _cell_rows(report, ps) + _measured_rows(report)
+
+
+def _cell_rows(report: dict, ps: dict) -> list[tuple[str, str, str]]:
+    rows = []
     rows.append(("pore size, polyhedron-sphere (mm)", _fmt(report.get("pore_size_target_mm")),
                  f"mean {_fmt(ps.get('mean'))}, sd {_fmt(ps.get('sd'))}, max {_fmt(ps.get('max'))}"))
     rows.append(("pores in 150-600 µm", "—", _fmt(ps.get("share_150_600um"))))
@@ -126,20 +144,38 @@ def targets_table(report: dict) -> list[tuple[str, str, str]]:
     rows.append(("channel / window area (mm²)", "—",
                  f"{_fmt(report.get('channel_area_mm2_mean'))} / {_fmt(report.get('window_area_mm2_mean'))}"))
     rows.append(("trabecular thickness, paper (mm)", "—", _fmt(report.get("trabecular_thickness_mm_mean"))))
-    for key, label in (("strut_thickness_mm", "strut thickness, max spheres (mm)"),
-                       ("pore_diameter_mm", "pore diameter, max spheres (mm)")):
+    return rows
+
+
+def _measured_rows(report: dict) -> list[tuple[str, str, str]]:
+    rows = []
+    for key, label, target in (("strut_thickness_mm", "strut thickness, max spheres (mm)", None),
+                               ("pore_diameter_mm", "pore diameter, max spheres (mm)",
+                                report.get("pore_size_target_mm"))):
         st = report.get(key)
         if isinstance(st, dict):
-            rows.append((label, "—", f"mean {_fmt(st.get('mean'))}, sd {_fmt(st.get('sd'))}, "
-                                      f"max {_fmt(st.get('max'))}"))
+            rows.append((label, _fmt(target), f"mean {_fmt(st.get('mean'))}, sd {_fmt(st.get('sd'))}, "
+                                              f"max {_fmt(st.get('max'))}"))
     for key, label in (("connectivity_density_per_mm3", "connectivity density (mm⁻³)"),
+                       ("euler_characteristic", "Euler characteristic"),
                        ("interconnected_porosity", "interconnected share of the void"),
-                       ("fragments", "solid fragments"), ("fragments_removed", "fragments removed"),
+                       ("fragments", "solid fragments left"), ("fragments_removed", "fragments removed"),
                        ("surface_area_mm2", "surface area (mm²)"), ("bs_bv_per_mm", "BS/BV (mm⁻¹)"),
                        ("triangles", "triangles"), ("bodies", "bodies"), ("watertight", "watertight")):
         if key in report:
             rows.append((label, "—", _fmt(report[key])))
     return rows
+
+
+#: how the voxel measures are taken, under the table (a reviewer's first question)
+_HOW = ("How measured: porosity from voxel counts within the patient (or the region analysed) and from "
+        "the mesh volume. "
+        "Strut thickness and pore diameter by maximal inscribed spheres (Hildebrand &amp; Rüegsegger, as "
+        "BoneJ): at each voxel the diameter of the largest sphere inside the solid (or the void) that holds "
+        "it; mean and sd are over voxels. Connectivity density (1 − χ) / V from the Euler characteristic χ "
+        "of the 26-connected solid (whole object, no edge correction). Interconnected share: void joined to "
+        "the outside of the patient (6-connected). Fragments: solid pieces not joined to the largest by a "
+        "face. Surface area and BS/BV from the triangle mesh.")
 
 
 def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Scaffold report") -> None:
@@ -149,15 +185,18 @@ def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Sc
              "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:4px 10px;text-align:left}"
              "figure{display:inline-block;margin:8px;vertical-align:top}figcaption{font-size:90%;color:#555}"
              "</style></head><body>", f"<h1>{html.escape(title)}</h1>"]
-    params = ", ".join(f"{k} {report[k]}" for k in ("style", "seeds", "sf", "sv", "voxel_mm", "blend_mm",
-                                                      "rng_seed") if k in report)
+    params = ", ".join(f"{k} {_fmt(report[k])}" for k in ("style", "seeds", "sf", "sv", "voxel_mm", "blend_mm",
+                                                      "rng_seed", "kind", "region", "resampled")
+                       if report.get(k) is not None)
     parts.append(f"<p>{html.escape(params)}. implicit_scaffold {html.escape(str(report.get('version', '')))}; "
                  "every measured value is computed from what was built.</p>")
     parts.append("<h2>Targets and measurements</h2><table><tr><th>quantity</th><th>target</th>"
                  "<th>measured</th></tr>")
     for q, t, m in targets_table(report):
         parts.append(f"<tr><td>{html.escape(q)}</td><td>{t}</td><td>{m}</td></tr>")
-    parts.append("</table><h2>Pictures</h2>")
+    parts.append("</table>")
+    parts.append(f"<p style='font-size:90%;color:#555;max-width:60em'>{_HOW}</p>")
+    parts.append("<h2>Pictures</h2>")
     for caption, png in images.items():
         b64 = base64.b64encode(png).decode("ascii")
         parts.append(f"<figure><img src='data:image/png;base64,{b64}' style='max-width:520px'>"
@@ -181,11 +220,40 @@ def write_run_report(result, path) -> None:
     images["pore size, polyhedron-sphere method"] = histogram(
         pore_sizes(result.cells, result.params.sv), title="pore size (polyhedron-sphere)", xlabel="diameter (mm)",
         marks={"target": r.get("pore_size_target_mm"), "150 µm": 0.15, "600 µm": 0.6})
-    for key, label in (("strut_thickness_mm", "strut thickness (maximal spheres)"),
-                       ("pore_diameter_mm", "pore diameter (maximal spheres)")):
-        st = r.get(key)
-        if isinstance(st, dict) and st.get("histogram"):
-            hist = st["histogram"]
-            images[label] = histogram_from_counts(hist["edges_mm"], hist["counts"], title=label,
-                                                  xlabel="mm")
+    images.update(_sphere_histograms(r, strut_mark=("paper's trabecular thickness",
+                                                    r.get("trabecular_thickness_mm_mean"))))
     write_html(path, r, images, title=f"Scaffold report: {r.get('patient', 'patient')}")
+
+
+def _sphere_histograms(r: dict, strut_mark=(None, None)) -> dict[str, bytes]:
+    """Histograms of the maximal-sphere strut thickness and pore diameter in a report."""
+    images = {}
+    for key, label, xlabel, marks in (
+            ("strut_thickness_mm", "strut thickness (maximal spheres)", "thickness (mm)",
+             {strut_mark[0]: strut_mark[1]} if strut_mark[0] else {}),
+            ("pore_diameter_mm", "pore diameter (maximal spheres)", "diameter (mm)",
+             {"target": r.get("pore_size_target_mm"), "150 µm": 0.15, "600 µm": 0.6})):
+        st = r.get(key)
+        if isinstance(st, dict) and st.get("histogram") and st["histogram"]["counts"]:
+            hist = st["histogram"]
+            top = hist["edges_mm"][-1]
+            shown = {k: v for k, v in marks.items() if v is not None and v <= 1.3 * top}
+            images[label] = histogram_from_counts(hist["edges_mm"], hist["counts"], title=label,
+                                                  xlabel=xlabel, marks=shown)
+    return images
+
+
+def write_analysis_report(analysis, path) -> None:
+    """The page for :func:`~implicit_scaffold.morphometry.analyze_file`: picture, section, histograms, table."""
+    from .morphometry import surface_mesh
+
+    r = analysis.report
+    mesh = analysis.mesh if analysis.mesh is not None else surface_mesh(analysis.solid, analysis.grid)
+    images: dict[str, bytes] = {}
+    if mesh is not None and len(mesh.faces):
+        images["the solid"] = render_mesh(mesh)
+        images["cut-away: the inside"] = render_mesh(mesh, cut=True)
+    field = np.where(analysis.solid, np.float32(-1), np.float32(1))
+    images["section through the middle (solid dark)"] = section_image(field, analysis.grid)
+    images.update(_sphere_histograms(r))
+    write_html(path, r, images, title=f"Morphometry of {r.get('source', 'a scaffold')}")

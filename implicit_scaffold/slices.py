@@ -21,7 +21,7 @@ from typing import Callable
 
 import numpy as np
 
-from .errors import ScaffoldError
+from .errors import ScaffoldError, positive_mm
 from .grid import Grid
 
 #: name of layer ``k`` in the stack folder
@@ -65,22 +65,20 @@ class SliceStack:
     solid_share: tuple
     grey_mean: tuple
 
+    @property
+    def solid_volume_mm3(self) -> float:
+        """Volume of the solid pixels of all layers, mm³."""
+        return float(sum(self.solid_share)) * self.width * self.height * self.pixel_mm ** 2 * self.layer_mm
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["units"] = "mm"
+        d["solid_volume_mm3"] = self.solid_volume_mm3
         d["rows"] = "row 0 is the largest y (image seen from +z)"
         d["grey"] = "255 solid, 0 void; edges anti-aliased by the share of the pixel that is solid"
         return d
 
 
-def _positive(name: str, value) -> float:
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}") from None
-    if not (np.isfinite(v) and v > 0):
-        raise ScaffoldError(f"--{name} must be a positive number of mm, got {value!r}; e.g. --{name} 0.05")
-    return v
 
 
 def stack_geometry(grid: Grid, pixel: float, layer: float) -> tuple[np.ndarray, tuple[int, int, int]]:
@@ -96,8 +94,8 @@ def stack_geometry(grid: Grid, pixel: float, layer: float) -> tuple[np.ndarray, 
     origin : (3,) float64 ndarray, mm
     shape : (width, height, layers) tuple of int
     """
-    pixel = _positive("pixel", pixel)
-    layer = _positive("layer", layer)
+    pixel = positive_mm("pixel", pixel, example="0.05")
+    layer = positive_mm("layer", layer, example="0.05")
     size = grid.hi - grid.lo
     counts = np.maximum(np.ceil(size / np.array([pixel, pixel, layer]) - 1e-9), 1).astype(np.int64)
     return grid.lo.astype(np.float64), (int(counts[0]), int(counts[1]), int(counts[2]))
@@ -168,6 +166,20 @@ def _prepare_folder(out_dir: Path) -> Path:
     return tmp
 
 
+def check_stack_output(out_dir, *, pixel: float | None = None, layer: float | None = None) -> None:
+    """Raise a :class:`ScaffoldError` now, before a long build, if the stack could not be written.
+
+    Parameters
+    ----------
+    out_dir : str or os.PathLike
+    pixel, layer : float, mm, optional
+    """
+    for name, value in (("pixel", pixel), ("layer", layer)):
+        if value is not None:
+            positive_mm(name, value, example="0.05")
+    _prepare_folder(Path(out_dir)).rmdir()
+
+
 def write_slices(field: np.ndarray, grid: Grid, out_dir, *, pixel: float | None = None,
                  layer: float | None = None,
                  progress: Callable[[int, int], None] | None = None) -> SliceStack:
@@ -197,8 +209,8 @@ def write_slices(field: np.ndarray, grid: Grid, out_dir, *, pixel: float | None 
     """
     from .mesh import write_json
 
-    pixel = grid.spacing if pixel is None else _positive("pixel", pixel)
-    layer = grid.spacing if layer is None else _positive("layer", layer)
+    pixel = grid.spacing if pixel is None else positive_mm("pixel", pixel, example="0.05")
+    layer = grid.spacing if layer is None else positive_mm("layer", layer, example="0.05")
     if field.shape != grid.shape:
         raise ScaffoldError(f"the field's shape {field.shape} does not match its grid {grid.shape}")
     origin, (width, height, layers) = stack_geometry(grid, pixel, layer)

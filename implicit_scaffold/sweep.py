@@ -141,7 +141,7 @@ def _porosity_run(sf: float, sv: float, seeds: int, blend, settings: SweepSettin
     from . import generate
 
     r = generate(seeds=seeds, sf=sf, sv=sv, porosity=None, blend=blend, voxel=settings.voxel, seed=seed,
-                 mesh=False).report
+                 mesh=False, morphometry=False).report
     return {"porosity_voxel_pct": 100.0 * r["porosity_voxel"], "blend_mm": r["blend_mm"]}
 
 

@@ -115,3 +115,206 @@ def test_report_needs_html_name(tmp_path, capsys):
     assert main(["generate", "-o", str(tmp_path / "s.stl"), "--seeds", "20", "--report",
                  str(tmp_path / "r.pdf")]) == 2
     assert "HTML" in capsys.readouterr().err and list(tmp_path.iterdir()) == []
+
+
+# --------------------------------------------------------------------------- analyze
+
+
+def _box_with_hole_stl(folder, a=4.0, s=2.0, c=1.5):
+    from test_morphometry import box_with_hole
+
+    path = folder / "boxhole.stl"
+    box_with_hole(a, s, c).export(path)
+    return path
+
+
+def test_analyze_box_with_hole_against_closed_form(tmp_path, capsys):
+    a, s, c = 4.0, 2.0, 1.5
+    stl = _box_with_hole_stl(tmp_path, a, s, c)
+    out = tmp_path / "m.json"
+    assert main(["analyze", str(stl), "--voxel", "0.1", "-o", str(out)]) == 0
+    rep = json.loads(out.read_text())
+    area = 2 * (a * a - s * s) + 4 * a * c + 4 * s * c
+    volume = (a * a - s * s) * c
+    assert rep["surface_area_mm2"] == pytest.approx(area, rel=1e-9)
+    assert rep["bs_bv_per_mm"] == pytest.approx(area / volume, rel=1e-9)
+    # the region is the bounding box: the hole is the void, open at both ends
+    assert rep["porosity_voxel"] == pytest.approx(s * s / (a * a), abs=1e-9)
+    assert rep["interconnected_porosity"] == 1.0 and rep["fragments"] == 0
+    assert rep["euler_characteristic"] == 0  # one tunnel
+    # the walls are w = (a - s) / 2 = 1 mm thick and 1.5 mm tall; the thickest sphere sits in a corner,
+    # touching both outer faces and the hole's edge: diameter 2 w sqrt(2) / (1 + sqrt(2)), within a voxel
+    w = (a - s) / 2
+    assert abs(rep["strut_thickness_mm"]["max"] - 2 * w * 2 ** 0.5 / (1 + 2 ** 0.5)) <= 0.1 + 1e-9
+    text = capsys.readouterr().out
+    assert "BS/BV" in text and "connectivity density" in text and str(out) in text
+
+
+def test_analyze_volume_nrrd_and_tiff(tmp_path, capsys):
+    import numpy as np
+    import SimpleITK as sitk
+
+    from test_morphometry import torus
+
+    vol = torus(30, 9, 4)
+    img = sitk.GetImageFromArray(np.transpose(vol, (2, 1, 0)).astype(np.uint8) * 255)
+    img.SetSpacing((0.05, 0.05, 0.05))
+    sitk.WriteImage(img, str(tmp_path / "t.nrrd"))
+    out = tmp_path / "t.json"
+    assert main(["analyze", str(tmp_path / "t.nrrd"), "-o", str(out), "-q"]) == 0
+    rep = json.loads(out.read_text())
+    assert rep["euler_characteristic"] == 0 and rep["voxel_mm"] == pytest.approx(0.05)
+    assert rep["connectivity_density_per_mm3"] == pytest.approx(1 / (vol.size * 0.05 ** 3))
+    assert rep["porosity_voxel"] == pytest.approx(1 - vol.mean())
+    # a TIFF stack states no spacing: refused without --spacing, measured with it
+    sitk.WriteImage(sitk.GetImageFromArray(np.transpose(vol, (2, 1, 0)).astype(np.uint8)), str(tmp_path / "t.tif"))
+    assert main(["analyze", str(tmp_path / "t.tif"), "-q"]) == 2
+    err = capsys.readouterr().err
+    assert "--spacing" in err and err.count("\n") == 1
+    out2 = tmp_path / "t2.json"
+    assert main(["analyze", str(tmp_path / "t.tif"), "--spacing", "0.05", "-o", str(out2), "-q"]) == 0
+    rep2 = json.loads(out2.read_text())
+    assert rep2["euler_characteristic"] == 0
+    assert rep2["strut_thickness_mm"]["mean"] == pytest.approx(rep["strut_thickness_mm"]["mean"])
+
+
+def test_analyze_with_report(tmp_path):
+    stl = _box_with_hole_stl(tmp_path)
+    page = tmp_path / "r.html"
+    assert main(["analyze", str(stl), "--voxel", "0.1", "--report", str(page), "-q"]) == 0
+    text = page.read_text()
+    # picture, cut-away, section and the two sphere histograms
+    assert text.count("data:image/png;base64,") == 5 and "BS/BV" in text
+
+
+def _analyze_bad(tmp_path):
+    import numpy as np
+    import SimpleITK as sitk
+    import trimesh
+
+    stl = _box_with_hole_stl(tmp_path)
+    open_mesh = trimesh.creation.box(extents=(1, 1, 1))
+    open_mesh = trimesh.Trimesh(open_mesh.vertices, open_mesh.faces[2:])
+    open_mesh.export(tmp_path / "open.stl")
+    grey = np.arange(1000, dtype=np.uint8).reshape(10, 10, 10)
+    img = sitk.GetImageFromArray(grey)
+    img.SetSpacing((0.1, 0.1, 0.1))
+    sitk.WriteImage(img, str(tmp_path / "grey.nrrd"))
+    (tmp_path / "notes.txt").write_text("not a scaffold")
+    return [
+        ([str(tmp_path / "missing.stl"), "--voxel", "0.1"], "does not exist"),
+        ([str(stl)], "--voxel"),
+        ([str(stl), "--voxel", "0"], "--voxel must be a positive"),
+        ([str(stl), "--voxel", "0.1", "--spacing", "0.1"], "--spacing applies to a volume"),
+        ([str(tmp_path / "open.stl"), "--voxel", "0.1"], "not a closed surface"),
+        ([str(tmp_path / "grey.nrrd")], "not a binary volume"),
+        ([str(tmp_path / "notes.txt"), "--voxel", "0.1"], "cannot analyse notes.txt"),
+        ([str(stl), "--voxel", "0.1", "-o", str(tmp_path / "m.csv")], ".json"),
+        ([str(stl), "--voxel", "0.1", "-o", str(tmp_path / "nowhere" / "m.json")], "nowhere"),
+        ([str(stl), "--voxel", "0.1", "--report", str(tmp_path / "r.pdf")], "HTML"),
+        ([str(stl), "--voxel", "0.0001"], "GiB but only"),
+    ]
+
+
+def test_analyze_bad_inputs_one_line_exit_2(tmp_path, capsys):
+    cases = _analyze_bad(tmp_path)
+    before = sorted(p.name for p in tmp_path.iterdir())
+    for args, message in cases:
+        code = main(["analyze"] + args)
+        err = capsys.readouterr().err
+        assert code == 2, (args, err)
+        assert message in err and err.count("\n") == 1 and "Traceback" not in err, (args, err)
+    assert sorted(p.name for p in tmp_path.iterdir()) == before  # nothing written
+
+
+def test_analyze_bad_spacing_is_an_argparse_error(capsys):
+    with pytest.raises(SystemExit) as e:
+        main(["analyze", "x.nrrd", "--spacing", "1 2"])
+    assert e.value.code == 2 and "--spacing" in capsys.readouterr().err
+
+
+def test_fragments_flags(tmp_path):
+    common = ["generate", "--seeds", "30", "--size", "3", "--voxel", "0.1", "-q"]
+    assert main(common + ["-o", str(tmp_path / "k.npy"), "--keep-fragments"]) == 0
+    assert main(common + ["-o", str(tmp_path / "r.npy"), "--remove-fragments"]) == 0
+    kept = json.loads((tmp_path / "k.json").read_text())
+    removed = json.loads((tmp_path / "r.json").read_text())
+    assert kept["fragments_removed"] is None and isinstance(removed["fragments_removed"], int)
+    # what was built: no fragment is left after removal; kept ones are all still there
+    assert removed["fragments"] == 0 and kept["fragments"] == removed["fragments_removed"]
+    with pytest.raises(SystemExit):
+        main(common + ["-o", str(tmp_path / "x.npy"), "--keep-fragments", "--remove-fragments"])
+
+
+def test_analyze_of_a_generated_mesh_finds_what_generate_measured(tmp_path):
+    # the mesh's bounding box is the patient box and the voxels are the same size, so the
+    # inside test on the voxel centres gives back the solid that was meshed
+    out = tmp_path / "s.stl"
+    assert main(["generate", "-o", str(out), "--seeds", "30", "--size", "3", "--voxel", "0.1", "-q"]) == 0
+    built = json.loads((tmp_path / "s.json").read_text())
+    assert main(["analyze", str(out), "--voxel", "0.1", "-o", str(tmp_path / "a.json"), "-q"]) == 0
+    found = json.loads((tmp_path / "a.json").read_text())
+    assert found["grid_shape"] == built["grid_shape"]
+    assert found["porosity_voxel"] == pytest.approx(built["porosity_voxel"], abs=1e-12)
+    assert found["euler_characteristic"] == built["euler_characteristic"]
+    for key in ("strut_thickness_mm", "pore_diameter_mm"):
+        assert found[key]["mean"] == pytest.approx(built[key]["mean"], rel=1e-9)
+    assert found["bs_bv_per_mm"] == pytest.approx(built["bs_bv_per_mm"], rel=1e-6)
+
+
+def test_slice_writes_a_stack_that_matches_the_field(tmp_path, capsys):
+    import numpy as np
+    from PIL import Image
+
+    out = tmp_path / "layers"
+    assert main(["slice", "-o", str(out), "--seeds", "30", "--size", "3", "--voxel", "0.1", "-q"]) == 0
+    meta = json.loads((out / "stack.json").read_text())
+    images = sorted(out.glob("layer_*.png"))
+    assert len(images) == meta["layers"] and capsys.readouterr().out == ""
+    # pixels = voxels, layers = voxel planes: the field's solid, plane by plane
+    import implicit_scaffold
+
+    r = implicit_scaffold.generate(seeds=30, size=3.0, voxel=0.1, mesh=False)
+    for k in (5, meta["layers"] // 2):
+        img = np.asarray(Image.open(images[k]))
+        solid = (r.field[:, :, k] < 0).T[::-1]      # rows are y, top row the largest y
+        assert np.mean((img >= 128) == solid) > 0.99
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--pixel", "0"], "--pixel must be a positive number"),
+    (["--layer", "-2"], "--layer must be a positive number"),
+    (["--sf", "2"], "--sf must lie strictly between 0 and 1"),
+])
+def test_slice_bad_input(tmp_path, capsys, args, message):
+    code = main(["slice", "-o", str(tmp_path / "s"), "--seeds", "20", "--size", "3"] + args)
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.slow
+def test_sweep_quick_writes_every_figure(tmp_path, capsys):
+    assert main(["sweep", "-o", str(tmp_path / "sw"), "--quick", "-q"]) == 0
+    names = {p.name for p in (tmp_path / "sw").iterdir()}
+    for fig in ("fig10", "fig11", "fig13", "fig14", "fig17", "fig19"):
+        assert any(n.startswith(fig) and n.endswith(".csv") for n in names), fig
+        assert any(n.startswith(fig) and n.endswith(".png") for n in names), fig
+
+
+def test_too_many_seeds_refused_before_the_work(tmp_path, capsys):
+    # a 200 mm cube at 0.6 mm pores asks for ~57 M seeds: refused at once, with a fix
+    code = main(["generate", "-o", str(tmp_path / "s.stl"), "--size", "200"])
+    err = capsys.readouterr().err
+    assert code == 2 and "seeds need about" in err and "--pore-size" in err and err.count("\n") == 1
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_warnings_are_one_line(tmp_path, capsys):
+    # under-resolved struts: the run completes and says, in one line each, what missed and why
+    code = main(["generate", "-o", str(tmp_path / "s.stl"), "--size", "6", "--pore-size", "2", "--voxel", "0.4",
+                 "-q"])
+    err = capsys.readouterr().err.splitlines()
+    assert code == 0 and err and all(line.startswith("implicit-scaffold: warning: ") for line in err)
+    rep = json.loads((tmp_path / "s.json").read_text())
+    assert len(rep["warnings"]) == len(err)

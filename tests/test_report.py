@@ -54,3 +54,41 @@ def test_render_mesh_draws_something(small_run):
     assert img.shape[:2] == (240, 300)
     # not a blank page: a good share of pixels differ from the white background
     assert (np.abs(img[..., :3] - 1.0).sum(axis=-1) > 0.1).mean() > 0.05
+
+
+def test_run_page_shows_the_sphere_histograms_and_measures(tmp_path, small_run):
+    r = small_run
+    path = tmp_path / "run.html"
+    report.write_run_report(r, path)
+    page = path.read_text()
+    for caption in ("pore size, polyhedron-sphere method", "strut thickness (maximal spheres)",
+                    "pore diameter (maximal spheres)"):
+        assert f"<figcaption>{caption}</figcaption>" in page
+    # the measured values shown are the run's own
+    rep = r.report
+    assert f"{rep['connectivity_density_per_mm3']:.4g}" in page
+    assert f"mean {rep['strut_thickness_mm']['mean']:.4g}" in page
+    assert f"mean {rep['pore_diameter_mm']['mean']:.4g}" in page
+    assert f"{rep['bs_bv_per_mm']:.4g}" in page
+    assert not re.search(r"(src|href)\s*=\s*['\"]?(https?:|//)", page)
+
+
+def test_histogram_from_counts_shows_shares():
+    import io
+
+    import matplotlib.image as mpimg
+
+    png = report.histogram_from_counts([0, 0.1, 0.2, 0.3], [10, 30, 0], title="t", xlabel="mm",
+                                       marks={"target": 0.15})
+    img = mpimg.imread(io.BytesIO(png))
+    assert img.shape[0] > 100 and (img[..., :3].mean(axis=-1) < 0.9).mean() > 0.01
+
+
+def test_targets_table_of_an_analysed_file_has_no_cell_rows():
+    rep = {"porosity_voxel": 0.7, "strut_thickness_mm": {"mean": 0.2, "sd": 0.05, "max": 0.4},
+           "connectivity_density_per_mm3": 12.5, "bs_bv_per_mm": 9.0}
+    rows = report.targets_table(rep)
+    names = [q for q, _, _ in rows]
+    assert "interconnection (faces per cell)" not in names
+    assert ("connectivity density (mm⁻³)", "—", "12.5") in rows
+    assert any(q.startswith("strut thickness") and "mean 0.2" in m for q, _, m in rows)

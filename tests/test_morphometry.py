@@ -1,0 +1,264 @@
+"""Voxel morphometry against shapes whose answers are known, and against brute force."""
+import itertools
+import math
+
+import numpy as np
+import pytest
+
+from implicit_scaffold import morphometry as M
+from implicit_scaffold.errors import ScaffoldError
+from implicit_scaffold.grid import Grid
+
+
+def _coords(n):
+    return np.meshgrid(*(np.arange(n, dtype=float),) * 3, indexing="ij")
+
+
+def ball(n, r, centre=None):
+    c = (n - 1) / 2 if centre is None else centre
+    x, y, z = _coords(n)
+    return (x - c) ** 2 + (y - c) ** 2 + (z - c) ** 2 <= r * r
+
+
+def torus(n, big, small):
+    x, y, z = _coords(n)
+    c = (n - 1) / 2
+    rho = np.hypot(x - c, y - c)
+    return (rho - big) ** 2 + (z - c) ** 2 <= small * small
+
+
+def brute_local_thickness(phase):
+    """Every phase voxel's largest inscribed sphere, painted by brute force (the definition)."""
+    pts = np.argwhere(phase)
+    bg = np.argwhere(~np.pad(phase, 1)) - 1
+    out = np.zeros(phase.shape)
+    grid = np.argwhere(np.ones(phase.shape, bool))
+    for p in pts:
+        r2 = ((bg - p) ** 2).sum(axis=1).min()  # squared distance to the nearest non-phase centre
+        inside = ((grid - p) ** 2).sum(axis=1) < r2
+        idx = tuple(grid[inside].T)
+        out[idx] = np.maximum(out[idx], 2 * math.sqrt(r2))
+    return out
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_local_thickness_matches_brute_force(seed):
+    rng = np.random.default_rng(seed)
+    from scipy import ndimage
+
+    # a random blobby phase with thick and thin parts
+    phase = ndimage.gaussian_filter(rng.normal(size=(18, 16, 14)), 2.0) > 0
+    got = M.local_thickness(phase, 0.5)
+    want = brute_local_thickness(phase) * 0.5
+    np.testing.assert_allclose(got, want, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("radius", [4.0, 7.5, 11.0])
+def test_ball_thickness_is_its_diameter(radius):
+    n = int(2 * radius) + 5
+    phase = ball(n + (n + 1) % 2, radius)  # odd size: the centre is a voxel centre
+    t = M.local_thickness(phase, 0.1)
+    # the largest inscribed sphere is the ball itself: 2R within one voxel, at every voxel
+    assert abs(t.max() - 2 * radius * 0.1) <= 0.1
+    assert np.all(np.abs(t[phase] - 2 * radius * 0.1) <= 0.1 + 1e-6)
+
+
+@pytest.mark.parametrize("thick", [3, 6, 9])
+def test_slab_thickness_is_its_thickness(thick):
+    phase = np.zeros((30, 30, 24), bool)
+    phase[:, :, 5:5 + thick] = True
+    h = 0.02
+    t = M.local_thickness(phase, h)
+    # the slab touches the array's sides, beyond which is no phase: look away from them
+    core = t[thick + 2:-thick - 2, thick + 2:-thick - 2][phase[thick + 2:-thick - 2, thick + 2:-thick - 2]]
+    assert np.all(np.abs(core - thick * h) <= h + 1e-9)
+
+
+def test_thickness_stats_histogram_counts_every_voxel():
+    phase = ball(25, 8, 9.0) | ball(25, 4, 18.0)  # two sizes of sphere
+    t = M.local_thickness(phase, 0.05)
+    st = M.thickness_stats(t, phase, 0.05)
+    hist = st["histogram"]
+    assert sum(hist["counts"]) == phase.sum()
+    assert len(hist["edges_mm"]) == len(hist["counts"]) + 1
+    assert hist["edges_mm"][0] == 0 and hist["edges_mm"][-1] > st["max"]
+    vals = t[phase].astype(np.float64)
+    assert st["mean"] == pytest.approx(vals.mean(), rel=1e-9) and st["sd"] == pytest.approx(vals.std(), rel=1e-9)
+    assert st["sd"] > 0 and st["max"] == pytest.approx(vals.max())
+
+
+@pytest.mark.parametrize("shape, chi", [
+    (lambda: ball(15, 6), 1),
+    (lambda: torus(30, 9, 4), 0),
+    (lambda: ball(21, 9) & ~ball(21, 5), 2),  # a hollow ball: one body, one cavity
+    (lambda: ball(21, 4, 5.0) | ball(21, 4, 15.0), 2),  # two separate balls
+])
+def test_euler_characteristic_of_known_shapes(shape, chi):
+    assert M.euler_characteristic(shape()) == chi
+
+
+def test_euler_of_two_tori_and_a_corner_contact():
+    a = torus(30, 9, 3)
+    both = np.concatenate([a, a], axis=0)
+    assert M.euler_characteristic(both) == 0
+    corner = np.zeros((4, 4, 4), bool)
+    corner[1, 1, 1] = corner[2, 2, 2] = True  # 26-connected: one body
+    assert M.euler_characteristic(corner) == 1
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_euler_matches_scikit_image(seed):
+    from skimage.measure import euler_number
+
+    vol = np.random.default_rng(seed).random((12, 11, 10)) < 0.45
+    assert M.euler_characteristic(vol) == euler_number(np.pad(vol, 1), connectivity=3)
+
+
+def test_connectivity_density_of_a_torus():
+    t = torus(30, 9, 4)
+    h = 0.1
+    # one tunnel: (1 - chi) = 1 over the volume measured
+    assert M.connectivity_density(t, h) == pytest.approx(1 / (t.size * h ** 3))
+
+
+def test_interconnected_porosity_closed_and_open():
+    n = 40
+    solid = np.ones((n, n, n), bool)
+    # closed cells: isolated spherical cavities inside a solid block
+    x, y, z = _coords(n)
+    for cx, cy, cz in itertools.product((10, 29), repeat=3):
+        solid &= (x - cx) ** 2 + (y - cy) ** 2 + (z - cz) ** 2 > 36
+    assert M.interconnected_porosity(solid) == 0.0
+    # open cells: a channel along x through each row of cavities reaches the outside
+    chan = solid.copy()
+    for cy, cz in itertools.product((10, 29), repeat=2):
+        chan[:, cy - 2:cy + 2, cz - 2:cz + 2] = False
+    assert M.interconnected_porosity(chan) == 1.0
+    # with a patient region: a cavity drilled to the region's outside (x < 3) counts as reached
+    region = np.ones_like(solid)
+    region[:3] = False  # the cavities start at x = 4
+    cav = solid.copy()
+    drill = np.zeros_like(solid)
+    drill[1:12, 10, 10] = True
+    cav &= ~drill
+    reached = region & (drill | ((x - 10) ** 2 + (y - 10) ** 2 + (z - 10) ** 2 <= 36))
+    void = region & ~cav
+    assert M.interconnected_porosity(cav, region) == pytest.approx(reached.sum() / void.sum())
+
+
+def test_fragments_of_two_balls():
+    two = ball(30, 6, 8.0) | ball(30, 6, 21.0)
+    assert M.count_fragments(two) == 1
+    assert M.count_fragments(ball(30, 6)) == 0
+
+
+def test_morphometry_keys_and_region():
+    n = 30
+    solid = ~(torus(n, 9, 4) | ball(n, 3))
+    region = ball(n, 14)
+    solid &= region
+    r = M.morphometry(solid, 0.05, region=region)
+    for key in ("strut_thickness_mm", "pore_diameter_mm", "connectivity_density_per_mm3",
+                "interconnected_porosity", "fragments", "surface_area_mm2", "bs_bv_per_mm"):
+        assert key in r
+    assert r["porosity_voxel"] == pytest.approx(1 - solid.sum() / region.sum())
+    assert r["fragments"] == 0
+
+
+def test_surface_of_a_voxel_box():
+    solid = np.zeros((12, 12, 12), bool)
+    solid[2:8, 3:9, 4:10] = True  # 6 x 6 x 6 voxels
+    area, vol = M.surface_from_volume(solid, 0.5)
+    # the mesh runs halfway between centres: a 3 mm cube with its 12 edges and 8 corners
+    # bevelled by marching cubes (half a voxel); bounded by the cube's measures
+    assert 0.85 * 54 < area <= 54 and 0.9 * 27 < vol <= 27
+
+
+def test_bad_inputs():
+    with pytest.raises(ScaffoldError, match="3-D"):
+        M.morphometry(np.zeros((4, 4)), 0.1)
+    with pytest.raises(ScaffoldError, match="voxel size"):
+        M.morphometry(np.zeros((4, 4, 4)), -1)
+    with pytest.raises(ScaffoldError, match="shape"):
+        M.morphometry(np.zeros((4, 4, 4)), 0.1, region=np.ones((3, 4, 4)))
+
+
+def box_with_hole(a=4.0, s=2.0, c=1.5):
+    """An a x a x c box with an s x s square hole through z, as a closed mesh."""
+    import trimesh
+
+    b = (a - s) / 2
+    outer = [(0, 0), (a, 0), (a, a), (0, a)]
+    inner = [(b, b), (b + s, b), (b + s, b + s), (b, b + s)]
+    v = [(x, y, z) for z in (0.0, c) for x, y in outer + inner]
+    O0, I0, O1, I1 = 0, 4, 8, 12  # bottom outer/inner, top outer/inner
+    f = []
+    for k in range(4):
+        n = (k + 1) % 4
+        f += [(O0 + k, I0 + n, O0 + n), (O0 + k, I0 + k, I0 + n)]  # bottom ring, facing -z
+        f += [(O1 + k, O1 + n, I1 + n), (O1 + k, I1 + n, I1 + k)]  # top ring, facing +z
+        f += [(O0 + k, O0 + n, O1 + n), (O0 + k, O1 + n, O1 + k)]  # outer wall
+        f += [(I0 + k, I1 + n, I0 + n), (I0 + k, I1 + k, I1 + n)]  # inner wall
+    m = trimesh.Trimesh(np.array(v), np.array(f), process=True)
+    return m
+
+
+def test_box_with_hole_mesh_is_closed_and_outward():
+    m = box_with_hole()
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+
+
+def test_voxelize_box_with_hole():
+    a, s, c = 4.0, 2.0, 1.5
+    m = box_with_hole(a, s, c)
+    grid = Grid.covering(m.bounds[0], m.bounds[1], 0.1)
+    inside = M.voxelize(m.vertices, m.faces, grid)
+    p = grid.points().reshape(*grid.shape, 3)
+    b = (a - s) / 2
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    want = ((x > 0) & (x < a) & (y > 0) & (y < a) & (z > 0) & (z < c)
+            & ~((x > b) & (x < a - b) & (y > b) & (y < a - b)))
+    assert np.array_equal(inside, want)
+
+
+def test_voxelize_open_mesh_is_refused():
+    import trimesh
+
+    m = trimesh.creation.box(extents=(1, 1, 1))
+    drop = np.nonzero(np.abs(m.face_normals[:, 2]) > 0.9)[0][0]  # a triangle of the top or bottom
+    m = trimesh.Trimesh(m.vertices, np.delete(m.faces, drop, axis=0), process=True)
+    grid = Grid.covering(m.bounds[0], m.bounds[1], 0.1)
+    with pytest.raises(ScaffoldError, match="not closed"):
+        M.voxelize(m.vertices, m.faces, grid)
+
+
+def test_same_result_on_one_thread_and_all():
+    import numba
+
+    rng = np.random.default_rng(3)
+    from scipy import ndimage
+
+    phase = ndimage.gaussian_filter(rng.normal(size=(40, 36, 30)), 2.5) > 0
+    every = M.local_thickness(phase, 0.1)
+    old = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = M.local_thickness(phase, 0.1)
+    finally:
+        numba.set_num_threads(old)
+    assert np.array_equal(every, one)
+
+
+def test_volume_resampled_to_the_voxel_asked(tmp_path):
+    import SimpleITK as sitk
+
+    vol = torus(31, 9, 4)
+    img = sitk.GetImageFromArray(np.transpose(vol, (2, 1, 0)).astype(np.uint8))
+    img.SetSpacing((0.05, 0.05, 0.05))
+    sitk.WriteImage(img, str(tmp_path / "t.nii.gz"))
+    a = M.analyze_file(tmp_path / "t.nii.gz", voxel=0.15)
+    # nearest voxel: the new centres (k + 1/2) 0.15 mm are the centres of old voxels 3k + 1
+    idx = 3 * np.arange(10) + 1
+    assert a.solid.shape == (10, 10, 10)
+    assert np.array_equal(a.solid, vol[np.ix_(idx, idx, idx)])
+    assert a.report["voxel_mm"] == 0.15 and "nearest" in a.report["resampled"]
