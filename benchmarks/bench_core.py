@@ -31,12 +31,22 @@ total = time.perf_counter() - t0
 t1 = time.perf_counter()
 again = lattice_sdf(r.skeleton, r.grid, cutoff=r.report['cutoff_mm'])
 kernel = time.perf_counter() - t1
+# the first call after the mesh, metrics and write stages pays a one-off cost (fresh pages,
+# threads waking); three more calls give the kernel's steady rate
+repeat = []
+for _ in range(3):
+    t2 = time.perf_counter()
+    lattice_sdf(r.skeleton, r.grid, cutoff=r.report['cutoff_mm'])
+    repeat.append(time.perf_counter() - t2)
+kernel_steady = float(np.median(repeat))
 # a check of the result: the kernel against the brute-force oracle at 2,000 voxels
 from implicit_scaffold.lattice import lattice_sdf_reference
 idx = np.stack([np.random.default_rng(1).integers(0, n, 2000) for n in r.grid.shape], 1)
 ref = lattice_sdf_reference(r.skeleton, r.grid.indices_to_points(idx), cutoff=r.report['cutoff_mm'])
 err = float(np.abs(again[idx[:, 0], idx[:, 1], idx[:, 2]] - ref).max())
 _out = {'total_s': total, 'kernel_s': kernel, 'mvox_s': r.grid.size / kernel / 1e6, 'oracle_err_mm': err,
+        'kernel_steady_s': kernel_steady, 'mvox_steady_s': r.grid.size / kernel_steady / 1e6,
+        'mvox_stage_s': r.grid.size / r.report['timings_s']['lattice'] / 1e6,
         'stages': r.report['timings_s'], 'grid': 'x'.join(map(str, r.grid.shape)),
         'porosity_voxel': r.report['porosity_voxel'], 'porosity_mesh': r.report['porosity_mesh'],
         'triangles': r.report['triangles'], 'bodies': r.report['bodies'], 'watertight': r.report['watertight']}
@@ -99,8 +109,12 @@ def b1(runs):
           f"(grid {med['grid']}), median of {runs} runs after a warm-up")
     rows = [[k, f"{v:.3f}"] for k, v in med["stages"].items()]
     rows += [["end to end (generate, incl. writing STL + JSON)", f"{med['total_s']:.2f}"],
-             ["lattice kernel alone (binning and upload included)", f"{med['kernel_s']:.3f}"]]
+             ["lattice kernel alone, first call after the run (binning and upload included)",
+              f"{med['kernel_s']:.3f}"],
+             ["lattice kernel alone, median of 3 more calls", f"{med['kernel_steady_s']:.3f}"]]
     print(table(rows, ["stage", "seconds"]))
+    print(f"lattice Mvoxel/s: in the pipeline's lattice stage {med['mvox_stage_s']:.1f}; "
+          f"first call after the run {med['mvox_s']:.1f}; steady (median of 3 calls) {med['mvox_steady_s']:.1f}")
     print(table([[f"{med['mvox_s']:.1f}", f"{med['oracle_err_mm']:.1e}", f"{med['peak_rss_mb']:.0f}",
                   f"{med['porosity_voxel']:.4f}", f"{med['porosity_mesh']:.4f}", med["triangles"],
                   med["bodies"], med["watertight"]]],
@@ -110,7 +124,9 @@ def b1(runs):
         print(f"end to end without the morphometry stage ('metrics'): "
               f"{med['total_s'] - med['stages']['metrics']:.2f} s")
     print(f"targets: end to end <= 10 s: {'met' if med['total_s'] <= 10 else 'NOT met'}; "
-          f"kernel >= 30 Mvoxel/s: {'met' if med['mvox_s'] >= 30 else 'NOT met'}")
+          f"kernel >= 30 Mvoxel/s: in the pipeline {'met' if med['mvox_stage_s'] >= 30 else 'NOT met'}, "
+          f"first call after the run {'met' if med['mvox_s'] >= 30 else 'NOT met'}, "
+          f"steady {'met' if med['mvox_steady_s'] >= 30 else 'NOT met'}")
 
 
 def fig9(runs):
