@@ -40,9 +40,18 @@ def render_mesh(mesh, *, size=(900, 700), cut: bool = False) -> bytes:
     os.environ.setdefault("PYVISTA_OFF_SCREEN", "true")
     import pyvista as pv
 
+    from vtkmodules.vtkCommonCore import vtkObject
+
     faces = np.hstack([np.full((len(mesh.faces), 1), 3), mesh.faces]).astype(np.int64).ravel()
     surf = pv.PolyData(np.asarray(mesh.vertices, np.float64), faces)
-    plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    # off screen, VTK still tries the X display first and prints its failure on the
+    # user's terminal: a picture needs no display, so that message is noise
+    shown = vtkObject.GetGlobalWarningDisplay()
+    vtkObject.GlobalWarningDisplayOff()
+    try:
+        plotter = pv.Plotter(off_screen=True, window_size=list(size))
+    finally:
+        vtkObject.SetGlobalWarningDisplay(shown)
     plotter.set_background("white")
     if cut:
         centre = surf.center
