@@ -347,6 +347,8 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "info": _info}
+    # a kill (SIGTERM) ends the run as Ctrl-C does, so the writers remove their temporary files
+    previous = _on_terminate(_interrupt)
     try:
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
@@ -360,6 +362,22 @@ def main(argv=None) -> int:
     except KeyboardInterrupt:
         print("implicit-scaffold: interrupted; no output written", file=sys.stderr)
         return 130
+    finally:
+        _on_terminate(previous)
+
+
+def _interrupt(signum, frame):
+    raise KeyboardInterrupt
+
+
+def _on_terminate(handler):
+    """Set the SIGTERM handler (main thread only; elsewhere nothing changes); return the previous one."""
+    import signal
+    import threading
+
+    if handler is None or threading.current_thread() is not threading.main_thread():
+        return None
+    return signal.signal(signal.SIGTERM, handler)
 
 
 if __name__ == "__main__":  # pragma: no cover

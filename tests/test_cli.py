@@ -318,3 +318,22 @@ def test_warnings_are_one_line(tmp_path, capsys):
     assert code == 0 and err and all(line.startswith("implicit-scaffold: warning: ") for line in err)
     rep = json.loads((tmp_path / "s.json").read_text())
     assert len(rep["warnings"]) == len(err)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("sig", ["SIGINT", "SIGTERM"])
+def test_interrupted_run_leaves_no_file(tmp_path, sig):
+    # Ctrl-C or a kill while the run writes: exit 130, one line, no file at all (not even a temporary one)
+    import signal
+
+    p = subprocess.Popen([sys.executable, "-m", "implicit_scaffold", "generate", "-o", "s.stl", "--size", "6",
+                          "--voxel", "0.03"], cwd=tmp_path, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    seen = ""
+    while "mesh ..." not in seen:           # the stage lines come on stderr as the run goes
+        line = p.stderr.readline()
+        assert line, seen
+        seen += line
+    p.send_signal(getattr(signal, sig))
+    _, err = p.communicate(timeout=300)
+    assert p.returncode == 130 and "interrupted; no output written" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
