@@ -201,10 +201,33 @@ def _generate(args) -> int:
         ]
         if "triangles" in r:
             lines.append(f"  triangles {r['triangles']}, bodies {r['bodies']}, watertight {r['watertight']}")
+        lines += _metric_lines(r)
         lines.append("  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings_s"].items())
                      + f"; total {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
     return 0
+
+
+def _metric_lines(r: dict) -> list[str]:
+    """The summary's lines of measures: the patient, the paper's metrics, the voxel morphometry."""
+    def stat(key):
+        v = r.get(key)
+        return v.get("mean") if isinstance(v, dict) else v
+
+    lines = []
+    if r.get("patient_volume_mm3") is not None and r.get("cells_in_scaffold") is not None:
+        lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 in a {r['box_volume_mm3']:.4g} mm3 box, "
+                     f"{r['cells_in_scaffold']} of the {r['seeds']} cells in the scaffold")
+    paper = [(stat("pore_size_mm"), "pore size {:.4g} mm"), (r.get("interconnection_faces_mean"),
+             "interconnection {:.4g} faces"), (r.get("trabecular_thickness_mm_mean"), "trabecular thickness {:.4g} mm")]
+    if any(v is not None for v, _ in paper):
+        lines.append("  cells (paper): " + ", ".join(f.format(v) for v, f in paper if v is not None))
+    voxels = [(stat("strut_thickness_mm"), "strut thickness {:.4g} mm"), (stat("pore_diameter_mm"),
+              "pore diameter {:.4g} mm"), (r.get("connectivity_density_per_mm3"), "Conn.D {:.4g} /mm3"),
+              (r.get("interconnected_porosity"), "interconnected {:.4g}")]
+    if any(v is not None for v, _ in voxels):
+        lines.append("  voxels (spheres): " + ", ".join(f.format(v) for v, f in voxels if v is not None))
+    return lines
 
 
 #: rows of the analyze table: key, label, unit

@@ -24,7 +24,8 @@ def test_summary_lines(tmp_path, capsys):
                  "--porosity", "none", "--blend", "0"]) == 0
     text = capsys.readouterr().out
     for word in ("seeds 30", "surface offset", "blend 0.0000 mm", "voxel 0.1000 mm", "grid", "porosity",
-                 "time:"):
+                 "time:", "cells (paper): pore size", "interconnection", "voxels (spheres): strut thickness",
+                 "Conn.D"):
         assert word in text
     import numpy as np
 
