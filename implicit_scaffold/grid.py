@@ -17,10 +17,12 @@ PIPELINE_BYTES_PER_VOXEL = 28
 #: the same with the voxel morphometry (distance transforms, local thickness): 8.2 GB
 #: measured at 107.7 M voxels (a 20 mm femoral shaft at 0.05 mm), rounded up
 MORPHOMETRY_BYTES_PER_VOXEL = 80
-#: the same with the mesh: marching cubes, its checks and the trimesh object peak at
-#: 22.5 GB for 107.7 M voxels and 71 M triangles (0.66 triangles per voxel, the
-#: scaffolds' usual density), rounded up
-MESH_BYTES_PER_VOXEL = 224
+#: the same with the mesh: the stage peaks in mesh_summary at 100-123 bytes per
+#: triangle over what the run holds before it (measured with /proc VmHWM around
+#: mesh_field + mesh_summary at 2-16 M voxels); at the scaffolds' usual 0.66 triangles
+#: per voxel (a 20 mm femoral shaft at 0.05 mm: 107.7 M voxels, 71 M triangles) that is
+#: 82 bytes per voxel, plus about 20 held by the earlier stages, rounded up
+MESH_BYTES_PER_VOXEL = 112
 
 
 def run_bytes_per_voxel(*, mesh: bool, morphometry: bool) -> int:

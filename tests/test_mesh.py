@@ -198,6 +198,51 @@ def test_summary_of_open_and_inverted_meshes(sphere):
     assert mesh_summary(broken)["winding_consistent"] is broken.is_winding_consistent is False
 
 
+def brute_force_edges(faces):
+    """watertight, winding-consistent and open/mis-wound edge count, from a dict of directed edges."""
+    directed = {}
+    for f in np.asarray(faces).tolist():
+        for u, v in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            directed[(u, v)] = directed.get((u, v), 0) + 1
+    undirected = {}
+    for (u, v), n in directed.items():
+        undirected[(min(u, v), max(u, v))] = undirected.get((min(u, v), max(u, v)), 0) + n
+    watertight = all(n == 2 for n in undirected.values())
+    # a pair is consistent when it is one edge each way
+    winding = all(directed.get((u, v), 0) == 1 and directed.get((v, u), 0) == 1
+                  for (u, v), n in undirected.items() if n == 2)
+    bad = sum(n for (u, v), n in undirected.items()
+              if not (n == 2 and directed.get((u, v), 0) == 1 and directed.get((v, u), 0) == 1))
+    return watertight, winding, bad
+
+
+@pytest.mark.parametrize("width", ["int32", "int64"])
+@pytest.mark.parametrize("packed_bits", [63, 0])
+def test_edge_checks_match_brute_force_on_every_path(sphere, monkeypatch, width, packed_bits):
+    # int32 edge arrays whenever the counts fit, int64 otherwise; a packed sort of
+    # the edges when their key fits in 63 bits, an argsort otherwise (large meshes)
+    monkeypatch.setattr(mesh_mod, "_index_dtype", lambda *counts: np.dtype(width).type)
+    monkeypatch.setattr(mesh_mod, "_PACKED_BITS", packed_bits)
+    m = sphere[0]
+    rng = np.random.default_rng(7)
+    f = np.asarray(m.faces)
+    flipped = f.copy()
+    flipped[::97] = flipped[::97, ::-1]
+    soups = [f, f[3:], flipped, np.vstack([f, f[:4]]), rng.integers(0, 40, (60, 3))]
+    for faces in soups:
+        tm = trimesh.Trimesh(m.vertices, faces, process=False)
+        s = mesh_summary(tm)
+        watertight, winding, bad = brute_force_edges(faces)
+        assert (s["watertight"], s["winding_consistent"]) == (watertight, winding)
+        # the count is approximate ("about n" in the error); zero exactly when all is well
+        bad_found = mesh_mod._bad_edge_count(np.asarray(faces, dtype=np.int64), len(m.vertices))
+        assert (bad_found == 0) == (bad == 0)
+        assert s["triangles"] == len(faces)
+        np.testing.assert_allclose(s["surface_area_mm2"], face_areas(tm).sum(), rtol=1e-12)
+    s = mesh_summary(m)
+    assert s["bodies"] == 1 and s["watertight"] and s["winding_consistent"]
+
+
 def test_values_exactly_at_the_level():
     # A box whose faces pass through voxel centres: exact zeros on all six faces.
     h = 0.25
