@@ -151,3 +151,23 @@ def check_memory(grid: Grid, bytes_per_voxel: int = PIPELINE_BYTES_PER_VOXEL,
             f"{need / 2**30:.1f} GiB but only {have / 2**30:.1f} GiB is free; "
             f"use a larger --voxel (e.g. {grid.spacing * (need / have) ** (1 / 3) * 1.1:.3g} mm)")
     return need
+
+
+def evaluate_by_slabs(grid: Grid, fn, *, max_voxels: int) -> np.ndarray:
+    """``fn(x, y, z)`` on the voxel centres of `grid`, slab by slab along x, as float32.
+
+    `fn` receives broadcastable coordinate arrays, mm (``(rows, 1, 1)``, ``(1, ny, 1)``,
+    ``(1, 1, nz)``), so no ``(m, 3)`` point array is built, and returns values of shape
+    ``(rows, ny, nz)``; a slab holds at most about `max_voxels` voxels.
+
+    Returns
+    -------
+    (nx, ny, nz) float32 ndarray
+    """
+    out = np.empty(grid.shape, np.float32)
+    ax, ay, az = grid.axes()
+    rows = max(1, int(max_voxels) // (grid.shape[1] * grid.shape[2]))
+    for x0 in range(0, grid.shape[0], rows):
+        x1 = min(x0 + rows, grid.shape[0])
+        out[x0:x1] = fn(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
+    return out

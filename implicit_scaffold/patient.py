@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ScaffoldError
-from .grid import Grid
+from .grid import Grid, evaluate_by_slabs
 
 #: voxels evaluated at once by the analytic primitives (bounds the work arrays)
 _SLAB_VOXELS = 4_000_000
@@ -39,15 +39,7 @@ class _Analytic:
 
     def sdf_grid(self, grid: Grid) -> np.ndarray:
         """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside."""
-        out = np.empty(grid.shape, np.float32)
-        ax, ay, az = grid.axes()
-        rows = max(1, _SLAB_VOXELS // (grid.shape[1] * grid.shape[2]))
-        for x0 in range(0, grid.shape[0], rows):
-            x1 = min(x0 + rows, grid.shape[0])
-            # broadcast (rows, 1, 1) x (1, ny, 1) x (1, 1, nz) axes: no (m, 3) point array
-            p = (ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
-            out[x0:x1] = self.sdf_axes(*p)
-        return out
+        return evaluate_by_slabs(grid, self.sdf_axes, max_voxels=_SLAB_VOXELS)
 
     def sdf_axes(self, x, y, z) -> np.ndarray:
         """Signed distance at broadcastable coordinate arrays, mm."""

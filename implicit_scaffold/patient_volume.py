@@ -33,7 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ScaffoldError
-from .grid import Grid
+from .grid import Grid, evaluate_by_slabs
 
 #: Gaussian width of the staircase removal, in voxels of the volume (per axis); 1.5 measured
 #: best on a 3 mm ball (normals 5 degrees off on average) among 1.0-2.0
@@ -352,14 +352,8 @@ class VolumePatient:
 
     def sdf_grid(self, grid: Grid) -> np.ndarray:
         """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside; tile by tile."""
-        out = np.empty(grid.shape, np.float32)
-        ax, ay, az = grid.axes()
-        rows = max(1, _TILE_POINTS // (grid.shape[1] * grid.shape[2]))
-        for x0 in range(0, grid.shape[0], rows):
-            x1 = min(x0 + rows, grid.shape[0])
-            idx = self._to_index(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
-            out[x0:x1] = self._lookup(idx)
-        return out
+        return evaluate_by_slabs(grid, lambda x, y, z: self._lookup(self._to_index(x, y, z)),
+                                 max_voxels=_TILE_POINTS)
 
     # --- measures -----------------------------------------------------------------------
     def _samples(self, upsample: int, x0: int, x1: int, level: float = 0.0) -> np.ndarray:
