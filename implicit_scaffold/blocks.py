@@ -46,7 +46,7 @@ def block_counts(grid: Grid, block: int) -> tuple[int, int, int]:
     return tuple(int(-(-n // block)) for n in grid.shape)
 
 
-def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float) -> BlockLists:
+def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float, block_range=None) -> BlockLists:
     """List each box ``[lo_i, hi_i]``, grown by `cutoff`, in every block of voxel centres it meets.
 
     Parameters
@@ -58,6 +58,9 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float) -> BlockLists:
         Block edge, voxels.
     cutoff : float, mm
         Distance beyond which a primitive cannot change a voxel's value.
+    block_range : (b0, b1), optional
+        Only the blocks ``b0 <= bx < b1`` along x (a slab of a tiled run), numbered
+        from ``b0``; their lists are those of the whole grid.
 
     Returns
     -------
@@ -66,6 +69,9 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float) -> BlockLists:
     lo = np.asarray(lo, dtype=np.float64).reshape(-1, 3)
     hi = np.asarray(hi, dtype=np.float64).reshape(-1, 3)
     counts = np.array(block_counts(grid, block))
+    b0, b1 = (0, int(counts[0])) if block_range is None else (int(v) for v in block_range)
+    whole = counts.copy()
+    counts[0] = b1 - b0
     nblocks = int(np.prod(counts))
     if len(lo) == 0:
         return BlockLists(block, tuple(int(c) for c in counts),
@@ -75,11 +81,14 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float) -> BlockLists:
     # block b along an axis holds voxel centres origin + [b*block, (b+1)*block - 1] * h
     first = np.floor((lo - cutoff - origin) / h / block - 1e-9 / block).astype(np.int64)
     last = np.floor((hi + cutoff - origin) / h / block + 1e-9 / block).astype(np.int64)
-    first = np.clip(first, 0, counts - 1)
-    last = np.clip(last, -1, counts - 1)
+    first = np.clip(first, 0, whole - 1)
+    last = np.clip(last, -1, whole - 1)
     # a box entirely beyond the grid on some axis gets an empty range
     outside = np.any((hi + cutoff - origin) < -h * 1e-6, axis=1) | np.any(
-        (lo - cutoff - origin) > (counts * block - 1) * h + h * 1e-6, axis=1)
+        (lo - cutoff - origin) > (whole * block - 1) * h + h * 1e-6, axis=1)
+    # then the slab's blocks only, numbered from its first
+    first[:, 0] = np.maximum(first[:, 0], b0) - b0
+    last[:, 0] = np.minimum(last[:, 0], b1 - 1) - b0
     span = np.where(outside[:, None], 0, np.maximum(last - first + 1, 0))
     per = np.prod(span, axis=1)
     total = int(per.sum())

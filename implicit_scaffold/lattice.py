@@ -101,10 +101,30 @@ def _ulps(magnitude: float, n: int) -> float:
     return float(n * np.spacing(np.float32(max(magnitude, 1.0))))
 
 
-def _tiles(grid: Grid, tile_blocks: int):
-    """Slabs along x of `tile_blocks` blocks, each ``(x0, x1)`` in voxels."""
+def _tiles(grid: Grid, tile_blocks: int, x_range=None):
+    """Slabs along x of `tile_blocks` blocks within `x_range`, each ``(x0, x1)`` in voxels.
+
+    Tiles after the first start on a block boundary of the whole grid.
+    """
+    lo, hi = _check_range(grid, x_range)
     step = tile_blocks * BLOCK
-    return [(x0, min(x0 + step, grid.shape[0])) for x0 in range(0, grid.shape[0], step)]
+    cuts = [lo] + list(range((lo // step + 1) * step, hi, step)) + [hi]
+    return list(zip(cuts[:-1], cuts[1:]))
+
+
+def _check_range(grid: Grid, x_range) -> tuple[int, int]:
+    if x_range is None:
+        return 0, grid.shape[0]
+    lo, hi = (int(v) for v in x_range)
+    if not 0 <= lo < hi <= grid.shape[0]:
+        raise ValueError(f"x_range {x_range} outside the grid's 0..{grid.shape[0]} planes")
+    return lo, hi
+
+
+def _block_range(grid: Grid, x_range) -> tuple[int, int]:
+    """Blocks along x, ``[b0, b1)``, that hold the planes of `x_range`."""
+    lo, hi = _check_range(grid, x_range)
+    return lo // BLOCK, -(-hi // BLOCK)
 
 
 def _default_tile_blocks(grid: Grid) -> int:
@@ -113,24 +133,27 @@ def _default_tile_blocks(grid: Grid) -> int:
     return max(1, (8 << 20) // slab)
 
 
-def _launch_rows(kernel, grid: Grid, buffers, scalars, *, tile_blocks, progress):
-    """Run a row kernel (kernels/lattice.cl, ROW_ARGS) over `grid`, tile by tile."""
+def _launch_rows(kernel, grid: Grid, buffers, scalars, *, tile_blocks, progress, x_range=None):
+    """Run a row kernel (kernels/lattice.cl, ROW_ARGS) over the planes `x_range` of `grid`, tile by tile."""
     import pyopencl as cl
 
     ctx, queue = opencl.context()
     cy, cz = block_counts(grid, BLOCK)[1:]
-    out = np.empty(grid.shape, np.float32)
-    tiles = _tiles(grid, tile_blocks if tile_blocks is not None else _default_tile_blocks(grid))
+    lo, hi = _check_range(grid, x_range)
+    b0 = _block_range(grid, x_range)[0]
+    out = np.empty((hi - lo,) + tuple(grid.shape[1:]), np.float32)
+    tiles = _tiles(grid, tile_blocks if tile_blocks is not None else _default_tile_blocks(grid), x_range)
     ny, nz = grid.shape[1:]
     pad = lambda n: -(-n // BLOCK) * BLOCK  # noqa: E731
-    dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=4 * (tiles[0][1] - tiles[0][0]) * ny * nz)
+    dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY,
+                        size=4 * max(x1 - x0 for x0, x1 in tiles) * ny * nz)
     for i, (x0, x1) in enumerate(tiles):
         nx = x1 - x0
         # a work-item computes 8 voxels along z in 2 rows along y; a work-group, one block
         kernel(queue, (cz, pad(ny) // 2, pad(nx)), (1, BLOCK // 2, BLOCK),
                dev_out, np.int32(x0), np.int32(nx), np.int32(ny), np.int32(nz),
-               np.int32(cy), np.int32(cz), np.float32(grid.spacing), *buffers, *scalars)
-        cl.enqueue_copy(queue, out[x0:x1], dev_out, is_blocking=True)
+               np.int32(b0), np.int32(cy), np.int32(cz), np.float32(grid.spacing), *buffers, *scalars)
+        cl.enqueue_copy(queue, out[x0 - lo:x1 - lo], dev_out, is_blocking=True)
         if progress is not None:
             progress(i + 1, len(tiles))
     return out
@@ -150,7 +173,7 @@ def _slack(grid: Grid, *boxes) -> float:
     return 64 * _ulps(extent, 1)
 
 
-def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float):
+def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_range=None):
     """Bin primitives into blocks of voxels and sort each block's list, on the device.
 
     ``kind`` is ``"quad"`` (lists cut to the quads that can be nearest for some
@@ -167,6 +190,9 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float):
         Bounding boxes.
     grid : Grid
     cutoff : float, mm
+    x_range : (x0, x1), optional
+        Bin only the blocks that hold these planes (all by default); block ``b``
+        below counts from the first of them.
 
     Returns
     -------
@@ -178,13 +204,15 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float):
     import pyopencl as cl
 
     ctx, queue = opencl.context()
-    bx, by, bz = block_counts(grid, BLOCK)
+    by, bz = block_counts(grid, BLOCK)[1:]
+    b0, b1 = _block_range(grid, x_range)
+    bx = b1 - b0
     n_blocks = bx * by * bz
     m = len(lo)
     boxes = np.zeros((max(m, 1), 2, 4), np.float32)
     boxes[:m, 0, :3] = lo
     boxes[:m, 1, :3] = hi
-    common = [buffer, opencl.to_device(boxes.reshape(-1, 4)), np.int32(m),
+    common = [buffer, opencl.to_device(boxes.reshape(-1, 4)), np.int32(m), np.int32(b0),
               np.int32(bx), np.int32(by), np.int32(bz), np.float32(grid.spacing),
               np.float32(cutoff), np.float32(_slack(grid, lo, hi))]
     rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
@@ -214,7 +242,7 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float):
 
 
 def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: int | None = None,
-                progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                progress: Callable[[int, int], None] | None = None, x_range=None) -> np.ndarray:
     """Signed distance to the paper's lattice surface on `grid`, negative in the solid.
 
     Parameters
@@ -227,18 +255,23 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
         Thickness of a tile along x, in blocks; by default tiles of about 8 M voxels.
         The values do not depend on it.
     progress : callable(done, total), optional
+    x_range : (x0, x1), optional
+        Only the planes ``x0 <= i < x1`` of `grid` (a slab of a tiled run): the same
+        bits as those planes of the whole grid, for a fraction of the memory.
 
     Returns
     -------
-    (nx, ny, nz) float32 ndarray, mm
+    (x1 - x0, ny, nz) float32 ndarray, mm
+        ``(nx, ny, nz)`` without `x_range`.
     """
     quads = _pack_quads(skeleton, grid.origin)
     boxes, planes, plane_start, lo, hi = _pack_pieces(skeleton, grid.origin)
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
-    plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3)
+    plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3,
+                       block_range=_block_range(grid, x_range))
     quad_buffer = opencl.to_device(quads.data.reshape(-1, 4))
     qoffsets, qcounts, qitems, qkeys = bin_on_device("quad", quad_buffer, quads.lo, quads.hi, grid,
-                                                     cutoff=cutoff)
+                                                     cutoff=cutoff, x_range=x_range)
     kernel = opencl.kernel("lattice", "lattice_paper", BLOCK=BLOCK)
     buffers = [qoffsets, qcounts, qitems, qkeys, quad_buffer,
                opencl.to_device(plists.offsets, np.int32), opencl.to_device(plists.items, np.int32),
@@ -254,12 +287,12 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     return _launch_rows(kernel, grid, buffers,
                         [np.float32(cutoff), np.float32(slack), cltypes.make_float4(*box_lo, 0.0),
                          cltypes.make_float4(*box_hi, 0.0)],
-                        tile_blocks=tile_blocks, progress=progress)
+                        tile_blocks=tile_blocks, progress=progress, x_range=x_range)
 
 
 def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
                  tile_blocks: int | None = None,
-                 progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+                 progress: Callable[[int, int], None] | None = None, x_range=None) -> np.ndarray:
     """Smooth-minimum distance to the struts' axes on `grid`.
 
     ``F = -k ln Σ_i exp(-d_i / k)`` over the edges with ``d_i < cutoff`` (the plain
@@ -277,10 +310,13 @@ def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
         Thickness of a tile along x, in blocks; by default tiles of about 8 M voxels.
         The values do not depend on it.
     progress : callable(done, total), optional
+    x_range : (x0, x1), optional
+        Only these planes of `grid`, as :func:`lattice_sdf`.
 
     Returns
     -------
-    (nx, ny, nz) float32 ndarray, mm
+    (x1 - x0, ny, nz) float32 ndarray, mm
+        ``(nx, ny, nz)`` without `x_range`.
     """
     seg = np.asarray(edges, np.float64).reshape(-1, 2, 3) - np.asarray(grid.origin)
     ab = seg[:, 1] - seg[:, 0]
@@ -291,12 +327,12 @@ def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
     data[:, 1, :3] = ab
     buffer = opencl.to_device(data.reshape(-1, 4))
     offsets, counts, items, keys = bin_on_device("seg", buffer, seg.min(axis=1), seg.max(axis=1), grid,
-                                                 cutoff=cutoff)
+                                                 cutoff=cutoff, x_range=x_range)
     kernel = opencl.kernel("lattice", "lattice_struts", BLOCK=BLOCK)
     return _launch_rows(kernel, grid, [offsets, counts, items, keys, buffer],
                         [np.float32(cutoff), np.float32(blend),
                          np.float32(_slack(grid, seg.min(axis=1), seg.max(axis=1)))],
-                        tile_blocks=tile_blocks, progress=progress)
+                        tile_blocks=tile_blocks, progress=progress, x_range=x_range)
 
 
 # --- slow, obviously right references (the tests' oracles) -------------------------

@@ -234,3 +234,93 @@ class SlabComponents:
         global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index]
                                                         + int(labels.max(initial=0))]])
         return (labels > 0) & (global_root[labels] != self.main)
+
+
+class ArraySlabs:
+    """A field held in memory, read plane range by plane range like a :class:`FieldFile`.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float ndarray, mm
+    grid : Grid
+    """
+
+    def __init__(self, field: np.ndarray, grid):
+        if tuple(field.shape) != tuple(grid.shape):
+            raise ScaffoldError(f"the field's shape {field.shape} does not match its grid {grid.shape}")
+        self.field = field
+        self.grid = grid
+
+    def read(self, x0: int, x1: int) -> np.ndarray:
+        """Planes ``[x0, x1)``, ``(x1 - x0, ny, nz)`` float32 (a copy)."""
+        return np.array(self.field[x0:x1], np.float32)
+
+
+class FieldFile:
+    """A float32 field over a grid kept in a raw file (C order, x slowest), written and read by planes.
+
+    Planes of one x are contiguous, so a slab is one read or write; the file is read
+    with plain reads, not mapped, so what a slab costs in memory is what it holds.
+    Use as a context manager: the file is removed at the end.
+
+    Parameters
+    ----------
+    grid : Grid
+    folder : str or Path, optional
+        Where to keep the file (the system's temporary folder by default).
+    """
+
+    def __init__(self, grid, folder=None):
+        import tempfile
+
+        self.grid = grid
+        self._plane = int(grid.shape[1]) * int(grid.shape[2])
+        fd, name = tempfile.mkstemp(prefix="implicit_scaffold-", suffix=".f32", dir=folder)
+        self.path = name
+        self._fh = open(fd, "r+b", buffering=0)
+        try:
+            self._fh.truncate(4 * self._plane * int(grid.shape[0]))
+        except OSError as exc:
+            self.close()
+            raise ScaffoldError(f"cannot keep a {4 * self._plane * grid.shape[0] / 2**30:.1f} GiB field "
+                                f"on disk in {folder or tempfile.gettempdir()}: {exc.strerror or exc}; "
+                                "free disk space or set TMPDIR to a larger disk") from None
+
+    def write(self, x0: int, planes: np.ndarray) -> None:
+        """Store planes ``x0 .. x0 + len(planes)``."""
+        data = np.ascontiguousarray(planes, np.float32)
+        if data.shape[1:] != tuple(self.grid.shape[1:]):
+            raise ValueError(f"planes of shape {data.shape[1:]} for a grid of {self.grid.shape}")
+        self._fh.seek(4 * self._plane * int(x0))
+        view = memoryview(data.reshape(-1).view(np.uint8))
+        while view:
+            view = view[self._fh.write(view):]
+
+    def read(self, x0: int, x1: int) -> np.ndarray:
+        """Planes ``[x0, x1)``, ``(x1 - x0, ny, nz)`` float32."""
+        out = np.empty((int(x1) - int(x0),) + tuple(self.grid.shape[1:]), np.float32)
+        self._fh.seek(4 * self._plane * int(x0))
+        view = memoryview(out.reshape(-1).view(np.uint8))
+        while view:
+            n = self._fh.readinto(view)
+            if not n:
+                raise OSError(f"{self.path} ended early")
+            view = view[n:]
+        return out
+
+    def close(self) -> None:
+        """Remove the file."""
+        import os
+
+        if not self._fh.closed:
+            self._fh.close()
+        try:
+            os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()

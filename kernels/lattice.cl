@@ -43,7 +43,7 @@ typedef int16 rowi;
     if (lx >= tile_nx || y0 >= ny) return;                                        \
     const int gx = tile_lo_x + lx;                                                \
     const int z0 = bz * ROW_Z;                                                    \
-    const int block_id = ((gx / BLOCK) * blocks_y + y0 / BLOCK) * blocks_z + bz;  \
+    const int block_id = ((gx / BLOCK - block_x0) * blocks_y + y0 / BLOCK) * blocks_z + bz; \
     const float px = (float)gx * h;                                               \
     const rowf py = ((float)y0 + LANES_Y) * h;                                    \
     const rowf pz = ((float)z0 + LANES_Z) * h;                                    \
@@ -61,7 +61,7 @@ typedef int16 rowi;
 
 #define ROW_ARGS                                                                  \
     const int tile_lo_x, const int tile_nx, const int ny, const int nz,           \
-    const int blocks_y, const int blocks_z, const float h
+    const int block_x0, const int blocks_y, const int blocks_z, const float h
 
 // Store one row of 8, leaving out the voxels beyond the grid's last z.
 #define STORE8(v8, start)                                                         \
@@ -161,22 +161,22 @@ inline float quad_point_dist2(__global const float4 *q, float3 c)
     __global const float4 *prim = prims + (WORDS) * q;                            \
     const float span = BLOCK * h;                                                 \
     const float4 lo = boxes[2 * q] - (cutoff + slack), hi = boxes[2 * q + 1] + (cutoff + slack); \
-    const int x0 = max((int)floor(lo.x / span), 0), x1 = min((int)floor(hi.x / span), blocks_x - 1); \
+    const int x0 = max((int)floor(lo.x / span), block_x0), x1 = min((int)floor(hi.x / span), block_x0 + blocks_x - 1); \
     const int y0 = max((int)floor(lo.y / span), 0), y1 = min((int)floor(hi.y / span), blocks_y - 1); \
     const int z0 = max((int)floor(lo.z / span), 0), z1 = min((int)floor(hi.z / span), blocks_z - 1); \
     const float radius = BLOCK_RADIUS(h);                                         \
     for (int bx = x0; bx <= x1; ++bx)                                             \
     for (int by = y0; by <= y1; ++by)                                             \
     for (int bz = z0; bz <= z1; ++bz) {                                           \
-        const int b = (bx * blocks_y + by) * blocks_z + bz;                       \
+        const int b = ((bx - block_x0) * blocks_y + by) * blocks_z + bz;          \
         const float3 c = ((float3)((float)(bx * BLOCK), (float)(by * BLOCK), (float)(bz * BLOCK)) \
                           + 0.5f * (BLOCK - 1)) * h;                              \
         const float d = sqrt(DIST2(prim, c));
 
 #define BIN_ARGS                                                                  \
     __global const float4 *prims, __global const float4 *boxes, const int n_prims, \
-    const int blocks_x, const int blocks_y, const int blocks_z, const float h,    \
-    const float cutoff, const float slack
+    const int block_x0, const int blocks_x, const int blocks_y, const int blocks_z, \
+    const float h, const float cutoff, const float slack
 
 __kernel void quad_bin_count(BIN_ARGS, __global int *counts, __global int *dmin_bits)
 {

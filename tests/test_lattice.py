@@ -140,3 +140,31 @@ def test_struts_kernel_matches_reference(small_cells, blend):
     # a sum's rounding may depend on its order; far below the tolerance
     np.testing.assert_allclose(again, field, atol=1e-6)
     assert np.array_equal(struts_field(edges, grid, cutoff=cutoff, blend=blend, tile_blocks=1), field)
+
+
+@pytest.mark.parametrize("x_range", [(0, 9), (5, 23), (16, 17), (30, 45)])
+def test_a_slab_of_the_grid_is_those_planes_of_the_whole(small_cells, x_range):
+    # a tiled run evaluates each slab alone: its planes must be the whole grid's, bit for bit
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    grid = _grid(small_cells, 0.05, shape=(45, 37, 29))
+    x0, x1 = x_range
+    whole = lattice_sdf(sk, grid, cutoff=0.2)
+    assert np.array_equal(lattice_sdf(sk, grid, cutoff=0.2, x_range=x_range), whole[x0:x1])
+    edges = voronoi_edges(small_cells)
+    struts = struts_field(edges, grid, cutoff=0.3, blend=0.05)
+    assert np.array_equal(struts_field(edges, grid, cutoff=0.3, blend=0.05, x_range=x_range, tile_blocks=1),
+                          struts[x0:x1])
+    # and the slab is the oracle's
+    idx, pts = _sample(Grid(grid.origin, grid.spacing, (x1 - x0,) + grid.shape[1:]), 300,
+                       np.random.default_rng(x0))
+    pts[:, 0] += x0 * grid.spacing
+    slab = lattice_sdf(sk, grid, cutoff=0.2, x_range=x_range)
+    np.testing.assert_allclose(slab[idx[:, 0], idx[:, 1], idx[:, 2]],
+                               lattice_sdf_reference(sk, pts, cutoff=0.2), atol=TOL)
+
+
+def test_a_slab_outside_the_grid_is_refused(small_cells):
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    grid = _grid(small_cells, 0.05, shape=(20, 20, 20))
+    with pytest.raises(ValueError):
+        lattice_sdf(sk, grid, cutoff=0.2, x_range=(5, 21))

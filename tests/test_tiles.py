@@ -99,3 +99,21 @@ def test_blend_of_a_slab_with_its_halo_is_the_whole_blend(k):
     for s in plan_slabs(field.shape, max_voxels=(6 + 2 * halo) * 17 * 19, halo=halo):
         part = blend_field(field[s.h0:s.h1], h, k)[s.owned]
         assert np.array_equal(part, whole[s.x0:s.x1])
+
+
+def test_field_file_holds_planes_and_vanishes(tmp_path):
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.tiles import ArraySlabs, FieldFile
+
+    grid = Grid((0.0, 0.0, 0.0), 0.1, (11, 6, 5))
+    field = np.random.default_rng(2).standard_normal(grid.shape).astype(np.float32)
+    with FieldFile(grid, folder=tmp_path) as f:
+        # written out of order, in uneven pieces
+        f.write(7, field[7:])
+        f.write(0, field[:3])
+        f.write(3, field[3:7])
+        assert np.array_equal(f.read(0, 11), field)
+        assert np.array_equal(f.read(4, 5), field[4:5])
+        assert np.array_equal(ArraySlabs(field, grid).read(2, 9), f.read(2, 9))
+        assert len(list(tmp_path.iterdir())) == 1
+    assert not list(tmp_path.iterdir())
