@@ -139,6 +139,12 @@ def _add_build_options(g) -> None:
                       help="keep solid pieces not attached to the main body")
     g.set_defaults(keep_fragments=False)
     g.add_argument("--seed", type=int, default=0, help="random seed; same inputs and seed, same bytes (default 0)")
+    rg = g.add_argument_group("memory and cluster")
+    rg.add_argument("--max-memory", default=None, metavar="SIZE",
+                    help="memory the run may hold, e.g. 4G or 800M (default: 80%% of the free memory); a grid "
+                         "that does not fit whole is built in slabs and streamed to the output, same bytes")
+    rg.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                    help="run the slabs on a dask.distributed scheduler (tcp://host:8786); same bytes out")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
 
@@ -150,7 +156,7 @@ def _check_report(path) -> None:
     check_writable(path, formats=(".html", ".htm"))
 
 
-def _build(args, *, output=None, mesh=True, morphometry=True):
+def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     """Run the pipeline with the build options of `args` (generate and slice share them)."""
     from .pipeline import generate
 
@@ -168,7 +174,11 @@ def _build(args, *, output=None, mesh=True, morphometry=True):
     elif args.label is not None or args.threshold is not None or args.clip or args.cut_planes or args.units:
         raise ScaffoldError("--label, --threshold, --units, --clip and --cut-planes apply to a --patient FILE; "
                             "give one or drop them")
+    tiling = {"max_memory": args.max_memory, "scheduler": args.scheduler}
+    if args.scheduler is not None:
+        tiling["tiled"] = True  # the slabs are what the cluster runs
     return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
+                    slices=slices, **tiling,
                     shape=args.shape, size=args.size, seeds_in=args.seeds_in, skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
@@ -202,6 +212,7 @@ def _generate(args) -> int:
         if "triangles" in r:
             lines.append(f"  triangles {r['triangles']}, bodies {r['bodies']}, watertight {r['watertight']}")
         lines += _metric_lines(r)
+        lines.append(_memory_line(r))
         lines.append("  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings_s"].items())
                      + f"; total {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
@@ -307,28 +318,36 @@ def result_json(output) -> str:
 
 
 def _slice(args) -> int:
-    from .progress import Progress
-    from .slices import check_stack_output, write_slices
+    from .slices import check_stack_output
 
     t0 = time.perf_counter()
     check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built
-    result = _build(args, mesh=False, morphometry=False)
-    prog = Progress(not args.quiet)
-    with prog.stage("slices"):
-        stack = write_slices(result.field, result.grid, args.output, pixel=args.pixel, layer=args.layer,
-                             progress=prog.bar("slices"))
+    result = _build(args, mesh=False, morphometry=False,
+                    slices={"out_dir": args.output, "pixel": args.pixel, "layer": args.layer})
     if not args.quiet:
         r = result.report
+        stack = r["slices"]
+        solid = (1.0 - r["porosity_voxel"]) * r["patient_volume_mm3"]
         print("\n".join([
-            f"wrote {stack.layers} layers of {stack.width}x{stack.height} pixels and stack.json to {args.output}",
-            f"  pixel {stack.pixel_mm:.4g} mm, layer {stack.layer_mm:.4g} mm, origin "
-            + " ".join(f"{v:.4f}" for v in stack.origin_mm) + " mm",
+            f"wrote {stack['layers']} layers of {stack['width']}x{stack['height']} pixels and stack.json "
+            f"to {args.output}",
+            f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
+            + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
             f"  porosity: target {'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f')}, "
-            f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack.solid_volume_mm3:.4g} mm3, "
-            f"voxels {int((result.field < 0).sum()) * result.grid.voxel_volume:.4g} mm3",
+            f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, "
+            f"voxels {solid:.4g} mm3",
+            _memory_line(r),
             f"  time: {time.perf_counter() - t0:.1f} s",
         ]))
     return 0
+
+
+def _memory_line(r: dict) -> str:
+    tiled = r.get("tiled")
+    how = (f"tiled in {tiled['slabs']} slabs of up to {tiled['planes_per_slab']} planes within "
+           f"{tiled['max_memory_mb'] / 1024:.1f} GiB" + (f" on {tiled['scheduler']}" if tiled["scheduler"] else "")
+           if tiled else "whole grid in memory")
+    return f"  memory: {how}; peak {r['peak_memory_mb'] / 1024:.2f} GiB"
 
 
 def _sweep(args) -> int:

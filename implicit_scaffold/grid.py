@@ -153,21 +153,24 @@ def check_memory(grid: Grid, bytes_per_voxel: int = PIPELINE_BYTES_PER_VOXEL,
     return need
 
 
-def evaluate_by_slabs(grid: Grid, fn, *, max_voxels: int) -> np.ndarray:
+def evaluate_by_slabs(grid: Grid, fn, *, max_voxels: int, x_range=None) -> np.ndarray:
     """``fn(x, y, z)`` on the voxel centres of `grid`, slab by slab along x, as float32.
 
     `fn` receives broadcastable coordinate arrays, mm (``(rows, 1, 1)``, ``(1, ny, 1)``,
     ``(1, 1, nz)``), so no ``(m, 3)`` point array is built, and returns values of shape
-    ``(rows, ny, nz)``; a slab holds at most about `max_voxels` voxels.
+    ``(rows, ny, nz)``; a slab holds at most about `max_voxels` voxels. The coordinates
+    are the whole grid's, so the planes `x_range` alone get the same values.
 
     Returns
     -------
-    (nx, ny, nz) float32 ndarray
+    (x1 - x0, ny, nz) float32 ndarray
+        The planes ``x_range = (x0, x1)``; all of them by default.
     """
-    out = np.empty(grid.shape, np.float32)
+    lo, hi = (0, grid.shape[0]) if x_range is None else (int(x_range[0]), int(x_range[1]))
+    out = np.empty((hi - lo,) + tuple(grid.shape[1:]), np.float32)
     ax, ay, az = grid.axes()
     rows = max(1, int(max_voxels) // (grid.shape[1] * grid.shape[2]))
-    for x0 in range(0, grid.shape[0], rows):
-        x1 = min(x0 + rows, grid.shape[0])
-        out[x0:x1] = fn(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
+    for x0 in range(lo, hi, rows):
+        x1 = min(x0 + rows, hi)
+        out[x0 - lo:x1 - lo] = fn(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
     return out

@@ -67,6 +67,10 @@ _NUDGE = 1e-2
 _CLAMP = 4.0
 #: Relative size of a face-saddle tie (``|AC - BD| <= _TIE * AC``).
 _TIE = 1e-6
+#: Rounds of face-tie breaking at most. A round changes a voxel of plane i from the
+#: values of planes i and i + 1 only, so a slab meshed up to plane x is exact when it
+#: breaks the ties on the planes up to x + _TIE_ROUNDS (see :mod:`.mesh_stream`).
+_TIE_ROUNDS = 16
 #: Voxels per slab when a field is processed slab by slab (bounds temporaries).
 _SLAB_VOXELS = 1 << 18
 #: Triangles per chunk when faces are processed chunk by chunk.
@@ -126,13 +130,33 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     the field is made; the input is not modified.
     """
     import trimesh
-    from skimage.measure import marching_cubes
 
     work = _prepare_field(field, grid, level)
     _break_face_ties(work)
+    verts, faces = _surface(work)
+    del work
+    if check:
+        bad = _bad_edge_count(faces, len(verts))
+        if bad:
+            raise RuntimeError(
+                "marching cubes gave a surface with open or inconsistently oriented edges "
+                f"(about {bad}); this is a bug in implicit_scaffold.mesh, please report the field")
+
+    return trimesh.Trimesh(vertices=_index_to_mm(verts, grid), faces=faces, process=False, validate=False)
+
+
+def _surface(work: np.ndarray):
+    """Marching cubes at 0 of a prepared, tie-broken copy: ``(verts, faces)``.
+
+    ``verts`` ``(V, 3)`` float32, voxel index coordinates of `work`; ``faces`` ``(F, 3)``
+    int64, without duplicate vertices or collapsed triangles, wound so that normals
+    point out of the solid.
+    """
+    from skimage.measure import marching_cubes
+
     verts, faces, _normals, _values = marching_cubes(work, 0.0, method="lewiner",
                                                      gradient_direction="descent")
-    del work, _normals, _values
+    del _normals, _values
     faces = np.ascontiguousarray(faces, dtype=np.int64)
     verts = np.ascontiguousarray(verts, dtype=np.float32)
 
@@ -141,17 +165,44 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     # gradient; which way "descent" is, is checked once on a one-voxel solid.
     if not _descent_points_out():
         faces = np.ascontiguousarray(faces[:, ::-1])
-    if check:
-        bad = _bad_edge_count(faces, len(verts))
-        if bad:
-            raise RuntimeError(
-                "marching cubes gave a surface with open or inconsistently oriented edges "
-                f"(about {bad}); this is a bug in implicit_scaffold.mesh, please report the field")
+    return verts, faces
 
+
+def _index_to_mm(verts: np.ndarray, grid: Grid, x0: int = 0) -> np.ndarray:
+    """Voxel index coordinates (float32, x counted from plane `x0`) as ``(V, 3)`` float64 mm.
+
+    The plane offset is added in float64, where it is exact, so a vertex on a grid plane
+    gets the same bits from every slab that holds the plane.
+    """
     vertices = verts.astype(np.float64)
+    if x0:
+        vertices[:, 0] += x0
     vertices *= float(grid.spacing)
     vertices += np.asarray(grid.origin, dtype=np.float64)
-    return trimesh.Trimesh(vertices=vertices, faces=faces, process=False, validate=False)
+    return vertices
+
+
+def _check_meshable(shape) -> None:
+    if min(shape) < 3:
+        raise ScaffoldError(f"a grid of {shape[0]}x{shape[1]}x{shape[2]} voxels is too small to mesh: "
+                            "it needs at least 3 voxels along every axis (the outer layer is outside)")
+
+
+def _check_level(level) -> float:
+    """The iso-level as a finite float, mm."""
+    try:
+        level = float(level)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"the iso-level must be a number of mm, got {level!r}") from None
+    if not np.isfinite(level):
+        raise ScaffoldError(f"the iso-level must be a finite number of mm, got {level!r}")
+    return level
+
+
+def _nothing_to_mesh(level: float) -> ScaffoldError:
+    return ScaffoldError(
+        f"nothing to mesh: no voxel of the field is below the level {level:g} mm away from the "
+        "grid's outer layer of voxels; check the field, the level and that the part lies inside the grid")
 
 
 def _prepare_field(field, grid: Grid, level: float) -> np.ndarray:
@@ -163,39 +214,52 @@ def _prepare_field(field, grid: Grid, level: float) -> np.ndarray:
                             "evaluate the field on the same grid")
     if not (np.issubdtype(field.dtype, np.floating) or np.issubdtype(field.dtype, np.integer)):
         raise ScaffoldError(f"the field must hold real numbers (float32 or float64), got {field.dtype}")
-    if min(shape) < 3:
-        raise ScaffoldError(f"a grid of {shape[0]}x{shape[1]}x{shape[2]} voxels is too small to mesh: "
-                            "it needs at least 3 voxels along every axis (the outer layer is outside)")
-    try:
-        level = float(level)
-    except (TypeError, ValueError):
-        raise ScaffoldError(f"the iso-level must be a number of mm, got {level!r}") from None
-    if not np.isfinite(level):
-        raise ScaffoldError(f"the iso-level must be a finite number of mm, got {level!r}")
-    h = float(grid.spacing)
-
+    _check_meshable(shape)
+    level = _check_level(level)
     work = np.empty(shape, dtype=np.float32)
-    step = max(1, _SLAB_VOXELS // (shape[1] * shape[2]))
-    for i0 in range(0, shape[0], step):
+    _prepare_planes(field, work, level, float(grid.spacing))
+    _force_outside(work, first_x=True, last_x=True)
+    if not work.min() < 0:
+        raise _nothing_to_mesh(level)
+    return work
+
+
+def _prepare_planes(field, out: np.ndarray, level: float, h: float, x0: int = 0) -> None:
+    """``out[i]`` = the prepared values of plane ``field[i]``, chunk by chunk (`out` may be `field`).
+
+    Clamped and nudged voxels of distance from the level (see module notes); the value
+    of a voxel depends on its field value only. `x0` is the grid plane of ``out[0]``
+    (for messages).
+    """
+    step = max(1, _SLAB_VOXELS // (out.shape[1] * out.shape[2]))
+    for i0 in range(0, len(out), step):
         x = field[i0:i0 + step].astype(np.float64)
         x -= level
         x /= h
         if np.isnan(x).any():
-            raise ScaffoldError(f"the field holds NaN values (first in x-slab {i0}..{i0 + len(x) - 1}); "
-                                "the stage that computed it went wrong")
+            raise ScaffoldError(f"the field holds NaN values (first in x-slab {x0 + i0}.."
+                                f"{x0 + i0 + len(x) - 1}); the stage that computed it went wrong")
         np.clip(x, -_CLAMP, _CLAMP, out=x)
         near = np.abs(x) < _NUDGE
         if near.any():
             # on its own side; a value equal to the level is outside (field < level is solid)
             x[near] = np.where(x[near] < 0, -_NUDGE, _NUDGE)
-        work[i0:i0 + step] = x
-    for face in (work[0], work[-1], work[:, 0], work[:, -1], work[:, :, 0], work[:, :, -1]):
+        out[i0:i0 + step] = x
+
+
+def _force_outside(work: np.ndarray, *, first_x: bool, last_x: bool) -> None:
+    """Force the grid's outer layer of voxels outside (at least one voxel), in place.
+
+    `work` holds planes of x; its y and z faces lie on the grid's faces, its first and
+    last x planes only where `first_x` / `last_x` say so.
+    """
+    faces = [work[:, 0], work[:, -1], work[:, :, 0], work[:, :, -1]]
+    if first_x:
+        faces.append(work[0])
+    if last_x:
+        faces.append(work[-1])
+    for face in faces:
         np.maximum(face, np.float32(1.0), out=face)
-    if not work.min() < 0:
-        raise ScaffoldError(
-            f"nothing to mesh: no voxel of the field is below the level {level:g} mm away from the "
-            "grid's outer layer of voxels; check the field, the level and that the part lies inside the grid")
-    return work
 
 
 def _ambiguous_faces(work: np.ndarray) -> np.ndarray:
@@ -232,8 +296,13 @@ def _ambiguous_faces(work: np.ndarray) -> np.ndarray:
     return np.concatenate(found).astype(np.int64)
 
 
-def _break_face_ties(work: np.ndarray, max_rounds: int = 16) -> None:
-    """Make ``A·C != B·D`` on every ambiguous face, in place (signs never change)."""
+def _break_face_ties(work: np.ndarray, max_rounds: int = _TIE_ROUNDS, offset: int = 0) -> None:
+    """Make ``A·C != B·D`` on every ambiguous face, in place (signs never change).
+
+    `offset` is the flat index, in the whole grid, of ``work``'s first voxel: the
+    factors are hashed from the position in the grid, so a slab of planes gets the
+    values the whole grid gets (on planes far enough from its last one).
+    """
     faces = _ambiguous_faces(work)
     if not len(faces):
         return
@@ -248,7 +317,7 @@ def _break_face_ties(work: np.ndarray, max_rounds: int = 16) -> None:
         corner = np.unique(faces[tie, 0])
         # a factor in [1.001, 1.002), hashed from the position and the round so that
         # two corners of one face never get the same one
-        mix = corner.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
+        mix = (corner + offset).astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)
         mix ^= np.uint64(((rnd + 1) * 0xC2B2AE3D27D4EB4F) & 0xFFFFFFFFFFFFFFFF)
         mix ^= mix >> np.uint64(29)
         frac = (mix >> np.uint64(40)).astype(np.float64) / float(1 << 24)
@@ -280,25 +349,39 @@ def _index_dtype(*counts: int):
     return np.int32 if max(counts) < 2 ** 31 - 1 else np.int64
 
 
-def _bad_edge_count(faces: np.ndarray, nverts: int) -> int:
-    """Directed edges that do not pair with exactly one opposite edge (0 for a closed,
-    consistently oriented, edge-manifold surface)."""
-    # int32 copies where the counts allow: the 3F-long temporaries are the peak
-    index = _index_dtype(nverts, 3 * len(faces))
+def _directed_edges(faces: np.ndarray, index):
+    """Edge ``e`` runs from ``src[e]`` (corner ``e`` of ``faces.reshape(-1)``) to ``dst[e]``,
+    the next corner of its face; two ``(3F,)`` `index` arrays."""
     src = faces.astype(index).reshape(-1)
     dst = np.empty(faces.shape, dtype=index)
     dst[:, :2] = faces[:, 1:]
     dst[:, 2] = faces[:, 0]
-    dst = dst.reshape(-1)
-    # each undirected edge must appear exactly twice: once as lo->hi (key even) and once
-    # as hi->lo (key odd)
+    return src, dst.reshape(-1)
+
+
+def _edge_keys(faces: np.ndarray, nverts: int) -> np.ndarray:
+    """The directed edges' keys ``(lo * nverts + hi) * 2 + (src > dst)``, ``(3F,)`` int64, in edge order.
+
+    The two uses of an undirected edge in opposite directions have keys ``2u`` and ``2u + 1``.
+    """
+    # int32 copies where the counts allow: the 3F-long temporaries are the peak
+    index = _index_dtype(nverts, 3 * len(faces))
+    src, dst = _directed_edges(faces, index)
     key = np.empty(len(src), dtype=np.int64)
     np.minimum(src, dst, out=key)
     key *= np.int64(nverts)
     key += np.maximum(src, dst)
     key *= 2
     key += src > dst
-    del src, dst
+    return key
+
+
+def _bad_edge_count(faces: np.ndarray, nverts: int) -> int:
+    """Directed edges that do not pair with exactly one opposite edge (0 for a closed,
+    consistently oriented, edge-manifold surface)."""
+    # each undirected edge must appear exactly twice: once as lo->hi (key even) and once
+    # as hi->lo (key odd)
+    key = _edge_keys(faces, nverts)
     key.sort()
     if len(key) % 2:
         return int(len(key))
@@ -316,11 +399,7 @@ def _edge_groups(faces: np.ndarray, nverts: int, index):
     ``new`` (``(3F,)`` bool, True where a new undirected edge starts).
     """
     n = 3 * len(faces)
-    src = faces.astype(index).reshape(-1)
-    dst = np.empty(faces.shape, dtype=index)
-    dst[:, :2] = faces[:, 1:]
-    dst[:, 2] = faces[:, 0]
-    dst = dst.reshape(-1)
+    src, dst = _directed_edges(faces, index)
     lo = np.minimum(src, dst)
     span = np.maximum(src, dst, out=dst)
     del src, dst
@@ -362,12 +441,14 @@ def _edge_groups(faces: np.ndarray, nverts: int, index):
     return order, new
 
 
-def _face_measures(vertices: np.ndarray, faces: np.ndarray):
-    """Per-triangle area and signed volume (of the tetrahedron to the vertices' mean), chunked.
+def _face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
+    """Per-triangle area and signed volume (of the tetrahedron to `ref`), chunked.
 
-    Returns ``(area, volume)``, two ``(F,)`` float64 arrays.
+    `ref` ``(3,)`` float, mm, defaults to the vertices' mean; parts of one surface
+    measured apart need a common one. Returns ``(area, volume)``, two ``(F,)`` float64 arrays.
     """
-    ref = vertices.mean(axis=0) if len(vertices) else np.zeros(3)
+    if ref is None:
+        ref = vertices.mean(axis=0) if len(vertices) else np.zeros(3)
     cols = [np.ascontiguousarray(vertices[:, a] - ref[a]) for a in range(3)]
     area = np.empty(len(faces))
     vol = np.empty(len(faces))
@@ -669,6 +750,11 @@ def _write_stl(vertices, faces, fh) -> None:
         raise ScaffoldError(f"{len(faces)} triangles do not fit in an STL file; write .ply or .3mf")
     fh.write(_STL_HEADER)
     fh.write(np.array([len(faces)], dtype="<u4").tobytes())
+    _write_stl_records(vertices, faces, fh)
+
+
+def _write_stl_records(vertices, faces, fh) -> None:
+    """The 50-byte triangle records of binary STL (normal from the winding, float32)."""
     rec = np.dtype([("normal", "<f4", (3,)), ("vertex", "<f4", (3, 3)), ("attr", "<u2")])
     for f0 in range(0, len(faces), _FACE_CHUNK):
         tri = vertices[faces[f0:f0 + _FACE_CHUNK]]
@@ -688,15 +774,29 @@ def _write_stl(vertices, faces, fh) -> None:
         fh.write(out.view(np.uint8))
 
 
+def _ply_header(nverts: int, nfaces: int, size: int = 0) -> bytes:
+    """The binary PLY header; its comment is padded with spaces to `size` bytes when shorter."""
+    def text(comment):
+        return ("ply\nformat binary_little_endian 1.0\n"
+                f"{comment}\n"
+                f"element vertex {nverts}\n"
+                "property double x\nproperty double y\nproperty double z\n"
+                f"element face {nfaces}\n"
+                "property list uchar int vertex_indices\nend_header\n").encode("ascii")
+
+    comment = "comment written by implicit_scaffold; units: mm"
+    header = text(comment)
+    return text(comment + " " * (size - len(header))) if size > len(header) else header
+
+
 def _write_ply(vertices, faces, fh) -> None:
-    header = ("ply\nformat binary_little_endian 1.0\n"
-              "comment written by implicit_scaffold; units: mm\n"
-              f"element vertex {len(vertices)}\n"
-              "property double x\nproperty double y\nproperty double z\n"
-              f"element face {len(faces)}\n"
-              "property list uchar int vertex_indices\nend_header\n")
-    fh.write(header.encode("ascii"))
+    fh.write(_ply_header(len(vertices), len(faces)))
     fh.write(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
+    _write_ply_faces(faces, fh)
+
+
+def _write_ply_faces(faces, fh) -> None:
+    """The face records of binary PLY: a count byte (3) and three int32 vertex indices."""
     rec = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
     for f0 in range(0, len(faces), _FACE_CHUNK):
         fc = faces[f0:f0 + _FACE_CHUNK]

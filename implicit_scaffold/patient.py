@@ -37,9 +37,9 @@ class _Analytic:
     def sdf(self, points) -> np.ndarray:  # pragma: no cover - every primitive defines it
         raise NotImplementedError
 
-    def sdf_grid(self, grid: Grid) -> np.ndarray:
-        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside."""
-        return evaluate_by_slabs(grid, self.sdf_axes, max_voxels=_SLAB_VOXELS)
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm, negative inside."""
+        return evaluate_by_slabs(grid, self.sdf_axes, max_voxels=_SLAB_VOXELS, x_range=x_range)
 
     def sdf_axes(self, x, y, z) -> np.ndarray:
         """Signed distance at broadcastable coordinate arrays, mm."""
@@ -156,9 +156,25 @@ def primitive(shape: str, size=10.0):
     return cls(size)
 
 
-def patient_sdf(patient, grid: Grid) -> np.ndarray:
-    """The patient's signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside."""
-    return np.asarray(patient.sdf_grid(grid), dtype=np.float32)
+def patient_sdf(patient, grid: Grid, x_range=None) -> np.ndarray:
+    """The patient's signed distance on `grid`, float32, mm, negative inside.
+
+    Parameters
+    ----------
+    patient : object with ``sdf_grid(grid, x_range=None)``
+    grid : Grid
+    x_range : (x0, x1), optional
+        Only these planes (a slab of a tiled run): the same values as those planes of
+        the whole grid.
+
+    Returns
+    -------
+    (x1 - x0, ny, nz) float32 ndarray, mm
+        All ``(nx, ny, nz)`` planes without `x_range`.
+    """
+    if x_range is None:
+        return np.asarray(patient.sdf_grid(grid), dtype=np.float32)
+    return np.asarray(patient.sdf_grid(grid, x_range=x_range), dtype=np.float32)
 
 
 # --- surgical cuts -----------------------------------------------------------------
@@ -299,15 +315,12 @@ class CutPatient:
             out = v if out is None else np.maximum(out, v)
         return out
 
-    def _sdf_on(self, grid: Grid) -> np.ndarray:
-        out = np.asarray(self.base.sdf_grid(grid), np.float32)
-        ax, ay, az = grid.axes()
-        for x0 in range(0, grid.shape[0], 64):
-            x1 = min(x0 + 64, grid.shape[0])
-            cut = self.cut_sdf_axes(ax[x0:x1, None, None], ay[None, :, None], az[None, None, :])
-            np.maximum(out[x0:x1], cut, out=out[x0:x1])
-        return out
+    def _sdf_on(self, grid: Grid, x_range=None) -> np.ndarray:
+        out = patient_sdf(self.base, grid, x_range)
+        cut = evaluate_by_slabs(grid, self.cut_sdf_axes, max_voxels=_SLAB_VOXELS, x_range=x_range)
+        return np.maximum(out, cut, out=out)
 
-    def sdf_grid(self, grid: Grid) -> np.ndarray:
-        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside what is kept."""
-        return self._sdf_on(grid)
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm,
+        negative inside what is kept."""
+        return self._sdf_on(grid, x_range)

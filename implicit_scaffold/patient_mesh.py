@@ -25,6 +25,7 @@ import numpy as np
 
 from . import opencl
 from .blocks import bin_boxes, block_counts
+from .errors import ScaffoldError
 from .grid import Grid
 
 #: block edge, voxels (a work-group computes one block)
@@ -372,8 +373,16 @@ class MeshPatient:
             share = max(share, np.count_nonzero(per % 2) / hit if hit else 1.0)
         return float(share)
 
-    def sdf_grid(self, grid: Grid) -> np.ndarray:
-        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside."""
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside.
+
+        Far from the surface the distance comes from a transform of the whole grid, so
+        a mesh patient has no slab-by-slab evaluation (`x_range`) yet.
+        """
+        if x_range is not None and (int(x_range[0]), int(x_range[1])) != (0, grid.shape[0]):
+            raise ScaffoldError(
+                f"a mesh patient ({self.name}) is evaluated on the whole grid, so this run cannot be "
+                "tiled: raise --max-memory, use a larger --voxel, or give the CT segmentation instead")
         inside, _ = inside_votes(self.vertices, self.faces, grid)
         out = triangle_distance(self.vertices, self.solid_faces, grid)
         np.negative(out, out=out, where=inside)

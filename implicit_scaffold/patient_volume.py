@@ -350,10 +350,11 @@ class VolumePatient:
         p = np.asarray(points, np.float64).reshape(-1, 3)
         return self._lookup(self._to_index(p[:, 0], p[:, 1], p[:, 2]))
 
-    def sdf_grid(self, grid: Grid) -> np.ndarray:
-        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside; tile by tile."""
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm,
+        negative inside; tile by tile."""
         return evaluate_by_slabs(grid, lambda x, y, z: self._lookup(self._to_index(x, y, z)),
-                                 max_voxels=_TILE_POINTS)
+                                 max_voxels=_TILE_POINTS, x_range=x_range)
 
     # --- measures -----------------------------------------------------------------------
     def _samples(self, upsample: int, x0: int, x1: int, level: float = 0.0) -> np.ndarray:

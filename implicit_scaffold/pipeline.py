@@ -84,6 +84,9 @@ class Result:
     patient: Any
     mesh: Any = None
     timings: dict = dc_field(default_factory=dict)
+    #: a tiled run's layout (None for a whole-grid run, whose field and patient_sdf are arrays;
+    #: a tiled run's are None, its field having been streamed to the outputs)
+    tiled: Any = None
 
 
 
@@ -153,7 +156,8 @@ def _report_stats(values) -> dict:
 
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
-             morphometry: bool = True, **options) -> Result:
+             morphometry: bool = True, max_memory=None, tiled: bool | None = None, scheduler=None,
+             slices: dict | None = None, **options) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
 
     Parameters
@@ -169,7 +173,21 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         Print stage progress on stderr.
     morphometry : bool
         Measure the built solid's voxels (stage ``metrics``: local thickness, Conn.D,
-        interconnected porosity, fragments, BS/BV); False leaves those keys out.
+        interconnected porosity, fragments, BS/BV); False leaves those keys out. A tiled
+        run cannot (it needs the whole grid) and says so in the report.
+    max_memory : int or str, optional
+        Bytes (or a size such as ``"4G"``) the run may hold; by default a safe share of
+        the free memory. A grid whose whole-grid run would not fit is run in slabs
+        (:mod:`.tiled`), with the same field bit for bit; one that cannot fit even so is
+        refused before the work starts.
+    tiled : bool or int, optional
+        Force (True) or forbid (False) the tiled run; by default it is chosen by memory.
+        An int forces it with slabs of at most that many voxels (halo included).
+    scheduler : str or distributed.Client, optional
+        Run the tiled lattice passes on this dask.distributed scheduler (same bytes out).
+    slices : dict, optional
+        Write printer slices: ``{"out_dir": ..., "pixel": mm or None, "layer": mm or None}``;
+        the stack's geometry lands in ``result.report["slices"]``.
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
         remove_fragments (see :class:`Params`).
@@ -180,7 +198,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     """
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
-    from .metrics import cell_metrics, interior_face_pairs, trabecular_thicknesses
+    from .metrics import interior_face_pairs, trabecular_thicknesses
     from .patient import patient_sdf as eval_patient, primitive
     from .seeds import seed_count, seeds_in_patient, uniform_seeds
     from .skeleton import scaled_skeleton, voronoi_edges
@@ -205,8 +223,15 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     # everything that can be checked before the work starts is checked now
     opencl.context()
     run_bytes = run_bytes_per_voxel(mesh=mesh, morphometry=morphometry)
+    from .tiled import default_max_memory, parse_memory
+
+    if max_memory is None:
+        max_memory = default_max_memory()
+    elif isinstance(max_memory, str):
+        max_memory = parse_memory(max_memory)
+    run = _RunPlan(run_bytes, int(max_memory), tiled, params, patient, out_path, slices)
     if params.voxel is not None:
-        check_memory(Grid.covering(lo, hi, params.voxel), run_bytes)
+        run.plan(Grid.covering(lo, hi, params.voxel))
     prog = Progress(verbose)
     if getattr(patient, "load_seconds", None) is not None:
         # a patient read from a file (patient_io.load_patient) was loaded before this call
@@ -243,7 +268,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     window_p25 = float(np.percentile(windows, 25)) if windows.size else wall
     voxel = params.voxel if params.voxel is not None else _default_voxel(wall, box_volume)
     grid = Grid.covering(lo, hi, voxel)
-    check_memory(grid, run_bytes)
+    from .tiles import blend_halo
+
+    slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25))
+                           if params.style == "paper" else 0)
 
     skeleton = edges = None
     with prog.stage("skeleton"):
@@ -251,6 +279,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             skeleton = scaled_skeleton(cells, params.sf, params.sv)
         else:
             edges = voronoi_edges(cells)
+    if slab_voxels is not None:
+        return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
+                               window_p25, slab_voxels, scheduler, prog, mesh, out_path)
     with prog.stage("patient"):
         s_p = eval_patient(patient, grid)
         inside = s_p < 0
@@ -258,43 +289,24 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         if n_inside == 0:
             raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
     h = grid.spacing
-    level = 0.0
-    if params.style == "paper":
-        # a Gaussian of support k closes a void channel narrower than about k/2: the default
-        # rounds the thin walls' creases but stays below the narrow quarter of the windows
-        k = params.blend if params.blend is not None else min(0.5 * wall_p10, window_p25)
-        # estimate of the offset: the porosity change spread over the lattice surface
-        area = float(np.linalg.norm(np.cross(skeleton.quads[:, 2] - skeleton.quads[:, 0],
-                                             skeleton.quads[:, 3] - skeleton.quads[:, 1]), axis=1).sum() / 2)
-        t_est = 0.0 if params.porosity is None else (p0 - params.porosity) * box_volume / max(area, 1e-12)
-        cutoff = 2 * abs(t_est) + k + 3 * h
-        for _ in range(6):
-            with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
+    k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
+    for _ in range(6):
+        with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
+            if params.style == "paper":
                 base = lattice_sdf(skeleton, grid, cutoff=cutoff, progress=prog.bar("lattice"))
+            else:
+                base = struts_field(edges, grid, cutoff=cutoff, blend=k, progress=prog.bar("lattice"))
+        if params.style == "paper":
             with prog.stage("blend", f"k = {k:.4g} mm"):
                 base = blend_field(base, h, k)
-            with prog.stage("offset"):
-                level = 0.0 if params.porosity is None else solve_level_cut(
-                    base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
-            # every value that the level and the blend read must be unclamped
-            if abs(level) + k + 2 * h <= cutoff:
-                break
-            cutoff = 2 * (abs(level) + k + 2 * h)
-    else:
-        length = float(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).sum())
-        r_est = math.sqrt((1 - params.porosity) * box_volume / (math.pi * max(length, 1e-12)))
-        k = params.blend if params.blend is not None else 0.25 * r_est
-        cutoff = 2 * r_est + 4 * k + 3 * h
-        for _ in range(6):
-            with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
-                base = struts_field(edges, grid, cutoff=cutoff, blend=k, progress=prog.bar("lattice"))
-            with prog.stage("offset"):
-                level = solve_level_cut(base, s_p, params.porosity, skin=params.skin,
-                                        smooth_cut=params.smooth_cut)
-            # the smooth minimum sums the edges nearer than the cut-off: keep it well clear
-            if level + 6 * k + 2 * h <= cutoff:
-                break
-            cutoff = 2 * (level + 6 * k + 2 * h)
+        with prog.stage("offset"):
+            level = 0.0 if params.porosity is None else solve_level_cut(
+                base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
+        # every value that the level and the blend read must be unclamped
+        wider = next_cutoff(level, cutoff)
+        if wider is None:
+            break
+        cutoff = wider
 
     # the cells that lie in the scaffold: their seed is inside the patient
     cells_in = sample(s_p, grid, cells.seeds) < 0
@@ -305,37 +317,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
 
-    report: dict[str, Any] = {
-        "version": __version__,
-        "rng_seed": params.seed,
-        "patient": getattr(patient, "describe", lambda: type(patient).__name__.lower())(),
-        "patient_volume_mm3": float(patient.volume),
-        "box_volume_mm3": box_volume,
-        "seeds": int(len(seeds)),
-        "seeds_in": params.seeds_in,
-        "cells_in_scaffold": int(np.count_nonzero(cells_in)),
-        "skin_mm": params.skin,
-        "smooth_cut_mm": params.smooth_cut,
-        "pore_size_target_mm": params.pore_size if params.seeds is None else None,
-        "sf": params.sf,
-        "sv": params.sv,
-        "style": params.style,
-        "porosity_closed_form": p0,
-        "porosity_target": params.porosity,
-        "blend_mm": float(k),
-        "voxel_mm": float(h),
-        "grid_shape": list(grid.shape),
-        "grid_origin_mm": list(grid.origin),
-        "cutoff_mm": float(cutoff),
-        "porosity_voxel": porosity_voxel,
-        "fragments_removed": fragments,
-        "wall_thickness_mm": _report_stats(walls) if walls.size else None,
-    }
-    if params.style == "paper":
-        report["surface_offset_mm"] = float(level)
-    else:
-        report["strut_radius_mm"] = float(level)
-    report.update(cell_metrics(cells, params.sf, params.sv, cells_in))
+    report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
+                          porosity_voxel, fragments)
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -365,16 +348,221 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                             solid_volume_mm3=report.get("mesh_volume_mm3"))
         found.pop("porosity_voxel", None)  # the stage above counted it already
         report.update(found)
+    if slices is not None:
+        report["slices"] = _write_stack(s, grid, slices, prog)
     report["warnings"] = _check_built(report, params)
     if out_path is not None:
         with prog.stage("write"):
             write_outputs(result, out_path)
+    from .tiled import peak_memory
+
+    report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     if out_path is not None:
         from .mesh import write_json
 
         write_json(report, report_path(out_path))
     return result
+
+
+def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float, wall_p10: float,
+                  window_p25: float):
+    """Blend width, first cut-off and the rule that widens it, for the lattice field (mm).
+
+    Returns
+    -------
+    k : float
+    cutoff : float
+    next_cutoff : callable(level, cutoff) -> float or None
+        None when every value the level and the blend read lies within `cutoff`.
+    """
+    h = grid.spacing
+    if params.style == "paper":
+        p0 = closed_form_porosity(params.sf, params.sv)
+        k = _paper_blend(params, wall_p10, window_p25)
+        # estimate of the offset: the porosity change spread over the lattice surface
+        area = float(np.linalg.norm(np.cross(skeleton.quads[:, 2] - skeleton.quads[:, 0],
+                                             skeleton.quads[:, 3] - skeleton.quads[:, 1]), axis=1).sum() / 2)
+        t_est = 0.0 if params.porosity is None else (p0 - params.porosity) * box_volume / max(area, 1e-12)
+        cutoff = 2 * abs(t_est) + k + 3 * h
+
+        def reach(level):
+            return abs(level) + k + 2 * h
+    else:
+        length = float(np.linalg.norm(edges[:, 1] - edges[:, 0], axis=1).sum())
+        r_est = math.sqrt((1 - params.porosity) * box_volume / (math.pi * max(length, 1e-12)))
+        k = params.blend if params.blend is not None else 0.25 * r_est
+        cutoff = 2 * r_est + 4 * k + 3 * h
+
+        # the smooth minimum sums the edges nearer than the cut-off: keep it well clear
+        def reach(level):
+            return level + 6 * k + 2 * h
+
+    def next_cutoff(level: float, cutoff: float):
+        need = reach(level)
+        return None if need <= cutoff else 2 * need
+
+    return float(k), float(cutoff), next_cutoff
+
+
+def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
+    """The paper style's blend width, mm."""
+    # a Gaussian of support k closes a void channel narrower than about k/2: the default
+    # rounds the thin walls' creases but stays below the narrow quarter of the windows
+    return params.blend if params.blend is not None else min(0.5 * wall_p10, window_p25)
+
+
+def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, walls, grid: Grid, k, cutoff,
+                 level, porosity_voxel, fragments) -> dict:
+    """The report's keys that a whole-grid and a tiled run share."""
+    from .metrics import cell_metrics
+
+    report: dict[str, Any] = {
+        "version": __version__,
+        "rng_seed": params.seed,
+        "patient": getattr(patient, "describe", lambda: type(patient).__name__.lower())(),
+        "patient_volume_mm3": float(patient.volume),
+        "box_volume_mm3": box_volume,
+        "seeds": int(len(seeds)),
+        "seeds_in": params.seeds_in,
+        "cells_in_scaffold": int(np.count_nonzero(cells_in)),
+        "skin_mm": params.skin,
+        "smooth_cut_mm": params.smooth_cut,
+        "pore_size_target_mm": params.pore_size if params.seeds is None else None,
+        "sf": params.sf,
+        "sv": params.sv,
+        "style": params.style,
+        "porosity_closed_form": closed_form_porosity(params.sf, params.sv),
+        "porosity_target": params.porosity,
+        "blend_mm": float(k),
+        "voxel_mm": float(grid.spacing),
+        "grid_shape": list(grid.shape),
+        "grid_origin_mm": list(grid.origin),
+        "cutoff_mm": float(cutoff),
+        "porosity_voxel": porosity_voxel,
+        "fragments_removed": fragments,
+        "wall_thickness_mm": _report_stats(walls) if walls.size else None,
+    }
+    if params.style == "paper":
+        report["surface_offset_mm"] = float(level)
+    else:
+        report["strut_radius_mm"] = float(level)
+    report.update(cell_metrics(cells, params.sf, params.sv, cells_in))
+    return report
+
+
+class _RunPlan:
+    """Whole grid or slabs: decided from the memory bound, checked before the work starts."""
+
+    def __init__(self, run_bytes: int, max_memory: int, tiled, params: Params, patient, out_path, slices):
+        self.run_bytes, self.max_memory, self.tiled = run_bytes, max_memory, tiled
+        self.params, self.patient, self.out_path, self.slices = params, patient, out_path, slices
+
+    def plan(self, grid: Grid, halo: int = 0) -> int | None:
+        """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits."""
+        from .tiled import check_disk, process_memory, slab_voxels
+        from .tiles import plan_slabs
+
+        held = process_memory()
+        whole = grid.memory_estimate(self.run_bytes) + held
+        if self.tiled is False or (self.tiled is None and whole <= self.max_memory):
+            check_memory(grid, self.run_bytes)
+            return None
+        why = (f"the whole grid ({grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels, about "
+               f"{whole / 2**30:.1f} GiB) exceeds --max-memory {self.max_memory / 2**30:.1f} GiB")
+        if self.params.skin > 0 or self.params.smooth_cut > 0:
+            raise ScaffoldError(f"{why}, and --skin and --smooth-cut are not available in a tiled run yet: "
+                                "drop them, raise --max-memory or use a larger --voxel")
+        ext = output_format(self.out_path) if self.out_path is not None else None
+        if ext is not None and ext not in (".stl", ".ply", ".npy"):
+            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply or .npy "
+                                f"instead of {ext}, or raise --max-memory")
+        self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
+        from .tiled import SLAB_BYTES_PER_VOXEL
+
+        voxels = slab_voxels(self.max_memory, held)
+        thinnest = (1 + 2 * halo) * grid.shape[1] * grid.shape[2] * SLAB_BYTES_PER_VOXEL
+        if thinnest + held > self.max_memory and self.tiled in (None, True):
+            raise ScaffoldError(
+                f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels is too large even in slabs: "
+                f"its thinnest slab needs about {(thinnest + held) / 2**30:.1f} GiB but only "
+                f"{self.max_memory / 2**30:.1f} GiB is allowed (--max-memory); use a larger --voxel "
+                f"(e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g} mm)")
+        if self.tiled is not True and self.tiled:
+            voxels = int(self.tiled)
+        plan_slabs(grid.shape, max_voxels=voxels, halo=halo)
+        check_disk(grid)
+        return voxels
+
+
+def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
+                    wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path) -> Result:
+    """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
+    from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold, write_npy_slabs
+
+    box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
+    k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
+    runner = runner_for(scheduler)
+    try:
+        tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=patient, grid=grid,
+                            porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
+                            remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
+                            prog=prog)
+    finally:
+        runner.close()
+    try:
+        cells_in = sample_slabs(tf.patient, grid, cells.seeds) < 0
+        report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
+                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments)
+        report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
+                           "max_memory_mb": round(run.max_memory / 2**20, 1),
+                           "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
+                                                                                     scheduler))}
+        report["morphometry"] = "not measured: a tiled run does not hold the whole grid"
+        report["bodies_voxels"] = tf.pieces
+        ext = output_format(out_path) if out_path is not None else None
+        if mesh and ext in (".stl", ".ply"):
+            from .mesh_stream import write_mesh_slabs
+
+            with prog.stage("mesh", "streamed to " + out_path.name):
+                summary = write_mesh_slabs(tf.field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+            report.update({
+                "triangles": summary["triangles"],
+                "watertight": summary["watertight"],
+                "winding_consistent": summary["winding_consistent"],
+                "bodies": tf.pieces,
+                "mesh_volume_mm3": summary["volume_mm3"],
+                "surface_area_mm2": summary["surface_area_mm2"],
+                "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
+            })
+        elif ext == ".npy":
+            with prog.stage("write"):
+                write_npy_slabs(tf.field, out_path, max_voxels=slab_voxels)
+        if run.slices is not None:
+            report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
+        report["warnings"] = _check_built(report, params)
+    finally:
+        tf.close()
+    report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
+    report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
+    if out_path is not None:
+        from .mesh import write_json
+
+        write_json(report, report_path(out_path))
+    return Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
+                  field=None, patient_sdf=None, patient=patient, timings=prog.timings, tiled=tf.slabs)
+
+
+def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
+    """Printer slices of the field (an array or a field on disk) and the stack's summary for the report."""
+    from .slices import write_slices
+
+    with prog.stage("slices"):
+        stack = write_slices(field, grid, slices["out_dir"], pixel=slices.get("pixel"),
+                             layer=slices.get("layer"), progress=prog.bar("slices"), **kwargs)
+    return {"folder": str(slices["out_dir"]), "layers": stack.layers, "width": stack.width,
+            "height": stack.height, "pixel_mm": stack.pixel_mm, "layer_mm": stack.layer_mm,
+            "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3}
 
 
 def _check_built(report: dict, params: Params) -> list[str]:

@@ -7,7 +7,10 @@ exact for a straight edge crossing the pixel and gives anti-aliased edges; 255 i
 
 The stack is written layer by layer (one layer of the field is read at a time), into a
 hidden temporary folder that is renamed onto the output folder at the end, so an
-interrupted run leaves no half stack under the final name.
+interrupted run leaves no half stack under the final name. A field too large for memory
+is read slab by slab along x instead (a field source, see :mod:`~implicit_scaffold.tiles`):
+every layer's pixel columns in a slab go to a scratch file of grey levels in the temporary
+folder, and the layers are encoded from it at the end, with the same bytes.
 """
 from __future__ import annotations
 
@@ -23,11 +26,14 @@ import numpy as np
 
 from .errors import ScaffoldError, positive_mm
 from .grid import Grid
+from .tiles import plan_slabs
 
 #: name of layer ``k`` in the stack folder
 LAYER_NAME = "layer_{:05d}.png"
 #: the stack's geometry, beside the layers
 STACK_JSON = "stack.json"
+#: voxels a slab of a field source holds when no bound is given (64 MiB of float32)
+SLAB_VOXELS = 1 << 24
 
 
 @dataclass(frozen=True)
@@ -101,6 +107,53 @@ def stack_geometry(grid: Grid, pixel: float, layer: float) -> tuple[np.ndarray, 
     return grid.lo.astype(np.float64), (int(counts[0]), int(counts[1]), int(counts[2]))
 
 
+def _layer_planes(grid: Grid, z: float) -> tuple[int, int, float]:
+    """The two voxel planes around height `z` (mm) and the weight of the upper one."""
+    kz = (z - grid.origin[2]) / grid.spacing
+    k0 = int(np.clip(np.floor(kz), 0, grid.shape[2] - 1))
+    k1 = min(k0 + 1, grid.shape[2] - 1)
+    w = float(np.clip(kz - k0, 0.0, 1.0)) if k1 > k0 else 0.0
+    return k0, k1, w
+
+
+def _blend_planes(lower: np.ndarray, upper: np.ndarray, w: float) -> np.ndarray:
+    """The field at a height between two voxel planes, linear in z (float64)."""
+    return (1.0 - w) * np.asarray(lower, np.float64) + w * np.asarray(upper, np.float64)
+
+
+def _pixel_indices(grid: Grid, pixel: float, origin, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel centres as fractional voxel indices: ``(width,)`` along x and ``(height,)`` along y
+    (row 0 first, the largest y), float64."""
+    xs = origin[0] + (np.arange(width) + 0.5) * pixel
+    ys = origin[1] + (np.arange(height)[::-1] + 0.5) * pixel
+    return (xs - grid.origin[0]) / grid.spacing, (ys - grid.origin[1]) / grid.spacing
+
+
+def _sample(plane: np.ndarray, ix: np.ndarray, iy: np.ndarray) -> np.ndarray:
+    """Bilinear samples of a ``(rows, ny)`` plane at the pixel centres ``ix`` x ``iy``, ``(len(iy), len(ix))``.
+
+    The value at a pixel depends only on the two planes around its ``ix`` and their weights
+    (the fraction of ``ix``, unchanged by shifting ``ix`` by a whole number of planes), so a
+    slab of planes holding those two gives the same bits as the whole plane.
+    """
+    from scipy import ndimage
+
+    coords = np.stack(np.meshgrid(iy, ix, indexing="ij")[::-1])  # (2, height, columns): x index, y index
+    # beyond the grid the scaffold is absent: the grid's outer layer is outside already
+    return ndimage.map_coordinates(plane, coords.reshape(2, -1), order=1,
+                                   mode="nearest").reshape(len(iy), len(ix))
+
+
+def _coverage(s: np.ndarray, pixel: float) -> np.ndarray:
+    """Solid share of pixels whose centres have signed distance `s` (mm), float32 in [0, 1]."""
+    return np.clip(0.5 - s / pixel, 0.0, 1.0).astype(np.float32)
+
+
+def _grey(cover: np.ndarray) -> np.ndarray:
+    """8-bit grey levels of solid shares, 255 solid."""
+    return np.rint(cover * 255).astype(np.uint8)
+
+
 def layer_coverage(field: np.ndarray, grid: Grid, z: float, pixel: float, origin, width: int,
                    height: int) -> np.ndarray:
     """Solid share of each pixel of the layer at height `z`.
@@ -122,22 +175,11 @@ def layer_coverage(field: np.ndarray, grid: Grid, z: float, pixel: float, origin
     (height, width) float32 ndarray
         In [0, 1]; row 0 is the largest y.
     """
-    from scipy import ndimage
-
     # the two voxel planes around z: only they are read, so a layer costs one slab
-    kz = (z - grid.origin[2]) / grid.spacing
-    k0 = int(np.clip(np.floor(kz), 0, grid.shape[2] - 1))
-    k1 = min(k0 + 1, grid.shape[2] - 1)
-    w = float(np.clip(kz - k0, 0.0, 1.0)) if k1 > k0 else 0.0
-    plane = (1.0 - w) * np.asarray(field[:, :, k0], np.float64) + w * np.asarray(field[:, :, k1], np.float64)
-    xs = origin[0] + (np.arange(width) + 0.5) * pixel
-    ys = origin[1] + (np.arange(height)[::-1] + 0.5) * pixel
-    ix = (xs - grid.origin[0]) / grid.spacing
-    iy = (ys - grid.origin[1]) / grid.spacing
-    coords = np.stack(np.meshgrid(iy, ix, indexing="ij")[::-1])  # (2, height, width): x index, y index
-    # beyond the grid the scaffold is absent: the grid's outer layer is outside already
-    s = ndimage.map_coordinates(plane, coords.reshape(2, -1), order=1, mode="nearest").reshape(height, width)
-    return np.clip(0.5 - s / pixel, 0.0, 1.0).astype(np.float32)
+    k0, k1, w = _layer_planes(grid, z)
+    plane = _blend_planes(field[:, :, k0], field[:, :, k1], w)
+    ix, iy = _pixel_indices(grid, pixel, origin, width, height)
+    return _coverage(_sample(plane, ix, iy), pixel)
 
 
 def _png_bytes(grey: np.ndarray) -> bytes:
@@ -180,23 +222,140 @@ def check_stack_output(out_dir, *, pixel: float | None = None, layer: float | No
     _prepare_folder(Path(out_dir)).rmdir()
 
 
-def write_slices(field: np.ndarray, grid: Grid, out_dir, *, pixel: float | None = None,
-                 layer: float | None = None,
+class _ArrayPlanes:
+    """An in-memory field read by plane ranges without a change of dtype (so the same bits)."""
+
+    def __init__(self, field: np.ndarray, grid: Grid):
+        self.field = field
+        self.grid = grid
+
+    def read(self, x0: int, x1: int) -> np.ndarray:
+        return np.asarray(self.field[x0:x1])
+
+
+def _is_source(field) -> bool:
+    return hasattr(field, "read") and hasattr(field, "grid")
+
+
+def _check_max_voxels(max_voxels) -> int:
+    if isinstance(max_voxels, (bool, np.bool_)) or not isinstance(max_voxels, (int, np.integer)) or max_voxels < 1:
+        raise ScaffoldError(f"max_voxels must be a positive whole number of voxels, got {max_voxels!r}; "
+                            f"pass e.g. max_voxels={SLAB_VOXELS}")
+    return int(max_voxels)
+
+
+def _emit_layer(folder: Path, k: int, grey: np.ndarray, shares: list, greys: list) -> None:
+    """Write layer `k` as a PNG and note its solid share and mean grey."""
+    shares.append(float(np.count_nonzero(grey >= 128) / grey.size))
+    greys.append(float(grey.mean(dtype=np.float64) / 255))
+    (folder / LAYER_NAME.format(k)).write_bytes(_png_bytes(grey))
+
+
+def _write_all(fh, data: np.ndarray) -> None:
+    view = memoryview(np.ascontiguousarray(data).reshape(-1).view(np.uint8))
+    while view:
+        view = view[fh.write(view):]
+
+
+def _read_exactly(fh, count: int) -> np.ndarray:
+    out = np.empty(count, np.uint8)
+    view = memoryview(out)
+    while view:
+        n = fh.readinto(view)
+        if not n:
+            raise OSError(f"{fh.name} ended early")
+        view = view[n:]
+    return out
+
+
+def _slab_layers(source, grid: Grid, folder: Path, *, origin, width: int, height: int, layers: int,
+                 pixel: float, layer: float, max_voxels: int, progress) -> tuple[list, list]:
+    """Sample every layer slab by slab into a scratch file, then encode the layers from it.
+
+    Pixel column ``c`` belongs to the slab that owns plane ``floor(ix_c)`` (clipped to the
+    grid), where ``ix_c`` is its centre as a voxel index; its samples read that plane and
+    the next one, so one plane of halo is enough (the plan keeps one on either side).
+    The scratch file holds each layer transposed, ``(width, height)`` uint8, so that the
+    columns of one slab in one layer are a single contiguous write.
+    """
+    nx = grid.shape[0]
+    slabs = plan_slabs(grid.shape, max_voxels=max_voxels, halo=1)
+    total = len(slabs) + layers
+    ix, iy = _pixel_indices(grid, pixel, origin, width, height)
+    owner = np.clip(np.floor(ix), 0, nx - 1)  # non-decreasing, so a slab's columns are a run
+    planes_at = [_layer_planes(grid, origin[2] + (k + 0.5) * layer) for k in range(layers)]
+    size = width * height
+    scratch = folder / ".layers.u8"
+    with open(scratch, "w+b", buffering=0) as fh:
+        for n, slab in enumerate(slabs):
+            c0, c1 = (int(c) for c in np.searchsorted(owner, [slab.x0, slab.x1], side="left"))
+            if c1 > c0:
+                planes = source.read(slab.h0, slab.h1)
+                if tuple(planes.shape) != (slab.h1 - slab.h0,) + tuple(grid.shape[1:]):
+                    raise ValueError(f"the field source gave planes of shape {planes.shape} for "
+                                     f"[{slab.h0}, {slab.h1}) of a grid of {grid.shape}")
+                # whole-number shift: the fractions, hence the weights, stay bit for bit
+                sx = ix[c0:c1] - slab.h0
+                for k, (k0, k1, w) in enumerate(planes_at):
+                    grey = _grey(_coverage(_sample(_blend_planes(planes[:, :, k0], planes[:, :, k1], w),
+                                                   sx, iy), pixel))
+                    fh.seek(k * size + c0 * height)
+                    _write_all(fh, grey.T)
+                del planes  # before the next read, so that two slabs are never held at once
+            if progress is not None:
+                progress(n + 1, total)
+        shares, greys = [], []
+        for k in range(layers):
+            fh.seek(k * size)
+            grey = np.ascontiguousarray(_read_exactly(fh, size).reshape(width, height).T)
+            _emit_layer(folder, k, grey, shares, greys)
+            if progress is not None:
+                progress(len(slabs) + k + 1, total)
+    scratch.unlink()
+    return shares, greys
+
+
+def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = None,
+                 layer: float | None = None, max_voxels: int | None = None,
                  progress: Callable[[int, int], None] | None = None) -> SliceStack:
     """Write the scaffold's layers as 8-bit PNG images and their geometry as ``stack.json``.
 
+    The field is an array in memory, or a field source read slab by slab along x (a
+    :class:`~implicit_scaffold.tiles.FieldFile`, :class:`~implicit_scaffold.tiles.ArraySlabs`
+    or anything with ``.grid`` and ``.read(x0, x1)``); both give the same bytes.
+
+    Slab by slab, each slab's planes are read once and every layer's pixel columns that
+    fall in it are sampled and written, as grey levels, to a scratch file in the stack's
+    temporary folder (``layers x width x height`` bytes on disk, as much as the stack
+    uncompressed); the layers are then encoded one by one from it. A slab costs the planes
+    it reads, ``(x1 - x0 + 2) * ny * nz`` voxels as the source gives them (float32 from a
+    FieldFile: 4 bytes each, at most ``4 * max_voxels``), plus, for one layer at a time,
+    its blended planes (``(x1 - x0 + 2) * ny`` float64) and up to about 60 bytes per pixel of
+    the slab's strip of the layer (``height`` rows of the columns it owns: coordinates,
+    sample, coverage, grey); encoding costs a few bytes per pixel of one layer. Nothing is
+    mapped. An array read whole costs, beyond itself, one blended plane and about 60 bytes
+    per pixel of one layer.
+
     Parameters
     ----------
-    field : (nx, ny, nz) float ndarray, mm
+    field : (nx, ny, nz) float ndarray, mm, or a field source
         The scaffold's signed distance on `grid`, negative in the solid.
-    grid : Grid
+    grid : Grid or None
+        The field's grid; None (or the same grid) for a field source, which has its own.
     out_dir : str or os.PathLike
         A folder to create (or an empty one); it appears only when the stack is complete.
     pixel : float, mm, optional
         The printer's pixel pitch; the voxel size by default.
     layer : float, mm, optional
         The layer height; the voxel size by default.
+    max_voxels : int, optional
+        Voxels a slab may read, halo included. A field source is read in slabs of at most
+        :data:`SLAB_VOXELS` voxels by default (or one plane and its halo if more); an array
+        given with `max_voxels` is read in slabs too (the same bytes), and as a whole plane
+        per layer without.
     progress : callable(done, total), optional
+        Called after each layer for an array read whole; after each slab and each
+        encoded layer for slabs.
 
     Returns
     -------
@@ -205,28 +364,48 @@ def write_slices(field: np.ndarray, grid: Grid, out_dir, *, pixel: float | None 
     Raises
     ------
     ScaffoldError
-        A non-positive pixel or layer, or an output folder that cannot be written.
+        A non-positive pixel or layer, a field that does not match its grid, a bound too
+        small for one plane and its halo, or an output folder that cannot be written.
     """
     from .mesh import write_json
 
+    source = None
+    if _is_source(field):
+        if grid is not None and grid != field.grid:
+            raise ScaffoldError(f"the field source's grid {field.grid} differs from the grid given {grid}; "
+                                "pass grid=None to use the source's own")
+        grid = field.grid
+        source = field
+    elif grid is None:
+        raise ScaffoldError("a field array needs its grid; pass the Grid the field was computed on")
     pixel = grid.spacing if pixel is None else positive_mm("pixel", pixel, example="0.05")
     layer = grid.spacing if layer is None else positive_mm("layer", layer, example="0.05")
-    if field.shape != grid.shape:
-        raise ScaffoldError(f"the field's shape {field.shape} does not match its grid {grid.shape}")
+    if source is None:
+        if tuple(field.shape) != tuple(grid.shape):
+            raise ScaffoldError(f"the field's shape {field.shape} does not match its grid {grid.shape}")
+        if max_voxels is not None:
+            source = _ArrayPlanes(field, grid)
+    if source is not None:
+        # by default at least one plane and its halo, however wide the planes
+        max_voxels = (max(SLAB_VOXELS, 3 * grid.shape[1] * grid.shape[2]) if max_voxels is None
+                      else _check_max_voxels(max_voxels))
+        plan_slabs(grid.shape, max_voxels=max_voxels, halo=1)  # a bound too small fails before any folder
     origin, (width, height, layers) = stack_geometry(grid, pixel, layer)
     final = Path(out_dir)
     tmp = _prepare_folder(final)
     shares, greys = [], []
     try:
-        for k in range(layers):
-            z = origin[2] + (k + 0.5) * layer
-            cover = layer_coverage(field, grid, z, pixel, origin, width, height)
-            grey = np.rint(cover * 255).astype(np.uint8)
-            shares.append(float(np.count_nonzero(grey >= 128) / grey.size))
-            greys.append(float(grey.mean(dtype=np.float64) / 255))
-            (tmp / LAYER_NAME.format(k)).write_bytes(_png_bytes(grey))
-            if progress is not None:
-                progress(k + 1, layers)
+        if source is not None:
+            shares, greys = _slab_layers(source, grid, tmp, origin=origin, width=width, height=height,
+                                         layers=layers, pixel=pixel, layer=layer, max_voxels=max_voxels,
+                                         progress=progress)
+        else:
+            for k in range(layers):
+                z = origin[2] + (k + 0.5) * layer
+                _emit_layer(tmp, k, _grey(layer_coverage(field, grid, z, pixel, origin, width, height)),
+                            shares, greys)
+                if progress is not None:
+                    progress(k + 1, layers)
         stack = SliceStack(pixel_mm=float(pixel), layer_mm=float(layer), width=width, height=height,
                            layers=layers, origin_mm=tuple(float(v) for v in origin), files=LAYER_NAME,
                            solid_share=tuple(shares), grey_mean=tuple(greys))

@@ -100,3 +100,144 @@ def test_existing_folder_is_not_overwritten(tmp_path):
     with pytest.raises(ScaffoldError, match="already exists"):
         write_slices(field, grid, tmp_path / "s")
     assert [p.name for p in (tmp_path / "s").iterdir()] == ["keep.txt"]
+
+
+# --- slab by slab (a field read in x-slabs from a field source) ---------------------------
+
+def _wavy(seed=4, shape=(23, 19, 17), h=0.09):
+    """A random-ish analytic field on an odd grid: a ball rippled by seeded plane waves."""
+    rng = np.random.default_rng(seed)
+    grid = Grid((0.13, -0.41, 0.27), h, shape)
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    centre = (grid.lo + grid.hi) / 2
+    field = np.sqrt((x - centre[0]) ** 2 + (y - centre[1]) ** 2 + (z - centre[2]) ** 2) - 0.35 * shape[1] * h
+    for _ in range(4):
+        k = rng.normal(0.0, 2.0 / h, 3)
+        field = field + 0.6 * h * np.sin(k[0] * x + k[1] * y + k[2] * z + rng.uniform(0, 2 * np.pi))
+    return field.astype(np.float32), grid
+
+
+def _same_folders(a, b):
+    names = sorted(p.name for p in a.iterdir())
+    assert names == sorted(p.name for p in b.iterdir())
+    for name in names:
+        assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    return names
+
+
+@pytest.mark.parametrize("make, pixel, layer", [
+    (lambda: _sphere(h=0.1), None, None),
+    (lambda: _sphere(h=0.1), 0.043, 0.13),
+    (_wavy, None, None),
+    (_wavy, 0.031, 0.05),  # pixels smaller than voxels: the first columns lie left of the first plane
+    (_wavy, 0.23, 0.07),   # pixels wider than voxels: some slabs own no column
+])
+def test_slabs_give_the_same_bytes_as_the_array(tmp_path, make, pixel, layer):
+    from implicit_scaffold.tiles import ArraySlabs
+
+    field, grid = make()
+    plane = grid.shape[1] * grid.shape[2]
+    whole = write_slices(field, grid, tmp_path / "whole", pixel=pixel, layer=layer)
+    # one plane per slab (plus one halo plane on either side), a few planes, and all of them
+    for max_voxels in (3 * plane, 6 * plane + 7, field.size + 2 * plane):
+        out = tmp_path / f"slabs{max_voxels}"
+        stack = write_slices(ArraySlabs(field, grid), None, out, pixel=pixel, layer=layer, max_voxels=max_voxels)
+        assert stack == whole
+        names = _same_folders(tmp_path / "whole", out)
+        assert names == sorted([STACK_JSON] + [whole.files.format(k) for k in range(whole.layers)])
+
+
+def test_slabs_from_a_field_file(tmp_path):
+    from implicit_scaffold.tiles import FieldFile
+
+    field, grid = _wavy(seed=9, shape=(21, 16, 13))
+    whole = write_slices(field, grid, tmp_path / "whole", pixel=0.05, layer=0.06)
+    (tmp_path / "disk").mkdir()
+    with FieldFile(grid, folder=tmp_path / "disk") as source:
+        source.write(0, field[:8])
+        source.write(8, field[8:])
+        stack = write_slices(source, grid, tmp_path / "slabs", pixel=0.05, layer=0.06,
+                             max_voxels=5 * 16 * 13)
+    assert stack == whole
+    _same_folders(tmp_path / "whole", tmp_path / "slabs")
+    assert json.loads((tmp_path / "slabs" / STACK_JSON).read_text())["solid_share"] == list(whole.solid_share)
+
+
+def test_float64_array_with_a_bound_reads_slabs_with_the_same_bytes(tmp_path):
+    field, grid = _wavy(seed=6)
+    field = field.astype(np.float64)
+    calls = []
+    whole = write_slices(field, grid, tmp_path / "whole", pixel=0.07, layer=0.05)
+    stack = write_slices(field, grid, tmp_path / "slabs", pixel=0.07, layer=0.05, max_voxels=5 * 19 * 17,
+                         progress=lambda done, total: calls.append(total))
+    assert stack == whole and calls[0] == 8 + whole.layers  # 23 planes in slabs of 3: read by slabs
+    _same_folders(tmp_path / "whole", tmp_path / "slabs")
+
+
+def test_slab_layers_agree_with_the_voxels(tmp_path):
+    # pixels = voxels and layers = voxel planes: each layer samples its voxel plane at the voxel
+    # centres, so its solid share is the plane's share of negative voxels (NumPy on the field)
+    from implicit_scaffold.tiles import ArraySlabs
+
+    field, grid = _wavy(seed=2, shape=(30, 27, 25), h=0.05)
+    stack = write_slices(ArraySlabs(field, grid), None, tmp_path / "s", max_voxels=4 * 27 * 25)
+    assert (stack.width, stack.height, stack.layers) == grid.shape
+    voxel_share = (field < 0).mean(axis=(0, 1))
+    assert 0.05 < voxel_share.mean() < 0.95  # a real mix of solid and void
+    assert np.max(np.abs(np.array(stack.solid_share) - voxel_share)) < 0.01
+    # and the images say the same as stack.json
+    images = _layers(tmp_path / "s", stack)
+    assert [float(np.mean(img >= 128)) for img in images] == pytest.approx(stack.solid_share, abs=1e-12)
+
+
+def test_slab_progress_counts_slabs_then_layers(tmp_path):
+    from implicit_scaffold.tiles import ArraySlabs
+
+    field, grid = _wavy()
+    calls = []
+    stack = write_slices(ArraySlabs(field, grid), None, tmp_path / "s", max_voxels=3 * 19 * 17,
+                         progress=lambda done, total: calls.append((done, total)))
+    total = grid.shape[0] + stack.layers  # one plane per slab
+    assert calls == [(i, total) for i in range(1, total + 1)]
+
+
+@pytest.mark.parametrize("stop_at", [2, 30])  # while sampling the slabs, while encoding the layers
+def test_interrupted_slab_run_leaves_nothing(tmp_path, stop_at):
+    from implicit_scaffold.tiles import FieldFile
+
+    field, grid = _wavy()
+    out = tmp_path / "out"
+    out.mkdir()
+
+    def stop(done, total):
+        if done == stop_at:
+            raise KeyboardInterrupt
+
+    with FieldFile(grid, folder=tmp_path) as source:
+        source.write(0, field)
+        with pytest.raises(KeyboardInterrupt):
+            write_slices(source, None, out / "s", max_voxels=3 * 19 * 17, progress=stop)
+    assert list(out.iterdir()) == []  # no stack, no temporary folder, no scratch file
+    assert list(tmp_path.iterdir()) == [out]
+
+
+@pytest.mark.parametrize("kwargs, message", [({"max_voxels": 2 * 19 * 17}, "one slab of the grid needs"),
+                                             ({"max_voxels": 0}, "max_voxels must be a positive"),
+                                             ({"max_voxels": 1.5e6}, "max_voxels must be a positive")])
+def test_bad_slab_bound(tmp_path, kwargs, message):
+    from implicit_scaffold.tiles import ArraySlabs
+
+    field, grid = _wavy()
+    with pytest.raises(ScaffoldError, match=message):
+        write_slices(ArraySlabs(field, grid), None, tmp_path / "s", **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_source_with_another_grid(tmp_path):
+    from implicit_scaffold.tiles import ArraySlabs
+
+    field, grid = _wavy()
+    other = Grid(grid.origin, grid.spacing * 2, grid.shape)
+    with pytest.raises(ScaffoldError, match="grid"):
+        write_slices(ArraySlabs(field, grid), other, tmp_path / "s")
+    assert list(tmp_path.iterdir()) == []

@@ -1,0 +1,418 @@
+"""The tiled run: the scaffold's field slab by slab, in bounded memory, on one machine or a cluster.
+
+A grid whose whole-grid run would not fit in ``--max-memory`` is cut into slabs along
+x (:func:`~implicit_scaffold.tiles.plan_slabs`). Each slab's lattice field is computed
+for its own planes plus the halo the blend reads, in the whole grid's frame, so every
+value is the one the whole-grid run computes, bit for bit. The passes:
+
+1. lattice, blend and patient field of each slab (the heavy part; on Dask workers when
+   a scheduler is given), kept in two raw files on disk (:class:`~.tiles.FieldFile`),
+   while the patient's voxels are counted and their lattice values histogrammed;
+2. the exact order statistics that give the surface offset (:class:`~.tiles.StreamQuantile`);
+3. the scaffold field ``max(lattice - level, patient)`` of each slab, with its solid
+   pieces labelled and joined across slabs (:class:`~.tiles.SlabComponents`);
+4. the solid fragments turned into void.
+
+The finished field stays on disk for the outputs (streamed mesh, printer slices, .npy),
+which read it slab by slab too.
+"""
+from __future__ import annotations
+
+import itertools
+import shutil
+import tempfile
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+
+from .errors import ScaffoldError
+from .field import blend_field, scaffold_field
+from .grid import Grid, available_memory
+from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_from_ranks, level_ranks, \
+    plan_slabs
+
+#: bytes per voxel of a slab at the peak of pass 1 (lattice and blended planes, the
+#: blend's own temporary, the patient planes, masks and quantile keys), rounded up
+SLAB_BYTES_PER_VOXEL = 48
+#: the default --max-memory: this share of the memory free when the run starts
+DEFAULT_MEMORY_SHARE = 0.8
+#: bytes on disk per voxel while a tiled run goes: the scaffold and patient fields
+DISK_BYTES_PER_VOXEL = 8
+
+
+def default_max_memory() -> int:
+    """The default memory bound, bytes: a safe share of what is free now."""
+    return int(DEFAULT_MEMORY_SHARE * available_memory())
+
+
+def parse_memory(text) -> int:
+    """A memory size such as ``4G``, ``3.5GB``, ``800M`` or ``800MiB`` (a bare number is GiB), as bytes."""
+    units = {"": 2**30, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
+    raw = str(text).strip().lower()
+    for suffix in ("ib", "b"):
+        if raw.endswith(suffix) and raw[:-len(suffix)][-1:] in "kmgt":
+            raw = raw[:-len(suffix)]
+            break
+    unit = raw[-1:] if raw[-1:] in "kmgt" else ""
+    try:
+        value = float(raw[:len(raw) - len(unit)])
+    except ValueError:
+        raise ScaffoldError(f"--max-memory must be a size such as 4G or 800M, got {text!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ScaffoldError(f"--max-memory must be a positive size such as 4G, got {text!r}")
+    return int(value * units[unit])
+
+
+def process_memory() -> int:
+    """Bytes this process holds now (resident set)."""
+    import psutil
+
+    return int(psutil.Process().memory_info().rss)
+
+
+def peak_memory() -> int:
+    """The most bytes this process has held (its peak resident set)."""
+    import resource
+
+    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+
+
+def slab_voxels(max_memory: int, held: int | None = None) -> int:
+    """Voxels a slab may hold (halo included) so that the run stays within `max_memory` bytes.
+
+    Raises
+    ------
+    ScaffoldError
+        What the process already holds leaves no room for a slab.
+    """
+    held = process_memory() if held is None else int(held)
+    room = int(max_memory) - held
+    if room < 64 * 2**20:
+        raise ScaffoldError(f"--max-memory {max_memory / 2**30:.2f} GiB leaves no room for a slab: the run "
+                            f"already holds {held / 2**30:.2f} GiB (cells and skeleton); raise --max-memory")
+    return room // SLAB_BYTES_PER_VOXEL
+
+
+def check_disk(grid: Grid, folder=None) -> None:
+    """Raise before the run if the temporary folder cannot hold the tiled run's fields."""
+    folder = folder or tempfile.gettempdir()
+    need = DISK_BYTES_PER_VOXEL * grid.size
+    free = shutil.disk_usage(folder).free
+    if need > free:
+        raise ScaffoldError(f"a tiled run over {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels keeps its "
+                            f"fields on disk: it needs {need / 2**30:.1f} GiB but only {free / 2**30:.1f} GiB is "
+                            f"free in {folder}; set TMPDIR to a larger disk or use a larger --voxel")
+
+
+@dataclass(frozen=True)
+class SlabWork:
+    """What every slab of pass 1 needs; sent once to each worker.
+
+    Attributes
+    ----------
+    style : str
+        ``"paper"`` (``skeleton``) or ``"struts"`` (``edges``).
+    skeleton, edges : the lattice's primitives
+    patient : object with ``sdf_grid(grid, x_range=)``
+    grid : Grid
+    cutoff : float, mm
+    k : float, mm
+        Blend width (paper: Gaussian support; struts: smooth-minimum width).
+    """
+
+    style: str
+    skeleton: Any
+    edges: Any
+    patient: Any
+    grid: Grid
+    cutoff: float
+    k: float
+
+    @property
+    def halo(self) -> int:
+        """Planes the blend reads on either side of a slab."""
+        return blend_halo(self.grid.spacing, self.k) if self.style == "paper" else 0
+
+
+def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarray]:
+    """Pass 1 for one slab: its blended lattice field and its patient field, owned planes only.
+
+    Returns
+    -------
+    slab : Slab
+    lattice : (x1 - x0, ny, nz) float32 ndarray, mm
+    patient : (x1 - x0, ny, nz) float32 ndarray, mm
+    """
+    from .lattice import lattice_sdf, struts_field
+    from .patient import patient_sdf
+
+    grid = work.grid
+    if work.style == "paper":
+        base = lattice_sdf(work.skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1))
+        base = np.ascontiguousarray(blend_field(base, grid.spacing, work.k)[slab.owned])
+    else:
+        base = struts_field(work.edges, grid, cutoff=work.cutoff, blend=work.k, x_range=(slab.x0, slab.x1))
+    return slab, base, patient_sdf(work.patient, grid, (slab.x0, slab.x1))
+
+
+class LocalRunner:
+    """Runs the slabs one after the other in this process."""
+
+    workers = 1
+
+    def map(self, fn: Callable, work, items):
+        for item in items:
+            yield fn(work, item)
+
+    def close(self) -> None:
+        pass
+
+
+class DaskRunner:
+    """Runs the slabs on a dask.distributed cluster; results come back as they finish.
+
+    Parameters
+    ----------
+    scheduler : str or distributed.Client
+        A scheduler's address (``tcp://host:8786``), or a client already connected.
+    """
+
+    def __init__(self, scheduler):
+        try:
+            from distributed import Client
+        except ImportError:
+            raise ScaffoldError("--scheduler needs dask.distributed: pip install 'implicit_scaffold[cluster]'") \
+                from None
+        if isinstance(scheduler, Client):
+            self.client, self._own = scheduler, False
+        else:
+            try:
+                self.client, self._own = Client(str(scheduler), timeout="20s"), True
+            except (OSError, TimeoutError) as exc:
+                raise ScaffoldError(f"cannot reach the Dask scheduler at {scheduler}: {exc}; "
+                                    "check the address (tcp://host:8786) and that the scheduler runs") from None
+        self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
+
+    def map(self, fn: Callable, work, items):
+        from distributed import as_completed
+
+        shared = self.client.scatter(work, broadcast=True)
+        items = iter(items)
+        # a few slabs in flight per worker: enough to keep them busy, few enough to bound
+        # what waits on the client
+        queue = as_completed([self.client.submit(fn, shared, item, pure=False)
+                              for item in itertools.islice(items, 2 * self.workers)])
+        for future in queue:
+            result = future.result()
+            future.release()
+            nxt = next(items, None)
+            if nxt is not None:
+                queue.add(self.client.submit(fn, shared, nxt, pure=False))
+            yield result
+
+    def close(self) -> None:
+        if self._own:
+            self.client.close()
+
+
+def runner_for(scheduler) -> LocalRunner | DaskRunner:
+    """This process (no scheduler) or a Dask cluster."""
+    return LocalRunner() if scheduler is None else DaskRunner(scheduler)
+
+
+@dataclass
+class TiledField:
+    """The finished scaffold field of a tiled run, on disk, and what its passes counted.
+
+    Attributes
+    ----------
+    field : FieldFile
+        The scaffold's signed distance (negative in the solid), mm.
+    patient : FieldFile
+        The patient's signed distance, mm.
+    level : float, mm
+    cutoff : float, mm
+    n_inside : int
+        Voxels inside the patient.
+    solid : int
+        Solid voxels of the scaffold.
+    fragments : int or None
+        Solid pieces removed (None when kept).
+    pieces : int
+        Solid pieces left (6-connected).
+    slabs : list of Slab
+    """
+
+    field: FieldFile
+    patient: FieldFile
+    level: float
+    cutoff: float
+    n_inside: int
+    solid: int
+    fragments: int | None
+    pieces: int
+    slabs: list
+
+    def close(self) -> None:
+        """Remove the files."""
+        self.field.close()
+        self.patient.close()
+
+
+def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: FieldFile, progress):
+    """Pass 1; returns the quantile's first pass, the patient's voxel count and its values' range."""
+    quantile = StreamQuantile()
+    n_inside, lo, hi = 0, np.inf, -np.inf
+    for done, (slab, base, s_p) in enumerate(runner.map(slab_fields, work, slabs), 1):
+        inside = s_p < 0
+        values = base[inside]
+        if values.size:
+            quantile.count(values)
+            n_inside += values.size
+            lo, hi = min(lo, float(values.min())), max(hi, float(values.max()))
+        field.write(slab.x0, base)
+        patient.write(slab.x0, s_p)
+        del base, s_p, inside, values
+        if progress is not None:
+            progress(done, len(slabs))
+    return quantile, n_inside, lo, hi
+
+
+def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: FieldFile, n_inside: int,
+                 lo: float, hi: float, porosity: float | None) -> float:
+    """Pass 2: the level :func:`~implicit_scaffold.field.solve_level` finds on the whole grid."""
+    if porosity is None:
+        return 0.0
+    ranks = level_ranks(n_inside, porosity)
+    if ranks is None:
+        solid = int(round((1.0 - porosity) * n_inside))
+        return lo - 1e-6 if solid <= 0 else hi + 1e-6
+    quantile.select(*ranks)
+    for slab in slabs:
+        quantile.refine(field.read(slab.x0, slab.x1)[patient.read(slab.x0, slab.x1) < 0])
+    return level_from_ranks(*quantile.values())
+
+
+def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
+                   cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
+                   max_voxels: int, runner=None, prog=None) -> TiledField:
+    """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
+
+    Parameters
+    ----------
+    style : str
+    skeleton, edges : the lattice's primitives (paper, struts)
+    patient : object with ``sdf_grid(grid, x_range=)``
+    grid : Grid
+    porosity : float or None
+        Target void fraction of the patient; None keeps the lattice as built (level 0).
+    k : float, mm
+        Blend width.
+    cutoff : float, mm
+        First cut-off of the lattice field.
+    next_cutoff : callable(level, cutoff) -> float or None
+        A wider cut-off when `level` reads values the cut-off clamped, else None (the
+        whole-grid run's rule, so that both take the same steps).
+    remove_fragments : bool
+    max_voxels : int
+        Voxels a slab may hold, halo included.
+    runner : LocalRunner or DaskRunner, optional
+    prog : Progress, optional
+
+    Returns
+    -------
+    TiledField
+        Close it (or use its files) when done: its fields live in temporary files.
+    """
+    from .progress import Progress
+
+    prog = prog or Progress(False)
+    runner = runner or LocalRunner()
+    check_disk(grid)
+    field, patient_file = FieldFile(grid), FieldFile(grid)
+    try:
+        for _ in range(6):
+            work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k))
+            slabs = plan_slabs(grid.shape, max_voxels=max_voxels, halo=work.halo)
+            with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
+                                       f"{len(slabs)} slabs"):
+                quantile, n_inside, lo, hi = _pass_lattice(work, slabs, runner, field, patient_file,
+                                                           prog.bar("lattice"))
+            if n_inside == 0:
+                raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
+            with prog.stage("offset"):
+                level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity)
+            wider = next_cutoff(level, cutoff)
+            if wider is None:
+                break
+            cutoff = wider
+        with prog.stage("scaffold"):
+            solid, fragments, pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
+                                                      remove_fragments, prog.bar("scaffold"))
+    except BaseException:
+        field.close()
+        patient_file.close()
+        raise
+    return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
+                      pieces, slabs)
+
+
+def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
+                   remove: bool, progress) -> tuple[int, int | None, int]:
+    """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void."""
+    pieces = SlabComponents()
+    solid = 0
+    for done, slab in enumerate(slabs, 1):
+        s = scaffold_field(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1), level=level)
+        field.write(slab.x0, s)
+        inside = s < 0
+        pieces.add(inside)
+        solid += int(np.count_nonzero(inside))
+        if progress is not None:
+            progress(done, 2 * len(slabs) if remove else len(slabs))
+    found = pieces.finish()
+    if not remove or found == 0:
+        return solid, (0 if remove else None), found + 1 if solid else 0
+    for i, slab in enumerate(slabs):
+        s = field.read(slab.x0, slab.x1)
+        drop = pieces.fragment_mask(i, s < 0)
+        s[drop] = np.float32(spacing)
+        solid -= int(np.count_nonzero(drop))
+        field.write(slab.x0, s)
+        if progress is not None:
+            progress(len(slabs) + i + 1, 2 * len(slabs))
+    return solid, found, 1
+
+
+def sample_slabs(source, grid: Grid, points) -> np.ndarray:
+    """Trilinear values of a field on disk at `points` ``(m, 3)`` mm, as :func:`~.field.sample` gives.
+
+    Reads, for each group of points, only the two planes around them.
+    """
+    from scipy import ndimage
+
+    idx = (np.asarray(points, np.float64) - np.asarray(grid.origin)) / grid.spacing
+    out = np.empty(len(idx), np.float32)
+    plane = np.clip(np.floor(idx[:, 0]), 0, grid.shape[0] - 1).astype(np.int64)
+    for x in np.unique(plane):
+        pick = plane == x
+        x1 = min(int(x) + 2, grid.shape[0])
+        local = idx[pick].copy()
+        local[:, 0] -= x
+        out[pick] = ndimage.map_coordinates(source.read(int(x), x1), local.T, order=1, mode="nearest")
+    return out
+
+
+def write_npy_slabs(source, path, *, max_voxels: int) -> None:
+    """Write a field on disk as float32 ``.npy``, slab by slab, atomically (the bytes of ``np.save``)."""
+    from .mesh import atomic_path
+
+    grid = source.grid
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")), "fortran_order": False,
+              "shape": tuple(grid.shape)}
+    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
+        np.lib.format.write_array_header_1_0(fh, header)
+        for slab in plan_slabs(grid.shape, max_voxels=max_voxels, halo=0):
+            fh.write(np.ascontiguousarray(source.read(slab.x0, slab.x1), dtype="<f4").tobytes())
+
