@@ -96,6 +96,40 @@ def _pack_pieces(skeleton: Skeleton, origin):
     return boxes, planes.astype(np.float32), skeleton.piece_start.astype(np.int32), lo, hi
 
 
+#: the last primitives packed for a grid, kept for the next slab of the same run:
+#: (weak reference to the primitives' owner, grid, packed)
+_PACKED: dict = {}
+
+
+def _packed(owner, grid: Grid, pack):
+    """``pack(owner, grid)``, computed once per owner and grid: a tiled run's slabs share it.
+
+    The owner (a Skeleton) is held by a weak reference, so a new owner at a recycled
+    address is never mistaken for the old one.
+    """
+    import weakref
+
+    hit = _PACKED.get(pack)
+    if hit is not None and hit[0]() is owner and hit[1] == grid:
+        return hit[2]
+    _PACKED.pop(pack, None)
+    packed = pack(owner, grid)
+    _PACKED[pack] = (weakref.ref(owner), grid, packed)
+    return packed
+
+
+def _pack_paper(skeleton: Skeleton, grid: Grid):
+    """Quads and pieces of `skeleton` in `grid`'s frame, on the host and the device."""
+    from types import SimpleNamespace
+
+    quads = _pack_quads(skeleton, grid.origin)
+    boxes, planes, plane_start, lo, hi = _pack_pieces(skeleton, grid.origin)
+    return SimpleNamespace(quads=quads, quad_buffer=opencl.to_device(quads.data.reshape(-1, 4)),
+                           piece_lo=lo, piece_hi=hi, piece_boxes=opencl.to_device(boxes.reshape(-1, 4)),
+                           plane_start=opencl.to_device(plane_start, np.int32),
+                           planes=opencl.to_device(planes))
+
+
 def _ulps(magnitude: float, n: int) -> float:
     """`n` float32 units in the last place at `magnitude` (mm)."""
     return float(n * np.spacing(np.float32(max(magnitude, 1.0))))
@@ -264,19 +298,17 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     (x1 - x0, ny, nz) float32 ndarray, mm
         ``(nx, ny, nz)`` without `x_range`.
     """
-    quads = _pack_quads(skeleton, grid.origin)
-    boxes, planes, plane_start, lo, hi = _pack_pieces(skeleton, grid.origin)
+    packed = _packed(skeleton, grid, _pack_paper)
+    quads, lo, hi = packed.quads, packed.piece_lo, packed.piece_hi
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
     plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3,
                        block_range=_block_range(grid, x_range))
-    quad_buffer = opencl.to_device(quads.data.reshape(-1, 4))
-    qoffsets, qcounts, qitems, qkeys = bin_on_device("quad", quad_buffer, quads.lo, quads.hi, grid,
+    qoffsets, qcounts, qitems, qkeys = bin_on_device("quad", packed.quad_buffer, quads.lo, quads.hi, grid,
                                                      cutoff=cutoff, x_range=x_range)
     kernel = opencl.kernel("lattice", "lattice_paper", BLOCK=BLOCK)
-    buffers = [qoffsets, qcounts, qitems, qkeys, quad_buffer,
+    buffers = [qoffsets, qcounts, qitems, qkeys, packed.quad_buffer,
                opencl.to_device(plists.offsets, np.int32), opencl.to_device(plists.items, np.int32),
-               opencl.to_device(boxes.reshape(-1, 4)), opencl.to_device(plane_start, np.int32),
-               opencl.to_device(planes)]
+               packed.piece_boxes, packed.plane_start, packed.planes]
     from pyopencl import cltypes
 
     slack = _slack(grid, quads.lo, quads.hi)

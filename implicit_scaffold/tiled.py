@@ -266,14 +266,15 @@ def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: Fiel
     n_inside, lo, hi = 0, np.inf, -np.inf
     for done, (slab, base, s_p) in enumerate(runner.map(slab_fields, work, slabs), 1):
         inside = s_p < 0
-        values = base[inside]
-        if values.size:
-            quantile.count(values)
-            n_inside += values.size
-            lo, hi = min(lo, float(values.min())), max(hi, float(values.max()))
+        found = quantile.n
+        quantile.count(base, inside)
+        if quantile.n > found:
+            n_inside += quantile.n - found
+            lo = min(lo, float(np.min(base, where=inside, initial=np.inf)))
+            hi = max(hi, float(np.max(base, where=inside, initial=-np.inf)))
         field.write(slab.x0, base)
         patient.write(slab.x0, s_p)
-        del base, s_p, inside, values
+        del base, s_p, inside
         if progress is not None:
             progress(done, len(slabs))
     return quantile, n_inside, lo, hi
@@ -290,7 +291,7 @@ def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: Fie
         return lo - 1e-6 if solid <= 0 else hi + 1e-6
     quantile.select(*ranks)
     for slab in slabs:
-        quantile.refine(field.read(slab.x0, slab.x1)[patient.read(slab.x0, slab.x1) < 0])
+        quantile.refine(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1) < 0)
     return level_from_ranks(*quantile.values())
 
 

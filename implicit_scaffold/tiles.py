@@ -86,16 +86,57 @@ def blend_halo(spacing: float, k: float) -> int:
     return int(BLEND_SIGMAS * sigma + 0.5)
 
 
-def _ordered_keys(values: np.ndarray) -> np.ndarray:
-    """float32 values as uint32 keys in the same order (negative numbers reversed, -0 < +0)."""
-    bits = np.ascontiguousarray(values, np.float32).view(np.uint32)
-    return np.where(bits >> 31, ~bits, bits | np.uint32(0x80000000)).astype(np.uint32)
-
-
 def _keys_to_values(keys: np.ndarray) -> np.ndarray:
     keys = np.asarray(keys, np.uint32)
     bits = np.where(keys >> 31, keys & np.uint32(0x7FFFFFFF), ~keys).astype(np.uint32)
     return bits.view(np.float32)
+
+
+_KEY_KERNELS = None
+
+
+def _key_kernels():
+    """Compiled (numba) histograms of the ordered keys of float32 values under a mask."""
+    global _KEY_KERNELS
+    if _KEY_KERNELS is not None:
+        return _KEY_KERNELS
+    import numba as nb
+
+    @nb.njit(cache=True, boundscheck=False)
+    def key(bits):  # pragma: no cover - compiled
+        # float32 bits as uint32 keys in the same order (negative numbers reversed, -0 < +0)
+        return ~bits if bits >> np.uint32(31) else bits | np.uint32(0x80000000)
+
+    @nb.njit(cache=True, boundscheck=False)
+    def count_high(bits, mask, high):  # pragma: no cover - compiled
+        n = 0
+        for i in range(bits.size):
+            if mask[i]:
+                high[key(bits[i]) >> np.uint32(16)] += 1
+                n += 1
+        return n
+
+    @nb.njit(cache=True, boundscheck=False)
+    def count_low(bits, mask, tops, lows):  # pragma: no cover - compiled
+        for i in range(bits.size):
+            if mask[i]:
+                k = key(bits[i])
+                t = k >> np.uint32(16)
+                for j in range(tops.size):
+                    if tops[j] == t:
+                        lows[j, k & np.uint32(0xFFFF)] += 1
+
+    _KEY_KERNELS = count_high, count_low
+    return _KEY_KERNELS
+
+
+def _flat_bits(values, where):
+    bits = np.ascontiguousarray(values, np.float32).reshape(-1).view(np.uint32)
+    mask = (np.ones(bits.size, np.bool_) if where is None
+            else np.ascontiguousarray(where, np.bool_).reshape(-1))
+    if mask.size != bits.size:
+        raise ValueError(f"a mask of {mask.size} values for {bits.size} values")
+    return bits, mask
 
 
 class StreamQuantile:
@@ -113,11 +154,10 @@ class StreamQuantile:
         self._ranks: tuple[int, ...] = ()
         self._low: dict[int, np.ndarray] = {}
 
-    def count(self, values) -> None:
-        """Pass 1: add values (any shape)."""
-        keys = _ordered_keys(np.ravel(values))
-        self.high += np.bincount(keys >> 16, minlength=1 << 16)
-        self.n += keys.size
+    def count(self, values, where=None) -> None:
+        """Pass 1: add values (any shape), or those where the mask `where` (same shape) is true."""
+        bits, mask = _flat_bits(values, where)
+        self.n += int(_key_kernels()[0](bits, mask, self.high))
 
     def select(self, *ranks: int) -> None:
         """Fix the 0-based ranks wanted (after pass 1, before pass 2)."""
@@ -129,12 +169,14 @@ class StreamQuantile:
         self._top = {r: int(np.searchsorted(self._cum, r, side="right")) for r in self._ranks}
         self._low = {top: np.zeros(1 << 16, np.int64) for top in set(self._top.values())}
 
-    def refine(self, values) -> None:
-        """Pass 2: add the same values again (any order, any slabs)."""
-        keys = _ordered_keys(np.ravel(values))
-        top = keys >> 16
-        for t, hist in self._low.items():
-            hist += np.bincount(keys[top == t] & np.uint32(0xFFFF), minlength=1 << 16)
+    def refine(self, values, where=None) -> None:
+        """Pass 2: add the same values again (any order, any slabs), with the same mask."""
+        bits, mask = _flat_bits(values, where)
+        tops = np.array(sorted(self._low), np.uint32)
+        lows = np.zeros((len(tops), 1 << 16), np.int64)
+        _key_kernels()[1](bits, mask, tops, lows)
+        for t, row in zip(tops, lows):
+            self._low[int(t)] += row
 
     def values(self) -> list[float]:
         """The values at the selected ranks, in the order they were given."""
