@@ -50,6 +50,11 @@ class Params:
     seeds_in: str = "box"
     skin: float = 0.0
     smooth_cut: float = 0.0
+    #: graded scaffolds (:mod:`.grade`): pore size by depth ("0:0.3,2:0.8") or a callable
+    #: f(x, y, z) -> mm; or a CT calibration (slope, intercept); Lloyd iterations
+    grade: Any = None
+    calibration: Any = None
+    relax: int = 0
 
 
 @dataclass
@@ -136,12 +141,40 @@ def validate(**options) -> Params:
             raise ScaffoldError(f"--{name.replace('_', '-')} must be a width in mm, got {getattr(p, name)!r}") from None
         if not (math.isfinite(widths[name]) and widths[name] >= 0):
             raise ScaffoldError(f"--{name.replace('_', '-')} must be a width >= 0 mm, got {getattr(p, name)!r}")
+    graded = _validate_grade(p, seeds, widths)
     return Params(shape=p.shape, size=p.size, seeds=seeds,
                   pore_size=positive_mm("pore-size", p.pore_size, example="0.6"),
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, seed=seed,
                   voxel=None if p.voxel is None else positive_mm("voxel", p.voxel, example="0.04"),
-                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, **widths)
+                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, **widths, **graded)
+
+
+def _validate_grade(p: Params, seeds, widths: dict) -> dict:
+    """The graded options (``grade``, ``calibration``, ``relax``) checked, or a ScaffoldError."""
+    from .grade import check_grade, parse_calibration
+
+    grade = check_grade(p.grade)
+    calibration = parse_calibration(p.calibration)
+    try:
+        relax = int(p.relax or 0)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--relax must be a whole number of Lloyd iterations, got {p.relax!r}") from None
+    if relax < 0:
+        raise ScaffoldError(f"--relax must be >= 0 Lloyd iterations, got {relax}")
+    if grade is not None and calibration is not None:
+        raise ScaffoldError("give --grade (pore size by depth) or --calibration (from the CT), not both")
+    if grade is None and calibration is None:
+        if relax:
+            raise ScaffoldError("--relax relaxes graded seeds; add --grade (e.g. --grade 0:0.6 for even pores) "
+                                "or --calibration")
+        return {"grade": None, "calibration": None, "relax": 0}
+    if seeds is not None:
+        raise ScaffoldError("a graded scaffold takes its seed count from the pore-size field; drop --seeds")
+    if widths["skin"] > 0 or widths["smooth_cut"] > 0:
+        raise ScaffoldError("--skin and --smooth-cut are not available with a graded scaffold yet; drop them "
+                            "or drop --grade/--calibration")
+    return {"grade": grade, "calibration": calibration, "relax": relax}
 
 
 def _default_voxel(wall: float, box_volume: float) -> float:
@@ -157,7 +190,7 @@ def _report_stats(values) -> dict:
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
              morphometry: bool = True, max_memory=None, tiled: bool | None = None, scheduler=None,
-             slices: dict | None = None, **options) -> Result:
+             slices: dict | None = None, ct=None, **options) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
 
     Parameters
@@ -188,9 +221,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     slices : dict, optional
         Write printer slices: ``{"out_dir": ..., "pixel": mm or None, "layer": mm or None}``;
         the stack's geometry lands in ``result.report["slices"]``.
+    ct : CTImage or str or Path, optional
+        The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments (see :class:`Params`).
+        remove_fragments, grade, calibration, relax (see :class:`Params`).
 
     Returns
     -------
@@ -239,28 +274,44 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     p0 = closed_form_porosity(params.sf, params.sv)
     seed_volume = box_volume if params.seeds_in == "box" else float(patient.volume)
-    if params.seeds is not None:
+    graded = params.grade is not None or params.calibration is not None
+    if graded:
+        from . import grade as grading
+
+        if isinstance(ct, (str, Path)):
+            ct = grading.load_ct(ct)
+        gfield = grading.grade_field(params.grade, params.calibration, ct,
+                                     porosity=params.porosity if params.porosity is not None else p0)
+        with prog.stage("density", gfield.describe()):
+            density = grading.seed_density(gfield, patient, lo, hi)
+        n = density.count
+    elif params.seeds is not None:
         n = params.seeds
     else:
         n = seed_count(seed_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
     from .cells import check_seed_memory
 
-    check_seed_memory(n, None if params.seeds is not None else params.pore_size)
+    check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size)
     rng = np.random.default_rng(params.seed)
 
-    with prog.stage("seeds", f"{n} in the {params.seeds_in}"):
-        if params.seeds_in == "box":
+    with prog.stage("seeds", f"{n} in the {'patient, graded' if graded else params.seeds_in}"):
+        if graded:
+            seeds = grading.draw_seeds(density, rng)
+        elif params.seeds_in == "box":
             seeds = uniform_seeds(lo, hi, n, rng)
         else:
             coarse, coarse_grid = _coarse_patient(patient)
             seeds = seeds_in_patient(coarse, coarse_grid, lo, hi, n, rng,
                                      margin=(float(patient.volume) / n) ** (1 / 3))
+    if graded and params.relax:
+        with prog.stage("relax", f"{params.relax} Lloyd iterations"):
+            seeds = grading.lloyd_relax(seeds, density, params.relax)
     with prog.stage("cells"):
         cells = voronoi_cells(seeds, lo, hi)
     walls = trabecular_thicknesses(cells, params.sv)
     # the narrowest end of each channel: its window (Sf) or its pore face (Sv), as a disc radius
     windows = min(params.sf, params.sv) * np.sqrt(cells.face_areas[interior_face_pairs(cells)] / np.pi)
-    if params.seeds_in == "patient":
+    if params.seeds_in == "patient" or graded:
         near = _faces_near_patient(cells, patient)
         walls, windows = walls[near], windows[near]
     wall = float(np.median(walls)) if walls.size else float(np.min(hi - lo)) * (1 - params.sv)
@@ -279,6 +330,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             skeleton = scaled_skeleton(cells, params.sf, params.sv)
         else:
             edges = voronoi_edges(cells)
+    if slab_voxels is not None and graded:
+        raise ScaffoldError("a graded scaffold is built on the whole grid, which does not fit in --max-memory "
+                            "here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
                                window_p25, slab_voxels, scheduler, prog, mesh, out_path)
@@ -288,6 +342,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         n_inside = int(np.count_nonzero(inside))
         if n_inside == 0:
             raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
+    plan = level_field = None
+    if graded and (params.porosity is not None or gfield.kind == "ct"):
+        with prog.stage("grade", "offset bins"):
+            plan = grading.level_plan(gfield, s_p, grid)
     h = grid.spacing
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
     for _ in range(6):
@@ -300,8 +358,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             with prog.stage("blend", f"k = {k:.4g} mm"):
                 base = blend_field(base, h, k)
         with prog.stage("offset"):
-            level = 0.0 if params.porosity is None else solve_level_cut(
-                base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
+            if plan is not None:
+                level_field = grading.solve_level_field(base, plan)
+                level = level_field.reach(params.style)
+            else:
+                level = 0.0 if params.porosity is None else solve_level_cut(
+                    base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
         # every value that the level and the blend read must be unclamped
         wider = next_cutoff(level, cutoff)
         if wider is None:
@@ -311,7 +373,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     # the cells that lie in the scaffold: their seed is inside the patient
     cells_in = sample(s_p, grid, cells.seeds) < 0
     with prog.stage("scaffold"):
-        s = scaffold_field(base, s_p, level=level, skin=params.skin, smooth_cut=params.smooth_cut, out=base)
+        if level_field is not None:
+            base = grading.apply_level(base, plan, level_field)
+        s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin, smooth_cut=params.smooth_cut, out=base)
         del base
         fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
         solid = int(np.count_nonzero(s < 0))
@@ -319,6 +383,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
                           porosity_voxel, fragments)
+    if graded:
+        with prog.stage("profiles"):
+            report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -363,6 +430,33 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
         write_json(report, report_path(out_path))
     return result
+
+
+def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, grid: Grid, cells) -> dict:
+    """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`)."""
+    from .grade import profiles
+
+    out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)"}
+    info: dict[str, Any] = {"field": gfield.describe(), "kind": gfield.kind, "relax": params.relax,
+                            "seeding_voxel_mm": float(density.grid.spacing), "seed_margin_mm": density.margin,
+                            "seeds_expected": density.count}
+    if gfield.kind == "depth":
+        info["profile_mm"] = {"depth": gfield.profile.depths.tolist(), "pore_size": gfield.profile.sizes.tolist()}
+    if level_field is not None:
+        info["offset"] = {"coordinate": level_field.coordinate, "nodes": level_field.nodes.tolist(),
+                          "levels_mm": level_field.levels.tolist()}
+        # one figure for the summary line: the mean offset over the patient
+        key = "surface_offset_mm" if params.style == "paper" else "strut_radius_mm"
+        out[key] = float(np.mean(level_field.values_inside, dtype=np.float64))
+        if gfield.kind == "ct":
+            out["porosity_target"] = float(np.mean(plan.porosity[plan.inside], dtype=np.float64))
+    if plan is None:
+        from .grade import level_plan
+
+        plan = level_plan(gfield, s_p, grid)
+    info["profiles"] = profiles(s, plan, grid, cells, params.sv, gfield, s_p)
+    out["grade"] = info
+    return out
 
 
 def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float, wall_p10: float,
@@ -474,9 +568,9 @@ class _RunPlan:
             raise ScaffoldError(f"{why}, and --skin and --smooth-cut are not available in a tiled run yet: "
                                 "drop them, raise --max-memory or use a larger --voxel")
         ext = output_format(self.out_path) if self.out_path is not None else None
-        if ext is not None and ext not in (".stl", ".ply", ".npy"):
-            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply or .npy "
-                                f"instead of {ext}, or raise --max-memory")
+        if ext is not None and ext not in MESH_FORMATS + (".npy",):
+            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
+                                f"or .npy instead of {ext}, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         from .tiled import SLAB_BYTES_PER_VOXEL
 
@@ -521,11 +615,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         report["morphometry"] = "not measured: a tiled run does not hold the whole grid"
         report["bodies_voxels"] = tf.pieces
         ext = output_format(out_path) if out_path is not None else None
-        if mesh and ext in (".stl", ".ply"):
-            from .mesh_stream import write_mesh_slabs
-
+        if mesh and ext in MESH_FORMATS:
             with prog.stage("mesh", "streamed to " + out_path.name):
-                summary = write_mesh_slabs(tf.field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+                summary = _stream_mesh(tf.field, out_path, run, slab_voxels, prog)
             report.update({
                 "triangles": summary["triangles"],
                 "watertight": summary["watertight"],
@@ -551,6 +643,44 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         write_json(report, report_path(out_path))
     return Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                   field=None, patient_sdf=None, patient=patient, timings=prog.timings, tiled=tf.slabs)
+
+
+#: bytes per triangle of a whole mesh held to write it as .obj or .3mf (float64 vertices,
+#: int64 faces, about half as many vertices as triangles, and the reader's copies)
+WHOLE_MESH_BYTES_PER_TRIANGLE = 96
+
+
+def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -> dict:
+    """Mesh a tiled run's field into `out_path`: STL and PLY streamed; OBJ and 3MF, which are
+    written whole, through a streamed PLY when the whole mesh fits in --max-memory, else the
+    streamed STL beside it (with a warning)."""
+    import warnings
+
+    from .errors import ScaffoldWarning
+    from .mesh import write_mesh
+    from .mesh_stream import write_mesh_slabs
+    from .tiled import process_memory
+
+    ext = output_format(out_path)
+    if ext in (".stl", ".ply"):
+        return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+    staged = out_path.with_name(f".{out_path.name}.tmp-mesh.ply")
+    try:
+        summary = write_mesh_slabs(field, staged, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+        need = summary["triangles"] * WHOLE_MESH_BYTES_PER_TRIANGLE + process_memory()
+        if need > run.max_memory:
+            fallback = out_path.with_suffix(".stl")
+            warnings.warn(f"{ext} is written whole and {summary['triangles']:,} triangles need about "
+                          f"{need / 2**30:.1f} GiB, over --max-memory {run.max_memory / 2**30:.1f} GiB: wrote "
+                          f"the streamed {fallback.name} instead; raise --max-memory for {ext}",
+                          ScaffoldWarning, stacklevel=4)
+            return write_mesh_slabs(field, fallback, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+        import trimesh
+
+        write_mesh(trimesh.load(staged, file_type="ply", process=False), out_path)
+        return summary
+    finally:
+        staged.unlink(missing_ok=True)
 
 
 def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:

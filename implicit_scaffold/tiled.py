@@ -281,7 +281,7 @@ def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: Fiel
 
 
 def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: FieldFile, n_inside: int,
-                 lo: float, hi: float, porosity: float | None) -> float:
+                 lo: float, hi: float, porosity: float | None, progress=None) -> float:
     """Pass 2: the level :func:`~implicit_scaffold.field.solve_level` finds on the whole grid."""
     if porosity is None:
         return 0.0
@@ -290,8 +290,10 @@ def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: Fie
         solid = int(round((1.0 - porosity) * n_inside))
         return lo - 1e-6 if solid <= 0 else hi + 1e-6
     quantile.select(*ranks)
-    for slab in slabs:
+    for done, slab in enumerate(slabs, 1):
         quantile.refine(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1) < 0)
+        if progress is not None:
+            progress(done, len(slabs))
     return level_from_ranks(*quantile.values())
 
 
@@ -343,7 +345,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if n_inside == 0:
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
             with prog.stage("offset"):
-                level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity)
+                level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
+                                     prog.bar("offset"))
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break

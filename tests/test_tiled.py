@@ -98,8 +98,8 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
 
     with pytest.raises(ScaffoldError, match="leaves no room"):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
-    with pytest.raises(ScaffoldError, match="write .stl, .ply or .npy"):
-        generate(output=tmp_path / "a.3mf", tiled=True, **SMALL)
+    with pytest.raises(ScaffoldError, match="write .stl, .ply, .3mf or .npy"):
+        generate(output=tmp_path / "a.vti", tiled=True, **SMALL)
     with pytest.raises(ScaffoldError, match="--skin"):
         generate(output=tmp_path / "a.npy", mesh=False, tiled=True, skin=0.1, **SMALL)
     ball = trimesh.creation.icosphere(subdivisions=3, radius=1.5)
@@ -126,3 +126,14 @@ def test_tiled_mesh_is_streamed_closed_and_of_the_whole_grid_volume(tmp_path, ex
     assert loaded.volume == pytest.approx(whole["mesh_volume_mm3"], rel=1e-6)
     assert rep["porosity_mesh"] == pytest.approx(whole["porosity_mesh"], abs=1e-6)
     assert rep["peak_memory_mb"] > 0
+
+
+def test_a_tiled_3mf_is_the_streamed_mesh_written_whole(tmp_path):
+    import trimesh
+
+    rep = generate(output=tmp_path / "t.3mf", morphometry=False, tiled=20 * PLANE, **SMALL).report
+    whole = generate(output=tmp_path / "w.stl", morphometry=False, tiled=False, **SMALL).report
+    loaded = trimesh.load(tmp_path / "t.3mf", force="mesh")
+    assert len(loaded.faces) == rep["triangles"] == whole["triangles"]
+    assert loaded.volume == pytest.approx(whole["mesh_volume_mm3"], rel=1e-6)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.3mf", "t.json", "w.json", "w.stl"]
