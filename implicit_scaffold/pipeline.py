@@ -375,7 +375,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     with prog.stage("scaffold"):
         if level_field is not None:
             base = grading.apply_level(base, plan, level_field)
-        s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin, smooth_cut=params.smooth_cut, out=base)
+        s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin,
+                           smooth_cut=params.smooth_cut, out=base)
         del base
         fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
         solid = int(np.count_nonzero(s < 0))
@@ -386,6 +387,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
+        plan = level_field = density = None  # the mesh and metrics stages need the memory
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -441,13 +443,13 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
                             "seeding_voxel_mm": float(density.grid.spacing), "seed_margin_mm": density.margin,
                             "seeds_expected": density.count}
     if gfield.kind == "depth":
-        info["profile_mm"] = {"depth": gfield.profile.depths.tolist(), "pore_size": gfield.profile.sizes.tolist()}
+        info["profile_mm"] = {"depth": list(gfield.profile.depths), "pore_size": list(gfield.profile.sizes)}
     if level_field is not None:
         info["offset"] = {"coordinate": level_field.coordinate, "nodes": level_field.nodes.tolist(),
                           "levels_mm": level_field.levels.tolist()}
         # one figure for the summary line: the mean offset over the patient
         key = "surface_offset_mm" if params.style == "paper" else "strut_radius_mm"
-        out[key] = float(np.mean(level_field.values_inside, dtype=np.float64))
+        out[key] = level_field.mean_inside
         if gfield.kind == "ct":
             out["porosity_target"] = float(np.mean(plan.porosity[plan.inside], dtype=np.float64))
     if plan is None:

@@ -124,6 +124,47 @@ def histogram_from_counts(edges, counts, *, title: str, xlabel: str, marks: dict
     return _png(fig)
 
 
+def grade_profile_plot(profile: dict, *, xlabel: str, title: str) -> bytes:
+    """Porosity and mean pore size per bin beside their targets (a graded run), as PNG bytes.
+
+    Parameters
+    ----------
+    profile : dict
+        One of ``report["grade"]["profiles"]`` (:func:`~implicit_scaffold.grade.profiles`).
+    xlabel, title : str
+    """
+    import matplotlib
+
+    matplotlib.use("Agg", force=False)
+    import matplotlib.pyplot as plt
+
+    edges = np.asarray(profile["edges_mm"], float)
+    mid = (edges[:-1] + edges[1:]) / 2
+
+    def arr(key):
+        return np.array([np.nan if v is None else v for v in profile[key]], float)
+
+    fig, (top, bottom) = plt.subplots(2, 1, figsize=(5.4, 5.4), sharex=True)
+    top.plot(mid, 100 * arr("porosity_target"), color="#c0392b", ls="--", label="target")
+    top.plot(mid, 100 * arr("porosity"), "o-", color="#2c6ea3", ms=3, label="measured (voxels)")
+    shown = 100 * np.concatenate([arr("porosity_target"), arr("porosity")])
+    shown = shown[np.isfinite(shown)]
+    if shown.size:
+        # at least +-5 points: a profile met to a hundredth of a point must look flat, not noisy
+        top.set_ylim(min(shown.min(), shown.mean() - 5) - 1, max(shown.max(), shown.mean() + 5) + 1)
+    top.set_ylabel("porosity (%)")
+    top.legend(fontsize=8)
+    top.set_title(title)
+    bottom.plot(mid, arr("pore_size_target_mm"), color="#c0392b", ls="--", label="target Dp")
+    bottom.plot(mid, arr("pore_size_expected_mm"), color="#e67e22", ls=":",
+                label="expected polyhedron-sphere")
+    bottom.plot(mid, arr("pore_size_mm"), "o-", color="#2c6ea3", ms=3, label="measured polyhedron-sphere")
+    bottom.set_ylabel("pore size (mm)")
+    bottom.set_xlabel(xlabel)
+    bottom.legend(fontsize=8)
+    return _png(fig)
+
+
 def _fmt(v) -> str:
     if v is None:
         return "—"
@@ -146,7 +187,8 @@ def targets_table(report: dict) -> list[tuple[str, str, str]]:
 
 def _cell_rows(report: dict, ps: dict) -> list[tuple[str, str, str]]:
     rows = []
-    rows.append(("pore size, polyhedron-sphere (mm)", _fmt(report.get("pore_size_target_mm")),
+    target = "graded: see the profiles" if report.get("grade") else _fmt(report.get("pore_size_target_mm"))
+    rows.append(("pore size, polyhedron-sphere (mm)", target,
                  f"mean {_fmt(ps.get('mean'))}, sd {_fmt(ps.get('sd'))}, max {_fmt(ps.get('max'))}"))
     rows.append(("pores in 150-600 µm", "—", _fmt(ps.get("share_150_600um"))))
     rows.append(("interconnection (faces per cell)", "—", _fmt(report.get("interconnection_faces_mean"))))
@@ -232,6 +274,13 @@ def write_run_report(result, path) -> None:
         marks={"target": r.get("pore_size_target_mm"), "150 µm": 0.15, "600 µm": 0.6})
     images.update(_sphere_histograms(r, strut_mark=("paper's trabecular thickness",
                                                     r.get("trabecular_thickness_mm_mean"))))
+    grade = r.get("grade")
+    if isinstance(grade, dict) and grade.get("profiles"):
+        prof = grade["profiles"]
+        images["graded: porosity and pore size against depth"] = grade_profile_plot(
+            prof["depth"], xlabel="depth below the patient surface (mm)", title=grade.get("field", "graded"))
+        images[f"graded: porosity and pore size along {prof['axis_name']}"] = grade_profile_plot(
+            prof["axis"], xlabel=f"{prof['axis_name']} (mm)", title=grade.get("field", "graded"))
     write_html(path, r, images, title=f"Scaffold report: {r.get('patient', 'patient')}")
 
 
