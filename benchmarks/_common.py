@@ -8,6 +8,33 @@ import sys
 import textwrap
 
 
+#: code for a benchmark run (a format string's field): samples the resident memory every
+#: 20 ms and keeps each pipeline stage's peak in ``peaks`` (MiB); needs ``psutil``,
+#: ``threading``, ``time``, ``contextmanager`` and ``implicit_scaffold.progress`` imported
+STAGE_MEMORY = """
+proc = psutil.Process()
+state = {'peak': 0, 'stop': False}
+def sample():
+    while not state['stop']:
+        state['peak'] = max(state['peak'], proc.memory_info().rss)
+        time.sleep(0.02)
+threading.Thread(target=sample, daemon=True).start()
+peaks = {}
+@contextmanager
+def measured(name):
+    state['peak'] = proc.memory_info().rss
+    yield
+    state['peak'] = max(state['peak'], proc.memory_info().rss)
+    peaks[name] = max(peaks.get(name, 0), state['peak'] / 2**20)
+plain_stage = progress.Progress.stage
+@contextmanager
+def stage(self, name, detail=''):
+    with measured(name), plain_stage(self, name, detail):
+        yield
+progress.Progress.stage = stage
+"""
+
+
 def run_isolated(code: str, timeout: float = 1800) -> dict:
     """Run `code` in a fresh interpreter; it must print one JSON line last. Adds ``peak_rss_mb``.
 

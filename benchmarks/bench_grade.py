@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import median_runs, table  # noqa: E402
+from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -33,27 +33,7 @@ from implicit_scaffold import opencl, progress
 from implicit_scaffold.patient_io import load_patient
 from implicit_scaffold.seeds import seed_count
 
-proc = psutil.Process()
-state = {{'peak': 0, 'stop': False}}
-def sample():
-    while not state['stop']:
-        state['peak'] = max(state['peak'], proc.memory_info().rss)
-        time.sleep(0.02)
-threading.Thread(target=sample, daemon=True).start()
-peaks = {{}}
-@contextmanager
-def measured(name):
-    state['peak'] = proc.memory_info().rss
-    yield
-    state['peak'] = max(state['peak'], proc.memory_info().rss)
-    peaks[name] = max(peaks.get(name, 0), state['peak'] / 2**20)
-plain_stage = progress.Progress.stage
-@contextmanager
-def stage(self, name, detail=''):
-    with measured(name), plain_stage(self, name, detail):
-        yield
-progress.Progress.stage = stage
-
+{stage_memory}
 opencl.context()
 with measured('load'):
     patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
@@ -101,7 +81,7 @@ def main(argv=None) -> int:
     runs = {}
     for name, options in (("uniform", {"pore_size": 0.6}),
                           ("graded", {"grade": args.grade, "relax": args.relax})):
-        code = RUN.format(femur=str(femur), voxel=args.voxel, options=options)
+        code = RUN.format(femur=str(femur), voxel=args.voxel, options=options, stage_memory=STAGE_MEMORY)
         runs[name], _ = median_runs(code, args.runs, warmup=args.warmup)
     u, g = runs["uniform"], runs["graded"]
     names = list(dict.fromkeys(list(g["stages"]) + list(u["stages"])))

@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import median_runs, table  # noqa: E402
+from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FIGURE = Path(__file__).resolve().parent / "figures" / "femur_shaft.png"
@@ -29,27 +29,7 @@ import implicit_scaffold
 from implicit_scaffold import opencl, progress
 from implicit_scaffold.patient_io import load_patient
 
-proc = psutil.Process()
-state = {{'peak': 0, 'stop': False}}
-def sample():
-    while not state['stop']:
-        state['peak'] = max(state['peak'], proc.memory_info().rss)
-        time.sleep(0.02)
-threading.Thread(target=sample, daemon=True).start()
-peaks = {{}}
-@contextmanager
-def measured(name):
-    state['peak'] = proc.memory_info().rss
-    yield
-    state['peak'] = max(state['peak'], proc.memory_info().rss)
-    peaks[name] = max(peaks.get(name, 0), state['peak'] / 2**20)
-plain_stage = progress.Progress.stage
-@contextmanager
-def stage(self, name, detail=''):
-    with measured(name), plain_stage(self, name, detail):
-        yield
-progress.Progress.stage = stage
-
+{stage_memory}
 opencl.context()
 with measured('load'):
     patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
@@ -93,7 +73,8 @@ def main(argv=None) -> int:
     if not femur.is_file():
         print(f"needs {femur} (the shared data folder); nothing measured", file=sys.stderr)
         return 1
-    code = RUN.format(femur=str(femur), voxel=args.voxel, figure="" if args.no_figure else str(FIGURE))
+    code = RUN.format(femur=str(femur), voxel=args.voxel, figure="" if args.no_figure else str(FIGURE),
+                      stage_memory=STAGE_MEMORY)
     med, _ = median_runs(code, args.runs, warmup=args.warmup)
     stages = med["stages"]
     rows = [[name, f"{stages[name]:.2f}", f"{med['peak_mb'].get(name, float('nan')):.0f}"] for name in stages]
