@@ -75,8 +75,6 @@ _TIE_ROUNDS = 16
 _SLAB_VOXELS = 1 << 18
 #: Triangles per chunk when faces are processed chunk by chunk.
 _FACE_CHUNK = 1 << 20
-#: Triangles per chunk of the face measures (a dozen float64 temporaries each).
-_MEASURE_CHUNK = 1 << 17
 #: Bits of an int64 the edge sort may pack (vertex, span to the other end, edge number) into.
 _PACKED_BITS = 63
 
@@ -145,22 +143,23 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     return trimesh.Trimesh(vertices=_index_to_mm(verts, grid), faces=faces, process=False, validate=False)
 
 
-def _surface(work: np.ndarray):
+def _surface(work: np.ndarray, index=np.int64):
     """Marching cubes at 0 of a prepared, tie-broken copy: ``(verts, faces)``.
 
     ``verts`` ``(V, 3)`` float32, voxel index coordinates of `work`; ``faces`` ``(F, 3)``
-    int64, without duplicate vertices or collapsed triangles, wound so that normals
-    point out of the solid.
+    `index` (int64, or int32, which scikit-image's numbers fit), without duplicate
+    vertices or collapsed triangles, wound so that normals point out of the solid.
     """
     from skimage.measure import marching_cubes
 
     verts, faces, _normals, _values = marching_cubes(work, 0.0, method="lewiner",
                                                      gradient_direction="descent")
     del _normals, _values
-    faces = np.ascontiguousarray(faces, dtype=np.int64)
+    faces = np.ascontiguousarray(faces, dtype=index)
     verts = np.ascontiguousarray(verts, dtype=np.float32)
 
     verts, faces = _merge_duplicate_vertices(verts, faces)
+    faces = faces.astype(index, copy=False)
     # Marching cubes orients every triangle the same way relative to the field's
     # gradient; which way "descent" is, is checked once on a one-voxel solid.
     if not _descent_points_out():
@@ -327,12 +326,8 @@ def _break_face_ties(work: np.ndarray, max_rounds: int = _TIE_ROUNDS, offset: in
 
 def _merge_duplicate_vertices(verts: np.ndarray, faces: np.ndarray):
     """Merge vertices at bit-identical positions and drop triangles that collapse."""
-    bits = verts.view(np.uint32).astype(np.uint64)
-    key = bits[:, 0] * np.uint64(0x9E3779B97F4A7C15)
-    key ^= bits[:, 1] * np.uint64(0xC2B2AE3D27D4EB4F)
-    key ^= bits[:, 2] * np.uint64(0x165667B19E3779F9)
-    key.sort()
-    if not (key[1:] == key[:-1]).any():  # equal positions have equal keys
+    # an exact look for equal bits (a hash table; the usual answer is none) before the sort
+    if not _jit()["has_duplicates"](np.ascontiguousarray(verts, np.float32).view(np.uint32)):
         return verts, faces
     uniq, inverse = np.unique(verts, axis=0, return_inverse=True)
     if len(uniq) == len(verts):
@@ -379,6 +374,9 @@ def _edge_keys(faces: np.ndarray, nverts: int) -> np.ndarray:
 def _bad_edge_count(faces: np.ndarray, nverts: int) -> int:
     """Directed edges that do not pair with exactly one opposite edge (0 for a closed,
     consistently oriented, edge-manifold surface)."""
+    watertight, winding, _, _ = _jit()["edge_check"](faces, nverts, np.zeros(nverts, np.int8))
+    if watertight and winding:  # the usual answer, in linear time; else count by sorting
+        return 0
     # each undirected edge must appear exactly twice: once as lo->hi (key even) and once
     # as hi->lo (key odd)
     key = _edge_keys(faces, nverts)
@@ -449,23 +447,12 @@ def _face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
     """
     if ref is None:
         ref = vertices.mean(axis=0) if len(vertices) else np.zeros(3)
-    cols = [np.ascontiguousarray(vertices[:, a] - ref[a]) for a in range(3)]
     area = np.empty(len(faces))
     vol = np.empty(len(faces))
-    for f0 in range(0, len(faces), _MEASURE_CHUNK):
-        fc = faces[f0:f0 + _MEASURE_CHUNK]
-        i0, i1, i2 = fc[:, 0], fc[:, 1], fc[:, 2]
-        x0, y0, z0 = (c[i0] for c in cols)
-        ax, ay, az = (c[i1] for c in cols)
-        bx, by, bz = (c[i2] for c in cols)
-        ax -= x0; ay -= y0; az -= z0
-        bx -= x0; by -= y0; bz -= z0
-        cx = ay * bz - az * by
-        cy = az * bx - ax * bz
-        cz = ax * by - ay * bx
-        sl = slice(f0, f0 + len(fc))
-        area[sl] = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
-        vol[sl] = (x0 * cx + y0 * cy + z0 * cz) / 6.0
+    # per triangle, in float64: corners less ref, c = (b - a) x (c - a), area |c| / 2,
+    # volume a . c / 6 (a compiled loop: the same bits without a dozen (F,) temporaries)
+    _jit()["triangles"](vertices, faces, 0, len(faces), False, 0.0, 1.0, np.zeros(3),
+                        np.asarray(ref, np.float64), _NO_RECORDS, area, vol)
     return area, vol
 
 
@@ -481,6 +468,244 @@ def _descent_points_out() -> bool:
     probe[1, 1, 1] = -1.0
     verts, faces, _, _ = marching_cubes(probe, 0.0, method="lewiner", gradient_direction="descent")
     return bool(_face_measures(verts.astype(np.float64), faces.astype(np.int64))[1].sum() > 0)
+
+
+# --------------------------------------------------------------------------- compiled kernels
+
+
+def _jit():
+    """The compiled per-triangle kernels (numba), built on first use and cached on disk.
+
+    Each gives the bits its NumPy formula gives (the same float64 operations in the same
+    order; no fast-math, so no fused multiply-adds), without the temporaries.
+    """
+    global _KERNELS
+    if _KERNELS is not None:
+        return _KERNELS
+    import numba as nb
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def triangles(verts, faces, f0, f1, affine, x0, h, origin, ref, out, area, vol):  # pragma: no cover
+        # Triangles f0 <= f < f1: the 50-byte STL record of _write_stl_records (when `out`
+        # is not empty: the record buffer as uint16, record r at out[25 r:]; each float32
+        # goes in as its two halves, as a float32 view at an odd multiple of 2 bytes would
+        # be unaligned, which is slow), and _face_measures' area and volume (when `area`
+        # is not empty; indexed by f).
+        records = out.size > 0
+        measures = area.size > 0
+        value = np.empty(12, np.float32)
+        bits = value.view(np.uint32)
+        p = np.empty((3, 3))
+        for f in range(f0, f1):
+            for c in range(3):
+                v = faces[f, c]
+                for a in range(3):
+                    # _index_to_mm when `affine`, else the coordinate as float64 (a helper
+                    # function here ran 6 times slower)
+                    x = np.float64(verts[v, a])
+                    if affine:
+                        if a == 0 and x0 != 0:
+                            x += x0
+                        x *= h
+                        x += origin[a]
+                    p[c, a] = x
+            p0x = p[0, 0]
+            p0y = p[0, 1]
+            p0z = p[0, 2]
+            p1x = p[1, 0]
+            p1y = p[1, 1]
+            p1z = p[1, 2]
+            p2x = p[2, 0]
+            p2y = p[2, 1]
+            p2z = p[2, 2]
+            if records:
+                ax = p1x - p0x
+                ay = p1y - p0y
+                az = p1z - p0z
+                bx = p2x - p0x
+                by = p2y - p0y
+                bz = p2z - p0z
+                nx = ay * bz - az * by
+                ny = az * bx - ax * bz
+                nz = ax * by - ay * bx
+                # the squared length in np.einsum's order (two SIMD lanes: x + z, then + y)
+                length = np.sqrt((nx * nx + nz * nz) + ny * ny)
+                if length > 0:
+                    nx /= length
+                    ny /= length
+                    nz /= length
+                elif length == 0:
+                    nx = 0.0
+                    ny = 0.0
+                    nz = 0.0
+                record = (nx, ny, nz, p0x, p0y, p0z, p1x, p1y, p1z, p2x, p2y, p2z)
+                for j in range(12):
+                    value[j] = np.float32(record[j])
+                at = 25 * (f - f0)
+                for j in range(12):  # little-endian: low half first
+                    out[at + 2 * j] = np.uint16(bits[j] & np.uint32(0xFFFF))
+                    out[at + 2 * j + 1] = np.uint16(bits[j] >> np.uint32(16))
+            if measures:
+                x0r = p0x - ref[0]
+                y0r = p0y - ref[1]
+                z0r = p0z - ref[2]
+                ax = (p1x - ref[0]) - x0r
+                ay = (p1y - ref[1]) - y0r
+                az = (p1z - ref[2]) - z0r
+                bx = (p2x - ref[0]) - x0r
+                by = (p2y - ref[1]) - y0r
+                bz = (p2z - ref[2]) - z0r
+                cx = ay * bz - az * by
+                cy = az * bx - ax * bz
+                cz = ax * by - ay * bx
+                area[f] = 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+                vol[f] = (x0r * cx + y0r * cy + z0r * cz) / 6.0
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def ply_faces(faces, numbers, f0, f1, out):  # pragma: no cover - compiled
+        # PLY face records (a count byte, three little-endian int32) of faces f0 <= f < f1,
+        # their corners renumbered by `numbers` when it is not empty (the low 32 bits, as
+        # NumPy's cast to int32 keeps; the callers keep the numbers below 2**31)
+        renumber = numbers.size > 0
+        for f in range(f0, f1):
+            at = 13 * (f - f0)
+            out[at] = 3
+            for c in range(3):
+                v = np.int64(faces[f, c])
+                if renumber:
+                    v = numbers[v]
+                for b in range(4):
+                    out[at + 1 + 4 * c + b] = np.uint8((v >> (8 * b)) & 0xFF)
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def has_duplicates(bits):  # pragma: no cover - compiled
+        # Whether two rows of `bits` ((V, 3) uint32: float32 positions) are equal: an
+        # open-addressing hash table of row numbers; exact, the rows themselves are compared
+        n = bits.shape[0]
+        size = 1
+        while size < 2 * n:
+            size *= 2
+        table = np.full(size, -1, np.int64)
+        mask = np.uint64(size - 1)
+        for i in range(n):
+            key = (np.uint64(bits[i, 0]) * np.uint64(0x9E3779B97F4A7C15)
+                   ^ np.uint64(bits[i, 1]) * np.uint64(0xC2B2AE3D27D4EB4F)
+                   ^ np.uint64(bits[i, 2]) * np.uint64(0x165667B19E3779F9))
+            slot = (key ^ (key >> np.uint64(32))) & mask
+            while True:
+                j = table[slot]
+                if j < 0:
+                    table[slot] = i
+                    break
+                if bits[j, 0] == bits[i, 0] and bits[j, 1] == bits[i, 1] and bits[j, 2] == bits[i, 2]:
+                    return True
+                slot = (slot + np.uint64(1)) & mask
+        return False
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def edge_check(faces, nverts, plane):  # pragma: no cover - compiled
+        # Closed and consistently wound: each directed edge u->v (corner c to corner c + 1
+        # of a face) used once and v->u once. Each vertex's outgoing edges are listed (a
+        # vertex of marching cubes has a handful), so each count is a short scan: exact, in
+        # linear time, without sorting the 3F edges. An edge whose two ends lie on the same
+        # grid plane p (plane[u] == plane[v] == p, p = 1 or 2) may have uses in another slab:
+        # it is set aside, returned as a (u, v) row of that plane's array, and not checked.
+        nf = faces.shape[0]
+        start = np.zeros(nverts + 1, np.int64)
+        aside = np.zeros(3, np.int64)
+        for f in range(nf):
+            for c in range(3):
+                u = faces[f, c]
+                v = faces[f, (c + 1) % 3]
+                p = plane[u]
+                if p > 0 and p == plane[v]:
+                    aside[p] += 1
+                else:
+                    start[u + 1] += 1
+        for u in range(nverts):
+            start[u + 1] += start[u]
+        fill = start[:-1].copy()
+        adj = np.empty(start[nverts], faces.dtype)
+        first = np.empty((aside[1], 2), faces.dtype)
+        last = np.empty((aside[2], 2), faces.dtype)
+        aside[:] = 0
+        for f in range(nf):
+            for c in range(3):
+                u = faces[f, c]
+                v = faces[f, (c + 1) % 3]
+                p = plane[u]
+                if p > 0 and p == plane[v]:
+                    rows = first if p == 1 else last
+                    rows[aside[p], 0] = u
+                    rows[aside[p], 1] = v
+                    aside[p] += 1
+                else:
+                    adj[fill[u]] = v
+                    fill[u] += 1
+        watertight = True
+        winding = True
+        for u in range(nverts):
+            for e in range(start[u], start[u + 1]):
+                v = adj[e]
+                forward = 0
+                for e2 in range(start[u], start[u + 1]):
+                    if adj[e2] == v:
+                        forward += 1
+                if u == v:
+                    # a loop is its own reverse: two uses of it run the same way
+                    if forward != 2:
+                        watertight = False
+                    else:
+                        winding = False
+                    continue
+                backward = 0
+                for e2 in range(start[v], start[v + 1]):
+                    if adj[e2] == u:
+                        backward += 1
+                if forward + backward != 2:
+                    watertight = False
+                elif forward != 1:
+                    winding = False
+        return watertight, winding, first, last
+
+    _KERNELS = {"triangles": triangles, "ply_faces": ply_faces, "has_duplicates": has_duplicates,
+                "edge_check": edge_check}
+    return _KERNELS
+
+
+_KERNELS = None
+
+
+def _stl_buffer(n: int) -> np.ndarray:
+    """Room for `n` binary STL records, as ``(25 n,)`` uint16 (zeros: the attribute bytes stay 0)."""
+    return np.zeros(25 * n, np.uint16)
+
+
+#: Empty arrays for the kernels' outputs not wanted (typed like the wanted ones).
+_NO_RECORDS = np.zeros(0, np.uint16)
+_NO_MEASURES = np.zeros(0, np.float64)
+_NO_NUMBERS = np.zeros(0, np.int64)
+
+
+def _stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, ref=None,
+               area=_NO_MEASURES, vol=_NO_MEASURES) -> np.ndarray:
+    """The binary STL records of faces ``[f0, f1)``, as a view of `buf` (from :func:`_stl_buffer`).
+
+    `verts` ``(V, 3)`` are float64 mm, or, with `grid`, float32 index coordinates with x
+    counted from plane `x0` (turned into mm as :func:`_index_to_mm` does). Each record
+    is a unit normal from the winding (float64, cast to float32; zero for a collapsed
+    triangle), the three corners (float32) and a zero attribute. With `ref` ``(3,)`` mm,
+    `area` and `vol` (``(F,)`` float64) get entries ``[f0, f1)`` of :func:`_face_measures`.
+    """
+    if grid is not None:
+        origin = np.asarray(grid.origin, np.float64)
+        h = float(grid.spacing)
+    else:
+        origin = np.zeros(3)
+        h = 1.0
+    ref = np.zeros(3) if ref is None else np.asarray(ref, np.float64)
+    _jit()["triangles"](verts, faces, f0, f1, grid is not None, float(x0), h, origin, ref, buf, area, vol)
+    return buf[:25 * (f1 - f0)]
 
 
 # --------------------------------------------------------------------------- summary
@@ -755,23 +980,10 @@ def _write_stl(vertices, faces, fh) -> None:
 
 def _write_stl_records(vertices, faces, fh) -> None:
     """The 50-byte triangle records of binary STL (normal from the winding, float32)."""
-    rec = np.dtype([("normal", "<f4", (3,)), ("vertex", "<f4", (3, 3)), ("attr", "<u2")])
+    vertices = np.asarray(vertices, np.float64)
+    buf = _stl_buffer(min(len(faces), _FACE_CHUNK))
     for f0 in range(0, len(faces), _FACE_CHUNK):
-        tri = vertices[faces[f0:f0 + _FACE_CHUNK]]
-        a = tri[:, 1] - tri[:, 0]
-        b = tri[:, 2] - tri[:, 0]
-        # the cross product by components (np.cross's formula, without its copies)
-        n = np.empty_like(a)
-        n[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
-        n[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
-        n[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
-        length = np.sqrt(np.einsum("ij,ij->i", n, n))
-        np.divide(n, length[:, None], out=n, where=length[:, None] > 0)
-        n[length == 0] = 0.0
-        out = np.zeros(len(tri), dtype=rec)
-        out["normal"] = n
-        out["vertex"] = tri
-        fh.write(out.view(np.uint8))
+        fh.write(_stl_chunk(vertices, faces, f0, min(f0 + _FACE_CHUNK, len(faces)), buf))
 
 
 def _ply_header(nverts: int, nfaces: int, size: int = 0) -> bytes:
@@ -797,13 +1009,11 @@ def _write_ply(vertices, faces, fh) -> None:
 
 def _write_ply_faces(faces, fh) -> None:
     """The face records of binary PLY: a count byte (3) and three int32 vertex indices."""
-    rec = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+    buf = np.empty(13 * min(len(faces), _FACE_CHUNK), np.uint8)
     for f0 in range(0, len(faces), _FACE_CHUNK):
-        fc = faces[f0:f0 + _FACE_CHUNK]
-        out = np.empty(len(fc), dtype=rec)
-        out["n"] = 3
-        out["v"] = fc
-        fh.write(out.tobytes())
+        f1 = min(f0 + _FACE_CHUNK, len(faces))
+        _jit()["ply_faces"](faces, _NO_NUMBERS, f0, f1, buf)
+        fh.write(buf[:13 * (f1 - f0)])
 
 
 def _formatted(fmt: str, rows: np.ndarray, chunk: int = 1 << 16):

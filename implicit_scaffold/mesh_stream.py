@@ -25,39 +25,76 @@ must be the same bits. They are, because every value of the prepared copy (see
 The cubes on either side of the shared plane then decide every face in it the same
 way, so the surface closes across it. The checks are exact and bounded too: vertices
 on the shared plane are matched (by their coordinate bits) with the previous slab's
-and take its global numbers, and the edges lying in the shared plane are carried over
-to the next slab's edge check, so every edge is checked once with all its uses.
+and take its global numbers. An edge with an end off the slab's first and last planes
+has all its uses in the slab, which checks it (a compiled pass over each vertex's
+outgoing edges: linear time, no sort); an edge lying in a shared plane is checked with
+both slabs' uses of it, its ends named by their bits. So every edge is checked once,
+with all its uses.
+
+Two slabs at once
+-----------------
+Marching cubes holds Python's lock, so a large grid is meshed by two worker processes,
+a slab each: each reads its planes, meshes them and checks its own edges, then hands
+the parent only what lies on its first and last planes. The parent takes the slabs in
+order: it numbers their vertices, checks the shared planes, and tells each worker where
+its records go in the file (the triangles, and for PLY the new vertices, before it), so
+the file gets the bytes one process writes, and it adds the slabs' sums in order.
 """
 from __future__ import annotations
 
 import contextlib
-import shutil
+import gc
+import os
+import pickle
+import signal
 import tempfile
+import threading
+import traceback
+from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import ScaffoldError
-from .mesh import (_TIE_ROUNDS, _break_face_ties, _check_level, _check_meshable, _edge_keys,
-                   _face_measures, _folder_of, _force_outside, _index_to_mm, _nothing_to_mesh,
-                   _ply_header, _prepare_planes, _STL_HEADER, _surface, _write_ply_faces,
-                   _write_stl_records, atomic_path, check_writable)
-from .tiles import plan_slabs
+from .grid import available_memory
+from .mesh import (_FACE_CHUNK, _TIE_ROUNDS, _break_face_ties, _check_level, _check_meshable, _face_measures,
+                   _folder_of, _force_outside, _index_to_mm, _jit, _new_temp, _nothing_to_mesh, _ply_header,
+                   _prepare_planes, _remove_quietly, _STL_HEADER, _stl_buffer, _stl_chunk, _surface,
+                   atomic_path, check_writable)
+from .tiles import ArraySlabs, FieldFile, plan_slabs
 
-__all__ = ["STREAM_FORMATS", "write_mesh_slabs"]
+__all__ = ["MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMATS", "write_mesh_slabs"]
 
 #: Mesh file formats :func:`write_mesh_slabs` writes, by extension.
 STREAM_FORMATS = (".stl", ".ply")
 
+#: Peak bytes the mesh stage adds (all its processes, two slabs in flight) per voxel of
+#: ``max_voxels``: ``max_voxels = room // MESH_SLAB_BYTES_PER_VOXEL`` keeps it within
+#: ``room``. Measured on the B2 field (10 mm cube, 0.5 mm pores, 0.02 mm voxels: 0.40
+#: triangles per voxel), one slab in flight, as VmHWM less the RSS at the start: 27.9,
+#: 26.7 and 23.2 bytes per voxel for slabs of 79, 159 and 320 planes of 502 x 502. It is
+#: the slab's float32 field (4) and, mostly, scikit-image's marching cubes, which peaks
+#: at 50-80 bytes per triangle (about twice its outputs); so it grows with the triangles
+#: per voxel: about ``4 + 80 * triangles_per_voxel`` per slab in flight. Two in flight
+#: at B2: 56, rounded up to cover each worker process's own 50 MB (USS; its RSS shows
+#: about 140 MB, most of it pages shared with the parent) from slabs of 13 M voxels up.
+MESH_SLAB_BYTES_PER_VOXEL = 64
+
 #: Planes a slab reads beyond its last cube layer: that layer's far plane, and the
 #: planes tie breaking looks ahead (module notes).
 _AHEAD = 1 + _TIE_ROUNDS
-#: Global vertex numbers are PLY's int32, and an edge key packs two of them in an int64.
+#: Global vertex numbers are PLY's int32.
 _KEY_BASE = 2 ** 31
 #: Bytes kept for the PLY header, written last: room for counts of 20 digits.
 _PLY_HEADER_SIZE = len(_ply_header(10 ** 19, 10 ** 19))
+#: Slabs in flight at most (worker processes); the memory constant above counts on it.
+_MAX_WORKERS = 2
+#: Grids below this many voxels are meshed in this process: there, starting workers
+#: costs about what they save.
+_PARALLEL_MIN_VOXELS = 1 << 24
 
 
-def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progress=None) -> dict:
+def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progress=None,
+                     workers: int | None = None) -> dict:
     """Mesh the solid ``field < level`` of `source` slab by slab into a binary STL or PLY file.
 
     The file is what :func:`~implicit_scaffold.mesh.write_mesh` writes for the whole
@@ -65,9 +102,9 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
     header text, same records; a PLY header's comment is padded with spaces to a fixed
     size): the same triangles, with vertices off the shared planes up to a float32
     rounding of their x index; with one slab, the same bytes for STL and the same
-    vertices and faces for PLY. Memory: one slab of field (`max_voxels` float32) and
-    its triangles. Unlike :func:`~implicit_scaffold.mesh.mesh_field`, an open surface
-    (a bug) does not raise: the summary says so.
+    vertices and faces for PLY. The slabs, and so the bytes, depend on `max_voxels`
+    only, not on `workers`. Unlike :func:`~implicit_scaffold.mesh.mesh_field`, an open
+    surface (a bug) does not raise: the summary says so.
 
     Parameters
     ----------
@@ -84,7 +121,14 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         19 planes (one cube layer, its far plane and 17 planes of look-ahead, planned
         as a two-sided halo of 9 by :func:`~implicit_scaffold.tiles.plan_slabs`).
     progress : callable, optional
-        ``progress(done, total)`` after each slab, counted in slabs.
+        ``progress(done, total)`` after each slab, counted in slabs, in order.
+    workers : {None, 1, 2}
+        Slabs meshed at once, each in a worker process (marching cubes holds Python's
+        lock, so threads would not help). None: 2 when the grid has at least 2**24 voxels
+        in 2 slabs or more, this process may use 2 CPUs, the memory free holds
+        ``MESH_SLAB_BYTES_PER_VOXEL * max_voxels`` bytes and the source is a
+        :class:`~implicit_scaffold.tiles.FieldFile` (or, where processes fork, an
+        :class:`~implicit_scaffold.tiles.ArraySlabs`); else 1, in this process.
 
     Returns
     -------
@@ -93,7 +137,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         counted once), ``volume_mm3`` (float, signed enclosed volume by the divergence
         theorem), ``surface_area_mm2`` (float), ``watertight`` and ``winding_consistent``
         (bool: every edge used by exactly two triangles / in opposite directions, checked
-        across the slabs), ``slabs`` (int).
+        across the slabs), ``slabs`` (int), ``workers`` (int, processes that meshed).
 
     Raises
     ------
@@ -101,81 +145,148 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         Unknown extension or a folder that cannot be written (before any work); a grid
         too small to mesh, a bad level, `max_voxels` below one slab, a field holding
         NaN, or no solid away from the grid's outer layer; more triangles than STL can
-        count or vertices than PLY can number.
+        count or vertices than PLY can number; bad `workers`; a worker process killed
+        (e.g. by the system, out of memory).
+
+    Notes
+    -----
+    Memory: per slab in flight, the slab's field (4 bytes per voxel read) while it is
+    prepared and meshed, then scikit-image's marching cubes (its peak: 50-80 bytes per
+    triangle) and this module's per-triangle arrays (the slab's vertices and faces, the
+    face measures, the edge check's lists: less than that peak). The parent holds only
+    the planes' vertices and edges. With two slabs in flight the stage adds at most
+    ``MESH_SLAB_BYTES_PER_VOXEL * max_voxels`` bytes at B2's 0.4 triangles per voxel
+    (see that constant for how it was measured and how it grows with the triangles).
     """
     final = check_writable(path, formats=STREAM_FORMATS)
     grid = source.grid
     nx, ny, nz = (int(n) for n in grid.shape)
     _check_meshable((nx, ny, nz))
     level = _check_level(level)
+    if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
+                                or not 1 <= workers <= _MAX_WORKERS):
+        raise ScaffoldError(f"workers must be 1 or {_MAX_WORKERS} (slabs meshed at once), or None to choose "
+                            f"by size; got {workers!r}")
     # slabs of cube layers (nx - 1 of them), each reading _AHEAD planes past its last
     # layer and none before: a two-sided halo of half that keeps it within max_voxels
     slabs = plan_slabs((nx - 1, ny, nz), max_voxels=max_voxels, halo=(_AHEAD + 1) // 2)
-    seams = _Seams()
-    centre = (grid.lo + grid.hi) / 2  # one reference point for every slab's volume
-    volume = area = 0.0
-    triangles = 0
-    solid = False
+    spec = _worker_source(source)
+    if workers is None:
+        # a second slab in flight only where it fits in the memory free now (a safety net:
+        # the caller sizes max_voxels with MESH_SLAB_BYTES_PER_VOXEL)
+        workers = _MAX_WORKERS if (spec is not None and len(slabs) > 1 and nx * ny * nz >= _PARALLEL_MIN_VOXELS
+                                   and _free_cpus() >= _MAX_WORKERS
+                                   and available_memory() > MESH_SLAB_BYTES_PER_VOXEL * int(max_voxels)) else 1
+    elif workers > 1 and spec is None:
+        raise ScaffoldError("slabs can be meshed in worker processes only from a FieldFile (or an ArraySlabs "
+                            "where processes fork); pass workers=1")
+    workers = min(workers, len(slabs))
     ply = final.suffix.lower() == ".ply"
-    with atomic_path(final) as tmp, open(tmp, "wb") as fh, contextlib.ExitStack() as stack:
-        # PLY's faces wait in an unnamed file beside the output (gone however the run ends)
-        faces_fh = stack.enter_context(tempfile.TemporaryFile(dir=_folder_of(final))) if ply else None
+    stitch = _Stitch(ply)
+    with atomic_path(final) as tmp, contextlib.ExitStack() as stack:
+        out = os.open(tmp, os.O_RDWR)
+        stack.callback(os.close, out)
+        # PLY's faces wait in a file beside the output and follow the vertices at the end
+        faces_path = None
+        if ply and workers > 1:
+            faces_path = _new_temp(final)  # named, for the workers; removed however the run ends
+            stack.callback(_remove_quietly, faces_path)
+            faces = os.open(faces_path, os.O_RDWR)
+        elif ply:
+            faces = os.dup(stack.enter_context(tempfile.TemporaryFile(dir=_folder_of(final))).fileno())
+        if ply:
+            stack.callback(os.close, faces)
         # STL: the count is patched at the end; PLY: the header is written last, over
-        # the room kept for it, and the faces follow the vertices
-        fh.write(b"\0" * _PLY_HEADER_SIZE if ply else _STL_HEADER + b"\0" * 4)
-        for done, slab in enumerate(slabs, start=1):
-            surface = _slab_surface(source, slab.x0, slab.x1, level)
-            if surface is not None:
-                solid = True
-                verts, faces = surface
-                numbers, new = seams.add(verts, faces, slab.x1 - slab.x0)
-                vertices = _index_to_mm(verts, grid, slab.x0)
-                del verts
-                a, v = _face_measures(vertices, faces, ref=centre)
-                area += float(a.sum())
-                volume += float(v.sum())
-                del a, v
-                triangles += len(faces)
-                if ply:
-                    fh.write(np.ascontiguousarray(vertices[new], dtype="<f8").tobytes())
-                    _write_ply_faces(numbers[faces], faces_fh)
+        # the room kept for it
+        _write_at(out, b"\0" * _PLY_HEADER_SIZE if ply else _STL_HEADER + b"\0" * 4, 0)
+        target = _Target(out_path=str(tmp), faces_path=faces_path, out=out, faces=faces if ply else None, ply=ply)
+        if workers > 1:
+            pool = stack.enter_context(_Pool(workers, spec, level, target))
+            pool.run(slabs, stitch, progress)
+        else:
+            for done, slab in enumerate(slabs, start=1):
+                held = _mesh_slab(source, slab.x0, slab.x1, level)
+                if held is None:
+                    stitch.skip()
                 else:
-                    if triangles >= 2 ** 32:
-                        raise ScaffoldError(f"more than {2 ** 32 - 1} triangles do not fit in an STL file; "
-                                            "write .ply")
-                    _write_stl_records(vertices, faces, fh)
-                del vertices, faces, numbers, new
-            else:
-                seams.skip()
-            if progress is not None:
-                progress(done, len(slabs))
-        seams.finish()
-        if not solid:
+                    verts, faces_, meshed = held
+                    del held
+                    place = stitch.add(meshed)
+                    stitch.measured(*_write_slab(verts, faces_, slab.x0, grid, place, target))
+                    del verts, faces_
+                if progress is not None:
+                    progress(done, len(slabs))
+        stitch.finish()
+        if not stitch.solid:
             raise _nothing_to_mesh(level)
         if ply:
-            faces_fh.seek(0)
-            shutil.copyfileobj(faces_fh, fh, 1 << 22)
-            fh.seek(0)
-            fh.write(_ply_header(seams.nverts, triangles, size=_PLY_HEADER_SIZE))
+            _copy_at(faces, out, _PLY_HEADER_SIZE + 24 * stitch.nverts, 13 * stitch.triangles)
+            _write_at(out, _ply_header(stitch.nverts, stitch.triangles, size=_PLY_HEADER_SIZE), 0)
         else:
-            fh.seek(len(_STL_HEADER))
-            fh.write(np.array([triangles], dtype="<u4").tobytes())
+            _write_at(out, np.array([stitch.triangles], dtype="<u4").tobytes(), len(_STL_HEADER))
     return {
-        "triangles": int(triangles),
-        "vertices": int(seams.nverts),
-        "volume_mm3": float(volume),
-        "surface_area_mm2": float(area),
-        "watertight": seams.watertight,
-        "winding_consistent": seams.winding_consistent,
+        "triangles": int(stitch.triangles),
+        "vertices": int(stitch.nverts),
+        "volume_mm3": float(stitch.volume),
+        "surface_area_mm2": float(stitch.area),
+        "watertight": stitch.watertight,
+        "winding_consistent": stitch.winding_consistent,
         "slabs": len(slabs),
+        "workers": int(workers),
     }
+
+
+# ----------------------------------------------------------------------------- one slab
+
+
+@dataclass
+class _Meshed:
+    """What the stitching needs of a meshed slab (small: its planes' vertices and edges).
+
+    ``first_*``: the vertices on the slab's first plane, in local order (keys: their
+    (y, z) bits, :func:`_plane_keys`); ``last_*``: those on its last plane, sorted by key;
+    ``*_edges``: the directed edges lying in that plane, ``(m, 2)`` keys of their ends.
+    """
+
+    triangles: int
+    vertices: int
+    watertight: bool
+    winding_consistent: bool
+    first_keys: np.ndarray
+    first_local: np.ndarray
+    first_edges: np.ndarray
+    last_keys: np.ndarray
+    last_local: np.ndarray
+    last_edges: np.ndarray
+
+
+@dataclass
+class _Place:
+    """Where a slab's records go: triangles (and, PLY, new vertices) before it; its
+    first-plane vertices that take the previous slab's numbers (local, global)."""
+
+    triangles: int
+    base: int
+    matched_local: np.ndarray
+    matched_numbers: np.ndarray
+
+
+@dataclass
+class _Target:
+    """The output file (and PLY's faces file), by path for workers and as open descriptors."""
+
+    out_path: str
+    faces_path: str | None
+    out: int
+    faces: int | None
+    ply: bool
 
 
 def _slab_surface(source, x0: int, x1: int, level: float):
     """Marching cubes of the cube layers ``[x0, x1)``: ``(verts, faces)`` or None (no solid).
 
     ``verts`` ``(V, 3)`` float32, voxel index coordinates with x counted from plane
-    `x0`; ``faces`` ``(F, 3)`` int64, wound outward.
+    `x0`; ``faces`` ``(F, 3)`` int32, wound outward.
     """
     grid = source.grid
     nx, ny, nz = (int(n) for n in grid.shape)
@@ -193,64 +304,165 @@ def _slab_surface(source, x0: int, x1: int, level: float):
     cubes = work[:x1 - x0 + 1]
     if not cubes.min() < 0:
         return None
-    return _surface(cubes)
+    # int32 corner numbers (scikit-image's own): half the bytes of the slab's largest array
+    return _surface(cubes, index=np.int32)
 
 
-class _Seams:
-    """Global vertex numbers and the edge check across the planes two slabs share.
+def _mesh_slab(source, x0: int, x1: int, level: float):
+    """Mesh slab ``[x0, x1)`` and check its own edges: ``(verts, faces, _Meshed)`` or None."""
+    surface = _slab_surface(source, x0, x1, level)
+    if surface is None:
+        return None
+    verts, faces = surface
+    del surface
+    x = verts[:, 0]
+    first = np.flatnonzero(x == 0)
+    last = np.flatnonzero(x == np.float32(x1 - x0))
+    plane = np.zeros(len(verts), np.int8)
+    plane[first] = 1
+    plane[last] = 2
+    # edges in the first or last plane may have uses in the next or previous slab:
+    # the stitching checks them with those; the slab checks all its others
+    watertight, winding, first_edges, last_edges = _jit()["edge_check"](faces, len(verts), plane)
+    del plane
+    first_keys = _plane_keys(verts[first])
+    last_keys = _plane_keys(verts[last])
+    order = np.argsort(last_keys, kind="stable")
+    meshed = _Meshed(
+        triangles=len(faces), vertices=len(verts), watertight=bool(watertight), winding_consistent=bool(winding),
+        first_keys=first_keys, first_local=first,
+        first_edges=first_keys[np.searchsorted(first, first_edges)].reshape(-1, 2),
+        last_keys=last_keys[order], last_local=last[order],
+        last_edges=last_keys[np.searchsorted(last, last_edges)].reshape(-1, 2))
+    return verts, faces, meshed
 
-    Feed the slabs in order of x (:meth:`add` or :meth:`skip`), then :meth:`finish`.
+
+def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target) -> tuple[float, float]:
+    """Write a slab's records where `place` says; its ``(area, volume)`` sums, mm² and mm³."""
+    centre = (grid.lo + grid.hi) / 2  # one reference point for every slab's volume
+    nf = len(faces)
+    if target.ply:
+        new = np.ones(len(verts), bool)
+        new[place.matched_local] = False
+        numbers = np.empty(len(verts), np.int64)
+        numbers[new] = np.arange(place.base, place.base + len(verts) - len(place.matched_local))
+        numbers[place.matched_local] = place.matched_numbers
+        vertices = _index_to_mm(verts, grid, x0)
+        _write_at(target.out, np.ascontiguousarray(vertices[new], dtype="<f8"), _PLY_HEADER_SIZE + 24 * place.base)
+        del new
+        a, v = _face_measures(vertices, faces, ref=centre)
+        del vertices
+        buf = np.empty(13 * min(nf, _FACE_CHUNK), np.uint8)
+        for f0 in range(0, nf, _FACE_CHUNK):
+            f1 = min(f0 + _FACE_CHUNK, nf)
+            _jit()["ply_faces"](faces, numbers, f0, f1, buf)
+            _write_at(target.faces, buf[:13 * (f1 - f0)], 13 * (place.triangles + f0))
+    else:
+        a = np.empty(nf)
+        v = np.empty(nf)
+        buf = _stl_buffer(min(nf, _FACE_CHUNK))
+        offset = len(_STL_HEADER) + 4 + 50 * place.triangles
+        for f0 in range(0, nf, _FACE_CHUNK):
+            f1 = min(f0 + _FACE_CHUNK, nf)
+            records = _stl_chunk(verts, faces, f0, f1, buf, grid=grid, x0=x0, ref=centre, area=a, vol=v)
+            _write_at(target.out, records, offset + 50 * f0)
+    # summed over the whole slab (NumPy's pairwise sum), as the summary always has
+    return float(a.sum()), float(v.sum())
+
+
+def _write_at(fd: int, data, offset: int) -> None:
+    """All of `data` (bytes or a contiguous array) into file `fd` at byte `offset`."""
+    view = memoryview(data).cast("B")
+    while view:
+        if hasattr(os, "pwrite"):
+            n = os.pwrite(fd, view, offset)
+        else:  # pragma: no cover - Windows: each process has its own descriptor
+            os.lseek(fd, offset, os.SEEK_SET)
+            n = os.write(fd, view)
+        view = view[n:]
+        offset += n
+
+
+def _copy_at(src: int, dst: int, offset: int, size: int, chunk: int = 1 << 22) -> None:
+    """Copy the first `size` bytes of file `src` into file `dst` at `offset`."""
+    done = 0
+    while done < size:
+        os.lseek(src, done, os.SEEK_SET)
+        data = os.read(src, min(chunk, size - done))
+        if not data:
+            raise OSError("the temporary file of faces ended early")
+        _write_at(dst, data, offset + done)
+        done += len(data)
+
+
+def _plane_keys(verts: np.ndarray) -> np.ndarray:
+    """The (y, z) coordinates' bits of float32 vertices as one ``(V,)`` uint64 key each."""
+    bits = np.ascontiguousarray(verts[:, 1:]).view(np.uint32).astype(np.uint64)
+    return (bits[:, 0] << np.uint64(32)) | bits[:, 1]
+
+
+# ----------------------------------------------------------------------------- stitching
+
+
+class _Stitch:
+    """Global vertex numbers, places in the file and the edge check across the planes
+    two slabs share. Feed the slabs in order of x (:meth:`add` or :meth:`skip`, then
+    :meth:`measured` for each added one), then :meth:`finish`.
     """
 
-    def __init__(self):
+    def __init__(self, ply: bool):
+        self.ply = ply
         self.nverts = 0
+        self.triangles = 0
+        self.area = 0.0
+        self.volume = 0.0
+        self.solid = False
         self.watertight = True
         self.winding_consistent = True
-        # the previous slab's vertices on its last plane: sorted (y, z) bit keys, numbers
+        # the previous slab's vertices on its last plane (sorted keys, global numbers)
+        # and the directed edges lying in that plane (keys of their ends)
         self._keys = np.zeros(0, np.uint64)
         self._numbers = np.zeros(0, np.int64)
-        # directed edges lying in that plane, as _edge_keys over global numbers
-        self._edges = np.zeros(0, np.int64)
+        self._edges = np.zeros((0, 2), np.uint64)
 
-    def add(self, verts: np.ndarray, faces: np.ndarray, last: int):
-        """Number a slab's vertices and check its edges.
-
-        `verts` are index coordinates from the slab's first plane, `last` the index of
-        its last plane. Returns the global numbers ``(V,)`` int64 and which of them are
-        new ``(V,)`` bool (the others were numbered by the previous slab).
-        """
-        keys = _plane_keys(verts)
-        numbers = np.full(len(verts), -1, np.int64)
-        first = np.flatnonzero(verts[:, 0] == 0)
-        if len(first) and len(self._keys):
-            at = np.minimum(np.searchsorted(self._keys, keys[first]), len(self._keys) - 1)
-            hit = self._keys[at] == keys[first]
-            numbers[first[hit]] = self._numbers[at[hit]]
-        new = numbers < 0
-        count = int(np.count_nonzero(new))
+    def add(self, m: _Meshed) -> _Place:
+        """Number a slab's vertices, check the plane it shares with the previous one; where it goes."""
+        self.solid = True
+        matched_local = matched_numbers = np.zeros(0, np.int64)
+        if len(m.first_keys) and len(self._keys):
+            at = np.minimum(np.searchsorted(self._keys, m.first_keys), len(self._keys) - 1)
+            hit = self._keys[at] == m.first_keys
+            matched_local = m.first_local[hit]  # ascending, as first_local is
+            matched_numbers = self._numbers[at[hit]]
+        count = m.vertices - len(matched_local)
         if self.nverts + count > _KEY_BASE - 1:
             raise ScaffoldError(f"the mesh has more than {_KEY_BASE - 1} vertices, more than PLY can number; "
                                 "use a larger --voxel")
-        numbers[new] = np.arange(self.nverts, self.nverts + count)
+        place = _Place(self.triangles, self.nverts, matched_local, matched_numbers)
+        self.triangles += m.triangles
+        if not self.ply and self.triangles >= 2 ** 32:
+            raise ScaffoldError(f"more than {2 ** 32 - 1} triangles do not fit in an STL file; write .ply")
+        # the shared plane's edges: the previous slab's uses and this one's
+        self._check(np.concatenate([self._edges, m.first_edges]))
+        self.watertight &= m.watertight
+        self.winding_consistent &= m.winding_consistent
+        # new vertices are numbered in local order after the matched ones are taken out
+        # (none of them lies on the last plane)
+        self._numbers = self.nverts + m.last_local - np.searchsorted(matched_local, m.last_local)
+        self._keys = m.last_keys
+        self._edges = m.last_edges
         self.nverts += count
+        return place
 
-        on_last = verts[:, 0] == np.float32(last)
-        corner = on_last[faces]
-        # edge e runs from corner j to corner j + 1 of its face (as _edge_keys numbers them)
-        seam = (corner & np.roll(corner, -1, axis=1)).reshape(-1)
-        del corner
-        edges = _edge_keys(numbers[faces], _KEY_BASE)
-        self._check(np.concatenate([edges[~seam], self._edges]))
-        self._edges = edges[seam]
-        order = np.argsort(keys[on_last], kind="stable")
-        self._keys = keys[on_last][order]
-        self._numbers = numbers[on_last][order]
-        return numbers, new
+    def measured(self, area: float, volume: float) -> None:
+        """Add a slab's sums (in slab order, so that the totals do not depend on the workers)."""
+        self.area += area
+        self.volume += volume
 
     def skip(self) -> None:
         """A slab without surface: whatever the previous slab left on its last plane stays open."""
         self._check(self._edges)
-        self._edges = np.zeros(0, np.int64)
+        self._edges = np.zeros((0, 2), np.uint64)
         self._keys = np.zeros(0, np.uint64)
         self._numbers = np.zeros(0, np.int64)
 
@@ -258,21 +470,249 @@ class _Seams:
         """Check the edges left on the last slab's last plane (none on a closed surface)."""
         self.skip()
 
-    def _check(self, keys: np.ndarray) -> None:
-        """Fold in the edges given: each undirected edge used twice, once each way."""
-        if not len(keys):
+    def _check(self, edges: np.ndarray) -> None:
+        """Fold in the directed edges given (rows of end keys): each undirected edge used
+        twice, once each way."""
+        if not len(edges):
             return
-        keys = np.sort(keys)
-        undirected = keys >> 1
-        start = np.flatnonzero(np.concatenate([[True], undirected[1:] != undirected[:-1]]))
-        count = np.diff(start, append=len(keys))
+        src, dst = edges[:, 0], edges[:, 1]
+        lo = np.minimum(src, dst)
+        hi = np.maximum(src, dst)
+        backward = src > dst
+        order = np.lexsort((backward, hi, lo))
+        lo, hi, backward = lo[order], hi[order], backward[order]
+        start = np.flatnonzero(np.concatenate([[True], (lo[1:] != lo[:-1]) | (hi[1:] != hi[:-1])]))
+        count = np.diff(start, append=len(lo))
         self.watertight &= bool(np.all(count == 2))
         pair = start[count == 2]
-        # a pair's keys are 2u and 2u + 1 when its edges run opposite ways
-        self.winding_consistent &= bool(np.all(keys[pair] != keys[pair + 1]))
+        self.winding_consistent &= bool(np.all(backward[pair] != backward[pair + 1]))
 
 
-def _plane_keys(verts: np.ndarray) -> np.ndarray:
-    """The (y, z) coordinates' bits of float32 vertices as one ``(V,)`` uint64 key each."""
-    bits = np.ascontiguousarray(verts[:, 1:]).view(np.uint32).astype(np.uint64)
-    return (bits[:, 0] << np.uint64(32)) | bits[:, 1]
+# ----------------------------------------------------------------------------- worker processes
+
+
+def _free_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def _start_method() -> str:
+    """fork where there is one (no re-import of the caller's script, nothing to pickle), else spawn."""
+    import multiprocessing
+
+    return "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+
+
+def _worker_source(source):
+    """How a worker process gets `source`, or None when it cannot."""
+    if isinstance(source, FieldFile):
+        return ("file", source.path, source.grid)  # its own reader: a shared one shares the offset
+    if type(source) is ArraySlabs and _start_method() == "fork":
+        return ("inherit", source)
+    return None
+
+
+def _worker(conn, spec, level: float, target: _Target) -> None:  # pragma: no cover - runs in a worker
+    """A worker process: mesh the slabs sent, write each where the parent says."""
+    # Ctrl-C reaches the whole process group; the parent stops the workers
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent()
+    source = FieldFile.open_readonly(spec[1], spec[2]) if spec[0] == "file" else spec[1]
+    out = os.open(target.out_path, os.O_WRONLY)
+    faces = os.open(target.faces_path, os.O_WRONLY) if target.faces_path else None
+    mine = _Target(target.out_path, target.faces_path, out, faces, target.ply)
+    try:
+        while True:
+            task = conn.recv()
+            if task is None:
+                return
+            x0, x1 = task
+            try:
+                held = _mesh_slab(source, x0, x1, level)
+                conn.send(("meshed", None if held is None else held[2]))
+                if held is None:
+                    continue
+                verts, faces_, _ = held
+                del held
+                place = conn.recv()
+                if place is None:
+                    return
+                conn.send(("written", _write_slab(verts, faces_, x0, source.grid, place, mine)))
+                del verts, faces_
+            except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it in slab order
+                conn.send(("error", _portable(exc)))
+    except (EOFError, BrokenPipeError):
+        return  # the parent is gone
+    finally:
+        os.close(out)
+        if faces is not None:
+            os.close(faces)
+        if spec[0] == "file":
+            source.close()
+
+
+def _die_with_parent() -> None:  # pragma: no cover - runs in a worker
+    """Where Linux allows, have the kernel kill this worker when its parent dies (killed,
+    say), so that no worker is left meshing for nobody."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+
+
+def _portable(exc: BaseException) -> BaseException:
+    """`exc` if it pickles and says enough, else a RuntimeError carrying its traceback."""
+    if isinstance(exc, (ScaffoldError, OSError, MemoryError)):
+        try:
+            pickle.dumps(exc)
+            return exc
+        except Exception:  # noqa: BLE001 - any pickling failure: fall back to the text
+            pass
+    return RuntimeError("a meshing worker process failed:\n" + "".join(traceback.format_exception(exc)))
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """Ignore Ctrl-C while workers start, so that they inherit that and leave it to the parent."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+class _Pool:
+    """Worker processes, one slab each at most; stopped (killed if need be) on leaving."""
+
+    def __init__(self, n: int, spec, level: float, target: _Target):
+        import multiprocessing
+
+        ctx = multiprocessing.get_context(_start_method())
+        if ctx.get_start_method() == "fork":
+            # loaded once here, the workers share scikit-image's and the kernels' code
+            # pages with this process instead of loading (or compiling) their own
+            from skimage.measure import marching_cubes  # noqa: F401
+            _jit()
+        self.procs = []
+        self.conns = []
+        self._ok = False
+        # what the parent's objects hold is not copied into the workers by their collector
+        gc.freeze()
+        try:
+            for _ in range(n):
+                mine, theirs = ctx.Pipe()
+                proc = ctx.Process(target=_worker, args=(theirs, spec, level, target), daemon=True,
+                                   name="implicit_scaffold-mesh")
+                with _sigint_ignored():
+                    proc.start()
+                theirs.close()
+                self.procs.append(proc)
+                self.conns.append(mine)
+        except BaseException:
+            self.close(kill=True)
+            raise
+        finally:
+            gc.unfreeze()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, kind, exc, tb):
+        self.close(kill=not self._ok)
+
+    def close(self, *, kill: bool) -> None:
+        """Stop the workers: ask them to finish (or kill them, after an error or Ctrl-C), and wait."""
+        for conn in self.conns:
+            if not kill:
+                with contextlib.suppress(OSError):
+                    conn.send(None)
+        for proc in self.procs:
+            if kill and proc.is_alive():
+                proc.kill()
+            proc.join(timeout=None if kill else 60)
+            if proc.is_alive():  # pragma: no cover - a worker that would not finish
+                proc.kill()
+                proc.join()
+        for conn in self.conns:
+            conn.close()
+        self.procs = []
+        self.conns = []
+
+    def _receive(self, w: int):
+        try:
+            return self.conns[w].recv()
+        except (EOFError, OSError):
+            code = self.procs[w].exitcode
+            self.procs[w].join(timeout=5)
+            code = self.procs[w].exitcode if code is None else code
+            why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+            raise ScaffoldError(f"a meshing worker process stopped ({why}; the system may have run out of "
+                                "memory): lower --max-memory or use a larger --voxel") from None
+
+    def run(self, slabs, stitch: _Stitch, progress) -> None:
+        """Mesh `slabs` in the workers; stitch, place and count them in slab order."""
+        from multiprocessing.connection import wait
+
+        total = len(slabs)
+        holder: dict[int, int] = {}        # slab -> worker meshing it
+        meshed: dict[int, object] = {}     # slab -> its _Meshed (or None), waiting for its turn
+        written: dict[int, tuple] = {}     # slab -> its (area, volume) sums
+        errors: dict[int, BaseException] = {}
+        busy: dict[int, int] = {}          # worker -> slab
+        dispatched = placed = done = 0
+
+        def dispatch(w: int) -> None:
+            nonlocal dispatched
+            if dispatched < total:
+                self.conns[w].send((slabs[dispatched].x0, slabs[dispatched].x1))
+                busy[w] = dispatched
+                holder[dispatched] = w
+                dispatched += 1
+
+        for w in range(len(self.procs)):
+            dispatch(w)
+        while done < total:
+            for conn in wait([self.conns[w] for w in busy]):
+                w = self.conns.index(conn)
+                kind, payload = self._receive(w)
+                slab = busy[w]
+                if kind == "error":
+                    errors[slab] = payload
+                elif kind == "meshed":
+                    meshed[slab] = payload
+                    if payload is None:  # no surface: the worker is free
+                        written[slab] = None
+                        del busy[w]
+                        dispatch(w)
+                else:
+                    written[slab] = payload
+                    del busy[w]
+                    dispatch(w)
+            # in slab order: the first error, then numbering and places as soon as known
+            while placed < total and (placed in meshed or placed in errors):
+                if placed in errors:
+                    raise errors[placed]
+                m = meshed.pop(placed)
+                if m is None:
+                    stitch.skip()
+                else:
+                    self.conns[holder[placed]].send(stitch.add(m))
+                placed += 1
+            for slab in sorted(errors):
+                if slab < placed:  # failed while writing
+                    raise errors[slab]
+            while done < total and done in written:
+                sums = written.pop(done)
+                if sums is not None:
+                    stitch.measured(*sums)
+                done += 1
+                if progress is not None:
+                    progress(done, total)
+        self._ok = True

@@ -628,6 +628,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "mesh_volume_mm3": summary["volume_mm3"],
                 "surface_area_mm2": summary["surface_area_mm2"],
                 "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
+                "mesh_workers": summary.get("workers", 1),
             })
         elif ext == ".npy":
             with prog.stage("write"):
@@ -638,6 +639,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     finally:
         tf.close()
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
+    if report.get("mesh_workers", 1) > 1:
+        # the mesh stage's worker processes: the largest one's peak (two run at once)
+        report["peak_memory_workers_mb"] = round(peak_memory(children=True) / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     if out_path is not None:
         from .mesh import write_json
@@ -663,6 +667,12 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -
     from .mesh_stream import write_mesh_slabs
     from .tiled import process_memory
 
+    from .mesh_stream import MESH_SLAB_BYTES_PER_VOXEL
+
+    # marching cubes holds more per voxel than the field passes did (two slabs may be in flight)
+    slab_voxels = min(slab_voxels, max(1, (run.max_memory - process_memory()) // MESH_SLAB_BYTES_PER_VOXEL))
+    if run.tiled is not True and run.tiled:
+        slab_voxels = int(run.tiled)
     ext = output_format(out_path)
     if ext in (".stl", ".ply"):
         return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))

@@ -71,11 +71,13 @@ def process_memory() -> int:
     return int(psutil.Process().memory_info().rss)
 
 
-def peak_memory() -> int:
-    """The most bytes this process has held (its peak resident set)."""
+def peak_memory(children: bool = False) -> int:
+    """The most bytes this process has held (its peak resident set), or the largest of its
+    finished child processes' peaks."""
     import resource
 
-    return int(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss) * 1024
+    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
+    return int(resource.getrusage(who).ru_maxrss) * 1024
 
 
 def slab_voxels(max_memory: int, held: int | None = None) -> int:
@@ -188,7 +190,7 @@ class DaskRunner:
             self.client, self._own = scheduler, False
         else:
             try:
-                self.client, self._own = Client(str(scheduler), timeout="20s"), True
+                self.client, self._own = Client(str(scheduler), timeout="10s"), True
             except (OSError, TimeoutError) as exc:
                 raise ScaffoldError(f"cannot reach the Dask scheduler at {scheduler}: {exc}; "
                                     "check the address (tcp://host:8786) and that the scheduler runs") from None

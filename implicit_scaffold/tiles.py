@@ -350,6 +350,21 @@ class FieldFile:
             view = view[n:]
         return out
 
+    @classmethod
+    def open_readonly(cls, path, grid) -> "FieldFile":
+        """An existing field file (another :class:`FieldFile`'s ``.path``), for reading only.
+
+        For a process that reads planes the writer's process keeps: closing it (or leaving
+        its ``with`` block) closes the reader and keeps the file, which is its writer's.
+        """
+        self = cls.__new__(cls)
+        self.grid = grid
+        self._plane = int(grid.shape[1]) * int(grid.shape[2])
+        self.path = str(path)
+        self._fh = open(self.path, "rb", buffering=0)
+        self.close = self._fh.close  # shadows close(): the file is the writer's to remove
+        return self
+
     def close(self) -> None:
         """Remove the file."""
         import os

@@ -4,6 +4,8 @@ Oracles: the whole-grid mesh of :func:`mesh_field` (triangle and vertex counts,
 volume, and for one slab the very vertices and faces); the sphere's closed-form
 volume; trimesh's loaders and its watertight / winding checks; a brute-force count
 of the directed edges; the binary STL layout (84 + 50 n bytes); the folder's listing.
+Two worker processes are checked against one (itself checked against the whole grid);
+the compiled kernels against NumPy's formulas, np.unique and dict counts of the edges.
 """
 from __future__ import annotations
 
@@ -233,16 +235,18 @@ def test_face_ties_are_broken_the_same_way_in_every_slab(tmp_path):
         assert m.volume == pytest.approx(whole.volume, rel=1e-6)
 
 
-def test_summary_reports_an_open_seam(sphere, tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [None, 2])
+def test_summary_reports_an_open_seam(tmp_path, monkeypatch, workers):
     # Break the look-ahead on purpose: the slabs then disagree on the shared planes of a
-    # tie-heavy field, and the summary must say so, as the brute-force count does.
+    # tie-heavy field, and the summary must say so, as the brute-force count does (with two
+    # workers too: forked workers inherit the broken look-ahead).
     from implicit_scaffold import mesh_stream
 
     monkeypatch.setattr(mesh_stream, "_AHEAD", 1)
     rng = np.random.default_rng(0)
     grid = Grid((0.0, 0.0, 0.0), 0.5, (12, 11, 13))
     field = rng.choice([-1.0, 1.0], size=grid.shape) * 0.5
-    s = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "t.ply", max_voxels=3 * 11 * 13)
+    s = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "t.ply", max_voxels=3 * 11 * 13, workers=workers)
     m = trimesh.load(tmp_path / "t.ply", process=False)
     closed = brute_force_closed(m.faces)
     assert not closed  # the fixture tests something
@@ -331,3 +335,231 @@ def test_nan_is_reported_with_its_planes(tmp_path):
     with pytest.raises(ScaffoldError, match="NaN"):
         write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.stl", max_voxels=one_layer_slabs(grid))
     assert os.listdir(tmp_path) == []
+
+
+# ----------------------------------------------------------------------------- worker processes
+
+
+def _no_workers_left():
+    import multiprocessing
+
+    return multiprocessing.active_children() == []
+
+
+@pytest.mark.parametrize("ext", [".stl", ".ply"])
+def test_two_workers_write_the_bytes_one_writes(lattice, tmp_path, ext):
+    # the sequential run (checked against the whole grid above) is the reference
+    field, grid = lattice
+    plane = grid.shape[1] * grid.shape[2]
+    for budget in (one_layer_slabs(grid), one_layer_slabs(grid) + 4 * plane):
+        one = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / f"one{ext}", max_voxels=budget, workers=1)
+        with FieldFile(grid) as ff:
+            ff.write(0, field)
+            two = write_mesh_slabs(ff, tmp_path / f"file{ext}", max_voxels=budget, workers=2)
+        inherited = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / f"array{ext}", max_voxels=budget,
+                                     workers=2)
+        assert one["workers"] == 1 and two["workers"] == 2 and inherited["workers"] == 2
+        assert one["slabs"] > 5
+        reference = (tmp_path / f"one{ext}").read_bytes()
+        assert (tmp_path / f"file{ext}").read_bytes() == reference
+        assert (tmp_path / f"array{ext}").read_bytes() == reference
+        # the sums are added in slab order whoever meshed the slab: the same floats
+        assert {k: v for k, v in two.items() if k != "workers"} == {k: v for k, v in one.items() if k != "workers"}
+    assert sorted(os.listdir(tmp_path)) == sorted(f"{n}{ext}" for n in ("one", "file", "array"))
+    assert _no_workers_left()
+
+
+def test_small_grids_are_meshed_in_this_process(sphere, tmp_path):
+    field, grid = sphere
+    s = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.stl", max_voxels=one_layer_slabs(grid))
+    assert s["slabs"] > 1 and s["workers"] == 1
+
+
+def test_two_workers_close_the_tie_heavy_fields(tmp_path):
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        shape = tuple(int(n) for n in rng.integers(8, 15, 3))
+        grid = Grid((0.0, 0.0, 0.0), 0.5, shape)
+        field = rng.choice([-1.0, 0.0, 1.0], size=shape) * 0.5
+        s = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "t.ply", max_voxels=one_layer_slabs(grid),
+                             workers=2)
+        m = trimesh.load(tmp_path / "t.ply", process=False)
+        assert brute_force_closed(m.faces)
+        assert s["watertight"] and s["winding_consistent"]
+        assert len(m.faces) == len(whole_mesh(field, grid).faces)
+
+
+@pytest.mark.parametrize("ext", [".stl", ".ply"])
+def test_an_interrupt_stops_the_workers_and_leaves_nothing(lattice, tmp_path, ext):
+    field, grid = lattice
+    calls = []
+
+    def interrupt(done, total):
+        calls.append(done)
+        if done == 3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        write_mesh_slabs(ArraySlabs(field, grid), tmp_path / f"m{ext}", max_voxels=one_layer_slabs(grid),
+                         progress=interrupt, workers=2)
+    assert calls == [1, 2, 3]  # in slab order
+    assert os.listdir(tmp_path) == []
+    assert _no_workers_left()
+
+
+def test_a_worker_error_is_raised_in_slab_order_and_leaves_nothing(tmp_path):
+    grid = Grid((0.0, 0.0, 0.0), 0.1, (30, 10, 10))
+    field = -np.ones(grid.shape, np.float32)
+    field[13, 4, 4] = np.nan
+    field[25, 4, 4] = np.nan
+    raised = []
+    for workers in (1, 2):
+        with pytest.raises(ScaffoldError, match="NaN values") as err:
+            write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.ply", max_voxels=one_layer_slabs(grid),
+                             workers=workers)
+        raised.append(str(err.value))
+    # the first slab that reads a NaN (slab 0 reads planes 0..17) names it, as in one process
+    assert raised[1] == raised[0] and "x-slab 0.." in raised[0]
+    assert os.listdir(tmp_path) == []
+    assert _no_workers_left()
+
+
+def test_a_killed_worker_is_reported_in_one_line(lattice, tmp_path, monkeypatch):
+    field, grid = lattice
+
+    def die(self, x0, x1):
+        os._exit(3)  # what the system's out-of-memory killer leaves: no message, no result
+
+    monkeypatch.setattr(ArraySlabs, "read", die)  # only the forked workers read
+    with pytest.raises(ScaffoldError, match="worker process stopped") as err:
+        write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.stl", max_voxels=one_layer_slabs(grid), workers=2)
+    assert "\n" not in str(err.value)
+    assert os.listdir(tmp_path) == []
+    assert _no_workers_left()
+
+
+def test_bad_workers_are_refused(lattice, tmp_path):
+    field, grid = lattice
+    for bad in (0, 3, 1.5, True):
+        with pytest.raises(ScaffoldError, match="workers must be 1 or 2"):
+            write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.stl", max_voxels=10 ** 9, workers=bad)
+    with pytest.raises(ScaffoldError, match="pass workers=1"):
+        write_mesh_slabs(CountingReads(field, grid), tmp_path / "m.stl", max_voxels=one_layer_slabs(grid),
+                         workers=2)
+    assert os.listdir(tmp_path) == []
+
+
+def test_field_file_opened_read_only_reads_the_planes_and_keeps_the_file(lattice, tmp_path):
+    field, grid = lattice
+    with FieldFile(grid, folder=tmp_path) as ff:
+        ff.write(0, field)
+        with FieldFile.open_readonly(ff.path, grid) as reader:
+            assert np.array_equal(reader.read(7, 19), field[7:19])
+        assert os.path.exists(ff.path)  # the reader's close keeps it
+        assert np.array_equal(ff.read(0, 3), field[:3])  # and the writer still reads it
+    assert os.listdir(tmp_path) == []
+
+
+# ----------------------------------------------------------------------------- the compiled kernels
+
+
+def random_soup(seed, nv=500, nf=3000):
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(size=(nv, 3)) * rng.choice([1e-3, 1.0, 1e3], 3)
+    faces = rng.integers(0, nv, (nf, 3))
+    faces[:3] = [[1, 1, 2], [4, 5, 4], [7, 7, 7]]  # collapsed: zero normal
+    return vertices, faces
+
+
+def test_stl_records_match_numpy(tmp_path):
+    import io
+
+    from implicit_scaffold.mesh import _write_stl_records
+
+    rec = np.dtype([("normal", "<f4", (3,)), ("vertex", "<f4", (3, 3)), ("attr", "<u2")])
+    for seed in range(3):
+        vertices, faces = random_soup(seed)
+        out = io.BytesIO()
+        _write_stl_records(vertices, faces, out)
+        got = np.frombuffer(out.getvalue(), dtype=rec)
+        assert len(got) == len(faces)
+        tri = vertices[faces]
+        assert np.array_equal(got["vertex"], tri.astype(np.float32))
+        assert np.all(got["attr"] == 0)
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        length = np.linalg.norm(n, axis=1)
+        ok = length > 0
+        assert np.allclose(got["normal"][ok], n[ok] / length[ok, None], rtol=0, atol=2e-7)
+        assert np.all(got["normal"][~ok] == 0) and (~ok[:3]).all()
+
+
+def test_face_measures_match_numpy():
+    from implicit_scaffold.mesh import _face_measures
+
+    for seed in range(3):
+        vertices, faces = random_soup(seed)
+        ref = np.array([0.3, -0.2, 0.1])
+        area, vol = _face_measures(vertices, faces, ref=ref)
+        a, b, c = (vertices[faces[:, k]] - ref for k in range(3))
+        cross = np.cross(b - a, c - a)
+        assert np.allclose(area, 0.5 * np.linalg.norm(cross, axis=1), rtol=1e-12, atol=0)
+        assert np.allclose(vol, np.einsum("ij,ij->i", a, cross) / 6, rtol=1e-9, atol=1e-12 * np.abs(vol).max())
+
+
+def brute_force_flags(faces):
+    """(watertight, winding consistent) by counting each undirected edge's uses (dicts)."""
+    uses = {}
+    for f in np.asarray(faces).tolist():
+        for u, v in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            uses.setdefault((min(u, v), max(u, v)), []).append(u > v)
+    watertight = all(len(d) == 2 for d in uses.values())
+    winding = all(d[0] != d[1] for d in uses.values() if len(d) == 2)
+    return watertight, winding
+
+
+def test_edge_check_matches_brute_force():
+    from implicit_scaffold.mesh import _jit
+
+    edge_check = _jit()["edge_check"]
+    sphere = trimesh.creation.icosphere(2)
+    faces = np.asarray(sphere.faces, np.int64)
+    nv = len(sphere.vertices)
+    rng = np.random.default_rng(0)
+    cases = {"closed": faces, "flipped": np.concatenate([faces[:5], faces[5:6, ::-1], faces[6:]]),
+             "hole": faces[1:], "doubled": np.concatenate([faces, faces[:1]]),
+             "loop edge": np.concatenate([faces, [[3, 3, 4]]]), "soup": rng.integers(0, 40, (200, 3))}
+    seen = set()
+    for name, f in cases.items():
+        for dtype in (np.int64, np.int32):
+            flags = edge_check(np.ascontiguousarray(f, dtype), nv, np.zeros(nv, np.int8))[:2]
+            assert tuple(flags) == brute_force_flags(f), name
+        seen.add(brute_force_flags(f))
+    assert len(seen) >= 3  # the cases cover closed, open and badly wound
+    # edges with both ends on one plane are returned, not checked; the rest are checked
+    plane = np.zeros(nv, np.int8)
+    plane[rng.choice(nv, 60, replace=False)] = 1
+    plane[rng.choice(np.flatnonzero(plane == 0), 60, replace=False)] = 2
+    watertight, winding, first, last = edge_check(faces, nv, plane)
+    directed = np.stack([faces.reshape(-1), np.roll(faces, -1, axis=1).reshape(-1)], axis=1)
+    for p, rows in ((1, first), (2, last)):
+        on = (plane[directed[:, 0]] == p) & (plane[directed[:, 1]] == p)
+        assert sorted(map(tuple, rows.tolist())) == sorted(map(tuple, directed[on].tolist()))
+    kept = directed[~(((plane[directed[:, 0]] == 1) & (plane[directed[:, 1]] == 1))
+                      | ((plane[directed[:, 0]] == 2) & (plane[directed[:, 1]] == 2)))]
+    assert len(first) + len(last) > 0 and len(kept) < len(directed)
+    # the kept edges of a closed surface alone are still closed: every pair is kept or set aside whole
+    assert (watertight, winding) == (True, True)
+
+
+def test_duplicate_positions_are_found_exactly():
+    from implicit_scaffold.mesh import _jit
+
+    has_duplicates = _jit()["has_duplicates"]
+    rng = np.random.default_rng(1)
+    for trial in range(20):
+        verts = rng.integers(0, 4, (int(rng.integers(0, 60)), 3)).astype(np.float32)
+        expected = len(np.unique(verts.view(np.uint32), axis=0)) < len(verts)
+        assert has_duplicates(verts.view(np.uint32)) is expected
+    distinct = rng.permutation(np.arange(3000, dtype=np.float32)).reshape(-1, 3)
+    assert not has_duplicates(distinct.view(np.uint32))
+    assert has_duplicates(np.concatenate([distinct, distinct[17:18]]).view(np.uint32))
