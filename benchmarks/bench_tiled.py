@@ -96,21 +96,26 @@ def main(argv=None) -> int:
     ap.add_argument("--folder", default=None, help="where the outputs are written (a temporary folder)")
     args = ap.parse_args(argv)
     only = set(args.only.split(","))
-    rows, done = [], {}
+    rows, cache = [], {}
+
+    def run(name, options, kind="stl"):
+        key = (kind, tuple(sorted(options.items())))
+        if key not in cache:
+            cache[key] = measure(options, args.runs, args.warmup, kind=kind, folder=args.folder)
+            rows.append(_row(name, cache[key]))
+        return cache[key]
+
+    b2 = dict(pore_size=0.5, porosity=0.8, voxel=0.02, max_memory="4G")
     if "b2" in only:
-        m = measure(dict(pore_size=0.5, porosity=0.8, voxel=0.02, max_memory="4G"), args.runs, args.warmup,
-                    folder=args.folder)
-        done["b2"] = m
-        rows.append(_row("B2 fine pores -> STL", m))
+        m = run("B2 fine pores -> STL", b2)
         print(f"B2: {m['seconds']:.1f} s (target 60), peak {m['peak_rss_mb'] / 1024:.2f} GiB, with the mesh "
               f"workers {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4), "
               f"porosity voxels {m['porosity_voxel']:.4f} mesh {m['porosity_mesh']:.4f}, "
               f"watertight {m['watertight']}; stages {m['stages']}", flush=True)
     if "b5" in only:
         for kind in ("stl", "slices"):
-            m = measure(dict(voxel=0.01, max_memory="4G"), args.runs, args.warmup, kind=kind, folder=args.folder)
-            done[f"b5_{kind}"] = m
-            rows.append(_row(f"B5 large -> {'STL' if kind == 'stl' else 'PNG stack'}", m))
+            m = run(f"B5 large -> {'STL' if kind == 'stl' else 'PNG stack'}", dict(voxel=0.01, max_memory="4G"),
+                    kind)
             print(f"B5 {kind}: {m['seconds']:.1f} s, {m['seconds'] / (m['voxels'] / 1e9):.0f} s per 10^9 voxels, "
                   f"peak {m['peak_rss_mb'] / 1024:.2f} GiB, with the mesh workers "
                   f"{max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4); stages {m['stages']}",
@@ -118,21 +123,17 @@ def main(argv=None) -> int:
     if "scaling" in only:
         series = {"voxels": [], "seeds": []}
         for voxel in (0.04, 0.02, 0.01):
-            m = (done.get("b5_stl") if voxel == 0.01 and "b5_stl" in done else
-                 measure(dict(seeds=500, voxel=voxel, max_memory="4G"), args.runs, args.warmup, folder=args.folder))
+            m = run(f"500 seeds at {voxel} mm", dict(seeds=500, voxel=voxel, max_memory="4G"))
             series["voxels"].append(m)
-            rows.append(_row(f"500 seeds at {voxel} mm", m))
             print(f"scaling voxels {voxel}: {m['seconds']:.1f} s, peak {m['peak_rss_mb'] / 1024:.2f} GiB", flush=True)
         for seeds in (500, 12_223, 100_000):
             if seeds == 500:
                 m = series["voxels"][1]
-            elif seeds == 12_223 and "b2" in done:
-                m = done["b2"]
+            elif seeds == 12_223:
+                m = run("B2 fine pores -> STL", b2)  # 12,223 seeds from the 0.5 mm pore size
             else:
                 # the cells of 100,000 seeds alone take about 5 GB: this run gets 8
-                m = measure(dict(seeds=seeds, voxel=0.02, max_memory="8G"), args.runs, args.warmup,
-                            folder=args.folder)
-                rows.append(_row(f"{seeds:,} seeds at 0.02 mm", m))
+                m = run(f"{seeds:,} seeds at 0.02 mm", dict(seeds=seeds, voxel=0.02, max_memory="8G"))
             series["seeds"].append(m)
             print(f"scaling seeds {seeds}: {m['seconds']:.1f} s, peak {m['peak_rss_mb'] / 1024:.2f} GiB", flush=True)
         if not args.no_figure:

@@ -62,7 +62,8 @@ from .mesh import (_FACE_CHUNK, _TIE_ROUNDS, _break_face_ties, _check_level, _ch
                    atomic_path, check_writable)
 from .tiles import ArraySlabs, FieldFile, plan_slabs
 
-__all__ = ["MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMATS", "write_mesh_slabs"]
+__all__ = ["MESH_BYTES_PER_TRIANGLE", "MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMATS", "mesh_slab_bytes_per_voxel",
+           "write_mesh_slabs"]
 
 #: Mesh file formats :func:`write_mesh_slabs` writes, by extension.
 STREAM_FORMATS = (".stl", ".ply")
@@ -78,6 +79,42 @@ STREAM_FORMATS = (".stl", ".ply")
 #: at B2: 56, rounded up to cover each worker process's own 50 MB (USS; its RSS shows
 #: about 140 MB, most of it pages shared with the parent) from slabs of 13 M voxels up.
 MESH_SLAB_BYTES_PER_VOXEL = 64
+#: Peak bytes per triangle of one slab's marching cubes and arrays (the upper end of the 50-80
+#: measured above); with the triangles per voxel of the field at hand it gives
+#: :func:`mesh_slab_bytes_per_voxel`, which a field denser in surface than B2 needs.
+MESH_BYTES_PER_TRIANGLE = 80
+
+
+def mesh_slab_bytes_per_voxel(source, *, level: float = 0.0, samples: int = 8) -> float:
+    """Peak bytes per voxel of ``max_voxels`` for :func:`write_mesh_slabs` on this field.
+
+    The triangles per voxel are estimated from a few planes: each edge between voxels
+    whose sides of the level differ holds one vertex, and a closed triangle mesh has
+    about twice as many triangles as vertices. Two slabs may be in flight; never below
+    :data:`MESH_SLAB_BYTES_PER_VOXEL`.
+
+    Parameters
+    ----------
+    source : ArraySlabs or FieldFile
+    level : float, mm
+    samples : int
+        Planes sampled (evenly along x).
+
+    Returns
+    -------
+    float
+    """
+    nx = source.grid.shape[0]
+    crossings = voxels = 0
+    for x in np.unique(np.linspace(0, max(nx - 2, 0), samples).astype(np.int64)):
+        solid = source.read(int(x), min(int(x) + 2, nx)) < level
+        a = solid[0]
+        crossings += int(np.count_nonzero(a[1:] != a[:-1])) + int(np.count_nonzero(a[:, 1:] != a[:, :-1]))
+        if len(solid) > 1:
+            crossings += int(np.count_nonzero(a != solid[1]))
+        voxels += a.size
+    per_voxel = 2.0 * crossings / max(voxels, 1)
+    return max(float(MESH_SLAB_BYTES_PER_VOXEL), 2 * (4 + MESH_BYTES_PER_TRIANGLE * per_voxel) + 8)
 
 #: Planes a slab reads beyond its last cube layer: that layer's far plane, and the
 #: planes tie breaking looks ahead (module notes).

@@ -51,10 +51,12 @@ class Params:
     skin: float = 0.0
     smooth_cut: float = 0.0
     #: graded scaffolds (:mod:`.grade`): pore size by depth ("0:0.3,2:0.8") or a callable
-    #: f(x, y, z) -> mm; or a CT calibration (slope, intercept); Lloyd iterations
+    #: f(x, y, z) -> mm; or a CT calibration (slope, intercept); Lloyd iterations; power
+    #: (Laguerre) cells weighted by the local cell size (:func:`.grade.power_radii`)
     grade: Any = None
     calibration: Any = None
     relax: int = 0
+    weighted: bool = False
 
 
 @dataclass
@@ -151,7 +153,7 @@ def validate(**options) -> Params:
 
 
 def _validate_grade(p: Params, seeds, widths: dict) -> dict:
-    """The graded options (``grade``, ``calibration``, ``relax``) checked, or a ScaffoldError."""
+    """The graded options (``grade``, ``calibration``, ``relax``, ``weighted``) checked, or a ScaffoldError."""
     from .grade import check_grade, parse_calibration
 
     grade = check_grade(p.grade)
@@ -162,19 +164,25 @@ def _validate_grade(p: Params, seeds, widths: dict) -> dict:
         raise ScaffoldError(f"--relax must be a whole number of Lloyd iterations, got {p.relax!r}") from None
     if relax < 0:
         raise ScaffoldError(f"--relax must be >= 0 Lloyd iterations, got {relax}")
+    if p.weighted not in (True, False, None, 0, 1):
+        raise ScaffoldError(f"weighted must be True or False, got {p.weighted!r}")
+    weighted = bool(p.weighted)
     if grade is not None and calibration is not None:
         raise ScaffoldError("give --grade (pore size by depth) or --calibration (from the CT), not both")
     if grade is None and calibration is None:
         if relax:
             raise ScaffoldError("--relax relaxes graded seeds; add --grade (e.g. --grade 0:0.6 for even pores) "
                                 "or --calibration")
-        return {"grade": None, "calibration": None, "relax": 0}
+        if weighted:
+            raise ScaffoldError("--weighted weights the cells by the graded pore size; add --grade (e.g. --grade "
+                                "0:0.3,2:0.8) or --calibration")
+        return {"grade": None, "calibration": None, "relax": 0, "weighted": False}
     if seeds is not None:
         raise ScaffoldError("a graded scaffold takes its seed count from the pore-size field; drop --seeds")
     if widths["skin"] > 0 or widths["smooth_cut"] > 0:
         raise ScaffoldError("--skin and --smooth-cut are not available with a graded scaffold yet; drop them "
                             "or drop --grade/--calibration")
-    return {"grade": grade, "calibration": calibration, "relax": relax}
+    return {"grade": grade, "calibration": calibration, "relax": relax, "weighted": weighted}
 
 
 def _default_voxel(wall: float, box_volume: float) -> float:
@@ -225,7 +233,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments, grade, calibration, relax (see :class:`Params`).
+        remove_fragments, grade, calibration, relax, weighted (see :class:`Params`).
 
     Returns
     -------
@@ -306,8 +314,13 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if graded and params.relax:
         with prog.stage("relax", f"{params.relax} Lloyd iterations"):
             seeds = grading.lloyd_relax(seeds, density, params.relax)
-    with prog.stage("cells"):
-        cells = voronoi_cells(seeds, lo, hi)
+    weighted = graded and params.weighted
+    with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
+        cells = voronoi_cells(seeds, lo, hi, radii=grading.power_radii(density, seeds) if weighted else None)
+    if weighted:
+        # seeds whose power cell is empty are gone: the lattice and the report count the others
+        empty_power_cells = len(seeds) - cells.n
+        seeds = cells.seeds
     walls = trabecular_thicknesses(cells, params.sv)
     # the narrowest end of each channel: its window (Sf) or its pore face (Sv), as a disc radius
     windows = min(params.sf, params.sv) * np.sqrt(cells.face_areas[interior_face_pairs(cells)] / np.pi)
@@ -387,6 +400,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
+            if weighted:
+                report["grade"]["empty_power_cells"] = empty_power_cells
         plan = level_field = density = None  # the mesh and metrics stages need the memory
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
@@ -440,6 +455,7 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
 
     out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)"}
     info: dict[str, Any] = {"field": gfield.describe(), "kind": gfield.kind, "relax": params.relax,
+                            "weighted": bool(params.weighted),
                             "seeding_voxel_mm": float(density.grid.spacing), "seed_margin_mm": density.margin,
                             "seeds_expected": density.count}
     if gfield.kind == "depth":
@@ -667,10 +683,12 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -
     from .mesh_stream import write_mesh_slabs
     from .tiled import process_memory
 
-    from .mesh_stream import MESH_SLAB_BYTES_PER_VOXEL
+    from .mesh_stream import mesh_slab_bytes_per_voxel
 
-    # marching cubes holds more per voxel than the field passes did (two slabs may be in flight)
-    slab_voxels = min(slab_voxels, max(1, (run.max_memory - process_memory()) // MESH_SLAB_BYTES_PER_VOXEL))
+    # marching cubes holds more per voxel than the field passes did, the more the denser the
+    # surface (and two slabs may be in flight)
+    per_voxel = mesh_slab_bytes_per_voxel(field)
+    slab_voxels = min(slab_voxels, max(1, int((run.max_memory - process_memory()) // per_voxel)))
     if run.tiled is not True and run.tiled:
         slab_voxels = int(run.tiled)
     ext = output_format(out_path)
