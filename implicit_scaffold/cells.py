@@ -4,6 +4,10 @@ voro++ (through ``pyvoro2``) computes each cell exactly. The two copies of a fac
 shared by two cells are made identical (the lower-numbered cell's copy, reversed
 for the other), so that anything built on a face, a window rim, is the same for
 both cells.
+
+With radii the cells are power (Laguerre) cells: ``x`` belongs to the seed that
+minimises ``|x - s_i|² - r_i²``. A seed may then lie outside its own cell, and a
+seed outshone by its neighbours has no cell at all (it is dropped).
 """
 from __future__ import annotations
 
@@ -21,6 +25,7 @@ class Cells:
     Attributes
     ----------
     seeds : (n, 3) float64 ndarray, mm
+        The seed of each cell (for power cells, only the seeds whose cell is not empty).
     lo, hi : (3,) float64 ndarray, mm
         The bounding box.
     volumes : (n,) float64 ndarray, mm³
@@ -39,6 +44,12 @@ class Cells:
     face_areas : (nf,) float64 ndarray, mm²
     face_centroids : (nf, 3) float64 ndarray, mm
         Area centroids.
+    radii : (n,) float64 ndarray, mm, or None
+        The power radii of the cells' seeds; None for plain Voronoi cells.
+    seed_index : (n,) int64 ndarray or None
+        For power cells, the index of each cell's seed among the seeds given (seeds
+        whose power cell is empty are left out); None for plain Voronoi cells, where
+        cell ``i`` is seed ``i``.
     """
 
     seeds: np.ndarray
@@ -53,6 +64,8 @@ class Cells:
     face_normals: np.ndarray
     face_areas: np.ndarray
     face_centroids: np.ndarray
+    radii: np.ndarray | None = None
+    seed_index: np.ndarray | None = None
 
     @property
     def n(self) -> int:
@@ -143,7 +156,23 @@ def polygon_properties(vertices: np.ndarray, start: np.ndarray):
     return normals, areas, centroids
 
 
-def voronoi_cells(seeds, lo, hi) -> Cells:
+def check_radii(radii, n: int) -> np.ndarray:
+    """`radii` as a ``(n,)`` float64 array of finite lengths >= 0 mm, or a ScaffoldError."""
+    try:
+        r = np.asarray(radii, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ScaffoldError("power radii must be numbers (mm), one per seed") from None
+    if r.shape != (n,):
+        raise ScaffoldError(f"power radii must be one length per seed: got shape {r.shape} for {n} seeds")
+    bad = ~(np.isfinite(r) & (r >= 0))
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ScaffoldError(f"power radius {float(r[i]):g} of seed {i} is not a finite length >= 0 mm; "
+                            "give every seed a radius >= 0")
+    return r
+
+
+def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     """The Voronoi cells of `seeds`, clipped to the box ``[lo, hi]``.
 
     Parameters
@@ -151,6 +180,12 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
     seeds : (n, 3) float ndarray, mm
         Distinct points inside the box.
     lo, hi : (3,) array_like of float, mm
+    radii : (n,) array_like of float, mm, optional
+        Power radii, finite and >= 0: the power (Laguerre) cells, where ``x`` belongs
+        to the seed minimising ``|x - s_i|² - r_i²`` (weights ``w_i = r_i²``; adding
+        the same constant to every weight changes nothing). Seeds with an empty cell
+        are left out of the result (see ``Cells.seed_index``). Without, the plain
+        Voronoi cells.
 
     Returns
     -------
@@ -166,9 +201,26 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
         raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {n}; pass --seeds 2 or more")
     if np.any(seeds < lo) or np.any(seeds > hi):
         raise ScaffoldError("every seed must lie inside the bounding box")
-    raw = pyvoro2.compute(seeds, domain=pyvoro2.Box(tuple(zip(lo, hi))), output="cells")
+    weighted = radii is not None
+    if weighted:
+        radii = check_radii(radii, n)
+        raw = pyvoro2.compute(seeds, domain=pyvoro2.Box(tuple(zip(lo, hi))), output="cells", mode="power",
+                              radii=radii)
+    else:
+        raw = pyvoro2.compute(seeds, domain=pyvoro2.Box(tuple(zip(lo, hi))), output="cells")
     raw = sorted(raw, key=lambda c: c["id"])
-    if len(raw) != n:
+    seed_index = renumber = None
+    if weighted:
+        # voro++ leaves out the seeds whose power cell is empty: the others are renumbered 0..n'-1
+        raw = [c for c in raw if c["faces"] and c["volume"] > 0]
+        seed_index = np.array([c["id"] for c in raw], dtype=np.int64)
+        if len(seed_index) < 2:
+            raise ScaffoldError(f"only {len(seed_index)} of {n} seeds keep a power cell; the radii differ too "
+                                "much for the seeds' spacing, give closer radii")
+        renumber = np.full(n, -1, np.int64)
+        renumber[seed_index] = np.arange(len(seed_index))
+        seeds, radii, n = seeds[seed_index], radii[seed_index], len(seed_index)
+    elif len(raw) != n:
         raise ScaffoldError(f"voro++ returned {len(raw)} cells for {n} seeds; are two seeds identical?")
 
     volumes = np.array([c["volume"] for c in raw], dtype=np.float64)
@@ -188,6 +240,13 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
     counts = np.asarray(counts, dtype=np.int64)
     owner = np.asarray(owner, dtype=np.int64)
     neighbor = np.maximum(np.asarray(neighbor, dtype=np.int64), -1)
+    if weighted:
+        owner = renumber[owner]
+        neighbor = np.where(neighbor >= 0, renumber[np.maximum(neighbor, 0)], -1)
+    # the point faces are oriented and pyramids summed from: the seed lies inside its Voronoi
+    # cell, but not always inside its power cell; the mean of a cell's vertices always does
+    ref = (np.array([np.mean(np.asarray(c["vertices"], dtype=np.float64), axis=0) for c in raw])
+           if weighted else seeds)
     start = np.concatenate([[0], np.cumsum(counts)])
     # drop repeated vertices: voro++ can emit edges of zero length
     prev = np.arange(len(all_verts)) - 1
@@ -220,8 +279,8 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
     # the twin's properties, bit for bit: a rim built on either copy is the same
     copy = np.nonzero(twin >= 0)[0]
     normals[copy], areas[copy], fcen[copy] = -normals[twin[copy]], areas[twin[copy]], fcen[twin[copy]]
-    # orient every face outward from its cell's seed
-    flip = np.einsum("ij,ij->i", normals, fcen - seeds[owner]) < 0
+    # orient every face outward from its cell's seed (or its vertex mean)
+    flip = np.einsum("ij,ij->i", normals, fcen - ref[owner]) < 0
     if np.any(flip):
         for f in np.nonzero(flip)[0]:
             verts[start[f]:start[f + 1]] = verts[start[f]:start[f + 1]][::-1]
@@ -234,13 +293,18 @@ def voronoi_cells(seeds, lo, hi) -> Cells:
         start = np.concatenate([[0], np.cumsum(counts)])
         owner, neighbor, normals, areas, fcen = owner[sel], neighbor[sel], normals[sel], areas[sel], fcen[sel]
 
-    # volume centroid: pyramids from the seed over every face
-    h = np.einsum("ij,ij->i", normals, fcen - seeds[owner])
+    # volume centroid: pyramids from the seed (or the vertex mean) over every face
+    h = np.einsum("ij,ij->i", normals, fcen - ref[owner])
     pyr_vol = areas * h / 3
-    pyr_cen = seeds[owner] + 0.75 * (fcen - seeds[owner])
+    pyr_cen = ref[owner] + 0.75 * (fcen - ref[owner])
     vol = np.bincount(owner, weights=pyr_vol, minlength=n)
     cen = np.stack([np.bincount(owner, weights=pyr_vol * pyr_cen[:, a], minlength=n) for a in range(3)], 1)
+    if weighted:
+        # a sliver power cell can lose every face to the area floor: its centroid is its vertex mean
+        flat = ~(vol > 0)
+        vol[flat] = 1.0
+        cen[flat] = ref[flat]
     centroids = cen / vol[:, None]
     return Cells(seeds=seeds, lo=lo, hi=hi, volumes=volumes, centroids=centroids,
                  face_cell=owner, face_neighbor=neighbor, face_start=start, face_vertices=verts,
-                 face_normals=normals, face_areas=areas, face_centroids=fcen)
+                 face_normals=normals, face_areas=areas, face_centroids=fcen, radii=radii, seed_index=seed_index)

@@ -151,6 +151,9 @@ def _add_build_options(g) -> None:
                          "with it; replaces --porosity")
     gg.add_argument("--relax", type=int, default=0, metavar="N",
                     help="N Lloyd iterations on the graded seeds: a narrower pore-size spread (default 0)")
+    gg.add_argument("--weighted", action="store_true",
+                    help="power (Laguerre) cells weighted by the local target pore size: cells next to a "
+                         "change of pore size keep their own size")
     rg = g.add_argument_group("memory and cluster")
     rg.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory the run may hold, e.g. 4G or 800M (default: 80%% of the free memory); a grid "
@@ -187,8 +190,9 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
         raise ScaffoldError("--label, --threshold, --units, --clip and --cut-planes apply to a --patient FILE; "
                             "give one or drop them")
     graded = {}
-    if args.grade is not None or args.calibration is not None or args.relax:
-        graded = {"grade": args.grade, "calibration": args.calibration, "relax": args.relax}
+    if args.grade is not None or args.calibration is not None or args.relax or args.weighted:
+        graded = {"grade": args.grade, "calibration": args.calibration, "relax": args.relax,
+                  "weighted": args.weighted}
     if args.calibration is not None:
         from .patient_io import VOLUME_EXTENSIONS
 

@@ -23,10 +23,9 @@ an offset field and the profiles of the report:
 
 All lengths are mm; densities are seeds per mm³ (seeding) or g/cm³ (bone).
 
-Weighted (power, Laguerre) cells are not built yet: pyvoro2 computes them
-(``mode="power"``), but a seed may then lie outside its own cell, and
-:func:`~implicit_scaffold.cells.voronoi_cells` orients faces and sums pyramids from the
-seed; it needs another reference point first.
+- **weighted cells** (:func:`power_radii`): optionally power (Laguerre) cells instead of
+  Voronoi cells, each seed weighted by the local cell size of the field, so that a
+  cell's size follows its own target where its neighbours' targets differ.
 """
 from __future__ import annotations
 
@@ -574,6 +573,35 @@ def lloyd_relax(seeds, density: SeedDensity, iterations: int) -> np.ndarray:
         new[ok] = moved[ok] / total[ok, None]
         seeds = np.clip(new, density.lo, density.hi)
     return seeds
+
+
+def power_radii(density: SeedDensity, seeds) -> np.ndarray:
+    """Power radii that make each seed's cell follow its local target size, mm.
+
+    The rule: ``r_i = L_i / 2``, ``L_i = ρ(s_i)^(-1/3)`` the seed spacing the paper's
+    density asks for at the seed (``ρ = P / (π Dp³ / 6)``, so ``L = Dp (π / (6 P))^(1/3)``).
+    For two neighbouring seeds at the mean of their spacings, ``d = (L_i + L_j) / 2``,
+    the power plane ``|x - s_i|² - r_i² = |x - s_j|² - r_j²`` (weights ``w = r²``) lies
+    at ``(d² + r_i² - r_j²) / (2 d) = L_i / 2`` from ``s_i``: each cell reaches half its
+    own spacing, where the Voronoi plane (``d / 2``) would give the larger cell too little
+    and the smaller too much. Where the neighbours' targets are equal the weights cancel
+    and the plane is the Voronoi one.
+
+    Parameters
+    ----------
+    density : SeedDensity
+    seeds : (n, 3) float ndarray, mm
+
+    Returns
+    -------
+    (n,) float64 ndarray, mm
+    """
+    from .field import sample
+
+    p = np.asarray(seeds, np.float64).reshape(-1, 3)
+    depth = -sample(density.patient_sdf, density.grid, p).astype(np.float64)
+    size, por = density.field.targets(p, depth)
+    return 0.5 * np.cbrt(1.0 / seed_density_of(size, por))
 
 
 # --- offset field -------------------------------------------------------------------

@@ -59,3 +59,102 @@ def test_too_many_seeds_for_memory_fail_before_the_work():
     with pytest.raises(ScaffoldError, match="fewer --seeds"):
         check_seed_memory(2_000_000, available=8 * 2**30)
     assert check_seed_memory(1000, available=8 * 2**30) == 1000 * BYTES_PER_SEED
+
+
+# --- power (Laguerre) cells ----------------------------------------------------------
+
+def _power_labels(points, seeds, radii, chunk=50_000):
+    """Brute force: the seed minimising |x - s_i|^2 - r_i^2 for each point."""
+    out = np.empty(len(points), np.int64)
+    for i in range(0, len(points), chunk):
+        x = points[i:i + chunk]
+        out[i:i + chunk] = np.argmin(((x[:, None, :] - seeds[None]) ** 2).sum(-1) - radii ** 2, axis=1)
+    return out
+
+
+def _face_areas_by_pair(c):
+    return {(int(o), int(n)): a for o, n, a in zip(c.face_cell, c.face_neighbor, c.face_areas) if n >= 0}
+
+
+def test_equal_radii_give_the_voronoi_cells():
+    # equal weights cancel in every power plane: the same tessellation, to rounding
+    rng = np.random.default_rng(11)
+    hi = np.array([4.0, 3.0, 3.5])
+    seeds = rng.uniform(0, 1, (150, 3)) * hi
+    plain = voronoi_cells(seeds, [0, 0, 0], hi)
+    power = voronoi_cells(seeds, [0, 0, 0], hi, radii=np.full(150, 0.7))
+    assert plain.radii is None and plain.seed_index is None
+    assert power.n == 150 and np.array_equal(power.seed_index, np.arange(150))
+    np.testing.assert_allclose(power.volumes, plain.volumes, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(power.centroids, plain.centroids, rtol=0, atol=1e-9)
+    a, b = _face_areas_by_pair(plain), _face_areas_by_pair(power)
+    # faces of (near) zero area may come and go with rounding; every other face is in both
+    big = {k for k, v in a.items() if v > 1e-9} | {k for k, v in b.items() if v > 1e-9}
+    for k in big:
+        assert abs(a.get(k, 0.0) - b.get(k, 0.0)) < 1e-9
+
+
+def test_power_cells_match_a_brute_force_assignment():
+    rng = np.random.default_rng(7)
+    hi = np.array([3.0, 2.5, 2.0])
+    box = float(np.prod(hi))
+    seeds = rng.uniform(0, 1, (40, 3)) * hi
+    radii = rng.uniform(0, 0.45, 40)
+    cells = voronoi_cells(seeds, [0, 0, 0], hi, radii=radii)
+    # the power cells tile the box
+    assert cells.volumes.sum() == pytest.approx(box, rel=1e-9)
+    npts = 400_000
+    x = np.random.default_rng(1).uniform(0, 1, (npts, 3)) * hi
+    label = _power_labels(x, seeds, radii)
+    # the case the vertex mean is for: some seeds lie outside their own power cell
+    assert np.count_nonzero(_power_labels(seeds, seeds, radii) != np.arange(40)) >= 1
+    count = np.bincount(label, minlength=40)
+    assert set(np.nonzero(count)[0]) <= set(cells.seed_index.tolist())
+    np.testing.assert_array_equal(cells.seeds, seeds[cells.seed_index])
+    np.testing.assert_array_equal(cells.radii, radii[cells.seed_index])
+    est = count[cells.seed_index] / npts * box
+    # binomial counts: each estimate within 5 standard errors, big cells within 3 %
+    p = cells.volumes / box
+    assert np.all(np.abs(est - cells.volumes) <= 5 * box * np.sqrt(p * (1 - p) / npts))
+    big = cells.volumes > 0.1
+    assert big.sum() > 20
+    assert np.all(np.abs(est[big] / cells.volumes[big] - 1) < 0.03)
+    # centroids from the pyramids agree with the points' means (within 0.03 mm for >= 2000 points)
+    mean = np.stack([np.bincount(label, weights=x[:, a], minlength=40) for a in range(3)], 1)
+    mean = mean[cells.seed_index] / np.maximum(count[cells.seed_index], 1)[:, None]
+    many = count[cells.seed_index] >= 2000
+    assert np.all(np.linalg.norm(mean[many] - cells.centroids[many], axis=1) < 0.03)
+    # every face is oriented outward from its (convex) cell
+    out = np.einsum("ij,ij->i", cells.face_normals, cells.face_centroids - cells.centroids[cells.face_cell])
+    assert np.all(out > 0)
+
+
+def test_empty_power_cells_are_dropped():
+    # seed 0 sits 0.5 mm from seed 1, whose radius 3 mm outshines it everywhere in the box
+    # (the radical plane |x - s0|^2 = |x - s1|^2 - 9 lies at z = 14.25 mm)
+    seeds = np.array([[5.0, 5.0, 5.0], [5.0, 5.0, 5.5], [2.0, 2.0, 2.0], [8.0, 7.0, 2.5]])
+    radii = np.array([0.0, 3.0, 3.0, 2.0])
+    cells = voronoi_cells(seeds, [0, 0, 0], [10, 10, 10], radii=radii)
+    x = np.random.default_rng(2).uniform(0, 10, (100_000, 3))
+    assert not np.any(_power_labels(x, seeds, radii) == 0)
+    assert cells.n == 3
+    np.testing.assert_array_equal(cells.seed_index, [1, 2, 3])
+    np.testing.assert_array_equal(cells.seeds, seeds[1:])
+    assert cells.volumes.sum() == pytest.approx(1000.0, rel=1e-9)
+    assert set(cells.face_cell.tolist()) == {0, 1, 2}
+    assert set(cells.face_neighbor.tolist()) <= {-1, 0, 1, 2}
+    assert len(cells.centroids) == len(cells.volumes) == 3
+
+
+@pytest.mark.parametrize("radii, match", [
+    (np.ones(3), r"one length per seed: got shape \(3,\) for 4 seeds"),
+    (np.array([0.1, -0.2, 0.1, 0.1]), "power radius -0.2 of seed 1 is not a finite length >= 0 mm"),
+    (np.array([0.1, 0.1, np.nan, 0.1]), "power radius nan of seed 2"),
+    (np.array([0.1, 0.1, 0.1, np.inf]), "power radius inf of seed 3"),
+    (["a", "b", "c", "d"], "power radii must be numbers"),
+])
+def test_bad_radii(radii, match):
+    seeds = np.random.default_rng(0).uniform(0, 1, (4, 3))
+    with pytest.raises(ScaffoldError, match=match) as err:
+        voronoi_cells(seeds, [0, 0, 0], [1, 1, 1], radii=radii)
+    assert "\n" not in str(err.value)

@@ -84,6 +84,8 @@ def test_calibration_rules_are_monotone():
     ({"grade": "0:0.3", "relax": "x"}, "--relax must be a whole number"),
     ({"grade": "0:0.3", "skin": 0.2}, "--skin and --smooth-cut"),
     ({"grade": "0;0.3"}, "--grade"),
+    ({"weighted": True}, "--weighted weights the cells"),
+    ({"grade": "0:0.3", "weighted": "yes"}, "weighted must be True or False"),
 ])
 def test_bad_graded_options(options, words):
     from implicit_scaffold.pipeline import validate
@@ -109,6 +111,7 @@ def test_grade_function_must_return_lengths():
     (["--grade", "0:0.3,x"], "--grade"),
     (["--relax", "2"], "--relax"),
     (["--calibration", "0.001", "0"], "--calibration"),
+    (["--weighted"], "--weighted"),
 ])
 def test_cli_bad_grade_exit_2(tmp_path, capsys, argv, words):
     out = tmp_path / "s.stl"
@@ -428,3 +431,54 @@ def test_level_field_meets_each_bin_from_a_sample(monkeypatch):
         for lo, hi in zip(plan.edges[:-1], plan.edges[1:]):
             m = (depth >= lo) & (depth < hi)
             assert abs(1 - solid[m].mean() - 0.7) < 0.005, (sample, lo, 1 - solid[m].mean())
+
+
+# --- weighted (power) cells -------------------------------------------------------------
+
+def test_power_radii_are_half_the_local_spacing(two_level):
+    box, density, seeds = two_level
+    r = grade.power_radii(density, seeds)
+    # r = ρ^(-1/3) / 2 with the paper's density, written out here
+    small, large = seeds[:, 2] < 3.9, seeds[:, 2] > 4.1
+    np.testing.assert_allclose(r[small], 0.5 * _paper_density(0.4, 0.8) ** (-1 / 3), rtol=1e-12)
+    np.testing.assert_allclose(r[large], 0.5 * _paper_density(0.8, 0.8) ** (-1 / 3), rtol=1e-12)
+
+
+def test_weighted_cells_follow_the_target_across_a_step(two_level):
+    box, density, seeds = two_level
+    plain = voronoi_cells(seeds, box.lo, box.hi)
+    power = voronoi_cells(seeds, box.lo, box.hi, radii=grade.power_radii(density, seeds))
+    assert power.volumes.sum() == pytest.approx(200.0, rel=1e-9)
+    assert power.n >= len(seeds) - 5  # a few seeds outshone by a large neighbour at most
+    # the cells of the small-pore seeds should fill the small-pore half, 100 mm³: the Voronoi
+    # planes halfway to the large cells give them too much, the power planes less
+    below = {name: c.volumes[c.seeds[:, 2] < 4].sum() for name, c in (("plain", plain), ("power", power))}
+    assert abs(below["power"] - 100) < abs(below["plain"] - 100), below
+    for c in (plain, power):
+        d = pore_sizes(c, SV)
+        for z0, z1, dp in ((0.8, 4.0, 0.4), (4.0, 7.2, 0.8)):
+            # away from the walls only: the cells at the step count too
+            keep = np.all((c.seeds[:, :2] >= 0.8) & (c.seeds[:, :2] <= 4.2), axis=1)
+            keep &= (c.seeds[:, 2] >= z0) & (c.seeds[:, 2] < z1)
+            assert abs(d[keep].mean() / _gamma_ps(dp, 0.8) - 1) < 0.10, (dp, d[keep].mean())
+
+
+def test_cli_weighted_graded_run(tmp_path):
+    import hashlib
+    import json
+
+    def run(name, *extra):
+        out = tmp_path / name
+        argv = ["generate", "-o", str(out), "--size", "3", "--voxel", "0.08", "--grade", "0:0.35,1:0.7",
+                "--seed", "1", "-q", *extra]
+        assert main(argv) == 0
+        return hashlib.sha256(out.read_bytes()).hexdigest(), json.loads(out.with_suffix(".json").read_text())
+
+    a, rep = run("a.npy", "--weighted")
+    b, _ = run("b.npy", "--weighted")
+    c, plain = run("c.npy")
+    assert a == b and a != c
+    g = rep["grade"]
+    assert g["weighted"] is True and plain["grade"]["weighted"] is False and "empty_power_cells" not in plain["grade"]
+    # the report counts the cells built: the seeds drawn less those whose power cell is empty
+    assert rep["seeds"] + g["empty_power_cells"] == g["seeds_expected"] == plain["seeds"]
