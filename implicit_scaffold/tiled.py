@@ -341,7 +341,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k))
             slabs = plan_slabs(grid.shape, max_voxels=max_voxels, halo=work.halo)
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
-                                       f"{len(slabs)} slabs"):
+                                       f"{len(slabs)} slab{'' if len(slabs) == 1 else 's'}"):
                 quantile, n_inside, lo, hi = _pass_lattice(work, slabs, runner, field, patient_file,
                                                            prog.bar("lattice"))
             if n_inside == 0:
