@@ -118,6 +118,11 @@ def _packed(owner, grid: Grid, pack):
     return packed
 
 
+def release_packed() -> None:
+    """Free what :func:`lattice_sdf` kept for the next slab (a tiled run calls it after its slabs)."""
+    _PACKED.clear()
+
+
 def _pack_paper(skeleton: Skeleton, grid: Grid):
     """Quads and pieces of `skeleton` in `grid`'s frame, on the host and the device."""
     from types import SimpleNamespace
@@ -298,7 +303,8 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     (x1 - x0, ny, nz) float32 ndarray, mm
         ``(nx, ny, nz)`` without `x_range`.
     """
-    packed = _packed(skeleton, grid, _pack_paper)
+    # a slab of a tiled run reuses what the previous slab packed; a whole grid packs once
+    packed = _packed(skeleton, grid, _pack_paper) if x_range is not None else _pack_paper(skeleton, grid)
     quads, lo, hi = packed.quads, packed.piece_lo, packed.piece_hi
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
     plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3,

@@ -360,6 +360,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         field.close()
         patient_file.close()
         raise
+    finally:
+        from .lattice import release_packed
+
+        release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
                       pieces, slabs)
 
