@@ -435,6 +435,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "info": _info}
     # a kill (SIGTERM) ends the run as Ctrl-C does, so the writers remove their temporary files
+    from . import progress
+
+    progress.INTERRUPTED = False
     previous = _on_terminate(_interrupt)
     try:
         with warnings.catch_warnings():
@@ -454,17 +457,25 @@ def main(argv=None) -> int:
 
 
 def _interrupt(signum, frame):
+    from . import progress
+
+    # remembered, since a finalizer that happens to be running would swallow the exception
+    progress.INTERRUPTED = True
     raise KeyboardInterrupt
 
 
 def _on_terminate(handler):
-    """Set the SIGTERM handler (main thread only; elsewhere nothing changes); return the previous one."""
+    """Set the SIGTERM and SIGINT handlers (main thread only; elsewhere nothing changes); return
+    the previous ones."""
     import signal
     import threading
 
     if handler is None or threading.current_thread() is not threading.main_thread():
         return None
-    return signal.signal(signal.SIGTERM, handler)
+    term, intr = handler if isinstance(handler, tuple) else (handler, handler)
+    # a handler not set from Python reads as None and cannot be set back: leave it
+    return tuple(None if h is None else signal.signal(sig, h)
+                 for sig, h in ((signal.SIGTERM, term), (signal.SIGINT, intr)))
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -6,6 +6,17 @@ import time
 from contextlib import contextmanager
 
 
+#: set by the command line's SIGINT/SIGTERM handler: a KeyboardInterrupt raised while the
+#: interpreter runs a finalizer (``__del__``) is swallowed, so every stage boundary raises it again
+INTERRUPTED = False
+
+
+def check_interrupted() -> None:
+    """Raise KeyboardInterrupt if the run was asked to stop (see :data:`INTERRUPTED`)."""
+    if INTERRUPTED:
+        raise KeyboardInterrupt
+
+
 class Progress:
     """Reports stages as they run and keeps their wall-clock times.
 
@@ -24,9 +35,11 @@ class Progress:
     def stage(self, name: str, detail: str = ""):
         if self.enabled:
             print(f"  {name}{' (' + detail + ')' if detail else ''} ...", file=sys.stderr, flush=True)
+        check_interrupted()
         t0 = time.perf_counter()
         yield
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+        check_interrupted()
 
     def bar(self, label: str):
         """A callback ``(done, total)`` for tiled work; draws a bar with an ETA on a terminal."""
