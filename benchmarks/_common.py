@@ -9,9 +9,13 @@ import textwrap
 
 
 #: code for a benchmark run (a format string's field): samples the resident memory every
-#: 20 ms and keeps each pipeline stage's peak in ``peaks`` (MiB); needs ``psutil``,
-#: ``threading``, ``time``, ``contextmanager`` and ``implicit_scaffold.progress`` imported
+#: 20 ms and keeps each pipeline stage's peak in ``peaks`` (MiB)
 STAGE_MEMORY = """
+import os, tempfile, threading, time
+from contextlib import contextmanager
+import psutil
+import implicit_scaffold
+from implicit_scaffold import opencl, progress
 proc = psutil.Process()
 state = {'peak': 0, 'stop': False}
 def sample():
@@ -32,6 +36,17 @@ def stage(self, name, detail=''):
     with measured(name), plain_stage(self, name, detail):
         yield
 progress.Progress.stage = stage
+"""
+
+#: ``STAGE_MEMORY``, then the 20 mm femoral shaft (jigsaw_femur.stl between z = 210 and 230 mm)
+#: loaded as ``patient`` (stage ``load``), and ``out``, an STL path in a new temporary folder;
+#: format with ``femur=`` (the file)
+FEMUR_SHAFT = STAGE_MEMORY.replace("{", "{{").replace("}", "}}") + """
+from implicit_scaffold.patient_io import load_patient
+opencl.context()
+with measured('load'):
+    patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
+out = os.path.join(tempfile.mkdtemp(), 'femur_shaft.stl')
 """
 
 

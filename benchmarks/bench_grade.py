@@ -19,25 +19,13 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
+from _common import FEMUR_SHAFT, median_runs, table  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
-RUN = """
-import os, tempfile, threading, time
-from contextlib import contextmanager
+RUN = FEMUR_SHAFT + """
 import numpy as np
-import psutil
-import implicit_scaffold
-from implicit_scaffold import opencl, progress
-from implicit_scaffold.patient_io import load_patient
 from implicit_scaffold.seeds import seed_count
-
-{stage_memory}
-opencl.context()
-with measured('load'):
-    patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
-out = os.path.join(tempfile.mkdtemp(), 'femur_shaft.stl')
 options = {options!r}
 t0 = time.perf_counter()
 r = implicit_scaffold.generate(patient=patient, porosity=0.7, voxel={voxel}, output=out, verbose=True, **options)
@@ -81,7 +69,7 @@ def main(argv=None) -> int:
     runs = {}
     for name, options in (("uniform", {"pore_size": 0.6}),
                           ("graded", {"grade": args.grade, "relax": args.relax})):
-        code = RUN.format(femur=str(femur), voxel=args.voxel, options=options, stage_memory=STAGE_MEMORY)
+        code = RUN.format(femur=str(femur), voxel=args.voxel, options=options)
         runs[name], _ = median_runs(code, args.runs, warmup=args.warmup)
     u, g = runs["uniform"], runs["graded"]
     names = list(dict.fromkeys(list(g["stages"]) + list(u["stages"])))

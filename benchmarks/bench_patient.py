@@ -16,24 +16,12 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
+from _common import FEMUR_SHAFT, median_runs, table  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FIGURE = Path(__file__).resolve().parent / "figures" / "femur_shaft.png"
 
-RUN = """
-import os, tempfile, threading, time
-from contextlib import contextmanager
-import psutil
-import implicit_scaffold
-from implicit_scaffold import opencl, progress
-from implicit_scaffold.patient_io import load_patient
-
-{stage_memory}
-opencl.context()
-with measured('load'):
-    patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
-out = os.path.join(tempfile.mkdtemp(), 'femur_shaft.stl')
+RUN = FEMUR_SHAFT + """
 t0 = time.perf_counter()
 r = implicit_scaffold.generate(patient=patient, pore_size=0.6, porosity=0.7, voxel={voxel}, output=out,
                                verbose=True)
@@ -73,8 +61,7 @@ def main(argv=None) -> int:
     if not femur.is_file():
         print(f"needs {femur} (the shared data folder); nothing measured", file=sys.stderr)
         return 1
-    code = RUN.format(femur=str(femur), voxel=args.voxel, figure="" if args.no_figure else str(FIGURE),
-                      stage_memory=STAGE_MEMORY)
+    code = RUN.format(femur=str(femur), voxel=args.voxel, figure="" if args.no_figure else str(FIGURE))
     med, _ = median_runs(code, args.runs, warmup=args.warmup)
     stages = med["stages"]
     rows = [[name, f"{stages[name]:.2f}", f"{med['peak_mb'].get(name, float('nan')):.0f}"] for name in stages]
