@@ -602,6 +602,14 @@ def _jit():
                 slot = (slot + np.uint64(1)) & mask
         return False
 
+    @nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
+    def edge_at(faces, plane, f, c):  # pragma: no cover - compiled
+        # edge c of face f, u -> v, and the grid plane (1 or 2) both its ends lie on, else 0
+        u = faces[f, c]
+        v = faces[f, (c + 1) % 3]
+        p = plane[u]
+        return u, v, p if p > 0 and p == plane[v] else 0
+
     @nb.njit(cache=True, boundscheck=False, nogil=True)
     def edge_check(faces, nverts, plane):  # pragma: no cover - compiled
         # Closed and consistently wound: each directed edge u->v (corner c to corner c + 1
@@ -615,10 +623,8 @@ def _jit():
         aside = np.zeros(3, np.int64)
         for f in range(nf):
             for c in range(3):
-                u = faces[f, c]
-                v = faces[f, (c + 1) % 3]
-                p = plane[u]
-                if p > 0 and p == plane[v]:
+                u, v, p = edge_at(faces, plane, f, c)
+                if p:
                     aside[p] += 1
                 else:
                     start[u + 1] += 1
@@ -631,10 +637,8 @@ def _jit():
         aside[:] = 0
         for f in range(nf):
             for c in range(3):
-                u = faces[f, c]
-                v = faces[f, (c + 1) % 3]
-                p = plane[u]
-                if p > 0 and p == plane[v]:
+                u, v, p = edge_at(faces, plane, f, c)
+                if p:
                     rows = first if p == 1 else last
                     rows[aside[p], 0] = u
                     rows[aside[p], 1] = v
