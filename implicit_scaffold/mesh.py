@@ -1087,7 +1087,8 @@ def write_field(field, path) -> Path:
 
     Parameters
     ----------
-    field : ndarray, mm
+    field : ndarray, mm, or a field on disk (``.grid`` and ``.read(x0, x1)``, e.g. a
+        :class:`~implicit_scaffold.tiles.FieldFile`)
     path : str or os.PathLike
         Must end in ``.npy``.
 
@@ -1102,18 +1103,22 @@ def write_field(field, path) -> Path:
     """
     final = Path(path)
     _check_format(final, (".npy",))
-    field = np.asarray(field)
-    header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")),
-              "fortran_order": False, "shape": tuple(field.shape)}
+    if hasattr(field, "read"):  # a field on disk (tiles.FieldFile): read plane range by plane range
+        shape, planes = tuple(field.grid.shape), field.read
+    else:
+        field = np.asarray(field)
+        shape = tuple(field.shape)
+        planes = lambda i0, i1: field[i0:i1]  # noqa: E731
+    header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")), "fortran_order": False, "shape": shape}
     with atomic_path(final) as tmp, open(tmp, "wb") as fh:
         np.lib.format.write_array_header_1_0(fh, header)
-        if field.ndim == 0:
+        if not shape:
             fh.write(field.astype("<f4").tobytes())
         else:
-            per = int(np.prod(field.shape[1:], dtype=np.int64)) or 1
+            per = int(np.prod(shape[1:], dtype=np.int64)) or 1
             step = max(1, _SLAB_VOXELS // per)
-            for i0 in range(0, field.shape[0], step):
-                fh.write(np.ascontiguousarray(field[i0:i0 + step], dtype="<f4").tobytes())
+            for i0 in range(0, shape[0], step):
+                fh.write(np.ascontiguousarray(planes(i0, min(i0 + step, shape[0])), dtype="<f4").tobytes())
     return final
 
 

@@ -570,6 +570,11 @@ class _RunPlan:
         self.run_bytes, self.max_memory, self.tiled = run_bytes, max_memory, tiled
         self.params, self.patient, self.out_path, self.slices = params, patient, out_path, slices
 
+    @property
+    def forced_voxels(self) -> int | None:
+        """The voxels per slab asked for by ``tiled=<int>``, else None."""
+        return None if isinstance(self.tiled, bool) or not self.tiled else int(self.tiled)
+
     def plan(self, grid: Grid, halo: int = 0) -> int | None:
         """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits."""
         from .tiled import check_disk, process_memory, slab_voxels
@@ -592,7 +597,8 @@ class _RunPlan:
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         from .tiled import SLAB_BYTES_PER_VOXEL
 
-        voxels = slab_voxels(self.max_memory, held)
+        voxels = slab_voxels(self.max_memory, held)  # raises when the cells leave no room
+        voxels = self.forced_voxels or voxels
         thinnest = (1 + 2 * halo) * grid.shape[1] * grid.shape[2] * SLAB_BYTES_PER_VOXEL
         if thinnest + held > self.max_memory and self.tiled in (None, True):
             raise ScaffoldError(
@@ -600,8 +606,6 @@ class _RunPlan:
                 f"its thinnest slab needs about {(thinnest + held) / 2**30:.1f} GiB but only "
                 f"{self.max_memory / 2**30:.1f} GiB is allowed (--max-memory); use a larger --voxel "
                 f"(e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g} mm)")
-        if self.tiled is not True and self.tiled:
-            voxels = int(self.tiled)
         plan_slabs(grid.shape, max_voxels=voxels, halo=halo)
         check_disk(grid)
         return voxels
@@ -610,7 +614,7 @@ class _RunPlan:
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
                     wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
-    from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold, write_npy_slabs
+    from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold
 
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
@@ -647,8 +651,10 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "mesh_workers": summary.get("workers", 1),
             })
         elif ext == ".npy":
+            from .mesh import write_field
+
             with prog.stage("write"):
-                write_npy_slabs(tf.field, out_path, max_voxels=slab_voxels)
+                write_field(tf.field, out_path)
         if run.slices is not None:
             report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
         report["warnings"] = _check_built(report, params)
@@ -688,9 +694,8 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -
     # marching cubes holds more per voxel than the field passes did, the more the denser the
     # surface (and two slabs may be in flight)
     per_voxel = mesh_slab_bytes_per_voxel(field)
-    slab_voxels = min(slab_voxels, max(1, int((run.max_memory - process_memory()) // per_voxel)))
-    if run.tiled is not True and run.tiled:
-        slab_voxels = int(run.tiled)
+    slab_voxels = run.forced_voxels or min(slab_voxels,
+                                           max(1, int((run.max_memory - process_memory()) // per_voxel)))
     ext = output_format(out_path)
     if ext in (".stl", ".ply"):
         return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))

@@ -413,16 +413,3 @@ def sample_slabs(source, grid: Grid, points) -> np.ndarray:
         out[pick] = ndimage.map_coordinates(source.read(int(x), x1), local.T, order=1, mode="nearest")
     return out
 
-
-def write_npy_slabs(source, path, *, max_voxels: int) -> None:
-    """Write a field on disk as float32 ``.npy``, slab by slab, atomically (the bytes of ``np.save``)."""
-    from .mesh import atomic_path
-
-    grid = source.grid
-    header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")), "fortran_order": False,
-              "shape": tuple(grid.shape)}
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.lib.format.write_array_header_1_0(fh, header)
-        for slab in plan_slabs(grid.shape, max_voxels=max_voxels, halo=0):
-            fh.write(np.ascontiguousarray(source.read(slab.x0, slab.x1), dtype="<f4").tobytes())
-
