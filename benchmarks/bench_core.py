@@ -1,6 +1,7 @@
-"""Issue 2 benchmarks: B1 "paper cube", the paper's Fig. 9, B3 "peer" (PoreSpy's voronoi_edges).
+"""Issue 2 benchmarks: B1 "paper cube", the paper's Fig. 9, B3 "peer" (PoreSpy's voronoi_edges);
+issue 11: B1's lattice kernel on every OpenCL device that works on this machine ("devices").
 
-    python benchmarks/bench_core.py [--runs 3] [--only b1,fig9,b3]
+    python benchmarks/bench_core.py [--runs 3] [--only devices,b1,fig9,b3]
 
 Each figure is the median of --runs runs after a warm-up, each run in a fresh process
 (so its peak memory is its own). 2-core machines are noisy: read the medians.
@@ -103,6 +104,56 @@ _out = {{'time_s': t, 'porosity': r.report['porosity_voxel'], 'grid': 'x'.join(m
 """
 
 
+DEVICES = """
+import time
+import numpy as np
+from implicit_scaffold import opencl
+from implicit_scaffold.cells import voronoi_cells
+from implicit_scaffold.grid import Grid
+from implicit_scaffold.lattice import lattice_sdf, lattice_sdf_reference
+from implicit_scaffold.skeleton import scaled_skeleton
+# B1's seeds, skeleton, grid and the pipeline's cut-off for them
+rng = np.random.default_rng(0)
+cells = voronoi_cells(rng.uniform(0, 10, (500, 3)), [0, 0, 0], [10, 10, 10])
+sk = scaled_skeleton(cells, 0.75, 0.75)
+grid = Grid.covering([0, 0, 0], [10, 10, 10], 0.04)
+idx = np.stack([np.random.default_rng(1).integers(0, n, 2000) for n in grid.shape], 1)
+ref = lattice_sdf_reference(sk, grid.indices_to_points(idx), cutoff=0.2)
+_out = {}
+fields = []
+for i, dev in enumerate(opencl.working_devices()):
+    with opencl.using(dev):
+        t = time.perf_counter()
+        f = lattice_sdf(sk, grid, cutoff=0.2)
+        first = time.perf_counter() - t
+        times = []
+        for _ in range(3):
+            t = time.perf_counter()
+            lattice_sdf(sk, grid, cutoff=0.2)
+            times.append(time.perf_counter() - t)
+    fields.append(f)
+    _out[f'd{i}_mvox'] = grid.size / float(np.median(times)) / 1e6
+    _out[f'd{i}_first_s'] = first
+    _out[f'd{i}_err'] = float(np.abs(f[tuple(idx.T)] - ref).max())
+    _out[f'd{i}_vs_first_device'] = float(np.abs(f - fields[0]).max())
+    _out[f'd{i}_label'] = dev.label
+_out['grid'] = 'x'.join(map(str, grid.shape))
+_out['chosen'] = opencl.chosen().label
+"""
+
+
+def devices(runs):
+    med, _ = median_runs(DEVICES, runs)
+    n = sum(1 for k in med if k.endswith("_label"))
+    print(f"\nB1's paper lattice kernel (500 seeds, 10 mm, voxel 0.04 mm, grid {med['grid']}) on every working "
+          f"OpenCL device; steady rate = median of 3 calls, then the median over {runs} runs after a warm-up")
+    rows = [[med[f"d{i}_label"], f"{med[f'd{i}_mvox']:.1f}", f"{med[f'd{i}_first_s']:.2f}",
+             f"{med[f'd{i}_err']:.1e}", f"{med[f'd{i}_vs_first_device']:.1e}"] for i in range(n)]
+    print(table(rows, ["device", "Mvoxel/s", "first call s", "max |kernel - oracle| mm",
+                       "max |field - first device's| mm"]))
+    print(f"chosen by default on this machine: {med['chosen']}")
+
+
 def b1(runs):
     med, _ = median_runs(B1, runs)
     print(f"\nB1 paper cube: 10 mm cube, 500 seeds, Sf = Sv = 0.75, P = 0.8, voxel 0.04 mm "
@@ -164,7 +215,7 @@ def b3(runs):
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--only", default="b1,fig9,b3")
+    ap.add_argument("--only", default="devices,b1,fig9,b3")
     args = ap.parse_args()
     from implicit_scaffold import opencl
 
@@ -172,7 +223,7 @@ def main():
     print(f"load average at start (1, 5, 15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
           f"on {os.cpu_count()} CPUs")
     for name in args.only.split(","):
-        {"b1": b1, "fig9": fig9, "b3": b3}[name.strip()](args.runs)
+        {"devices": devices, "b1": b1, "fig9": fig9, "b3": b3}[name.strip()](args.runs)
 
 
 if __name__ == "__main__":

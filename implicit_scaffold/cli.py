@@ -6,6 +6,7 @@ with code 2; nothing is written then.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 import warnings
@@ -424,8 +425,31 @@ def _info(args) -> int:
 
     print(f"implicit_scaffold {__version__}")
     print(f"numpy {numpy.__version__}, pyopencl {pyopencl.VERSION_TEXT}")
+    checks = opencl.device_checks()
+    pip_runtimes = ", ".join(f"{k} ({v})" for k, v in opencl.pip_runtime_libraries().items())
+    print(f"OpenCL runtimes from PyPI: {pip_runtimes or 'none'}; "
+          f"OCL_ICD_VENDORS={os.environ.get('OCL_ICD_VENDORS', '(unset)')}")
+    print("OpenCL devices (each probed once per machine: every kernel built and checked against NumPy):")
+    for c in checks:
+        if c.ok:
+            verdict = (f"kernels OK, built in {c.build_seconds:.2f} s, lattice {c.mvoxels_per_second:.1f} Mvoxel/s, "
+                       f"max error {c.max_error_mm:.1e} mm")
+        else:
+            verdict = f"skipped: {c.reason}"
+        print(f"  [{c.position[0]}:{max(c.position[1], 0)}] {c.label}: {verdict}")
+    pick = opencl.chosen()
+    how = f"named by {opencl.DEVICE_ENV}" if os.environ.get(opencl.DEVICE_ENV) else "the fastest that works"
+    print(f"chosen: {pick.label} ({how})")
+    t0 = time.perf_counter()
+    from .lattice import BLOCK
+
+    for source in opencl.kernel_names():
+        opencl.program(source, BLOCK=BLOCK)
+    print(f"kernel build now: {time.perf_counter() - t0:.2f} s "
+          f"({', '.join(f'{k} {v:.2f} s' for k, v in opencl.BUILD_SECONDS.items())})")
     print(f"OpenCL device: {opencl.device().describe()}")
     print(f"kernels: {opencl.kernels_dir()}")
+    print(f"device cache: {opencl.cache_dir()}")
     return 0
 
 

@@ -97,7 +97,7 @@ def _pack_pieces(skeleton: Skeleton, origin):
 
 
 #: the last primitives packed for a grid, kept for the next slab of the same run:
-#: (weak reference to the primitives' owner, grid, packed)
+#: (weak reference to the primitives' owner, grid, OpenCL context, packed)
 _PACKED: dict = {}
 
 
@@ -109,12 +109,14 @@ def _packed(owner, grid: Grid, pack):
     """
     import weakref
 
+    ctx, _ = opencl.context()
     hit = _PACKED.get(pack)
-    if hit is not None and hit[0]() is owner and hit[1] == grid:
-        return hit[2]
+    # the device buffers belong to one context: another device packs again
+    if hit is not None and hit[0]() is owner and hit[1] == grid and hit[2] is ctx:
+        return hit[3]
     _PACKED.pop(pack, None)
     packed = pack(owner, grid)
-    _PACKED[pack] = (weakref.ref(owner), grid, packed)
+    _PACKED[pack] = (weakref.ref(owner), grid, ctx, packed)
     return packed
 
 

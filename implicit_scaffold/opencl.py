@@ -1,21 +1,64 @@
 """The one place that finds the OpenCL device, creates the context and compiles kernels.
 
-The device is chosen explicitly, never by prompt: the first CPU device of the
-Portable Computing Language (PoCL) platform when there is one, else the first
-device of any platform. ``IMPLICIT_SCAFFOLD_DEVICE="platform substring:device index"``
-overrides the choice. Kernel sources live in the top-level ``kernels/`` folder,
+Runtimes
+--------
+pyopencl finds OpenCL runtimes through its ICD loader. Three can be there:
+
+- PoCL from pyopencl's wheel (``pocl-binary-distribution``): PoCL 3.0-rc2 on LLVM 14,
+  which cannot name CPUs newer than its tables; on such a host it fails to build, builds
+  programs with no kernels, or aborts the process at the first launch.
+- Intel's CPU runtime from PyPI (``intel-opencl-rt``, a dependency on x86-64 Linux): its
+  library lands in the environment's ``lib/``, where the loader does not look, so
+  :func:`register_runtimes` writes a vendors folder naming it (with the system's own
+  ``.icd`` files) and points ``OCL_ICD_VENDORS`` at it before pyopencl lists platforms.
+- Any system runtime (``/etc/OpenCL/vendors``), e.g. Debian's ``pocl-opencl-icd``.
+
+The device is chosen by proof, not by name: every device found is probed once per machine
+and set of runtimes, each in a child process of its own (a runtime that cannot compile
+for the host may abort rather than raise). The probe builds every kernel of ``kernels/``,
+runs the lattice, struts and triangle kernels on a small grid against their NumPy
+references, and times the lattice kernel. The fastest device that passes is used; one
+that fails is skipped with one line saying why. The verdicts are kept in the user's
+cache folder (:func:`cache_dir`), keyed by the runtimes, the devices, the host CPU and
+the kernel sources, so later runs start at once.
+
+``IMPLICIT_SCAFFOLD_DEVICE="TEXT[:N]"`` picks the N-th device (default 0) whose platform
+name, platform version or device name contains TEXT (case-insensitive), e.g. ``intel``,
+``pocl 3.1`` or ``portable:0``. Kernel sources live in the top-level ``kernels/`` folder,
 which the build installs as the package ``implicit_scaffold.kernels``.
 """
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import os
-from dataclasses import dataclass
+import platform as _host
+import re
+import subprocess
+import sys
+import time
+import warnings
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 
-from .errors import OpenCLUnavailableError
+from .errors import OpenCLUnavailableError, ScaffoldWarning
+
+DEVICE_ENV = "IMPLICIT_SCAFFOLD_DEVICE"
+#: build options of every program. No -cl-fast-relaxed-math, no native_ functions: the
+#: runtimes must agree to 1e-5 mm (measured: the paper field bit for bit, the struts'
+#: smooth minimum to 3e-8 mm between Intel's runtime and PoCL 3.1)
+BUILD_OPTIONS = ()
+#: seconds a device's probe may take before it is skipped as hung
+PROBE_TIMEOUT = 300.0
+#: the probe's sanity bound against the NumPy references (the tests hold 1e-5 mm)
+PROBE_TOLERANCE = 1e-4
+
+
+class DeviceWarning(ScaffoldWarning):
+    """An OpenCL device was found but skipped: the message names it and says why."""
 
 
 def kernels_dir() -> Path:
@@ -36,6 +79,395 @@ def kernels_dir() -> Path:
         "reinstall with pip install -e .")
 
 
+def kernel_names() -> dict[str, list[str]]:
+    """Every program of ``kernels/`` (a file with ``__kernel`` functions) and its kernels' names."""
+    names = {}
+    for path in sorted(kernels_dir().glob("*.cl")):
+        found = re.findall(r"__kernel\s+void\s+(\w+)", path.read_text())
+        if found:
+            names[path.stem] = found
+    return names
+
+
+def cache_dir() -> Path:
+    """The user's cache folder for this tool (``$XDG_CACHE_HOME/implicit_scaffold``)."""
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "implicit_scaffold"
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, path)
+
+
+# ----------------------------------------------------------------------------- runtimes
+
+
+def pip_runtime_libraries() -> dict[str, Path]:
+    """OpenCL runtimes installed from PyPI whose library the ICD loader would not find.
+
+    Returns
+    -------
+    dict
+        ``{"intel-cpu": path of libintelocl.so}`` when ``intel-opencl-rt`` is installed.
+    """
+    from importlib import metadata
+
+    found = {}
+    try:
+        dist = metadata.distribution("intel-opencl-rt")
+    except metadata.PackageNotFoundError:
+        return found
+    for f in dist.files or ():
+        if f.name == "libintelocl.so":
+            path = Path(dist.locate_file(f)).resolve()
+            if path.is_file():
+                found["intel-cpu"] = path
+    return found
+
+
+def _vendor_files() -> dict[str, str]:
+    """The ``.icd`` files the loader reads today: ``OCL_ICD_VENDORS`` (a folder or one file)
+    or else the system folder. Name -> the library line."""
+    given = os.environ.get("OCL_ICD_VENDORS")
+    source = Path(given) if given else Path("/etc/OpenCL/vendors")
+    paths = [source] if source.is_file() else sorted(source.glob("*.icd")) if source.is_dir() else []
+    out = {}
+    for p in paths:
+        try:
+            out[p.name] = p.read_text().strip()
+        except OSError:
+            continue
+    return out
+
+
+def register_runtimes() -> str | None:
+    """Point the ICD loader at the runtimes installed from PyPI, keeping the ones it had.
+
+    Writes a vendors folder under :func:`cache_dir` (named by its content, written
+    atomically) and sets ``OCL_ICD_VENDORS`` to it. Must run before pyopencl first lists
+    platforms; does nothing when no PyPI runtime is installed or it is already registered.
+
+    Returns
+    -------
+    str or None
+        The folder now in ``OCL_ICD_VENDORS``, or None when nothing was changed.
+    """
+    libraries = pip_runtime_libraries()
+    if not libraries:
+        return None
+    files = _vendor_files()
+    listed = set(files.values())
+    for name, lib in libraries.items():
+        if str(lib) not in listed:
+            files[f"implicit-scaffold-{name}.icd"] = str(lib)
+    if set(files.values()) == listed:
+        return None
+    digest = hashlib.sha256(json.dumps(sorted(files.items())).encode()).hexdigest()[:16]
+    for base in (cache_dir(), Path(os.environ.get("TMPDIR", "/tmp")) / f"implicit_scaffold-{os.getuid()}"):
+        folder = base / f"icd-{digest}"
+        try:
+            for name, line in files.items():
+                target = folder / name
+                if not (target.is_file() and target.read_text().strip() == line):
+                    _write_atomic(target, line + "\n")
+        except OSError:
+            continue
+        os.environ["OCL_ICD_VENDORS"] = str(folder)
+        return str(folder)
+    return None
+
+
+def _install_hint() -> str:
+    machine, system = _host.machine().lower(), sys.platform
+    if system.startswith("linux") and machine in ("x86_64", "amd64"):
+        return ("pip install intel-opencl-rt intel-cmplr-lib-rt (Intel's CPU runtime, any x86-64 CPU), "
+                "or a system driver such as apt install pocl-opencl-icd")
+    if system.startswith("linux"):
+        return "install an OpenCL driver for this CPU, e.g. apt install pocl-opencl-icd"
+    if system == "darwin":
+        return "install PoCL (brew install pocl) or use a Mac whose OpenCL framework builds the kernels"
+    return "install an OpenCL driver for this machine (PoCL or the CPU vendor's runtime)"
+
+
+@functools.lru_cache(maxsize=None)
+def platforms() -> tuple:
+    """Every OpenCL platform the loader finds, after :func:`register_runtimes`."""
+    register_runtimes()
+    try:
+        import pyopencl as cl
+    except ImportError as exc:
+        raise OpenCLUnavailableError(f"pyopencl cannot be imported ({exc}); {_install_hint()}") from None
+    try:
+        return tuple(cl.get_platforms())
+    except cl.Error as exc:  # no ICD loader or no platform at all
+        raise OpenCLUnavailableError(f"no OpenCL platform found ({_one_line(exc)}); {_install_hint()}") from None
+
+
+# ----------------------------------------------------------------------------- choosing
+
+
+@dataclass(frozen=True)
+class DeviceCheck:
+    """One device found and what its probe proved.
+
+    Attributes
+    ----------
+    position : (int, int)
+        Platform and device index in the loader's order.
+    ok : bool
+        True when every kernel built and matched its NumPy reference.
+    reason : str
+        Why the device was skipped ("" when ok).
+    build_seconds : float or None
+        Time to build every program of ``kernels/`` in the probe.
+    mvoxels_per_second : float or None
+        The paper lattice kernel's rate on the probe's grid.
+    max_error_mm : float or None
+        The largest difference from the NumPy references.
+    """
+
+    position: tuple
+    platform: str
+    platform_version: str
+    device: str
+    driver_version: str
+    ok: bool
+    reason: str = ""
+    build_seconds: float | None = None
+    mvoxels_per_second: float | None = None
+    max_error_mm: float | None = None
+
+    @property
+    def label(self) -> str:
+        version = re.sub(r"\s+", " ", self.platform_version).split(" Linux")[0].strip()
+        return f"{self.platform} ({version}) / {self.device}"
+
+    def matches(self, text: str) -> bool:
+        hay = f"{self.platform} {self.platform_version} {self.device}".lower()
+        return text.lower() in re.sub(r"\s+", " ", hay)
+
+
+def _one_line(exc) -> str:
+    text = str(exc).strip()
+    lines = [ln.strip() for ln in text.splitlines() if ln.strip()]
+    # a build log's telling line is an "error:" line; else the first line
+    for ln in lines:
+        if "error" in ln.lower() and not ln.lower().startswith("build on"):
+            return ln[:200]
+    return (lines[0] if lines else type(exc).__name__)[:200]
+
+
+def check_devices(found, probe) -> list[DeviceCheck]:
+    """Probe every device of every platform.
+
+    Parameters
+    ----------
+    found : sequence of platform-like objects
+        Each with ``name``, ``version`` and ``get_devices()`` (pyopencl platforms, or fakes).
+    probe : callable
+        ``probe(platform_index, device_index) -> dict`` with keys ``ok``, ``reason``,
+        ``build_seconds``, ``mvoxels_per_second``, ``max_error_mm``; an exception it raises
+        marks the device as failed with that exception's line.
+
+    Returns
+    -------
+    list of DeviceCheck
+        One per device, and one (not ok) per platform that has no device.
+    """
+    checks = []
+    for pi, p in enumerate(found):
+        try:
+            devices = list(p.get_devices())
+        except Exception as exc:  # CL_DEVICE_NOT_FOUND and kin: the platform is unusable
+            devices, why = [], f"no devices ({_one_line(exc)})"
+        else:
+            why = "no devices"
+        if not devices:
+            checks.append(DeviceCheck((pi, -1), p.name, p.version, "(none)", "", False, why))
+            continue
+        for di, d in enumerate(devices):
+            try:
+                res = dict(probe(pi, di))
+            except Exception as exc:
+                res = {"ok": False, "reason": _one_line(exc)}
+            checks.append(DeviceCheck((pi, di), p.name, p.version, d.name, getattr(d, "driver_version", ""),
+                                      **{k: res.get(k) for k in ("ok", "build_seconds", "mvoxels_per_second",
+                                                                "max_error_mm")},
+                                      reason=res.get("reason") or ""))
+    return checks
+
+
+def choose(checks, wanted: str = "") -> DeviceCheck:
+    """The device to use: the one `wanted` names, else the fastest that passed its probe.
+
+    Raises
+    ------
+    OpenCLUnavailableError
+        `wanted` names no device, or names one that failed; or no device passed.
+    """
+    devices = [c for c in checks if c.position[1] >= 0]
+    if wanted:
+        m = re.fullmatch(r"(.*?)(?::(\d+))?", wanted.strip())
+        text, n = m.group(1), int(m.group(2) or 0)
+        hits = [c for c in devices if c.matches(text)]
+        if n >= len(hits):
+            raise OpenCLUnavailableError(
+                f"{DEVICE_ENV}={wanted!r} matches no OpenCL device; unset it or name one of: "
+                + "; ".join(c.label for c in devices))
+        c = hits[n]
+        if not c.ok:
+            working = [w.label for w in devices if w.ok]
+            raise OpenCLUnavailableError(
+                f"{DEVICE_ENV}={wanted!r} names {c.label}, which cannot run the kernels ({c.reason}); "
+                + (f"unset it or name one of: {'; '.join(working)}" if working else _install_hint()))
+        return c
+    ok = [c for c in devices if c.ok]
+    if not ok:
+        tried = "; ".join(f"{c.label}: {c.reason}" for c in checks) or "none found"
+        raise OpenCLUnavailableError(f"no OpenCL device can run the kernels ({tried}); {_install_hint()}")
+    return max(ok, key=lambda c: c.mvoxels_per_second or 0.0)
+
+
+def _cpu_identity() -> str:
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return _host.processor() or _host.machine()
+    keep = [ln for ln in text.splitlines()[:40]
+            if ln.split(":")[0].strip() in ("vendor_id", "cpu family", "model", "model name", "flags")]
+    return "\n".join(dict.fromkeys(keep))
+
+
+def _probe_key(found) -> str:
+    from . import __version__
+
+    h = hashlib.sha256()
+    h.update(f"{__version__}\n{sys.version}\n{_cpu_identity()}\n{BUILD_OPTIONS}\n".encode())
+    # the kernels and this probe: a change to either proves the devices again
+    for path in [*sorted(kernels_dir().glob("*.cl")), Path(__file__)]:
+        h.update(path.read_bytes())
+    for p in found:
+        h.update(f"{p.name}|{p.version}\n".encode())
+        try:
+            for d in p.get_devices():
+                h.update(f"  {d.name}|{d.driver_version}|{d.version}\n".encode())
+        except Exception:
+            h.update(b"  none\n")
+    return h.hexdigest()[:24]
+
+
+def _probe_in_child(platform_index: int, device_index: int) -> dict:
+    """Run :func:`probe_here` in a child process, so that an abort only loses that device."""
+    cmd = [sys.executable, "-m", "implicit_scaffold.opencl", str(platform_index), str(device_index)]
+    try:
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=PROBE_TIMEOUT,
+                             env={**os.environ, "PYTHONWARNINGS": "ignore"}, stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        return {"ok": False, "reason": f"the probe did not finish in {PROBE_TIMEOUT:.0f} s"}
+    for line in reversed(run.stdout.splitlines()):
+        if line.startswith("{"):
+            return json.loads(line)
+    lines = [ln for ln in run.stderr.splitlines() if ln.strip()]
+    telling = next((ln for ln in lines if "error" in ln.lower()), lines[-1] if lines else "")
+    how = f"signal {-run.returncode}" if run.returncode < 0 else f"exit code {run.returncode}"
+    return {"ok": False, "reason": f"the probe crashed ({how}): {telling.strip()[:160]}"}
+
+
+@functools.lru_cache(maxsize=None)
+def device_checks() -> tuple:
+    """Every device found, each with its probe's verdict (from the cache when it is current)."""
+    found = platforms()
+    path = cache_dir() / f"devices-{_probe_key(found)}.json"
+    try:
+        saved = json.loads(path.read_text())
+        return tuple(DeviceCheck(**{**c, "position": tuple(c["position"])}) for c in saved)
+    except (OSError, ValueError, TypeError, KeyError):
+        pass
+    checks = check_devices(found, _probe_in_child)
+    _PROBED_NOW.append(True)
+    try:
+        _write_atomic(path, json.dumps([asdict(c) for c in checks], indent=1))
+    except OSError:  # a read-only home: probe again next time
+        pass
+    return tuple(checks)
+
+
+def working_devices() -> list[DeviceCheck]:
+    """The devices that passed their probe, fastest first."""
+    ok = [c for c in device_checks() if c.ok]
+    return sorted(ok, key=lambda c: -(c.mvoxels_per_second or 0.0))
+
+
+#: set when this process ran the probes (not read from the cache)
+_PROBED_NOW: list = []
+
+
+def chosen() -> DeviceCheck:
+    """The device this process uses (``IMPLICIT_SCAFFOLD_DEVICE``, else the fastest that works).
+
+    The first run on a machine says, one line each, which devices it skipped and why; a
+    run that names its device, or finds none, says only that (the error lists every reason).
+    """
+    checks = device_checks()
+    wanted = os.environ.get(DEVICE_ENV, "")
+    pick = choose(checks, wanted)
+    if _PROBED_NOW and not wanted:
+        _PROBED_NOW.clear()
+        for c in checks:
+            if not c.ok and c.position[1] >= 0:
+                warnings.warn(f"OpenCL device {c.label} skipped: {c.reason}", DeviceWarning, stacklevel=2)
+    return pick
+
+
+# ----------------------------------------------------------------------------- the context
+
+#: the active device: {"check", "context", "queue"}
+_ACTIVE: dict = {}
+
+
+def _activate(position) -> dict:
+    import pyopencl as cl
+
+    pi, di = position
+    dev = platforms()[pi].get_devices()[di]
+    ctx = cl.Context([dev])
+    return {"position": tuple(position), "context": ctx, "queue": cl.CommandQueue(ctx)}
+
+
+def context():
+    """The process-wide ``(context, queue)`` pair of the chosen device."""
+    if not _ACTIVE:
+        _ACTIVE.update(_activate(chosen().position))
+    return _ACTIVE["context"], _ACTIVE["queue"]
+
+
+class using:
+    """Run the kernels on another working device inside a ``with`` block (benchmarks, tests).
+
+    Parameters
+    ----------
+    check : DeviceCheck
+        One of :func:`working_devices`.
+    """
+
+    def __init__(self, check: DeviceCheck):
+        self.check = check
+
+    def __enter__(self):
+        self.previous = dict(_ACTIVE)
+        _ACTIVE.clear()
+        _ACTIVE.update(_activate(self.check.position))
+        return self.check
+
+    def __exit__(self, *exc):
+        _ACTIVE.clear()
+        _ACTIVE.update(self.previous)
+        return False
+
+
 @dataclass(frozen=True)
 class Device:
     """What the chosen device is and what it supports."""
@@ -52,51 +484,8 @@ class Device:
                 f"{self.global_memory / 2**30:.1f} GiB)")
 
 
-def _choose_device():
-    import pyopencl as cl
-
-    try:
-        platforms = cl.get_platforms()
-    except cl.Error as exc:  # no ICD loader or no platform at all
-        raise OpenCLUnavailableError(
-            f"no OpenCL platform found ({exc}); install the CPU driver with "
-            "pip install pocl-binary-distribution") from None
-    wanted = os.environ.get("IMPLICIT_SCAFFOLD_DEVICE", "")
-    if wanted:
-        pname, _, index = wanted.partition(":")
-        for p in platforms:
-            if pname.lower() in p.name.lower():
-                devices = p.get_devices()
-                i = int(index or 0)
-                if i < len(devices):
-                    return devices[i]
-        raise OpenCLUnavailableError(
-            f"IMPLICIT_SCAFFOLD_DEVICE={wanted!r} matches no OpenCL device; "
-            f"unset it or name one of: {', '.join(p.name for p in platforms)}")
-    ordered = sorted(platforms, key=lambda p: 0 if "portable" in p.name.lower() else 1)
-    for p in ordered:
-        try:
-            devices = p.get_devices()
-        except cl.Error:
-            continue
-        if devices:
-            return devices[0]
-    raise OpenCLUnavailableError(
-        "no OpenCL device found; install the CPU driver with pip install pocl-binary-distribution")
-
-
-@functools.lru_cache(maxsize=None)
-def context():
-    """The process-wide ``(context, queue)`` pair."""
-    import pyopencl as cl
-
-    dev = _choose_device()
-    ctx = cl.Context([dev])
-    return ctx, cl.CommandQueue(ctx)
-
-
 def device() -> Device:
-    """The chosen device's description."""
+    """The active device's description."""
     ctx, _ = context()
     d = ctx.devices[0]
     return Device(platform=d.platform.name, name=d.name, version=d.version,
@@ -105,29 +494,46 @@ def device() -> Device:
                   global_memory=int(d.global_mem_size))
 
 
+#: seconds spent building programs in this process
+BUILD_SECONDS: dict = {}
+
+
 @functools.lru_cache(maxsize=None)
+def _program(ctx, name: str, defines: tuple):
+    import pyopencl as cl
+
+    src_dir = kernels_dir()
+    source = (src_dir / f"{name}.cl").read_text()
+    options = [f"-I{src_dir}", *BUILD_OPTIONS] + [f"-D{k}={v}" for k, v in defines]
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        # a build log with only remarks is not a failure; a failed build raises
+        warnings.simplefilter("ignore", cl.CompilerWarning)
+        prg = cl.Program(ctx, source).build(options=options)
+    BUILD_SECONDS[name] = time.perf_counter() - t0
+    return prg
+
+
 def program(name: str, **defines):
-    """Compile ``kernels/<name>.cl`` once per set of ``-D`` defines and keep it.
+    """Compile ``kernels/<name>.cl`` once per device and set of ``-D`` defines and keep it.
 
     ``#include "common.cl"`` works through ``-I`` to the kernels folder.
     """
-    import pyopencl as cl
-
     ctx, _ = context()
-    src_dir = kernels_dir()
-    source = (src_dir / f"{name}.cl").read_text()
-    options = [f"-I{src_dir}", "-cl-fast-relaxed-math" if defines.pop("fast", False) else ""]
-    options += [f"-D{k}={v}" for k, v in sorted(defines.items())]
-    # PoCL keeps compiled binaries in its own cache between runs.
-    return cl.Program(ctx, source).build(options=[o for o in options if o])
+    return _program(ctx, name, tuple(sorted(defines.items())))
 
 
 @functools.lru_cache(maxsize=None)
-def kernel(source: str, name: str, **defines):
-    """The kernel `name` of ``kernels/<source>.cl``, built and retrieved once."""
+def _kernel(ctx, source: str, name: str, defines: tuple):
     import pyopencl as cl
 
-    return cl.Kernel(program(source, **defines), name)
+    return cl.Kernel(_program(ctx, source, defines), name)
+
+
+def kernel(source: str, name: str, **defines):
+    """The kernel `name` of ``kernels/<source>.cl``, built and retrieved once per device."""
+    ctx, _ = context()
+    return _kernel(ctx, source, name, tuple(sorted(defines.items())))
 
 
 def to_device(array, dtype=np.float32):
@@ -139,3 +545,82 @@ def to_device(array, dtype=np.float32):
     if a.size == 0:
         a = np.zeros(1, dtype=dtype)
     return cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
+
+
+# ----------------------------------------------------------------------------- the probe
+
+
+def probe_here(position) -> dict:
+    """Prove one device in this process: build every kernel, check each field against its
+    NumPy reference on a small grid, and time the paper lattice kernel.
+
+    Returns
+    -------
+    dict
+        ``ok``, ``reason``, ``build_seconds``, ``mvoxels_per_second``, ``max_error_mm``.
+    """
+    from .cells import voronoi_cells
+    from .grid import Grid
+    from .lattice import lattice_sdf, lattice_sdf_reference, struts_field, struts_field_reference
+    from .patient_mesh import triangle_distance, triangle_distance_reference
+    from .skeleton import scaled_skeleton, voronoi_edges
+
+    _ACTIVE.clear()
+    _ACTIVE.update(_activate(position))
+    ctx, _ = context()
+    t0 = time.perf_counter()
+    from .lattice import BLOCK
+
+    for source, names in kernel_names().items():
+        prg = _program(ctx, source, (("BLOCK", BLOCK),))
+        built = {k.function_name for k in prg.all_kernels()}
+        missing = [n for n in names if n not in built]
+        if missing:
+            return {"ok": False, "reason": f"{source}.cl built without its kernels ({', '.join(missing)})"}
+    build = time.perf_counter() - t0
+
+    rng = np.random.default_rng(5)
+    hi = np.array([2.0, 1.8, 1.6])
+    cells = voronoi_cells(rng.uniform(0, 1, (24, 3)) * hi, [0, 0, 0], hi)
+    grid = Grid.covering(cells.lo, cells.hi, 0.05)
+    idx = np.stack([rng.integers(0, s, 400) for s in grid.shape], 1)
+    pts = grid.indices_to_points(idx)
+    sk = scaled_skeleton(cells, 0.75, 0.75)
+    errors = {}
+    got = lattice_sdf(sk, grid, cutoff=0.15)[tuple(idx.T)]
+    errors["lattice_paper"] = np.abs(got - lattice_sdf_reference(sk, pts, cutoff=0.15)).max()
+    edges = voronoi_edges(cells)
+    got = struts_field(edges, grid, cutoff=0.3, blend=0.05)[tuple(idx.T)]
+    errors["lattice_struts"] = np.abs(got - struts_field_reference(edges, pts, cutoff=0.3, blend=0.05)).max()
+    tris = rng.uniform(0, 1.6, (12, 3, 3))
+    got = triangle_distance(tris.reshape(-1, 3), np.arange(36).reshape(-1, 3), grid).reshape(grid.shape)
+    near = triangle_distance_reference(pts, tris) <= 2 * grid.spacing
+    errors["triangle_distance"] = (np.abs(got[tuple(idx.T)] - triangle_distance_reference(pts, tris))[near].max()
+                                   if near.any() else 0.0)
+    worst = max(errors, key=errors.get)
+    if not errors[worst] <= PROBE_TOLERANCE:  # NaN fails too
+        return {"ok": False, "reason": f"{worst} differs from its NumPy reference by {errors[worst]:.3g} mm",
+                "build_seconds": build}
+
+    # B1's cube and seeds (benchmarks/bench_core.py) at 0.05 mm: small grids hide the
+    # launch costs that differ most between runtimes
+    cells = voronoi_cells(rng.uniform(0, 10, (500, 3)), [0, 0, 0], [10, 10, 10])
+    sk = scaled_skeleton(cells, 0.75, 0.75)
+    grid = Grid.covering(cells.lo, cells.hi, 0.05)
+    lattice_sdf(sk, grid, cutoff=0.2)
+    times = []
+    for _ in range(3):
+        t = time.perf_counter()
+        lattice_sdf(sk, grid, cutoff=0.2)
+        times.append(time.perf_counter() - t)
+    # the best of three: other load on the machine only ever slows a run down
+    return {"ok": True, "reason": "", "build_seconds": build,
+            "mvoxels_per_second": grid.size / min(times) / 1e6,
+            "max_error_mm": float(max(errors.values()))}
+
+
+if __name__ == "__main__":  # the child of _probe_in_child
+    # the package's own module, so that the kernels it runs use the device it activates
+    from implicit_scaffold import opencl as _module
+
+    print(json.dumps(_module.probe_here((int(sys.argv[1]), int(sys.argv[2])))), flush=True)

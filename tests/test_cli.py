@@ -99,9 +99,16 @@ def test_argparse_errors_exit_2(capsys):
 
 
 def test_info(capsys):
+    from implicit_scaffold import opencl
+
     assert main(["info"]) == 0
     out = capsys.readouterr().out
-    assert "OpenCL device:" in out and "kernels:" in out
+    assert "OpenCL device:" in out and "kernels:" in out and "kernel build now:" in out
+    # every device found, with its verdict, and which one was chosen
+    for c in opencl.device_checks():
+        line = next(ln for ln in out.splitlines() if c.label in ln and ln.startswith("  ["))
+        assert ("kernels OK" in line) == c.ok
+    assert f"chosen: {opencl.chosen().label}" in out
 
 
 def test_generate_with_report(tmp_path):

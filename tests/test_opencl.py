@@ -1,0 +1,213 @@
+"""The OpenCL device: chosen by proof (fake platform lists), the PyPI runtimes' vendors folder,
+and every device that works on this machine against the NumPy references."""
+from __future__ import annotations
+
+import os
+import subprocess
+
+import numpy as np
+import pytest
+
+from implicit_scaffold import opencl
+from implicit_scaffold.errors import OpenCLUnavailableError
+
+# float32 coordinates of a few mm relative to the grid origin carry ~1e-7 mm of rounding
+TOL = 1e-5
+
+
+class FakeDevice:
+    def __init__(self, name):
+        self.name = name
+        self.driver_version = "1.0"
+
+
+class FakePlatform:
+    def __init__(self, name, version, devices):
+        self.name, self.version, self._devices = name, version, devices
+
+    def get_devices(self):
+        if isinstance(self._devices, Exception):
+            raise self._devices
+        return self._devices
+
+
+BUILD_FAILURE = ("clBuildProgram failed: BUILD_PROGRAM_FAILURE - clBuildProgram failed: BUILD_PROGRAM_FAILURE\n\n"
+                 "Build on <pyopencl.Device 'pthread-AMD EPYC' on 'Portable Computing Language'>:\n\n"
+                 "error: unknown target CPU 'generic'\n(options: -I/k)")
+
+
+def _fake_platforms():
+    return [FakePlatform("Portable Computing Language", "OpenCL 3.0 PoCL 3.0-rc2  Linux, LLVM 14.0.6",
+                         [FakeDevice("pthread-AMD EPYC")]),
+            FakePlatform("Empty Platform", "OpenCL 1.2", []),
+            FakePlatform("Gone Platform", "OpenCL 2.0", RuntimeError("clGetDeviceIDs failed: DEVICE_NOT_FOUND")),
+            FakePlatform("Intel(R) OpenCL", "OpenCL 3.1 LINUX", [FakeDevice("AMD EPYC")])]
+
+
+def _probe(rates):
+    calls = []
+
+    def probe(pi, di):
+        calls.append((pi, di))
+        if rates.get(pi) is None:
+            raise RuntimeError(BUILD_FAILURE)
+        return {"ok": True, "reason": "", "build_seconds": 0.1, "mvoxels_per_second": rates[pi],
+                "max_error_mm": 1e-7}
+
+    return probe, calls
+
+
+def test_a_device_that_fails_to_build_and_platforms_without_devices_are_skipped():
+    probe, calls = _probe({3: 20.0})
+    checks = opencl.check_devices(_fake_platforms(), probe)
+    assert [c.ok for c in checks] == [False, False, False, True]
+    # the build log's error line, not its first line
+    assert checks[0].reason == "error: unknown target CPU 'generic'"
+    assert checks[1].reason == "no devices" and "DEVICE_NOT_FOUND" in checks[2].reason
+    # only platforms that have devices are probed
+    assert calls == [(0, 0), (3, 0)]
+    pick = opencl.choose(checks)
+    assert pick.platform == "Intel(R) OpenCL" and pick.position == (3, 0)
+
+
+def test_the_default_is_the_fastest_and_the_variable_picks_any_working_device():
+    platforms = _fake_platforms()
+    platforms[0]._devices = [FakeDevice("pthread-AMD EPYC"), FakeDevice("second")]
+    probe, _ = _probe({0: 12.0, 3: 30.0})
+    checks = opencl.check_devices(platforms, probe)
+    assert opencl.choose(checks).platform == "Intel(R) OpenCL"
+    probe, _ = _probe({0: 40.0, 3: 30.0})
+    checks = opencl.check_devices(platforms, probe)
+    assert opencl.choose(checks).position == (0, 0)
+    # by platform name, platform version or device name, and the N-th match
+    assert opencl.choose(checks, "intel").position == (3, 0)
+    assert opencl.choose(checks, "pocl 3.0-rc2").position == (0, 0)
+    assert opencl.choose(checks, "portable:1").device == "second"
+    assert opencl.choose(checks, "AMD EPYC:1").position == (3, 0)
+
+
+def test_a_named_device_that_failed_or_does_not_exist_is_refused_in_one_line():
+    probe, _ = _probe({3: 20.0})
+    checks = opencl.check_devices(_fake_platforms(), probe)
+    with pytest.raises(OpenCLUnavailableError) as e:
+        opencl.choose(checks, "portable")
+    msg = str(e.value)
+    assert "unknown target CPU" in msg and "Intel(R) OpenCL" in msg and "\n" not in msg
+    with pytest.raises(OpenCLUnavailableError, match="matches no OpenCL device"):
+        opencl.choose(checks, "nvidia")
+
+
+def test_no_working_device_says_what_to_install(monkeypatch):
+    probe, _ = _probe({})
+    checks = opencl.check_devices(_fake_platforms(), probe)
+    monkeypatch.setattr(opencl._host, "machine", lambda: "x86_64")
+    monkeypatch.setattr(opencl.sys, "platform", "linux")
+    with pytest.raises(OpenCLUnavailableError) as e:
+        opencl.choose(checks)
+    msg = str(e.value)
+    assert "pip install intel-opencl-rt" in msg and "unknown target CPU" in msg and "\n" not in msg
+
+
+def test_cli_with_no_working_device_exits_2_in_one_line(monkeypatch, tmp_path, capsys):
+    from implicit_scaffold.cli import main
+
+    probe, _ = _probe({})
+    checks = tuple(opencl.check_devices(_fake_platforms(), probe))
+    monkeypatch.setattr(opencl, "device_checks", lambda: checks)
+    monkeypatch.setattr(opencl, "_ACTIVE", {})
+    monkeypatch.delenv(opencl.DEVICE_ENV, raising=False)
+    monkeypatch.chdir(tmp_path)
+    assert main(["generate", "--seeds", "20", "--size", "3", "-o", "s.stl"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "no OpenCL device can run the kernels" in err and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_probe_that_aborts_only_loses_its_device(monkeypatch):
+    def aborted(cmd, **kwargs):
+        return subprocess.CompletedProcess(cmd, -6, "", "warning: something\nLLVM ERROR: Cannot select: fsqrt\n")
+
+    monkeypatch.setattr(opencl.subprocess, "run", aborted)
+    res = opencl._probe_in_child(0, 0)
+    assert res["ok"] is False and "signal 6" in res["reason"] and "LLVM ERROR: Cannot select" in res["reason"]
+
+
+def test_pip_runtimes_are_registered_beside_the_loaders_own(monkeypatch, tmp_path):
+    lib = tmp_path / "lib" / "libintelocl.so"
+    lib.parent.mkdir()
+    lib.write_bytes(b"")
+    vendors = tmp_path / "vendors"
+    vendors.mkdir()
+    (vendors / "pocl.icd").write_text("libpocl.so.2\n")
+    monkeypatch.setattr(opencl, "pip_runtime_libraries", lambda: {"intel-cpu": lib})
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    monkeypatch.setenv("OCL_ICD_VENDORS", str(vendors))
+    folder = opencl.register_runtimes()
+    assert folder is not None and os.environ["OCL_ICD_VENDORS"] == folder
+    assert folder.startswith(str(tmp_path / "cache"))
+    lines = sorted(p.read_text().strip() for p in (tmp_path / "cache").rglob("*.icd"))
+    assert lines == sorted(["libpocl.so.2", str(lib)])
+    # a second call (or a child process that inherits the variable) changes nothing
+    assert opencl.register_runtimes() is None and os.environ["OCL_ICD_VENDORS"] == folder
+
+
+def test_every_kernel_builds_on_the_chosen_device():
+    from implicit_scaffold.lattice import BLOCK
+
+    names = opencl.kernel_names()
+    assert {"lattice", "patient"} <= set(names)
+    assert {"lattice_paper", "lattice_struts", "bin_sort"} <= set(names["lattice"])
+    assert {"triangle_distance", "triangle_nearest"} <= set(names["patient"])
+    for source, wanted in names.items():
+        built = {k.function_name for k in opencl.program(source, BLOCK=BLOCK).all_kernels()}
+        assert set(wanted) <= built, source
+
+
+def test_every_working_device_matches_the_numpy_references(small_cells):
+    import implicit_scaffold
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.lattice import (lattice_sdf, lattice_sdf_reference, struts_field,
+                                           struts_field_reference)
+    from implicit_scaffold.patient_mesh import triangle_distance, triangle_distance_reference
+    from implicit_scaffold.skeleton import scaled_skeleton, voronoi_edges
+
+    devices = opencl.working_devices()
+    assert devices, "the chosen device is a working one"
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    edges = voronoi_edges(small_cells)
+    grid = Grid.covering(small_cells.lo, small_cells.hi, 0.05)
+    rng = np.random.default_rng(2)
+    idx = np.stack([rng.integers(0, s, 1500) for s in grid.shape], 1)
+    pts = grid.indices_to_points(idx)
+    paper_ref = lattice_sdf_reference(sk, pts, cutoff=0.15)
+    struts_ref = struts_field_reference(edges, pts, cutoff=0.3, blend=0.05)
+    # the smooth minimum sums the struts nearer than the cut-off, so the field steps where a
+    # strut lies at the cut-off: float32 and float64 may see it on either side there
+    from implicit_scaffold.lattice import _segment_dist
+
+    d = _segment_dist(pts[:, None], edges[None, :, 0], edges[None, :, 1])
+    smooth = ~(np.abs(d - 0.3) < 1e-4).any(axis=1)
+    assert smooth.mean() > 0.95
+    tris = rng.uniform(0, 2, (15, 3, 3))
+    tri_ref = triangle_distance_reference(pts, tris)
+    near = tri_ref <= 2 * grid.spacing
+    assert near.sum() > 50
+    fields, porosity = [], []
+    for dev in devices:
+        with opencl.using(dev):
+            paper = lattice_sdf(sk, grid, cutoff=0.15)
+            struts = struts_field(edges, grid, cutoff=0.3, blend=0.05)
+            tri = triangle_distance(tris.reshape(-1, 3), np.arange(45).reshape(-1, 3), grid).reshape(grid.shape)
+            assert np.abs(paper[tuple(idx.T)] - paper_ref).max() < TOL, dev.label
+            assert np.abs(struts[tuple(idx.T)] - struts_ref)[smooth].max() < TOL, dev.label
+            assert np.abs(tri[tuple(idx.T)][near] - tri_ref[near]).max() < TOL, dev.label
+            runs = [implicit_scaffold.generate(seeds=40, size=3.0, voxel=0.06, mesh=False, morphometry=False)
+                    for _ in range(2)]
+            # one device, the same inputs and seed: the same bytes
+            assert runs[0].field.tobytes() == runs[1].field.tobytes(), dev.label
+            fields.append((paper, struts, runs[0].field))
+            porosity.append(runs[0].report["porosity_voxel"])
+    for other, p in zip(fields[1:], porosity[1:]):
+        for a, b in zip(fields[0], other):
+            assert np.abs(a - b).max() < TOL
+        assert abs(p - porosity[0]) <= 1e-4
