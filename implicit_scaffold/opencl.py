@@ -623,4 +623,8 @@ if __name__ == "__main__":  # the child of _probe_in_child
     # the package's own module, so that the kernels it runs use the device it activates
     from implicit_scaffold import opencl as _module
 
-    print(json.dumps(_module.probe_here((int(sys.argv[1]), int(sys.argv[2])))), flush=True)
+    try:
+        verdict = _module.probe_here((int(sys.argv[1]), int(sys.argv[2])))
+    except Exception as exc:  # a failed build or launch: its telling line is the reason
+        verdict = {"ok": False, "reason": _module._one_line(exc)}
+    print(json.dumps(verdict), flush=True)
