@@ -6,7 +6,10 @@ import statistics
 import subprocess
 import sys
 import textwrap
+from pathlib import Path
 
+#: the shared real-bone data folder beside the repository (../shared/data)
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 #: code for a benchmark run (a format string's field): samples the resident memory every
 #: 20 ms and keeps each pipeline stage's peak in ``peaks`` (MiB)

@@ -91,6 +91,23 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write a visual report: picture, section, histograms, measures")
     a.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
+    c = sub.add_parser("check", help="print certificate: will this scaffold print, drain and let bone in?",
+                       description="Check a scaffold (mesh, .npy field, or binary volume) against a printer "
+                                   "profile: thinnest solid, narrowest throat, drainage, cell infiltration, "
+                                   "sealed voids, floating solid, overhangs, and the same as built.")
+    c.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off), a .npy signed distance written by "
+                                "generate (its .json beside it gives the voxel), or a binary volume")
+    c.add_argument("--printer", required=True, metavar="NAME",
+                   help=", ".join(_printer_names()) + ", or custom:min_strut=MM,min_throat=MM,...")
+    c.add_argument("--voxel", type=float, default=None,
+                   help="voxel size in mm: a mesh is voxelised at it (needed for a mesh)")
+    c.add_argument("--spacing", type=_spacing, default=None,
+                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
+    c.add_argument("-o", "--output", metavar="JSON", default=None, help="write the certificate as JSON")
+    c.add_argument("--require-printable", action="store_true",
+                   help="exit with code 3 (after writing the certificate) when it fails")
+    c.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
     sub.add_parser("info", help="versions and the OpenCL device")
     return parser
 
@@ -155,6 +172,13 @@ def _add_build_options(g) -> None:
     gg.add_argument("--weighted", action="store_true",
                     help="power (Laguerre) cells weighted by the local target pore size: cells next to a "
                          "change of pore size keep their own size")
+    cg = g.add_argument_group("print certificate")
+    cg.add_argument("--printer", default=None, metavar="NAME",
+                    help="certify what was built for a printer: " + ", ".join(_printer_names())
+                         + ", or custom:min_strut=MM,min_throat=MM,layer=MM,overhang=DEG,drain=MM,deviation=MM,"
+                           "axis=+z; the certificate goes in the JSON under print_check")
+    cg.add_argument("--require-printable", action="store_true",
+                    help="exit with code 3 (after writing everything) when the certificate fails")
     rg = g.add_argument_group("memory and cluster")
     rg.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory the run may hold, e.g. 4G or 800M (default: 80%% of the free memory); a grid "
@@ -162,6 +186,12 @@ def _add_build_options(g) -> None:
     rg.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the slabs on a dask.distributed scheduler (tcp://host:8786); same bytes out")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+
+def _printer_names() -> list[str]:
+    from .printability import profiles
+
+    return list(profiles())
 
 
 def _check_report(path) -> None:
@@ -208,11 +238,66 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     if args.scheduler is not None:
         tiling["tiled"] = True  # the slabs are what the cluster runs
     return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
-                    slices=slices, **tiling,
+                    slices=slices, printer=args.printer, **tiling,
                     shape=args.shape, size=args.size, seeds_in=args.seeds_in, skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
                     remove_fragments=not args.keep_fragments, **graded)
+
+
+def _certificate_lines(cert: dict) -> list[str]:
+    """The certificate's summary: one line per check, its figure and its verdict."""
+    v = cert["verdict"]
+    p = cert["printer"]
+
+    def share(x):
+        return "n/a" if x is None else f"{100 * x:.1f} %"
+
+    return [
+        f"  print check ({p['name']}): {v['overall'].upper()}",
+        f"    thinnest solid: min {cert['thinnest_mm']['min']:.3f} mm, 1st percentile {cert['thinnest_mm']['p1']:.3f} mm, "
+        f"{share(cert['below_min_strut_share'])} of the solid below {p['min_strut_mm']:g} mm: {v['thinnest']}",
+        f"    throat: {cert['throat_mm']:.3f} mm (min {p['min_throat_mm']:g} mm): {v['throat']}; void reached by the "
+        f"{p['drain_mm']:g} mm drain {share(cert['void_reached_by_drain_share'])}: {v['drain']}; by 100 um cells "
+        f"{share(cert['void_reached_by_100um_share'])}: {v['cell_infiltration']}",
+        f"    sealed voids {cert['sealed_voids']['count']} ({cert['sealed_voids']['volume_mm3']:.4g} mm3): "
+        f"{v['sealed_voids']}; floating solid {cert['floating_solid']['count']} "
+        f"({cert['floating_solid']['volume_mm3']:.4g} mm3): {v['floating_solid']}",
+        f"    overhangs below {p['overhang_deg']:g} deg along {cert['build_axis']}: {share(cert['overhang_share'])}: "
+        f"{v['overhang']} (best axis {cert['best_build_axis']}: "
+        f"{share(cert['overhang_share_by_axis'][cert['best_build_axis']])})",
+        f"    as built (+{cert['as_built']['deviation_mm']:g} mm): porosity {cert['as_built']['porosity']:.4f}, "
+        f"throat {cert['as_built']['throat_mm']:.3f} mm: {v['as_built']}",
+    ]
+
+
+def _check(args) -> int:
+    from .printability import certificate, printer_profile, read_scaffold
+
+    t0 = time.perf_counter()
+    profile = printer_profile(args.printer)
+    if args.output is not None:
+        from .mesh import check_writable
+
+        check_writable(args.output, formats=(".json",))
+    scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing)
+    cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
+                       origin=scaffold.origin)
+    cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
+                 "timings_s": {"check": round(time.perf_counter() - t0, 4)}})
+    if args.output is not None:
+        from .mesh import write_json
+
+        write_json(cert, args.output)
+    if not args.quiet:
+        lines = [f"{cert['source']}: voxel {cert['voxel_mm']:.4g} mm, grid "
+                 f"{'x'.join(str(v) for v in cert['grid_shape'])}, region {scaffold.region_name}, "
+                 f"porosity {cert['porosity']:.4f}"] + _certificate_lines(cert)
+        if args.output:
+            lines.append(f"wrote {args.output}")
+        lines.append(f"  time {time.perf_counter() - t0:.1f} s")
+        print("\n".join(lines))
+    return 3 if args.require_printable and cert["verdict"]["overall"] == "fail" else 0
 
 
 def _generate(args) -> int:
@@ -244,11 +329,19 @@ def _generate(args) -> int:
         lines += _metric_lines(r)
         if r.get("grade"):
             lines.append(_grade_line(r["grade"]))
+        if isinstance(r.get("print_check"), dict):
+            lines += _certificate_lines(r["print_check"])
         lines.append(_memory_line(r))
         lines.append("  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings_s"].items())
                      + f"; total {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
-    return 0
+    return _printable_exit(args, result.report)
+
+
+def _printable_exit(args, report: dict) -> int:
+    """3 when --require-printable and the certificate failed (everything is written by then), else 0."""
+    cert = report.get("print_check")
+    return 3 if args.require_printable and isinstance(cert, dict) and cert["verdict"]["overall"] == "fail" else 0
 
 
 def _metric_lines(r: dict) -> list[str]:
@@ -368,10 +461,11 @@ def _slice(args) -> int:
             f"  porosity: target {'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f')}, "
             f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, "
             f"voxels {solid:.4g} mm3",
+            *(_certificate_lines(r["print_check"]) if isinstance(r.get("print_check"), dict) else []),
             _memory_line(r),
             f"  time: {time.perf_counter() - t0:.1f} s",
         ]))
-    return 0
+    return _printable_exit(args, result.report)
 
 
 def _grade_line(g: dict) -> str:
@@ -457,7 +551,8 @@ def main(argv=None) -> int:
     """Entry point; returns the exit code (0, or 2 for bad input)."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "info": _info}
+    commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "check": _check,
+                "info": _info}
     # a kill (SIGTERM) ends the run as Ctrl-C does, so the writers remove their temporary files
     from . import progress
 

@@ -198,7 +198,7 @@ def _report_stats(values) -> dict:
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
              morphometry: bool = True, max_memory=None, tiled: bool | None = None, scheduler=None,
-             slices: dict | None = None, ct=None, **options) -> Result:
+             slices: dict | None = None, ct=None, printer=None, **options) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
 
     Parameters
@@ -231,6 +231,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         the stack's geometry lands in ``result.report["slices"]``.
     ct : CTImage or str or Path, optional
         The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
+    printer : str or PrinterProfile, optional
+        Certify what was built for this printer (:mod:`.printability`): the certificate
+        lands in ``report["print_check"]``.
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
         remove_fragments, grade, calibration, relax, weighted (see :class:`Params`).
@@ -247,6 +250,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .skeleton import scaled_skeleton, voronoi_edges
 
     params = validate(**options)
+    if printer is not None and not hasattr(printer, "min_strut_mm"):
+        from .printability import printer_profile
+
+        printer = printer_profile(printer)
     out_path = Path(output) if output is not None else None
     if out_path is not None:
         from .mesh import check_writable
@@ -346,6 +353,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if slab_voxels is not None and graded:
         raise ScaffoldError("a graded scaffold is built on the whole grid, which does not fit in --max-memory "
                             "here; use a larger --voxel or raise --max-memory")
+    if slab_voxels is not None and printer is not None:
+        raise ScaffoldError("the print certificate (--printer) is measured on the whole grid, which does not fit "
+                            "in --max-memory here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
                                window_p25, slab_voxels, scheduler, prog, mesh, out_path)
@@ -432,6 +442,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                             solid_volume_mm3=report.get("mesh_volume_mm3"))
         found.pop("porosity_voxel", None)  # the stage above counted it already
         report.update(found)
+    if printer is not None:
+        from .printability import certificate
+
+        with prog.stage("print check", printer.name):
+            report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
     if slices is not None:
         report["slices"] = _write_stack(s, grid, slices, prog)
     report["warnings"] = _check_built(report, params)

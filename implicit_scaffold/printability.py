@@ -1,0 +1,544 @@
+"""The print certificate: will this scaffold print, drain and let bone in, on this printer?
+
+Checks a scaffold's voxels against a printer profile (``printers.json``, or inline
+``custom:min_strut=0.3,...``), all lengths in mm:
+
+- thinnest solid: local thickness (maximal spheres) of the solid, its minimum and 1st
+  percentile, and the share of solid volume thinner than the profile's minimum strut;
+- throats: the largest sphere that can travel from outside the scaffold to each place
+  of the void through void only. With ``d`` the void's distance to the solid, that is
+  the best path's narrowest ``d``: a morphological reconstruction by dilation of ``d``
+  from the grid's faces (a max-min path). A sphere of radius ``r`` reaches the void
+  within ``r`` of a centre whose path allows ``r``;
+- sealed voids (void that no path joins to the outside) and floating solid (pieces
+  besides the largest);
+- overhangs: the share of downward-facing surface flatter than the profile's limit,
+  for the build direction and for the best of the six axis directions;
+- as built: porosity and throat again after the profile's typical deviation is applied
+  as an offset of the solid.
+
+Every check gives pass, warn or fail; the certificate's verdict is the worst of them.
+"""
+from __future__ import annotations
+
+import functools
+import json
+import math
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+
+from .errors import ScaffoldError
+
+#: cells need windows of about 100 um to grow in (the issue's figure; Karageorgiou & Kaplan 2005)
+INFILTRATION_MM = 0.1
+#: the throat reported: the narrowest on the way to the pores that hold this share of the pore
+#: volume (each pore weighted by its largest inscribed sphere)
+THROAT_PORE_SHARE = 0.9
+#: the overhang check's marching cubes runs on at most about this many voxels a side
+OVERHANG_CELLS = 160
+AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
+_KEYS = {"min_strut": "min_strut_mm", "min_throat": "min_throat_mm", "layer": "layer_mm",
+         "overhang": "overhang_deg", "drain": "drain_mm", "deviation": "deviation_mm", "axis": "build_axis"}
+
+
+@dataclass(frozen=True)
+class PrinterProfile:
+    """A printing process's limits (mm, degrees from the build plate)."""
+
+    name: str
+    process: str
+    min_strut_mm: float
+    min_throat_mm: float
+    layer_mm: float
+    overhang_deg: float
+    build_axis: str
+    drain_mm: float
+    deviation_mm: float
+    source: str
+
+
+def profiles() -> dict[str, PrinterProfile]:
+    """The shipped printer profiles, by name (``printers.json`` beside this module)."""
+    table = json.loads((Path(__file__).with_name("printers.json")).read_text())
+    return {name: PrinterProfile(name=name, **spec) for name, spec in table.items() if not name.startswith("_")}
+
+
+def _check_profile(p: PrinterProfile) -> PrinterProfile:
+    for key in ("min_strut_mm", "min_throat_mm", "layer_mm"):
+        v = getattr(p, key)
+        if not (math.isfinite(v) and v > 0):
+            raise ScaffoldError(f"printer profile {p.name}: {key[:-3]} must be a positive length in mm, got {v!r}")
+    for key in ("drain_mm",):
+        if not (math.isfinite(getattr(p, key)) and getattr(p, key) >= 0):
+            raise ScaffoldError(f"printer profile {p.name}: drain must be 0 or a positive length in mm")
+    if not 0 < p.overhang_deg < 90:
+        raise ScaffoldError(f"printer profile {p.name}: overhang must be an angle in (0, 90) degrees "
+                            f"from the build plate, got {p.overhang_deg!r}")
+    if p.build_axis not in AXES:
+        raise ScaffoldError(f"printer profile {p.name}: axis must be one of {', '.join(AXES)}, got {p.build_axis!r}")
+    return p
+
+
+def printer_profile(text: str) -> PrinterProfile:
+    """A profile by name, or ``custom:min_strut=0.3,min_throat=0.5,...`` (the rest as ``dlp-resin``).
+
+    Raises
+    ------
+    ScaffoldError
+        An unknown name or key, or a value out of range, in one line.
+    """
+    table = profiles()
+    text = str(text).strip()
+    if text.lower().startswith("custom:"):
+        base = replace(table["dlp-resin"], name="custom", process="custom", source="given on the command line")
+        changes = {}
+        for item in filter(None, text[7:].split(",")):
+            key, sep, value = item.partition("=")
+            key = key.strip().replace("-", "_")
+            if not sep or key not in _KEYS:
+                raise ScaffoldError(f"--printer custom: takes key=value pairs with keys {', '.join(_KEYS)}; "
+                                    f"got {item!r}")
+            if key == "axis":
+                changes[_KEYS[key]] = value.strip()
+                continue
+            try:
+                changes[_KEYS[key]] = float(value)
+            except ValueError:
+                raise ScaffoldError(f"--printer custom: {key} must be a number, got {value!r}") from None
+        return _check_profile(replace(base, **changes))
+    if text not in table:
+        raise ScaffoldError(f"unknown printer {text!r}; use one of {', '.join(table)} "
+                            "or custom:min_strut=MM,min_throat=MM,...")
+    return _check_profile(table[text])
+
+
+# ----------------------------------------------------------------------------- the measures
+
+
+@functools.lru_cache(maxsize=None)
+def _flood_kernel():
+    """The compiled max-min flood (numba), built on first use and cached on disk."""
+    import numba as nb
+
+    @nb.njit(cache=True, boundscheck=False)
+    def flood(d2, r2):  # pragma: no cover - compiled
+        # a bucket queue over the integer squared distances, highest first: a voxel's first
+        # value is its last (every later one comes through a narrower place), so each voxel
+        # is queued once, as in Dijkstra's algorithm
+        nx, ny, nz = d2.shape
+        flat_d = d2.ravel()
+        flat_r = r2.ravel()
+        vmax = 0
+        for v in flat_d:
+            vmax = max(vmax, v)
+        head = np.full(vmax + 1, -1, np.int64)
+        nxt = np.full(flat_d.size, -1, np.int64)
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    if i == 0 or j == 0 or k == 0 or i == nx - 1 or j == ny - 1 or k == nz - 1:
+                        q = (i * ny + j) * nz + k
+                        v = flat_d[q]
+                        if v > 0:
+                            flat_r[q] = v
+                            nxt[q] = head[v]
+                            head[v] = q
+        sy, sx = nz, ny * nz
+        for b in range(vmax, 0, -1):
+            while head[b] >= 0:
+                q = head[b]
+                head[b] = nxt[q]
+                k = q % nz
+                j = (q // nz) % ny
+                i = q // sx
+                for t in range(6):
+                    if t == 0:
+                        if i == 0:
+                            continue
+                        u = q - sx
+                    elif t == 1:
+                        if i == nx - 1:
+                            continue
+                        u = q + sx
+                    elif t == 2:
+                        if j == 0:
+                            continue
+                        u = q - sy
+                    elif t == 3:
+                        if j == ny - 1:
+                            continue
+                        u = q + sy
+                    elif t == 4:
+                        if k == 0:
+                            continue
+                        u = q - 1
+                    else:
+                        if k == nz - 1:
+                            continue
+                        u = q + 1
+                    if flat_r[u] == 0 and flat_d[u] > 0:
+                        v = min(b, flat_d[u])
+                        flat_r[u] = v
+                        nxt[u] = head[v]
+                        head[v] = u
+        return r2
+
+    return flood
+
+
+def throat_radius(solid, voxel: float):
+    """Squared void distance and the squared radius of the largest sphere that reaches each place.
+
+    Parameters
+    ----------
+    solid : (nx, ny, nz) bool ndarray
+        Beyond the array is free void (the outside of the scaffold).
+    voxel : float, mm
+
+    Returns
+    -------
+    d2 : (nx, ny, nz) int32 ndarray, voxels²
+        Squared distance from each void voxel to the nearest solid voxel centre (0 in the solid).
+    r2 : (nx, ny, nz) int32 ndarray, voxels²
+        The largest squared radius of a sphere whose centre can move from outside the
+        array to this voxel, face to face, through void voxels whose ``d2`` never falls
+        below it: the best path's narrowest ``d2``. 0 in the solid and in sealed voids.
+    """
+    from .morphometry import _squared_edt
+
+    # the outside counts as void: a sphere comes in from free space
+    d2 = np.ascontiguousarray(_squared_edt(~np.asarray(solid, bool)))
+    r2 = _flood_kernel()(d2, np.zeros_like(d2))
+    return d2, r2
+
+
+def reach_diameter(r2, voxel: float) -> np.ndarray:
+    """At each void voxel, the diameter (mm) of the largest sphere that reaches it from outside.
+
+    The spheres of :func:`throat_radius` (centre ``c``, squared radius ``r2[c]``) painted onto
+    the voxels they hold, largest first, as :func:`.morphometry.local_thickness` paints its
+    maximal spheres; 0 in the solid and in sealed voids.
+    """
+    from .morphometry import _jit, _maximal_sphere_tables, _threads
+
+    out = np.zeros(r2.shape, np.float32)
+    if not (r2 > 0).any():
+        return out
+    # to the voxels' boundaries, as the thicknesses and throats of the certificate
+    need, isq = _maximal_sphere_tables(int(r2.max()))
+    ridge, paint = _jit()
+    ci, cj, ck = np.nonzero(ridge(r2, need))
+    v = r2[ci, cj, ck].astype(np.int64)
+    order = np.argsort(-v, kind="stable")
+    nx, ny, nz = r2.shape
+    paint(nx, ny, nz, ci[order], cj[order], ck[order], v[order], isq, max(1, min(nx, 4 * _threads())), out,
+          2.0 * float(voxel))
+    out[out > 0] += np.float32(voxel)
+    return out
+
+
+def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """The throat of each pore (mm, a diameter) and the pore's weight.
+
+    A pore's centre is a local maximum of the void's distance (the centre of its largest
+    inscribed sphere); its throat is ``2 sqrt(r2) + 1`` voxels there (the largest sphere that
+    can travel to it from outside, to the voxels' boundaries); its weight is that inscribed sphere's volume (``d2^1.5``), so that
+    the crevices between struts, which are local maxima too, count for little.
+    """
+    from scipy import ndimage
+
+    centres = (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
+    return voxel * (2.0 * np.sqrt(r2[centres].astype(np.float64)) + 1.0), d2[centres].astype(np.float64) ** 1.5
+
+
+def weighted_quantile(values, weights, q: float) -> float:
+    """The `q` quantile of `values` with `weights` (the smallest value whose cumulative weight reaches q)."""
+    order = np.argsort(values, kind="stable")
+    cum = np.cumsum(np.asarray(weights, np.float64)[order])
+    return float(np.asarray(values)[order][min(len(cum) - 1, int(np.searchsorted(cum, q * cum[-1])))])
+
+
+def pieces(mask) -> tuple[int, np.ndarray]:
+    """6-connected pieces of `mask`: count and the voxel count of each."""
+    from scipy import ndimage
+
+    labels, n = ndimage.label(mask)
+    return int(n), np.bincount(labels.ravel())[1:]
+
+
+def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dict:
+    """Share of the downward-facing surface flatter than `limit_deg` for each of the six axis directions.
+
+    The surface is the field's level set, measured by the co-area formula: every voxel
+    within 1.5 voxels of it weighs ``δ(t)`` (``t = (f - level) / |∇f|``, its distance to the
+    surface; ``δ`` a smooth delta)
+    and faces the direction of ``∇f``. The grid's outer layer is left out: a part's faces on
+    the grid's faces rest on the plate or open onto free space, and are no overhang.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float ndarray
+        Negative in the solid (a signed distance, or a smoothed indicator).
+    grid : Grid
+    limit_deg : float
+        The flattest overhang the process builds without support, in degrees from the plate.
+
+    Returns
+    -------
+    dict
+        ``{"+z": share, ...}``; a surface whose outward normal points down at an angle ``a``
+        from straight down makes an angle ``a`` with the plate and needs support when ``a < limit``.
+    """
+    f = np.asarray(field, np.float32) - np.float32(level)
+    h = float(grid.spacing)
+    gx, gy, gz = np.gradient(f, h)
+    core = (slice(1, -1),) * 3
+    f, gx, gy, gz = f[core], gx[core], gy[core], gz[core]
+    norm = np.sqrt(gx * gx + gy * gy + gz * gz)
+    eps = 1.5 * h
+    with np.errstate(invalid="ignore", divide="ignore"):
+        t = np.where(norm > 0, f / norm, np.inf)
+    near = np.abs(t) < eps
+    # t is a distance (|∇t| = 1 at the surface), so a delta in t integrates to the area
+    w = (1.0 + np.cos(np.pi * t[near] / eps)) / (2.0 * eps)
+    n = np.stack([gx[near], gy[near], gz[near]], 1) / norm[near][:, None]
+    cos_limit = math.cos(math.radians(limit_deg))
+    out = {}
+    for name, axis in AXES.items():
+        down = -(n @ np.asarray(axis, float))  # cos of the angle between the normal and straight down
+        total = w[down > 1e-6].sum()
+        out[name] = float(w[down > cos_limit].sum() / total) if total > 0 else 0.0
+    return out
+
+
+class _Clock:
+    """Seconds spent in each part of the certificate."""
+
+    def __init__(self):
+        import time
+
+        self._now = time.perf_counter
+        self._t = self._now()
+        self.seconds = {}
+
+    def mark(self, name: str) -> None:
+        t = self._now()
+        self.seconds[name] = round(t - self._t, 4)
+        self._t = t
+
+
+def _verdict(value, warn, fail, *, higher_is_worse=True) -> str:
+    if value is None:
+        return "pass"
+    if higher_is_worse:
+        return "fail" if value > fail else "warn" if value > warn else "pass"
+    return "fail" if value < fail else "warn" if value < warn else "pass"
+
+
+def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, region=None, origin=(0.0, 0.0, 0.0)) -> dict:
+    """The print certificate of a scaffold's voxels for `profile`.
+
+    Parameters
+    ----------
+    solid : (nx, ny, nz) bool ndarray
+        The scaffold's solid; everything beyond the array is outside.
+    voxel : float, mm
+    profile : PrinterProfile
+    field : (nx, ny, nz) float ndarray, mm, optional
+        The scaffold's signed distance (negative in the solid), for the surface normals of the
+        overhang check and the as-built offset; by default a smoothed copy of `solid` and an
+        offset by whole voxels.
+    region : (nx, ny, nz) bool ndarray, optional
+        Where the scaffold is (the patient): the void counted for porosity and drainage.
+        By default the whole grid.
+    origin : 3 floats, mm
+
+    Returns
+    -------
+    dict
+        The keys of the issue: ``printer``, ``thinnest_mm``, ``below_min_strut_share``,
+        ``throat_mm`` (the narrowest throat on the way from outside to the pores that hold 90 % of
+        the pore volume), ``void_reached_by_drain_share``, ``void_reached_by_100um_share``,
+        ``sealed_voids``, ``floating_solid``, ``overhang_share``, ``best_build_axis``,
+        ``as_built``, ``verdict``, and what they were measured on.
+    """
+    from scipy import ndimage
+
+    from .grid import Grid
+    from .morphometry import _check_volume, local_thickness
+
+    solid, h, region = _check_volume(solid, voxel, region)
+    if not solid.any():
+        raise ScaffoldError("the scaffold holds no solid voxel; nothing to certify")
+    if region is None:
+        region = np.ones(solid.shape, bool)
+    n_region = int(np.count_nonzero(region))
+    void_in = region & ~solid
+    if not void_in.any():
+        raise ScaffoldError("the scaffold holds no void voxel; a solid block has no pores to certify")
+
+    # lengths on the voxels' boundaries: a digitised phase ends half a voxel past its last voxel
+    # centre on each side, where the maximal spheres (centred on voxel centres, reaching to the
+    # nearest voxel centre outside) stop short; so a rod or hole of diameter D reads D within a voxel
+    clock = _Clock()
+    thick = local_thickness(solid, h)[solid] + np.float32(h)
+    thinnest = {"min": float(thick.min()), "p1": float(np.percentile(thick, 1))}
+    below = float(np.mean(thick < profile.min_strut_mm))
+    del thick
+
+    clock.mark("thickness")
+    d2, r2 = throat_radius(solid, h)
+    throats, weights = pore_throats(d2, r2, void_in, h)
+    throat = weighted_quantile(throats, weights, 1 - THROAT_PORE_SHARE) if throats.size else 0.0
+    reach = reach_diameter(r2, h)[void_in]
+    drain = float(np.mean(reach >= profile.drain_mm)) if profile.drain_mm > 0 else None
+    cells = float(np.mean(reach >= INFILTRATION_MM))
+    del reach
+    clock.mark("throats")
+
+    sealed_n, sealed_sizes = pieces(void_in & (r2 == 0))
+    solid_n, solid_sizes = pieces(solid)
+    floating = np.sort(solid_sizes)[:-1] if solid_n > 1 else np.zeros(0, np.int64)
+
+    sdf = field
+    # the surface's normals, on at most ~OVERHANG_CELLS voxels a side: their distribution is
+    # what counts, and a coarser grid keeps this check's marching cubes cheap
+    f = max(1, math.ceil(max(solid.shape) / OVERHANG_CELLS))
+    if field is None:
+        # a smoothed indicator: normals of the voxel staircase would read as flat faces
+        field = ndimage.gaussian_filter(np.where(solid, -1.0, 1.0).astype(np.float32), max(1.0, 0.5 * f))
+    coarse = np.ascontiguousarray(np.asarray(field)[::f, ::f, ::f])
+    shares = overhang_shares(coarse, Grid(tuple(float(o) for o in origin), h * f, coarse.shape),
+                             profile.overhang_deg)
+    best_axis = min(shares, key=lambda k: (shares[k], k))
+    clock.mark("pieces and overhangs")
+
+    # as built: the process builds the solid thicker (or thinner) by its typical deviation
+    dev2 = (profile.deviation_mm / h) ** 2
+    if sdf is not None:
+        # a signed distance offsets by less than a voxel too
+        grown = np.asarray(sdf) < profile.deviation_mm
+    elif profile.deviation_mm >= 0:
+        grown = solid | ((d2 > 0) & (d2 <= dev2))
+    else:
+        from .morphometry import _squared_edt
+
+        grown = solid & ~(_squared_edt(solid) <= dev2)
+    del d2, r2
+    void_b = region & ~grown
+    as_built = {"deviation_mm": profile.deviation_mm, "porosity": float(np.count_nonzero(void_b)) / n_region,
+                "throat_mm": 0.0, "void_reached_by_drain_share": None}
+    if void_b.any():
+        d2b, r2b = throat_radius(grown, h)
+        tb, wb = pore_throats(d2b, r2b, void_b, h)
+        as_built["throat_mm"] = weighted_quantile(tb, wb, 1 - THROAT_PORE_SHARE) if tb.size else 0.0
+        reach = reach_diameter(r2b, h)[void_b]
+        if profile.drain_mm > 0:
+            as_built["void_reached_by_drain_share"] = float(np.mean(reach >= profile.drain_mm))
+
+    clock.mark("as built")
+    limit_iso = 1.0 - math.cos(math.radians(90.0 - profile.overhang_deg))
+    verdict = {
+        "thinnest": "fail" if below > 0.05 else "warn" if below > 0.01 or thinnest["p1"] < profile.min_strut_mm
+        else "pass",
+        "throat": "fail" if throat < profile.min_throat_mm - h else "warn" if throat < profile.min_throat_mm else "pass",
+        "drain": _verdict(drain, 0.99, 0.9, higher_is_worse=False),
+        "cell_infiltration": _verdict(cells, 0.99, 0.9, higher_is_worse=False),
+        "sealed_voids": "fail" if sealed_n else "pass",
+        "floating_solid": "fail" if len(floating) else "pass",
+        "overhang": _verdict(shares[profile.build_axis], 0.05, max(0.05, limit_iso)),
+        "as_built": _verdict(as_built["void_reached_by_drain_share"], 0.99, 0.9, higher_is_worse=False),
+    }
+    verdict["overall"] = ("fail" if "fail" in verdict.values() else "warn" if "warn" in verdict.values() else "pass")
+    v3 = h ** 3
+    return {
+        "printer": asdict(profile),
+        "voxel_mm": h,
+        "grid_shape": list(solid.shape),
+        "porosity": float(np.count_nonzero(void_in)) / n_region,
+        "thinnest_mm": thinnest,
+        "below_min_strut_share": below,
+        "throat_mm": throat,
+        "pore_throats_mm": {"pores": int(throats.size), "min": float(throats.min()) if throats.size else None,
+                            "median": weighted_quantile(throats, weights, 0.5) if throats.size else None},
+        "void_reached_by_drain_share": drain,
+        "void_reached_by_100um_share": cells,
+        "sealed_voids": {"count": sealed_n, "volume_mm3": float(sealed_sizes.sum()) * v3},
+        "floating_solid": {"count": int(len(floating)), "volume_mm3": float(floating.sum()) * v3},
+        "overhang_share": shares[profile.build_axis],
+        "overhang_share_by_axis": shares,
+        "build_axis": profile.build_axis,
+        "best_build_axis": best_axis,
+        "as_built": as_built,
+        "verdict": verdict,
+        "seconds": clock.seconds,
+    }
+
+
+@dataclass(frozen=True)
+class Scaffold:
+    """A scaffold read from a file for the certificate (lengths in mm)."""
+
+    solid: np.ndarray
+    voxel: float
+    origin: tuple
+    field: np.ndarray | None
+    region: np.ndarray | None
+    region_name: str
+
+
+def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
+    """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
+    written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
+    binary volume (solid = non-zero).
+
+    The region (the void that counts) is the mesh's bounding box, the volume, or for a field the
+    grid (the patient is not in a ``.npy``; its voxels outside the patient are void that joins the
+    outside, as they do on the printer).
+    """
+    from .morphometry import MESH_SUFFIXES, VOLUME_SUFFIXES, _read_mesh, _read_volume, _suffix, voxelize
+    from .errors import positive_mm
+    from .grid import Grid
+
+    path = Path(path)
+    if not path.exists():
+        raise ScaffoldError(f"{path} does not exist; check the path")
+    if voxel is not None:
+        voxel = positive_mm("voxel", voxel)
+    suffix = _suffix(path)
+    if suffix == ".npy":
+        field = np.load(path, mmap_mode="r")
+        if field.ndim != 3 or field.dtype.kind != "f":
+            raise ScaffoldError(f"{path.name} is not a 3-D signed distance (float array); give the .npy that "
+                                "generate wrote")
+        meta = path.with_suffix(".json")
+        origin = (0.0, 0.0, 0.0)
+        if meta.is_file():
+            report = json.loads(meta.read_text())
+            voxel = voxel or report.get("voxel_mm")
+            origin = tuple(report.get("grid_origin_mm", origin))
+        if voxel is None:
+            raise ScaffoldError(f"{path.name} carries no voxel size and no run report beside it; give --voxel")
+        field = np.asarray(field, np.float32)
+        return Scaffold(field < 0, float(voxel), origin, field, None, "the grid")
+    if path.is_dir() or suffix in VOLUME_SUFFIXES:
+        solid, step, _ = _read_volume(path, spacing, voxel)
+        return Scaffold(solid, step, (0.5 * step,) * 3, None, None, "the whole volume")
+    if suffix not in MESH_SUFFIXES:
+        raise ScaffoldError(f"cannot check {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
+                            f"volume ({' '.join(VOLUME_SUFFIXES)})")
+    if voxel is None:
+        raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
+    mesh = _read_mesh(path)
+    lo, hi = mesh.bounds
+    # its layer of outside all round: the scaffold's faces open onto free space
+    grid = Grid.covering(lo, hi, voxel)
+    solid = voxelize(mesh.vertices, mesh.faces, grid)
+    if not solid.any():
+        raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
+    pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
+    inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
+    region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+    return Scaffold(solid, float(voxel), tuple(grid.origin), None, region, "the mesh's bounding box")

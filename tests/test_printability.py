@@ -1,0 +1,196 @@
+"""The print certificate against synthetic volumes whose answers are known in closed form, and
+the throat flood against a brute-force sphere percolation."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from implicit_scaffold.errors import ScaffoldError
+from implicit_scaffold.grid import Grid
+from implicit_scaffold.printability import (certificate, overhang_shares, printer_profile, profiles,
+                                            throat_radius)
+
+H = 0.02
+
+
+def _axes(n):
+    x = (np.arange(n) + 0.5) * H
+    return np.meshgrid(x, x, x, indexing="ij")
+
+
+def _hollow_box(n=90, hole=None, wall=0.3):
+    """A closed box (walls `wall` mm) around a cavity; optionally a round hole of diameter `hole` in its top."""
+    X, Y, Z = _axes(n)
+    c = n * H / 2
+    outer = (np.abs(X - c) < c - 0.2) & (np.abs(Y - c) < c - 0.2) & (np.abs(Z - c) < c - 0.2)
+    cavity = (np.abs(X - c) < c - 0.2 - wall) & (np.abs(Y - c) < c - 0.2 - wall) & (np.abs(Z - c) < c - 0.2 - wall)
+    solid = outer & ~cavity
+    if hole is not None:
+        solid &= ~((np.hypot(X - c, Y - c) < hole / 2) & (Z > c))
+    return solid, outer, cavity
+
+
+def brute_force_throat(solid):
+    """For every radius, the void whose distance allows it, flooded from the grid's faces (6-connected)."""
+    from implicit_scaffold.morphometry import _squared_edt
+
+    d2 = _squared_edt(~solid)
+    out = np.zeros_like(d2)
+    six = ndimage.generate_binary_structure(3, 1)
+    for v in np.unique(d2[d2 > 0]):
+        labels, _ = ndimage.label(d2 >= v, structure=six)
+        faces = np.concatenate([labels[0].ravel(), labels[-1].ravel(), labels[:, 0].ravel(), labels[:, -1].ravel(),
+                                labels[:, :, 0].ravel(), labels[:, :, -1].ravel()])
+        out[np.isin(labels, np.unique(faces[faces > 0]))] = v
+    return d2, out
+
+
+@pytest.mark.parametrize("seed, threshold", [(0, 0.5), (1, 0.5), (2, 0.48)])
+def test_throat_flood_equals_brute_force_sphere_percolation(seed, threshold):
+    rng = np.random.default_rng(seed)
+    # a random lattice-like solid: smoothed noise, thresholded: narrow necks and, at 0.48, sealed pockets
+    solid = ndimage.gaussian_filter(rng.random((34, 30, 28)), 1.6) > threshold
+    d2, r2 = throat_radius(solid, H)
+    want_d2, want = brute_force_throat(solid)
+    assert np.array_equal(d2, want_d2)
+    assert np.array_equal(r2, want)
+    assert len(np.unique(r2)) > 8
+    assert (r2[~solid] == 0).any() == (threshold < 0.5)
+
+
+def test_rod_thickness_within_a_voxel():
+    # a rod bent into a ring, so that it has no ends (a cut end is thinner at its rim)
+    X, Y, Z = _axes(100)
+    radius = 0.235
+    rod = np.hypot(np.hypot(X - 1.0, Y - 1.0) - 0.7, Z - 1.0) < radius
+    cert = certificate(rod, H, printer_profile("dlp-resin"))
+    assert abs(cert["thinnest_mm"]["p1"] - 2 * radius) <= H
+    # the voxels of the digitised surface's bumps hold only smaller spheres: the minimum (one bump)
+    # reads less
+    assert cert["thinnest_mm"]["min"] <= cert["thinnest_mm"]["p1"]
+    # 0.47 mm passes DLP's 0.4 mm (but for a few surface bumps); a 0.5 mm minimum flags all of it
+    assert cert["below_min_strut_share"] < 0.001 and cert["verdict"]["thinnest"] == "pass"
+    thin = certificate(rod, H, printer_profile("custom:min_strut=0.5,min_throat=0.1"))
+    assert thin["below_min_strut_share"] == 1.0 and thin["verdict"]["thinnest"] == "fail"
+
+
+@pytest.mark.parametrize("hole", [0.3, 0.42])
+def test_throat_of_a_hole_within_a_voxel(hole):
+    solid, outer, _ = _hollow_box(hole=hole)
+    cert = certificate(solid, H, printer_profile("custom:min_strut=0.1,min_throat=0.2,drain=0.5"), region=outer)
+    # the cavity, nearly all of the box's void, is reached only through the hole
+    assert abs(cert["throat_mm"] - hole) <= H
+    assert cert["sealed_voids"]["count"] == 0
+    # a 0.5 mm drain cannot pass the hole; 100 um cells can
+    assert cert["void_reached_by_drain_share"] < 0.05 and cert["verdict"]["drain"] == "fail"
+    assert cert["void_reached_by_100um_share"] > 0.99
+
+
+def test_sealed_cavity_found_with_its_volume():
+    solid, outer, cavity = _hollow_box()
+    cert = certificate(solid, H, printer_profile("dlp-resin"), region=outer)
+    assert cert["sealed_voids"]["count"] == 1
+    assert cert["sealed_voids"]["volume_mm3"] == pytest.approx(np.count_nonzero(cavity) * H ** 3, rel=1e-9)
+    assert cert["verdict"]["sealed_voids"] == "fail" and cert["verdict"]["overall"] == "fail"
+
+
+def test_floating_ball_found_with_its_volume():
+    X, Y, Z = _axes(70)
+    block = Z < 0.3
+    ball = np.sqrt((X - 0.7) ** 2 + (Y - 0.7) ** 2 + (Z - 0.9) ** 2) < 0.2
+    cert = certificate(block | ball, H, printer_profile("dlp-resin"))
+    assert cert["floating_solid"]["count"] == 1
+    assert cert["floating_solid"]["volume_mm3"] == pytest.approx(np.count_nonzero(ball) * H ** 3, rel=1e-9)
+    assert cert["verdict"]["floating_solid"] == "fail"
+
+
+def test_overhang_share_of_a_ramp_within_one_percent():
+    # a solid above a bent ramp: its underside rises at 30 deg, then at 60 deg; limit 45 deg
+    h = 0.05
+    nx, ny, nz = 160, 60, 200
+    x, z = np.arange(nx) * h, np.arange(nz) * h
+    a = 4.0
+    floor = np.where(x < a, 0.5 + math.tan(math.radians(30)) * x,
+                     0.5 + math.tan(math.radians(30)) * a + math.tan(math.radians(60)) * (x - a))
+    field = np.broadcast_to((floor[:, None, None] - z[None, None, :]), (nx, ny, nz)).astype(np.float32)
+    shares = overhang_shares(field, Grid((0.0, 0.0, 0.0), h, (nx, ny, nz)), 45.0)
+    # the grid's outer layer is left out: the faces span x from h to (nx - 2) h
+    a30 = (a - h) / math.cos(math.radians(30))
+    a60 = ((nx - 2) * h - a) / math.cos(math.radians(60))
+    assert shares["+z"] == pytest.approx(a30 / (a30 + a60), abs=0.01)
+    # built the other way up, nothing faces down; sideways, the ramp's faces are walls or face up
+    assert shares["-z"] == 0.0 and shares["+y"] == 0.0
+    # a steeper limit than both faces: all of the underside is overhang
+    assert overhang_shares(field, Grid((0.0, 0.0, 0.0), h, (nx, ny, nz)), 70.0)["+z"] == pytest.approx(1.0, abs=1e-6)
+
+
+def test_profiles_have_sources_and_custom_ones_parse():
+    table = profiles()
+    assert {"dlp-resin", "sla-resin", "lpbf-ti64", "lpbf-cocr", "fdm-pcl"} <= set(table)
+    for p in table.values():
+        assert p.source and p.min_strut_mm > 0 and p.min_throat_mm > 0 and 0 < p.overhang_deg < 90
+    c = printer_profile("custom:min_strut=0.3,min_throat=0.6,overhang=40,axis=-x,deviation=-0.02")
+    assert (c.min_strut_mm, c.min_throat_mm, c.overhang_deg, c.build_axis, c.deviation_mm) == (0.3, 0.6, 40, "-x", -0.02)
+    for bad in ["nope", "custom:min_strut", "custom:colour=red", "custom:min_strut=x", "custom:overhang=95",
+                "custom:axis=up"]:
+        with pytest.raises(ScaffoldError):
+            printer_profile(bad)
+
+
+def test_as_built_offset_thickens_the_solid():
+    solid, outer, _ = _hollow_box(hole=0.42)
+    cert = certificate(solid, H, printer_profile("custom:min_strut=0.1,min_throat=0.2,deviation=0.04"), region=outer)
+    # 2 voxels thicker all round: the hole's throat shrinks by about twice that, the porosity falls
+    assert cert["as_built"]["porosity"] < cert["porosity"]
+    assert abs(cert["as_built"]["throat_mm"] - (0.42 - 2 * 0.04)) <= 2 * H
+
+
+def _run(args, tmp_path):
+    from implicit_scaffold.cli import main
+
+    import os
+
+    cwd = os.getcwd()
+    os.chdir(tmp_path)
+    try:
+        return main(args)
+    finally:
+        os.chdir(cwd)
+
+
+def test_check_command_and_generate_printer(tmp_path, capsys):
+    keys = {"printer", "thinnest_mm", "below_min_strut_share", "throat_mm", "void_reached_by_drain_share",
+            "void_reached_by_100um_share", "sealed_voids", "floating_solid", "overhang_share", "best_build_axis",
+            "as_built", "verdict"}
+    code = _run(["generate", "--seeds", "30", "--size", "3", "--voxel", "0.05", "--printer", "fdm-pcl",
+                 "-o", "s.stl", "-q"], tmp_path)
+    assert code == 0
+    report = json.loads((tmp_path / "s.json").read_text())
+    assert keys <= set(report["print_check"])
+    assert set(report["print_check"]["verdict"]) >= {"thinnest", "throat", "sealed_voids", "overhang", "overall"}
+    assert _run(["check", "s.stl", "--printer", "fdm-pcl", "--voxel", "0.05", "-o", "cert.json"], tmp_path) == 0
+    cert = json.loads((tmp_path / "cert.json").read_text())
+    assert keys <= set(cert)
+    # the STL's voxels and the run's agree on what was built
+    assert cert["porosity"] == pytest.approx(report["porosity_voxel"], abs=0.02)
+    out = capsys.readouterr().out
+    assert "print check (fdm-pcl)" in out
+    # a certificate that fails stops a pipeline with 3 when asked to, after writing it
+    strict = "custom:min_strut=5,min_throat=5"
+    assert _run(["check", "s.stl", "--printer", strict, "--voxel", "0.05", "--require-printable",
+                 "-o", "strict.json", "-q"], tmp_path) == 3
+    assert json.loads((tmp_path / "strict.json").read_text())["verdict"]["overall"] == "fail"
+
+
+def test_check_bad_input_one_line_exit_2(tmp_path, capsys):
+    np.save(tmp_path / "f.npy", np.zeros((4, 4, 4), np.float32))
+    for args in (["check", "missing.stl", "--printer", "dlp-resin", "--voxel", "0.1"],
+                 ["check", "f.npy", "--printer", "dlp-resin"],
+                 ["check", "f.npy", "--printer", "no-such-printer", "--voxel", "0.1"]):
+        assert _run(args, tmp_path) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err
