@@ -313,6 +313,27 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
     return out
 
 
+#: the labels of the certificate's section maps
+SECTION_VOID, SECTION_SOLID, SECTION_THIN, SECTION_UNDRAINED, SECTION_SEALED, SECTION_FLOATING = range(6)
+SECTION_LABELS = ("void", "solid", "solid thinner than the minimum strut", "void the drain does not reach",
+                  "sealed void", "floating solid")
+
+
+class Certificate(dict):
+    """The certificate's keys (a dict, as the JSON report holds it) and its section maps.
+
+    Attributes
+    ----------
+    sections : dict
+        ``{(axis, index): (n1, n2) uint8 array}``: a plane through the middle, each voxel
+        labelled by :data:`SECTION_LABELS` (a problem over what it lies in).
+    """
+
+    def __init__(self, keys: dict, sections: dict):
+        super().__init__(keys)
+        self.sections = sections
+
+
 class _Clock:
     """Seconds spent in each part of the certificate."""
 
@@ -383,7 +404,17 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     # centre on each side, where the maximal spheres (centred on voxel centres, reaching to the
     # nearest voxel centre outside) stop short; so a rod or hole of diameter D reads D within a voxel
     clock = _Clock()
-    thick = local_thickness(solid, h)[solid] + np.float32(h)
+    # sections through the middle, across (index 0) and along (index 1) the build axis: the
+    # report's maps of where each problem lies
+    build = "xyz".index(profile.build_axis[1])
+    planes = [(build, solid.shape[build] // 2), ((build + 1) % 3, solid.shape[(build + 1) % 3] // 2)]
+    maps = [np.where(np.take(solid, i, axis=a), SECTION_SOLID, SECTION_VOID).astype(np.uint8) for a, i in planes]
+
+    thick = local_thickness(solid, h)
+    thick[solid] += np.float32(h)
+    for m, (a, i) in zip(maps, planes):
+        m[(np.take(thick, i, axis=a) < profile.min_strut_mm) & (m == SECTION_SOLID)] = SECTION_THIN
+    thick = thick[solid]
     thinnest = {"min": float(thick.min()), "p1": float(np.percentile(thick, 1))}
     below = float(np.mean(thick < profile.min_strut_mm))
     del thick
@@ -392,15 +423,27 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     d2, r2 = throat_radius(solid, h)
     throats, weights = pore_throats(d2, r2, void_in, h)
     throat = weighted_quantile(throats, weights, 1 - THROAT_PORE_SHARE) if throats.size else 0.0
-    reach = reach_diameter(r2, h)[void_in]
+    reach = reach_diameter(r2, h)
+    if profile.drain_mm > 0:
+        for m, (a, i) in zip(maps, planes):
+            m[(np.take(reach, i, axis=a) < profile.drain_mm) & np.take(void_in, i, axis=a)] = SECTION_UNDRAINED
+    reach = reach[void_in]
     drain = float(np.mean(reach >= profile.drain_mm)) if profile.drain_mm > 0 else None
     cells = float(np.mean(reach >= INFILTRATION_MM))
     del reach
     clock.mark("throats")
 
-    sealed_n, sealed_sizes = pieces(void_in & (r2 == 0))
-    solid_n, solid_sizes = pieces(solid)
+    sealed = void_in & (r2 == 0)
+    sealed_n, sealed_sizes = pieces(sealed)
+    solid_labels, solid_n = ndimage.label(solid)
+    solid_sizes = np.bincount(solid_labels.ravel())[1:]
     floating = np.sort(solid_sizes)[:-1] if solid_n > 1 else np.zeros(0, np.int64)
+    for m, (a, i) in zip(maps, planes):
+        m[np.take(sealed, i, axis=a)] = SECTION_SEALED
+        if solid_n > 1:
+            lab = np.take(solid_labels, i, axis=a)
+            m[(lab > 0) & (lab != 1 + int(np.argmax(solid_sizes)))] = SECTION_FLOATING
+    del sealed, solid_labels
 
     sdf = field
     # the surface's normals, on at most ~OVERHANG_CELLS voxels a side: their distribution is
@@ -453,7 +496,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     }
     verdict["overall"] = ("fail" if "fail" in verdict.values() else "warn" if "warn" in verdict.values() else "pass")
     v3 = h ** 3
-    return {
+    return Certificate({
         "printer": asdict(profile),
         "voxel_mm": h,
         "grid_shape": list(solid.shape),
@@ -474,7 +517,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "as_built": as_built,
         "verdict": verdict,
         "seconds": clock.seconds,
-    }
+    }, sections={(a, i): m for m, (a, i) in zip(maps, planes)})
 
 
 @dataclass(frozen=True)

@@ -88,6 +88,57 @@ def section_image(field: np.ndarray, grid, *, axis: int = 2, index: int | None =
     return _png(fig)
 
 
+def certificate_section(section: np.ndarray, grid, axis: int, index: int, printer: str) -> bytes:
+    """A section map of the print certificate: each problem in its colour over solid and void."""
+    from matplotlib.colors import ListedColormap
+
+    from .printability import SECTION_LABELS
+
+    colours = ["#f4f4f4", "#8a8a8a", "#d62728", "#1f77b4", "#e377c2", "#ff7f0e"]
+    fig, ax = _figure(5.2, 4.4)
+    axes = [a for a in range(3) if a != axis]
+    lo, hi = grid.lo, grid.hi
+    ax.imshow(section.T, origin="lower", cmap=ListedColormap(colours), vmin=0, vmax=len(colours) - 1,
+              interpolation="nearest", extent=(lo[axes[0]], hi[axes[0]], lo[axes[1]], hi[axes[1]]))
+    names = "xyz"
+    present = sorted(set(np.unique(section).tolist()))
+    from matplotlib.patches import Patch
+
+    ax.legend(handles=[Patch(color=colours[k], label=SECTION_LABELS[k]) for k in present], fontsize=7,
+              loc="upper right", framealpha=0.9)
+    ax.set_title(f"{printer}: section {names[axis]} = {grid.origin[axis] + index * grid.spacing:.2f} mm")
+    ax.set_xlabel(f"{names[axes[0]]} (mm)")
+    ax.set_ylabel(f"{names[axes[1]]} (mm)")
+    return _png(fig)
+
+
+def certificate_rows(cert: dict) -> list[tuple[str, str, str]]:
+    """The certificate's checks for the page: what was measured, the profile's limit, the verdict."""
+    p, v = cert["printer"], cert["verdict"]
+
+    def share(x):
+        return "n/a" if x is None else f"{100 * x:.1f} %"
+
+    return [
+        ("thinnest solid (min, 1st percentile; share below the minimum)",
+         f"{cert['thinnest_mm']['min']:.3f}, {cert['thinnest_mm']['p1']:.3f} mm; "
+         f"{share(cert['below_min_strut_share'])}", f"≥ {p['min_strut_mm']:g} mm: {v['thinnest']}"),
+        ("narrowest throat to 90 % of the pore volume", f"{cert['throat_mm']:.3f} mm",
+         f"≥ {p['min_throat_mm']:g} mm: {v['throat']}"),
+        ("void the drain reaches", share(cert["void_reached_by_drain_share"]),
+         f"{p['drain_mm']:g} mm drain: {v['drain']}"),
+        ("void 100 µm cells reach", share(cert["void_reached_by_100um_share"]), v["cell_infiltration"]),
+        ("sealed voids", f"{cert['sealed_voids']['count']} ({cert['sealed_voids']['volume_mm3']:.4g} mm³)",
+         v["sealed_voids"]),
+        ("floating solid", f"{cert['floating_solid']['count']} ({cert['floating_solid']['volume_mm3']:.4g} mm³)",
+         v["floating_solid"]),
+        (f"overhangs flatter than {p['overhang_deg']:g}° along {cert['build_axis']} (best axis "
+         f"{cert['best_build_axis']})", share(cert["overhang_share"]), v["overhang"]),
+        (f"as built (+{p['deviation_mm']:g} mm): porosity, throat",
+         f"{cert['as_built']['porosity']:.4f}, {cert['as_built']['throat_mm']:.3f} mm", v["as_built"]),
+    ]
+
+
 def histogram(values, *, title: str, xlabel: str, marks: dict | None = None, bins=30) -> bytes:
     """A histogram as PNG bytes, with labelled vertical marks (e.g. the target)."""
     fig, ax = _figure()
@@ -247,6 +298,15 @@ def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Sc
         parts.append(f"<tr><td>{html.escape(q)}</td><td>{t}</td><td>{m}</td></tr>")
     parts.append("</table>")
     parts.append(f"<p style='font-size:90%;color:#555;max-width:60em'>{_HOW}</p>")
+    cert = report.get("print_check")
+    if isinstance(cert, dict):
+        p = cert["printer"]
+        parts.append(f"<h2>Print certificate: {html.escape(p['name'])} — {cert['verdict']['overall'].upper()}</h2>"
+                     f"<p>{html.escape(p['process'])}. Sources: {html.escape(p['source'])}.</p>"
+                     "<table><tr><th>check</th><th>measured</th><th>limit: verdict</th></tr>")
+        for q, m, t in certificate_rows(cert):
+            parts.append(f"<tr><td>{html.escape(q)}</td><td>{html.escape(m)}</td><td>{html.escape(t)}</td></tr>")
+        parts.append("</table>")
     parts.append("<h2>Pictures</h2>")
     for caption, png in images.items():
         b64 = base64.b64encode(png).decode("ascii")
@@ -274,6 +334,10 @@ def write_run_report(result, path) -> None:
         marks={"target": r.get("pore_size_target_mm"), "150 µm": 0.15, "600 µm": 0.6})
     images.update(_sphere_histograms(r, strut_mark=("paper's trabecular thickness",
                                                     r.get("trabecular_thickness_mm_mean"))))
+    cert = r.get("print_check")
+    for (axis, index), section in getattr(cert, "sections", {}).items():
+        images[f"print certificate: where the problems lie ({'xyz'[axis]} section)"] = certificate_section(
+            section, result.grid, axis, index, cert["printer"]["name"])
     grade = r.get("grade")
     if isinstance(grade, dict) and grade.get("profiles"):
         prof = grade["profiles"]

@@ -167,9 +167,11 @@ def test_check_command_and_generate_printer(tmp_path, capsys):
             "void_reached_by_100um_share", "sealed_voids", "floating_solid", "overhang_share", "best_build_axis",
             "as_built", "verdict"}
     code = _run(["generate", "--seeds", "30", "--size", "3", "--voxel", "0.05", "--printer", "fdm-pcl",
-                 "-o", "s.stl", "-q"], tmp_path)
+                 "-o", "s.stl", "--report", "r.html", "-q"], tmp_path)
     assert code == 0
     report = json.loads((tmp_path / "s.json").read_text())
+    page = (tmp_path / "r.html").read_text()
+    assert "Print certificate: fdm-pcl" in page and page.count("print certificate: where the problems lie") == 2
     assert keys <= set(report["print_check"])
     assert set(report["print_check"]["verdict"]) >= {"thinnest", "throat", "sealed_voids", "overhang", "overall"}
     assert _run(["check", "s.stl", "--printer", "fdm-pcl", "--voxel", "0.05", "-o", "cert.json"], tmp_path) == 0
