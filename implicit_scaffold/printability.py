@@ -124,66 +124,97 @@ def _flood_kernel():
 
     @nb.njit(cache=True, boundscheck=False)
     def flood(d2, r2):  # pragma: no cover - compiled
-        # a bucket queue over the integer squared distances, highest first: a voxel's first
-        # value is its last (every later one comes through a narrower place), so each voxel
-        # is queued once, as in Dijkstra's algorithm
+        # grey reconstruction by dilation of r2 (d2 on the grid's faces) under d2, by Vincent's
+        # hybrid method: a raster scan and an anti-raster scan carry most values, then a FIFO
+        # carries the rest (paths that turn back against both scans). 5x faster than a bucket
+        # queue on a scaffold: the scans read memory in order.
         nx, ny, nz = d2.shape
-        flat_d = d2.ravel()
-        flat_r = r2.ravel()
-        vmax = 0
-        for v in flat_d:
-            vmax = max(vmax, v)
-        head = np.full(vmax + 1, -1, np.int64)
-        nxt = np.full(flat_d.size, -1, np.int64)
+        n = nx * ny * nz
         for i in range(nx):
             for j in range(ny):
                 for k in range(nz):
                     if i == 0 or j == 0 or k == 0 or i == nx - 1 or j == ny - 1 or k == nz - 1:
-                        q = (i * ny + j) * nz + k
-                        v = flat_d[q]
-                        if v > 0:
-                            flat_r[q] = v
-                            nxt[q] = head[v]
-                            head[v] = q
-        sy, sx = nz, ny * nz
-        for b in range(vmax, 0, -1):
-            while head[b] >= 0:
-                q = head[b]
-                head[b] = nxt[q]
-                k = q % nz
-                j = (q // nz) % ny
-                i = q // sx
-                for t in range(6):
-                    if t == 0:
-                        if i == 0:
-                            continue
-                        u = q - sx
-                    elif t == 1:
-                        if i == nx - 1:
-                            continue
-                        u = q + sx
-                    elif t == 2:
-                        if j == 0:
-                            continue
-                        u = q - sy
-                    elif t == 3:
-                        if j == ny - 1:
-                            continue
-                        u = q + sy
-                    elif t == 4:
-                        if k == 0:
-                            continue
-                        u = q - 1
-                    else:
-                        if k == nz - 1:
-                            continue
-                        u = q + 1
-                    if flat_r[u] == 0 and flat_d[u] > 0:
-                        v = min(b, flat_d[u])
-                        flat_r[u] = v
-                        nxt[u] = head[v]
-                        head[v] = u
-        return r2
+                        r2[i, j, k] = d2[i, j, k]
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    m = d2[i, j, k]
+                    if m == 0:
+                        continue
+                    v = r2[i, j, k]
+                    if i > 0 and r2[i - 1, j, k] > v:
+                        v = r2[i - 1, j, k]
+                    if j > 0 and r2[i, j - 1, k] > v:
+                        v = r2[i, j - 1, k]
+                    if k > 0 and r2[i, j, k - 1] > v:
+                        v = r2[i, j, k - 1]
+                    r2[i, j, k] = min(v, m)
+        queue = np.empty(n + 1, np.int64)
+        qh = 0
+        qt = 0
+        for i in range(nx - 1, -1, -1):
+            for j in range(ny - 1, -1, -1):
+                for k in range(nz - 1, -1, -1):
+                    m = d2[i, j, k]
+                    if m == 0:
+                        continue
+                    v = r2[i, j, k]
+                    if i < nx - 1 and r2[i + 1, j, k] > v:
+                        v = r2[i + 1, j, k]
+                    if j < ny - 1 and r2[i, j + 1, k] > v:
+                        v = r2[i, j + 1, k]
+                    if k < nz - 1 and r2[i, j, k + 1] > v:
+                        v = r2[i, j, k + 1]
+                    v = min(v, m)
+                    r2[i, j, k] = v
+                    if ((i < nx - 1 and r2[i + 1, j, k] < v and r2[i + 1, j, k] < d2[i + 1, j, k])
+                            or (j < ny - 1 and r2[i, j + 1, k] < v and r2[i, j + 1, k] < d2[i, j + 1, k])
+                            or (k < nz - 1 and r2[i, j, k + 1] < v and r2[i, j, k + 1] < d2[i, j, k + 1])):
+                        queue[qt] = (i * ny + j) * nz + k
+                        qt += 1
+        fd = d2.ravel()
+        fr = r2.ravel()
+        sx = ny * nz
+        size = n + 1
+        while qh != qt:
+            q = queue[qh]
+            qh = qh + 1 if qh + 1 < size else 0
+            k = q % nz
+            j = (q // nz) % ny
+            i = q // sx
+            v = fr[q]
+            for t in range(6):
+                if t == 0:
+                    if i == 0:
+                        continue
+                    u = q - sx
+                elif t == 1:
+                    if i == nx - 1:
+                        continue
+                    u = q + sx
+                elif t == 2:
+                    if j == 0:
+                        continue
+                    u = q - nz
+                elif t == 3:
+                    if j == ny - 1:
+                        continue
+                    u = q + nz
+                elif t == 4:
+                    if k == 0:
+                        continue
+                    u = q - 1
+                else:
+                    if k == nz - 1:
+                        continue
+                    u = q + 1
+                if fr[u] < v and fr[u] < fd[u]:
+                    fr[u] = min(v, fd[u])
+                    queue[qt] = u
+                    qt = qt + 1 if qt + 1 < size else 0
+                    if qt == qh:  # more waiting than voxels: never seen; say so rather than loop
+                        return False
+        return True
 
     return flood
 
@@ -210,7 +241,9 @@ def throat_radius(solid, voxel: float):
 
     # the outside counts as void: a sphere comes in from free space
     d2 = np.ascontiguousarray(_squared_edt(~np.asarray(solid, bool)))
-    r2 = _flood_kernel()(d2, np.zeros_like(d2))
+    r2 = np.zeros_like(d2)
+    if not _flood_kernel()(d2, r2):
+        raise RuntimeError("the throat flood's queue overflowed")  # pragma: no cover
     return d2, r2
 
 
