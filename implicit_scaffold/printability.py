@@ -247,29 +247,27 @@ def throat_radius(solid, voxel: float):
     return d2, r2
 
 
-def reach_diameter(r2, voxel: float) -> np.ndarray:
-    """At each void voxel, the diameter (mm) of the largest sphere that reaches it from outside.
+def reached_by(r2, diameter_mm: float, voxel: float) -> np.ndarray:
+    """The void that a sphere of `diameter_mm` reaches from outside, as a bool mask.
 
-    The spheres of :func:`throat_radius` (centre ``c``, squared radius ``r2[c]``) painted onto
-    the voxels they hold, largest first, as :func:`.morphometry.local_thickness` paints its
-    maximal spheres; 0 in the solid and in sealed voids.
+    Its centre can be where ``r2`` allows its radius (to the voxels' boundaries, as the
+    certificate's other lengths); it then holds the voxels nearer than that radius. A voxel
+    held by a larger sphere is held by one of this size too (slid along towards it), so one
+    distance transform of the allowed centres answers for every sphere at least this large.
     """
-    from .morphometry import _jit, _maximal_sphere_tables, _threads
+    import edt
 
-    out = np.zeros(r2.shape, np.float32)
-    if not (r2 > 0).any():
-        return out
-    # to the voxels' boundaries, as the thicknesses and throats of the certificate
-    need, isq = _maximal_sphere_tables(int(r2.max()))
-    ridge, paint = _jit()
-    ci, cj, ck = np.nonzero(ridge(r2, need))
-    v = r2[ci, cj, ck].astype(np.int64)
-    order = np.argsort(-v, kind="stable")
-    nx, ny, nz = r2.shape
-    paint(nx, ny, nz, ci[order], cj[order], ck[order], v[order], isq, max(1, min(nx, 4 * _threads())), out,
-          2.0 * float(voxel))
-    out[out > 0] += np.float32(voxel)
-    return out
+    rho = 0.5 * (float(diameter_mm) / float(voxel) - 1.0)  # voxels, centre to voxel centre
+    void = r2 > 0
+    if rho <= 0:
+        return void
+    centres = r2 >= rho * rho
+    if not centres.any():
+        return np.zeros(r2.shape, bool)
+    from .morphometry import _threads
+
+    far2 = edt.edtsq(np.ascontiguousarray(~centres, dtype=np.uint8), black_border=False, parallel=_threads())
+    return void & (far2 < rho * rho)
 
 
 def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -456,14 +454,15 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     d2, r2 = throat_radius(solid, h)
     throats, weights = pore_throats(d2, r2, void_in, h)
     throat = weighted_quantile(throats, weights, 1 - THROAT_PORE_SHARE) if throats.size else 0.0
-    reach = reach_diameter(r2, h)
+    n_void = np.count_nonzero(void_in)
+    drain = None
     if profile.drain_mm > 0:
+        drained = reached_by(r2, profile.drain_mm, h)
+        drain = float(np.count_nonzero(drained & void_in) / n_void)
         for m, (a, i) in zip(maps, planes):
-            m[(np.take(reach, i, axis=a) < profile.drain_mm) & np.take(void_in, i, axis=a)] = SECTION_UNDRAINED
-    reach = reach[void_in]
-    drain = float(np.mean(reach >= profile.drain_mm)) if profile.drain_mm > 0 else None
-    cells = float(np.mean(reach >= INFILTRATION_MM))
-    del reach
+            m[~np.take(drained, i, axis=a) & np.take(void_in, i, axis=a)] = SECTION_UNDRAINED
+        del drained
+    cells = float(np.count_nonzero(reached_by(r2, INFILTRATION_MM, h) & void_in) / n_void)
     clock.mark("throats")
 
     sealed = void_in & (r2 == 0)
@@ -510,9 +509,9 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         d2b, r2b = throat_radius(grown, h)
         tb, wb = pore_throats(d2b, r2b, void_b, h)
         as_built["throat_mm"] = weighted_quantile(tb, wb, 1 - THROAT_PORE_SHARE) if tb.size else 0.0
-        reach = reach_diameter(r2b, h)[void_b]
         if profile.drain_mm > 0:
-            as_built["void_reached_by_drain_share"] = float(np.mean(reach >= profile.drain_mm))
+            reached = reached_by(r2b, profile.drain_mm, h) & void_b
+            as_built["void_reached_by_drain_share"] = float(np.count_nonzero(reached) / np.count_nonzero(void_b))
 
     clock.mark("as built")
     limit_iso = 1.0 - math.cos(math.radians(90.0 - profile.overhang_deg))

@@ -12,7 +12,7 @@ from scipy import ndimage
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.grid import Grid
 from implicit_scaffold.printability import (certificate, overhang_shares, printer_profile, profiles,
-                                            throat_radius)
+                                            reached_by, throat_radius)
 
 H = 0.02
 
@@ -60,6 +60,16 @@ def test_throat_flood_equals_brute_force_sphere_percolation(seed, threshold):
     assert np.array_equal(r2, want)
     assert len(np.unique(r2)) > 8
     assert (r2[~solid] == 0).any() == (threshold < 0.5)
+    # the void a sphere reaches: every voxel nearer than its radius to a centre the flood allows it,
+    # by brute force over all (voxel, centre) pairs
+    from scipy.spatial.distance import cdist
+
+    idx = np.argwhere(np.ones(solid.shape, bool))
+    for diameter in (2.0 * H, 4.0 * H, 6.0 * H):
+        rho = 0.5 * (diameter / H - 1.0)
+        centres = np.argwhere(want >= rho * rho)
+        near = (cdist(idx, centres, "sqeuclidean") < rho * rho).any(axis=1).reshape(solid.shape)
+        assert np.array_equal(reached_by(r2, diameter, H), near & (want > 0)), diameter
 
 
 def test_rod_thickness_within_a_voxel():
