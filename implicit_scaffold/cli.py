@@ -260,6 +260,7 @@ def _metric_lines(r: dict) -> list[str]:
     if r.get("patient_volume_mm3") is not None and r.get("cells_in_scaffold") is not None:
         lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 in a {r['box_volume_mm3']:.4g} mm3 box, "
                      f"{r['cells_in_scaffold']} of the {r['seeds']} cells in the scaffold")
+    lines += _pieces_lines(r)
     paper = [(stat("pore_size_mm"), "pore size {:.4g} mm"), (r.get("interconnection_faces_mean"),
              "interconnection {:.4g} faces"), (r.get("trabecular_thickness_mm_mean"), "trabecular thickness {:.4g} mm")]
     if any(v is not None for v, _ in paper):
@@ -269,6 +270,20 @@ def _metric_lines(r: dict) -> list[str]:
               (r.get("interconnected_porosity"), "interconnected {:.4g}")]
     if any(v is not None for v, _ in voxels):
         lines.append("  voxels (spheres): " + ", ".join(f.format(v) for v, f in voxels if v is not None))
+    return lines
+
+
+def _pieces_lines(r: dict) -> list[str]:
+    """The summary's lines for a patient in several pieces (none for one piece)."""
+    count = r.get("patient_pieces_count") or 0
+    if count <= 1:
+        return []
+    shown = r["patient_pieces"]
+    lines = [f"  patient in {count} pieces (6-connected voxels), each with its own main body; the largest:"]
+    lines += [f"    {p['volume_mm3']:.4g} mm3, {p['cells']} cells (seeds inside), porosity {p['porosity_voxel']:.4f}, "
+              f"bodies {p['bodies']} (voxels)" for p in shown[:5]]
+    if count > 5:
+        lines.append(f"    and {count - 5} more (the JSON report lists the {len(shown)} largest)")
     return lines
 
 

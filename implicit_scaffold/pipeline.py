@@ -14,8 +14,7 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import (blend_field, check_porosity, remove_fragments, sample, scaffold_field,
-                    solve_level_cut)
+from .field import blend_field, check_porosity, sample, scaffold_field, solve_level_cut
 from .grid import Grid, check_memory, run_bytes_per_voxel
 from .progress import Progress
 from .skeleton import check_scale, closed_form_porosity
@@ -242,6 +241,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
     from .metrics import interior_face_pairs, trabecular_thicknesses
+    from .pieces import (REPORT_PIECES, label_pieces, piece_table, remove_fragments_by_piece,
+                         small_pieces_warning)
     from .patient import patient_sdf as eval_patient, primitive
     from .seeds import seed_count, seeds_in_patient, uniform_seeds
     from .skeleton import scaled_skeleton, voronoi_edges
@@ -391,12 +392,23 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin,
                            smooth_cut=params.smooth_cut, out=base)
         del base
-        fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
+        # debris is judged within each piece of the patient: a second vertebra in the clip
+        # keeps its own scaffold however much larger the first one's is
+        pieces, n_pieces = label_pieces(inside)
+        removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
+        fragments = None if removal is None else removal["removed"]
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
+        piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
+        del pieces
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
                           porosity_voxel, fragments)
+    report["fragments_removed_mm3"] = None if removal is None else removal["removed_voxels"] * grid.voxel_volume
+    report["patient_pieces_count"] = n_pieces
+    report["patient_pieces"] = piece_rows[:REPORT_PIECES]
+    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
+    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
@@ -434,7 +446,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         report.update(found)
     if slices is not None:
         report["slices"] = _write_stack(s, grid, slices, prog)
-    report["warnings"] = _check_built(report, params)
+    report["warnings"] = _check_built(report, params, [small_pieces])
     if out_path is not None:
         with prog.stage("write"):
             write_outputs(result, out_path)
@@ -730,7 +742,7 @@ def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
             "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3}
 
 
-def _check_built(report: dict, params: Params) -> list[str]:
+def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     """Warn (and list for the report) where what was built misses what was asked.
 
     Both cases come from struts thinner than a few voxels: removing the solid pieces they
@@ -746,8 +758,11 @@ def _check_built(report: dict, params: Params) -> list[str]:
     target, voxel = report["porosity_target"], report["porosity_voxel"]
     if target is not None and abs(voxel - target) > 0.005:
         removed = report.get("fragments_removed") or 0
-        why = (f"removing {removed} solid fragments not attached to the main body moved it"
-               if removed else "the patient's voxels leave no level closer")
+        volume = report.get("fragments_removed_mm3")
+        share = "" if volume is None else (f" ({volume:.4g} mm3, {100 * volume / report['patient_volume_mm3']:.2g} % "
+                                           "of the patient)")
+        why = (f"removing {removed} solid fragments{share} not attached to the main body of their patient piece "
+               "moved it" if removed else "the patient's voxels leave no level closer")
         found.append(f"porosity {voxel:.4f} misses the target {target:g}: {why}; the struts are "
                      f"under-resolved at {h:.3g} mm voxels: use a finer --voxel (e.g. {h / 2:.3g})"
                      + (" or --keep-fragments" if removed else ""))
@@ -755,6 +770,7 @@ def _check_built(report: dict, params: Params) -> list[str]:
         found.append(f"the mesh's porosity {report['porosity_mesh']:.4f} differs from the voxels' {voxel:.4f} "
                      f"by {100 * abs(report['porosity_mesh'] - voxel):.1f} points: marching cubes thins struts "
                      f"only a few voxels thick; a finer --voxel (e.g. {h / 2:.3g}) brings them together")
+    found += [m for m in found_before if m]
     for message in found:
         warnings.warn(message, ScaffoldWarning, stacklevel=3)
     return found
