@@ -282,7 +282,8 @@ def _metric_lines(r: dict) -> list[str]:
 
     lines = []
     if r.get("patient_volume_mm3") is not None and r.get("cells_in_scaffold") is not None:
-        lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 in a {r['box_volume_mm3']:.4g} mm3 box, "
+        lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 (inside its surface) in a "
+                     f"{r['box_volume_mm3']:.4g} mm3 box, "
                      f"{r['cells_in_scaffold']} of the {r['seeds']} cells in the scaffold (their seed inside "
                      "the patient)")
     lines += _pieces_lines(r)
@@ -290,7 +291,9 @@ def _metric_lines(r: dict) -> list[str]:
     paper = [(stat("pore_size_mm"), "pore size {:.4g} mm" + (f" (target {target:g})" if target else "")), (r.get("interconnection_faces_mean"),
              "interconnection {:.4g} faces"), (r.get("trabecular_thickness_mm_mean"), "trabecular thickness {:.4g} mm")]
     if any(v is not None for v, _ in paper):
-        lines.append("  cells (paper): " + ", ".join(f.format(v) for v, f in paper if v is not None))
+        over = r.get("cells_in_scaffold")
+        lines.append(f"  cells (paper{'' if over is None else f', means over the {over} cells in the scaffold'}): "
+                     + ", ".join(f.format(v) for v, f in paper if v is not None))
     voxels = [(stat("strut_thickness_mm"), "strut thickness {:.4g} mm"), (stat("pore_diameter_mm"),
               "pore diameter {:.4g} mm"), (r.get("connectivity_density_per_mm3"), "Conn.D {:.4g} /mm3"),
               (r.get("interconnected_porosity"), "interconnected {:.4g}")]
@@ -306,8 +309,9 @@ def _pieces_lines(r: dict) -> list[str]:
         return []
     shown = r["patient_pieces"]
     lines = [f"  patient in {count} pieces (6-connected voxels), each with its own main body; the largest:"]
-    lines += [f"    {p['volume_mm3']:.4g} mm3, {p['cells']} cells (seeds inside), porosity {p['porosity_voxel']:.4f}, "
-              f"bodies {p['bodies']} (voxels)" for p in shown[:5]]
+    lines += [f"    {p['volume_mm3']:.4g} mm3 (voxels), {p['cells']} cells (seed inside), porosity "
+              f"{p['porosity_voxel']:.4f} (voxels), bodies {p['bodies']} (6-connected solid voxels)"
+              for p in shown[:5]]
     if count > 5:
         lines.append(f"    and {count - 5} more (the JSON report lists the {len(shown)} largest)")
     return lines

@@ -622,7 +622,7 @@ def _patient_source(patient) -> dict | None:
     object given to :func:`generate` directly."""
     from .patient import SHAPES
 
-    source = getattr(patient, "source", None)
+    source = getattr(patient, "load_options", None)  # set by patient_io.load_patient
     if source is not None:
         return dict(source)
     for name, cls in SHAPES.items():

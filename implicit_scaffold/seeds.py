@@ -110,7 +110,9 @@ SEED_RULES = ("pore-size", "paper")
 PV_CUBE_ROOT_MEAN = 0.98013556
 
 #: relative miss of the measured mean pore size after which the seed count is corrected once more
-PORE_SIZE_TOLERANCE = 0.01
+#: (a cell pass each; well inside the 5 % the rule promises, since the scaffold's cells are measured
+#: on the fine grid afterwards)
+PORE_SIZE_TOLERANCE = 0.02
 #: cell passes at most when solving the seed count for the pore size
 PORE_SIZE_PASSES = 4
 
