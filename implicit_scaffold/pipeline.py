@@ -672,6 +672,15 @@ class _RunPlan:
             raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
                                 f"or .npy instead of {ext}, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
+        if self.params.remove_fragments:
+            from .pieces import label_pieces
+
+            # the slabs keep one main body for the whole grid: a second piece of bone would lose its scaffold
+            pieces = label_pieces(_coarse_patient(self.patient)[0] < 0)[1]
+            if pieces > 1:
+                raise ScaffoldError(f"{why}, and the patient is in {pieces} pieces, whose fragments a tiled run "
+                                    "cannot remove piece by piece yet: raise --max-memory, use a larger --voxel, "
+                                    "or pass --keep-fragments")
         from .tiled import SLAB_BYTES_PER_VOXEL
 
         voxels = slab_voxels(self.max_memory, held)  # raises when the cells leave no room

@@ -121,3 +121,13 @@ def test_main_body_per_piece_against_brute_force():
         main = 1 + int(np.argmax(sizes))
         want[(lab > 0) & (lab != main)] = 1.0
     assert np.array_equal(out, want)
+
+
+def test_a_tiled_run_refuses_a_patient_in_pieces_rather_than_drop_one():
+    # the slabs pick one main body for the whole grid: refused before the work, with the ways out
+    from implicit_scaffold import ScaffoldError
+
+    parts = [_ball([3, 3, 3], 2.5), _ball([10, 3, 3], 2.0)]
+    with pytest.raises(ScaffoldError, match="patient is in 2 pieces.*--keep-fragments"):
+        implicit_scaffold.generate(patient=_Union(parts), pore_size=1.0, porosity=0.7, voxel=0.1, tiled=True,
+                                   mesh=False, morphometry=False)
