@@ -250,11 +250,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     """
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
-    from .metrics import interior_face_pairs, trabecular_thicknesses
+    from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
+    from .patient import patient_sdf as eval_patient, primitive
     from .pieces import (REPORT_PIECES, label_pieces, piece_table, remove_fragments_by_piece,
                          small_pieces_warning)
-    from .patient import patient_sdf as eval_patient, primitive
-    from .metrics import pore_sizes
     from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
                         seed_count, seeds_in_patient, uniform_seeds)
     from .skeleton import scaled_skeleton, voronoi_edges
@@ -442,13 +441,14 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     report["fragments_removed_mm3"] = None if removal is None else removal["removed_voxels"] * grid.voxel_volume
     report["patient_pieces_count"] = n_pieces
     report["patient_pieces"] = piece_rows[:REPORT_PIECES]
-    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
-    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
             if weighted:
                 report["grade"]["empty_power_cells"] = empty_power_cells
+    # one pore: the target's, or (seeds given, or graded) the mean measured
+    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
+    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
         plan = level_field = density = None  # the mesh and metrics stages need the memory
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
