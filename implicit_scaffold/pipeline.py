@@ -446,10 +446,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
             if weighted:
                 report["grade"]["empty_power_cells"] = empty_power_cells
+        plan = level_field = density = None  # the mesh and metrics stages need the memory
     # one pore: the target's, or (seeds given, or graded) the mean measured
     pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
     small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
-        plan = level_field = density = None  # the mesh and metrics stages need the memory
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
