@@ -86,6 +86,10 @@ def build_parser() -> argparse.ArgumentParser:
                         "resampled to it (default: the volume's own spacing)")
     a.add_argument("--spacing", type=_spacing, default=None,
                    help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
+    a.add_argument("--region", metavar="FILE", default=None,
+                   help="count porosity inside this patient, as generate does: a patient mesh or volume, or the "
+                        "run's .json report (its patient, on its grid; then --voxel may be left out); default: "
+                        "the mesh's bounding box")
     a.add_argument("-o", "--output", metavar="JSON", default=None, help="write the measures as JSON")
     a.add_argument("--report", metavar="HTML", default=None,
                    help="also write a visual report: picture, section, histograms, measures")
@@ -131,16 +135,22 @@ def _add_build_options(g) -> None:
     pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
                     metavar=("PX", "PY", "PZ", "NX", "NY", "NZ", "QX", "QY", "QZ", "MX", "MY", "MZ"),
                     help="two osteotomy planes, point and normal each (mm); the segment between them is kept")
-    pg.add_argument("--seeds-in", choices=["box", "patient"], default="box",
+    pg.add_argument("--seeds-in", choices=["box", "patient"], default=None,
                     help="box: uniform in the bounding box (the paper); patient: only where the patient is, "
-                         "plus one cell, with the seed count from the patient's volume (default box)")
+                         "plus one cell, with the seed count from the patient's volume (default: patient with "
+                         "--patient, box for --shape)")
     pg.add_argument("--skin", type=float, default=0.0, help="solid shell this thick at the patient surface (mm)")
     pg.add_argument("--smooth-cut", type=float, default=0.0,
                     help="width of a smooth instead of sharp intersection with the patient (mm)")
     n = g.add_mutually_exclusive_group()
     n.add_argument("--seeds", type=int, default=None, help="number of seeds (Voronoi cells)")
     n.add_argument("--pore-size", type=float, default=0.6,
-                   help="target pore diameter Dp in mm; the seed count follows the paper's formula (default 0.6)")
+                   help="target pore size in mm: the mean polyhedron-sphere pore size that the report measures "
+                        "(see --seed-rule) (default 0.6)")
+    g.add_argument("--seed-rule", choices=["pore-size", "paper"], default="pore-size",
+                   help="pore-size: the seed count is solved so that the measured mean pore size is --pore-size; "
+                        "paper: the paper's n = V P / (pi Dp^3 / 6), whose measured pores come out smaller "
+                        "(default pore-size)")
     g.add_argument("--porosity", default="0.8",
                    help="target porosity in (0, 1), met by offsetting the surface, or 'none' to keep the "
                         "lattice as Sf and Sv make it (default 0.8)")
@@ -239,7 +249,8 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
         tiling["tiled"] = True  # the slabs are what the cluster runs
     return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
                     slices=slices, printer=args.printer, **tiling,
-                    shape=args.shape, size=args.size, seeds_in=args.seeds_in, skin=args.skin,
+                    shape=args.shape, size=args.size, seeds_in=args.seeds_in, seed_rule=args.seed_rule,
+                    skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
                     remove_fragments=not args.keep_fragments, **graded)
@@ -317,7 +328,7 @@ def _generate(args) -> int:
         lines = [
             f"wrote {args.output} and {result_json(args.output)}"
             + (f" and {args.report}" if args.report else ""),
-            f"  seeds {r['seeds']}, Sf {r['sf']:g}, Sv {r['sv']:g}, style {r['style']}",
+            _seeds_line(r),
             f"  {offset}, blend {r['blend_mm']:.4f} mm",
             f"  voxel {r['voxel_mm']:.4f} mm, grid {'x'.join(str(v) for v in r['grid_shape'])}",
             f"  porosity: target {target}, closed form {r['porosity_closed_form']:.4f}, "
@@ -344,6 +355,19 @@ def _printable_exit(args, report: dict) -> int:
     return 3 if args.require_printable and isinstance(cert, dict) and cert["verdict"]["overall"] == "fail" else 0
 
 
+def _seeds_line(r: dict) -> str:
+    """The summary's seed line: how many were drawn, where, and by which rule."""
+    where = {"box": "in the box"}.get(r["seeds_in"], "in the patient and one cell's margin")
+    text = f"  seeds {r['seeds']} (drawn {where}), Sf {r['sf']:g}, Sv {r['sv']:g}, style {r['style']}"
+    rule = r.get("seed_rule")
+    if rule == "pore-size":
+        text += (f"\n  seed rule pore-size: the count solved for a mean pore size of {r['pore_size_target_mm']:g} mm "
+                 f"(the paper's formula would draw {r['seeds_paper_rule']})")
+    elif rule == "paper":
+        text += f"\n  seed rule paper: n = V P / (pi Dp^3 / 6) for Dp = {r['pore_size_target_mm']:g} mm"
+    return text
+
+
 def _metric_lines(r: dict) -> list[str]:
     """The summary's lines of measures: the patient, the paper's metrics, the voxel morphometry."""
     def stat(key):
@@ -352,12 +376,18 @@ def _metric_lines(r: dict) -> list[str]:
 
     lines = []
     if r.get("patient_volume_mm3") is not None and r.get("cells_in_scaffold") is not None:
-        lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 in a {r['box_volume_mm3']:.4g} mm3 box, "
-                     f"{r['cells_in_scaffold']} of the {r['seeds']} cells in the scaffold")
-    paper = [(stat("pore_size_mm"), "pore size {:.4g} mm"), (r.get("interconnection_faces_mean"),
+        lines.append(f"  patient {r['patient_volume_mm3']:.4g} mm3 (inside its surface) in a "
+                     f"{r['box_volume_mm3']:.4g} mm3 box, "
+                     f"{r['cells_in_scaffold']} of the {r['seeds']} cells in the scaffold (their seed inside "
+                     "the patient)")
+    lines += _pieces_lines(r)
+    target = r.get("pore_size_target_mm")
+    paper = [(stat("pore_size_mm"), "pore size {:.4g} mm" + (f" (target {target:g})" if target else "")), (r.get("interconnection_faces_mean"),
              "interconnection {:.4g} faces"), (r.get("trabecular_thickness_mm_mean"), "trabecular thickness {:.4g} mm")]
     if any(v is not None for v, _ in paper):
-        lines.append("  cells (paper): " + ", ".join(f.format(v) for v, f in paper if v is not None))
+        over = r.get("cells_in_scaffold")
+        lines.append(f"  cells (paper{'' if over is None else f', means over the {over} cells in the scaffold'}): "
+                     + ", ".join(f.format(v) for v, f in paper if v is not None))
     voxels = [(stat("strut_thickness_mm"), "strut thickness {:.4g} mm"), (stat("pore_diameter_mm"),
               "pore diameter {:.4g} mm"), (r.get("connectivity_density_per_mm3"), "Conn.D {:.4g} /mm3"),
               (r.get("interconnected_porosity"), "interconnected {:.4g}")]
@@ -366,10 +396,26 @@ def _metric_lines(r: dict) -> list[str]:
     return lines
 
 
+def _pieces_lines(r: dict) -> list[str]:
+    """The summary's lines for a patient in several pieces (none for one piece)."""
+    count = r.get("patient_pieces_count") or 0
+    if count <= 1:
+        return []
+    shown = r["patient_pieces"]
+    lines = [f"  patient in {count} pieces (6-connected voxels), each with its own main body; the largest:"]
+    lines += [f"    {p['volume_mm3']:.4g} mm3 (voxels), {p['cells']} cells (seed inside), porosity "
+              f"{p['porosity_voxel']:.4f} (voxels), bodies {p['bodies']} (6-connected solid voxels)"
+              for p in shown[:5]]
+    if count > 5:
+        lines.append(f"    and {count - 5} more (the JSON report lists the {len(shown)} largest)")
+    return lines
+
+
 #: rows of the analyze table: key, label, unit
 _ANALYZE_ROWS = (
-    ("porosity_voxel", "porosity (voxels)", ""),
-    ("porosity_mesh", "porosity (mesh)", ""),
+    ("porosity_voxel", "porosity (voxels, in the region)", ""),
+    ("porosity_mesh", "porosity (mesh volume over the region's)", ""),
+    ("bodies", "bodies (closed pieces of the mesh)", ""),
     ("strut_thickness_mm", "strut thickness, max spheres", "mm"),
     ("pore_diameter_mm", "pore diameter, max spheres", "mm"),
     ("connectivity_density_per_mm3", "connectivity density", "mm^-3"),
@@ -411,7 +457,7 @@ def _analyze(args) -> int:
         check_writable(args.output, formats=(".json",))
     if args.report is not None:
         _check_report(args.report)
-    result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing)
+    result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing, region=args.region)
     r = result.report
     r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
     if args.output is not None:

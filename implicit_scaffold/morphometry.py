@@ -594,7 +594,60 @@ def _suffix(path) -> str:
 
 
 
-def analyze_file(path, *, voxel=None, spacing=None) -> Analysis:
+def load_region(path):
+    """The region that porosity is counted in: a patient file, or a run's JSON report.
+
+    Parameters
+    ----------
+    path : str or Path
+        A patient mesh or volume (as ``--patient`` takes), or the JSON report that
+        ``generate`` wrote beside a scaffold (its patient is loaded again with the same
+        options, and its grid is the run's).
+
+    Returns
+    -------
+    patient
+        Anything with ``lo``, ``hi``, ``volume`` and ``sdf_grid``.
+    grid : Grid or None
+        The run's grid (a JSON report), else None.
+    what : str
+        The region in words, for the report.
+    """
+    import json
+    from pathlib import Path
+
+    from .grid import Grid
+
+    path = Path(path)
+    if not path.exists():
+        raise ScaffoldError(f"--region {path} does not exist; give the patient file or the run's .json report")
+    if path.suffix.lower() != ".json":
+        from .patient_io import load_patient
+
+        patient = load_patient(path)
+        return patient, None, f"the patient {path.name}"
+    try:
+        run = json.loads(path.read_text())
+        source = run["patient_source"]
+        grid = Grid(tuple(run["grid_origin_mm"]), float(run["voxel_mm"]), tuple(run["grid_shape"]))
+    except (ValueError, KeyError, TypeError):
+        raise ScaffoldError(f"--region {path.name} is not a report written by generate (it names no patient); "
+                            "give the patient file instead") from None
+    if source is None:
+        raise ScaffoldError(f"--region {path.name}: that run's patient was a Python object, not a file or a "
+                            "built-in shape; give the patient file instead")
+    if "shape" in source:
+        from .patient import primitive
+
+        return primitive(source["shape"], source["size"]), grid, f"the patient of {path.name} ({source['shape']})"
+    from .patient_io import load_patient
+
+    patient = load_patient(source["file"], label=source.get("label"), threshold=source.get("threshold"),
+                           units=source.get("units"), clip=source.get("clip"), cut_planes=source.get("cut_planes"))
+    return patient, grid, f"the patient of {path.name} ({Path(source['file']).name})"
+
+
+def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
     """Voxel morphometry of a scaffold mesh or a binary volume file.
 
     Parameters
@@ -611,12 +664,18 @@ def analyze_file(path, *, voxel=None, spacing=None) -> Analysis:
         The volume's voxel spacing (x, y, z), for files that carry none (TIFF, NRRD
         without one); overrides the file's.
 
+    region : str or Path, optional
+        Mesh only: count porosity inside this patient (a mesh or volume file, or the JSON
+        report of the run that built the scaffold: its patient, on its grid), as generate
+        does. By default the region is the mesh's bounding box (the report says so).
+
     Returns
     -------
     Analysis
-        For a mesh the region measured is the mesh's bounding box; for a volume, the
-        whole volume. Area and BS/BV come from the mesh itself (or a marching-cubes mesh
-        of a volume).
+        For a mesh the region measured is `region`, else the mesh's bounding box; for a
+        volume, the whole volume. Area and BS/BV come from the mesh itself (or a
+        marching-cubes mesh of a volume); a mesh's ``bodies`` are its closed components,
+        counted as generate counts them.
     """
     from pathlib import Path
 
@@ -630,6 +689,8 @@ def analyze_file(path, *, voxel=None, spacing=None) -> Analysis:
         raise ScaffoldError(f"{path} does not exist; check the path")
     suffix = _suffix(path)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
+        if region is not None:
+            raise ScaffoldError("--region applies to a scaffold mesh; a volume is measured whole")
         if spacing is not None and suffix in MESH_SUFFIXES:
             raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
         solid, step, note = _read_volume(path, spacing, voxel)
@@ -644,24 +705,41 @@ def analyze_file(path, *, voxel=None, spacing=None) -> Analysis:
                             f"({' '.join(VOLUME_SUFFIXES)}, or a folder of TIFF slices)")
     if spacing is not None:
         raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
-    if voxel is None:
+    patient = run_grid = None
+    if region is not None:
+        patient, run_grid, what = load_region(region)
+    if voxel is None and run_grid is None:
         raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
     mesh = _read_mesh(path)
     lo, hi = mesh.bounds
-    grid = Grid.covering(lo, hi, voxel)
+    if patient is None:
+        grid = Grid.covering(lo, hi, voxel)
+    else:
+        # the run's own grid when no other voxel is asked: voxel centres classified as generate's were
+        grid = run_grid if voxel is None else Grid.covering(patient.lo, patient.hi, voxel)
+        voxel = grid.spacing
     check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
     solid = voxelize(mesh.vertices, mesh.faces, grid)
-    region = np.zeros(grid.shape, bool)
-    region[1:-1, 1:-1, 1:-1] = True  # the bounding box: all but the outer layer
+    if patient is None:
+        inside = np.zeros(grid.shape, bool)
+        inside[1:-1, 1:-1, 1:-1] = True  # the bounding box: all but the outer layer
+        what, region_volume = "the mesh's bounding box (give --region for the patient)", float(np.prod(hi - lo))
+    else:
+        inside = np.asarray(patient.sdf_grid(grid)) < 0
+        region_volume = float(patient.volume)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; "
                             "use a smaller --voxel")
     area, volume = float(mesh.area), float(mesh.volume)
-    report = morphometry(solid, voxel, region=region, surface_area_mm2=area, solid_volume_mm3=volume)
-    box = float(np.prod(hi - lo))
-    report.update({"version": __version__, "source": path.name, "kind": "mesh", "voxel_mm": float(voxel), "grid_shape": list(grid.shape),
-                   "region": "the mesh's bounding box", "triangles": int(len(mesh.faces)),
-                   "mesh_volume_mm3": volume, "box_volume_mm3": box, "porosity_mesh": 1.0 - volume / box})
+    report = morphometry(solid, voxel, region=inside, surface_area_mm2=area, solid_volume_mm3=volume)
+    from .mesh import mesh_summary
+
+    report.update({"version": __version__, "source": path.name, "kind": "mesh", "voxel_mm": float(voxel),
+                   "grid_shape": list(grid.shape), "region": what, "region_volume_mm3": region_volume,
+                   "triangles": int(len(mesh.faces)), "bodies": mesh_summary(mesh)["bodies"],
+                   "mesh_volume_mm3": volume, "porosity_mesh": 1.0 - volume / region_volume})
+    if patient is None:
+        report["box_volume_mm3"] = region_volume
     return Analysis(report, solid, grid, mesh)
 
 

@@ -102,6 +102,10 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
                             if v is not None)
         patient = CutPatient(patient, halfspaces, what=what)
     _set(patient, "load_seconds", time.perf_counter() - t0)
+    # how to load it again (analyze --region reads it from the run's report)
+    _set(patient, "load_options", {"file": str(path.resolve()), "label": label, "threshold": threshold,
+                                   "units": units, "clip": None if clip is None else [float(v) for v in clip],
+                                   "cut_planes": None if cut_planes is None else [float(v) for v in cut_planes]})
     return patient
 
 

@@ -6,7 +6,7 @@ chooses defaults, calls the stages in order and gathers the report.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field as dc_field
+from dataclasses import asdict, dataclass, field as dc_field, replace
 from pathlib import Path
 from typing import Any
 
@@ -14,10 +14,10 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import (blend_field, check_porosity, remove_fragments, sample, scaffold_field,
-                    solve_level_cut)
+from .field import blend_field, check_porosity, sample, scaffold_field, solve_level_cut
 from .grid import Grid, check_memory, run_bytes_per_voxel
 from .progress import Progress
+from .seeds import SEED_RULES
 from .skeleton import check_scale, closed_form_porosity
 
 STYLES = ("paper", "struts")
@@ -47,7 +47,12 @@ class Params:
     voxel: float | None = None
     seed: int = 0
     remove_fragments: bool = True
-    seeds_in: str = "box"
+    #: where the seeds are drawn: "box" (the paper) or "patient" (plus one cell); None: the patient
+    #: when one is given to :func:`generate`, the box for the built-in shapes (which fill it anyway)
+    seeds_in: str | None = None
+    #: the seed count from --pore-size: "pore-size" solves it so that the measured mean pore size
+    #: (polyhedron-sphere) is the target; "paper" is the paper's n = V P / (pi Dp^3 / 6)
+    seed_rule: str = "pore-size"
     skin: float = 0.0
     smooth_cut: float = 0.0
     #: graded scaffolds (:mod:`.grade`): pore size by depth ("0:0.3,2:0.8") or a callable
@@ -132,9 +137,12 @@ def validate(**options) -> Params:
         raise ScaffoldError(f"--seed must be a whole number, got {p.seed!r}") from None
     if seed < 0:
         raise ScaffoldError(f"--seed must be >= 0, got {seed}")
-    seeds_in = str(p.seeds_in).lower()
-    if seeds_in not in ("box", "patient"):
+    seeds_in = None if p.seeds_in is None else str(p.seeds_in).lower()
+    if seeds_in not in (None, "box", "patient"):
         raise ScaffoldError(f"--seeds-in takes box or patient, got {p.seeds_in!r}")
+    seed_rule = str(p.seed_rule).lower()
+    if seed_rule not in SEED_RULES:
+        raise ScaffoldError(f"--seed-rule takes {' or '.join(SEED_RULES)}, got {p.seed_rule!r}")
     widths = {}
     for name in ("skin", "smooth_cut"):
         try:
@@ -149,7 +157,8 @@ def validate(**options) -> Params:
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, seed=seed,
                   voxel=None if p.voxel is None else positive_mm("voxel", p.voxel, example="0.04"),
-                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, **widths, **graded)
+                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, seed_rule=seed_rule, **widths,
+                  **graded)
 
 
 def _validate_grade(p: Params, seeds, widths: dict) -> dict:
@@ -244,9 +253,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     """
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
-    from .metrics import interior_face_pairs, trabecular_thicknesses
+    from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
     from .patient import patient_sdf as eval_patient, primitive
-    from .seeds import seed_count, seeds_in_patient, uniform_seeds
+    from .pieces import (REPORT_PIECES, label_pieces, piece_table, remove_fragments_by_piece,
+                         small_pieces_warning)
+    from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
+                        seed_count, seeds_in_patient, uniform_seeds)
     from .skeleton import scaled_skeleton, voronoi_edges
 
     params = validate(**options)
@@ -254,6 +266,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         from .printability import printer_profile
 
         printer = printer_profile(printer)
+    if params.seeds_in is None:
+        # time and memory then follow the bone's volume, not its bounding box's
+        params = replace(params, seeds_in="box" if patient is None else "patient")
     out_path = Path(output) if output is not None else None
     if out_path is not None:
         from .mesh import check_writable
@@ -302,28 +317,48 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         n = density.count
     elif params.seeds is not None:
         n = params.seeds
-    else:
+    elif params.seed_rule == "paper":
         n = seed_count(seed_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
+    else:
+        n = max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * seed_volume)))
     from .cells import check_seed_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size)
-    rng = np.random.default_rng(params.seed)
-
-    with prog.stage("seeds", f"{n} in the {'patient, graded' if graded else params.seeds_in}"):
-        if graded:
-            seeds = grading.draw_seeds(density, rng)
-        elif params.seeds_in == "box":
-            seeds = uniform_seeds(lo, hi, n, rng)
-        else:
-            coarse, coarse_grid = _coarse_patient(patient)
-            seeds = seeds_in_patient(coarse, coarse_grid, lo, hi, n, rng,
-                                     margin=(float(patient.volume) / n) ** (1 / 3))
-    if graded and params.relax:
-        with prog.stage("relax", f"{params.relax} Lloyd iterations"):
-            seeds = grading.lloyd_relax(seeds, density, params.relax)
+    # solve the seed count for the measured pore size: the Poisson-Voronoi estimate above, then
+    # corrected for what the cells measure (cells cut by the box walls are smaller)
+    solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
+    coarse = coarse_grid = None
+    if params.seeds_in == "patient" or solving:
+        coarse, coarse_grid = _coarse_patient(patient)
     weighted = graded and params.weighted
-    with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
-        cells = voronoi_cells(seeds, lo, hi, radii=grading.power_radii(density, seeds) if weighted else None)
+    tried = []
+    for _ in range(PORE_SIZE_PASSES if solving else 1):
+        # every pass draws from the same --seed: the seeds are a function of the count alone
+        rng = np.random.default_rng(params.seed)
+        with prog.stage("seeds", "patient, graded" if graded else f"in the {params.seeds_in}"):
+            if graded:
+                seeds = grading.draw_seeds(density, rng)
+            elif params.seeds_in == "box":
+                seeds = uniform_seeds(lo, hi, n, rng)
+            else:
+                seeds = seeds_in_patient(coarse, coarse_grid, lo, hi, n, rng,
+                                         margin=(float(patient.volume) / n) ** (1 / 3),
+                                         total=params.seeds is not None)
+        prog.note(f"{len(seeds)} seeds drawn in the " + ("patient and one cell's margin"
+                                                         if params.seeds_in == "patient" or graded else "box"))
+        if graded and params.relax:
+            with prog.stage("relax", f"{params.relax} Lloyd iterations"):
+                seeds = grading.lloyd_relax(seeds, density, params.relax)
+        with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
+            cells = voronoi_cells(seeds, lo, hi, radii=grading.power_radii(density, seeds) if weighted else None)
+        if not solving:
+            break
+        inside = sample(coarse, coarse_grid, cells.seeds) < 0
+        measured = float(np.mean(pore_sizes(cells, params.sv)[inside])) if inside.any() else params.pore_size
+        tried.append({"seeds_in_patient": n, "seeds": len(seeds), "pore_size_mm": measured})
+        if abs(measured / params.pore_size - 1) <= PORE_SIZE_TOLERANCE:
+            break
+        n = corrected_count(n, measured, params.pore_size)
     if weighted:
         # seeds whose power cell is empty are gone: the lattice and the report count the others
         empty_power_cells = len(seeds) - cells.n
@@ -358,7 +393,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                             "in --max-memory here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
-                               window_p25, slab_voxels, scheduler, prog, mesh, out_path)
+                               window_p25, slab_voxels, scheduler, prog, mesh, out_path, seed_solve=tried or None)
     with prog.stage("patient"):
         s_p = eval_patient(patient, grid)
         inside = s_p < 0
@@ -401,18 +436,30 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin,
                            smooth_cut=params.smooth_cut, out=base)
         del base
-        fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
+        # debris is judged within each piece of the patient: a second vertebra in the clip
+        # keeps its own scaffold however much larger the first one's is
+        pieces, n_pieces = label_pieces(inside)
+        removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
+        fragments = None if removal is None else removal["removed"]
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
+        piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
+        del pieces
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
-                          porosity_voxel, fragments)
+                          porosity_voxel, fragments, seed_solve=tried or None)
+    report["fragments_removed_mm3"] = None if removal is None else removal["removed_voxels"] * grid.voxel_volume
+    report["patient_pieces_count"] = n_pieces
+    report["patient_pieces"] = piece_rows[:REPORT_PIECES]
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
             if weighted:
                 report["grade"]["empty_power_cells"] = empty_power_cells
         plan = level_field = density = None  # the mesh and metrics stages need the memory
+    # one pore: the target's, or (seeds given, or graded) the mean measured
+    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
+    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -449,7 +496,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
     if slices is not None:
         report["slices"] = _write_stack(s, grid, slices, prog)
-    report["warnings"] = _check_built(report, params)
+    report["warnings"] = _check_built(report, params, [small_pieces])
     if out_path is not None:
         with prog.stage("write"):
             write_outputs(result, out_path)
@@ -468,7 +515,9 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
     """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`)."""
     from .grade import profiles
 
-    out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)"}
+    out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)",
+                           "seed_rule": "paper (graded: the paper's formula with the local pore size)",
+                           "seeds_paper_rule": None}
     info: dict[str, Any] = {"field": gfield.describe(), "kind": gfield.kind, "relax": params.relax,
                             "weighted": bool(params.weighted),
                             "seeding_voxel_mm": float(density.grid.spacing), "seed_margin_mm": density.margin,
@@ -540,7 +589,7 @@ def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
 
 
 def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, walls, grid: Grid, k, cutoff,
-                 level, porosity_voxel, fragments) -> dict:
+                 level, porosity_voxel, fragments, seed_solve=None) -> dict:
     """The report's keys that a whole-grid and a tiled run share."""
     from .metrics import cell_metrics
 
@@ -549,6 +598,7 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
         "rng_seed": params.seed,
         "patient": getattr(patient, "describe", lambda: type(patient).__name__.lower())(),
         "patient_volume_mm3": float(patient.volume),
+        "patient_source": _patient_source(patient),
         "box_volume_mm3": box_volume,
         "seeds": int(len(seeds)),
         "seeds_in": params.seeds_in,
@@ -556,6 +606,10 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
         "skin_mm": params.skin,
         "smooth_cut_mm": params.smooth_cut,
         "pore_size_target_mm": params.pore_size if params.seeds is None else None,
+        # how the seed count was chosen; the paper's formula's count beside it, for comparison
+        "seed_rule": None if params.seeds is not None else params.seed_rule,
+        "seeds_paper_rule": None if params.seeds is not None else _paper_count(params, patient, box_volume),
+        "seed_solve": seed_solve,
         "sf": params.sf,
         "sv": params.sv,
         "style": params.style,
@@ -576,6 +630,29 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
         report["strut_radius_mm"] = float(level)
     report.update(cell_metrics(cells, params.sf, params.sv, cells_in))
     return report
+
+
+def _patient_source(patient) -> dict | None:
+    """How to build the patient again: its file and options, or the built-in shape; None for an
+    object given to :func:`generate` directly."""
+    from .patient import SHAPES
+
+    source = getattr(patient, "load_options", None)  # set by patient_io.load_patient
+    if source is not None:
+        return dict(source)
+    for name, cls in SHAPES.items():
+        if type(patient) is cls:
+            return {"shape": name, "size": [float(v) for v in patient.size]}
+    return None
+
+
+def _paper_count(params: Params, patient, box_volume: float) -> int:
+    """The paper's seed count n = V P / (pi Dp^3 / 6) for these options (V: where the seeds are drawn)."""
+    from .seeds import seed_count
+
+    porosity = params.porosity if params.porosity is not None else closed_form_porosity(params.sf, params.sv)
+    return seed_count(box_volume if params.seeds_in == "box" else float(patient.volume), porosity,
+                      params.pore_size)
 
 
 class _RunPlan:
@@ -610,6 +687,15 @@ class _RunPlan:
             raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
                                 f"or .npy instead of {ext}, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
+        if self.params.remove_fragments:
+            from .pieces import label_pieces
+
+            # the slabs keep one main body for the whole grid: a second piece of bone would lose its scaffold
+            pieces = label_pieces(_coarse_patient(self.patient)[0] < 0)[1]
+            if pieces > 1:
+                raise ScaffoldError(f"{why}, and the patient is in {pieces} pieces, whose fragments a tiled run "
+                                    "cannot remove piece by piece yet: raise --max-memory, use a larger --voxel, "
+                                    "or pass --keep-fragments")
         from .tiled import SLAB_BYTES_PER_VOXEL
 
         voxels = slab_voxels(self.max_memory, held)  # raises when the cells leave no room
@@ -627,7 +713,8 @@ class _RunPlan:
 
 
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
-                    wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path) -> Result:
+                    wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
+                    seed_solve=None) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
     from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold
 
@@ -644,7 +731,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     try:
         cells_in = sample_slabs(tf.patient, grid, cells.seeds) < 0
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
-                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments)
+                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, seed_solve=seed_solve)
         report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
                            "max_memory_mb": round(run.max_memory / 2**20, 1),
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
@@ -745,7 +832,7 @@ def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
             "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3}
 
 
-def _check_built(report: dict, params: Params) -> list[str]:
+def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     """Warn (and list for the report) where what was built misses what was asked.
 
     Both cases come from struts thinner than a few voxels: removing the solid pieces they
@@ -761,8 +848,11 @@ def _check_built(report: dict, params: Params) -> list[str]:
     target, voxel = report["porosity_target"], report["porosity_voxel"]
     if target is not None and abs(voxel - target) > 0.005:
         removed = report.get("fragments_removed") or 0
-        why = (f"removing {removed} solid fragments not attached to the main body moved it"
-               if removed else "the patient's voxels leave no level closer")
+        volume = report.get("fragments_removed_mm3")
+        share = "" if volume is None else (f" ({volume:.4g} mm3, {100 * volume / report['patient_volume_mm3']:.2g} % "
+                                           "of the patient)")
+        why = (f"removing {removed} solid fragments{share} not attached to the main body of their patient piece "
+               "moved it" if removed else "the patient's voxels leave no level closer")
         found.append(f"porosity {voxel:.4f} misses the target {target:g}: {why}; the struts are "
                      f"under-resolved at {h:.3g} mm voxels: use a finer --voxel (e.g. {h / 2:.3g})"
                      + (" or --keep-fragments" if removed else ""))
@@ -770,6 +860,7 @@ def _check_built(report: dict, params: Params) -> list[str]:
         found.append(f"the mesh's porosity {report['porosity_mesh']:.4f} differs from the voxels' {voxel:.4f} "
                      f"by {100 * abs(report['porosity_mesh'] - voxel):.1f} points: marching cubes thins struts "
                      f"only a few voxels thick; a finer --voxel (e.g. {h / 2:.3g}) brings them together")
+    found += [m for m in found_before if m]
     for message in found:
         warnings.warn(message, ScaffoldWarning, stacklevel=3)
     return found

@@ -41,6 +41,11 @@ class Progress:
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
         check_interrupted()
 
+    def note(self, text: str) -> None:
+        """One line of what a stage found (e.g. how many seeds it drew), under the stage's line."""
+        if self.enabled:
+            print(f"    {text}", file=sys.stderr, flush=True)
+
     def bar(self, label: str):
         """A callback ``(done, total)`` for tiled work; draws a bar with an ETA on a terminal."""
         if not self._bar_enabled:

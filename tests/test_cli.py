@@ -22,11 +22,14 @@ def test_summary_lines(tmp_path, capsys):
     out = tmp_path / "f.npy"
     assert main(["generate", "-o", str(out), "--seeds", "30", "--size", "3", "--voxel", "0.1",
                  "--porosity", "none", "--blend", "0"]) == 0
-    text = capsys.readouterr().out
-    for word in ("seeds 30", "surface offset", "blend 0.0000 mm", "voxel 0.1000 mm", "grid", "porosity",
-                 "time:", "cells (paper): pore size", "interconnection", "voxels (spheres): strut thickness",
-                 "Conn.D"):
+    captured = capsys.readouterr()
+    text = captured.out
+    for word in ("seeds 30 (drawn in the box)", "surface offset", "blend 0.0000 mm", "voxel 0.1000 mm", "grid",
+                 "porosity", "time:", "cells (paper, means over the 30 cells in the scaffold): pore size",
+                 "interconnection", "voxels (spheres): strut thickness", "Conn.D"):
         assert word in text
+    # the progress line counts what the summary counts
+    assert "30 seeds drawn in the box" in captured.err
     import numpy as np
 
     field = np.load(out)
@@ -345,3 +348,22 @@ def test_interrupted_run_leaves_no_file(tmp_path, sig):
     _, err = p.communicate(timeout=300)
     assert p.returncode == 130 and "interrupted; no output written" in err and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
+
+
+def test_progress_and_summary_count_the_same_seeds(tmp_path, capsys):
+    # seeds drawn where the patient is: the progress line and the summary give the seeds drawn
+    # (patient and margin), and the summary the cells in the scaffold apart, with what each counts
+    import re
+
+    import trimesh
+
+    patient = tmp_path / "ball.stl"
+    trimesh.creation.icosphere(subdivisions=3, radius=2.0).export(patient)
+    out = tmp_path / "s.npy"
+    assert main(["generate", "--patient", str(patient), "--pore-size", "1", "--voxel", "0.1", "-o", str(out)]) == 0
+    captured = capsys.readouterr()
+    rep = json.loads((tmp_path / "s.json").read_text())
+    drawn = re.findall(r"(\d+) seeds drawn in the patient and one cell's margin", captured.err)
+    assert drawn and int(drawn[-1]) == rep["seeds"]
+    assert f"seeds {rep['seeds']} (drawn in the patient and one cell's margin)" in captured.out
+    assert f"{rep['cells_in_scaffold']} of the {rep['seeds']} cells in the scaffold" in captured.out

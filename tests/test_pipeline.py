@@ -102,7 +102,7 @@ def test_seeds_in_patient_follow_the_patient_volume():
     from implicit_scaffold.seeds import seed_count
 
     r = implicit_scaffold.generate(shape="sphere", size=8.0, seeds_in="patient", pore_size=1.0,
-                                   voxel=0.1, porosity=0.7)
+                                   voxel=0.1, porosity=0.7, seed_rule="paper")
     expected = seed_count(Sphere(8.0).volume, 0.7, 1.0)
     box_count = seed_count(512.0, 0.7, 1.0)
     assert expected < r.report["seeds"] < box_count

@@ -1,0 +1,69 @@
+"""Issue 17 benchmark: seeds in the box (the paper) against seeds where the bone is (the default with a patient).
+
+    python benchmarks/bench_seeds_in.py [--runs 1] [--voxel 0.1] [--pore-size 0.6]
+
+A 20 mm clip of the mean L3 vertebra, clouthier_lumbar_L3_mean.stl (x -30..-10, y 20..40,
+z -10..10 mm: a thin posterior part, about 1,100 mm3 of bone in its 8,000 mm3 box, as the
+issue's iliac wing and talus clips), pore size 0.6 mm, porosity 0.7. Runs ``--seeds-in box`` and ``--seeds-in patient`` (the default), each
+in a fresh process, and prints the cells built, the cells in the scaffold, the wall time and
+the peak resident memory of each, and the porosity and pore size that came out. Needs
+../shared/data (see its README). Timings on a shared machine are noisy.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+CLIP = (-30.0, 20.0, -10.0, -10.0, 40.0, 10.0)
+
+RUN = STAGE_MEMORY.replace("{", "{{").replace("}", "}}") + """
+from implicit_scaffold.patient_io import load_patient
+opencl.context()
+t0 = time.perf_counter()
+with measured('load'):
+    patient = load_patient({bone!r}, clip={clip!r})
+r = implicit_scaffold.generate(patient=patient, pore_size={pore}, porosity=0.7, voxel={voxel},
+                               seeds_in={seeds_in!r}, output=os.path.join(tempfile.mkdtemp(), 'head.stl'))
+rep = r.report
+_out = {{'total_s': time.perf_counter() - t0, 'stages': rep['timings_s'],
+        'patient_volume_mm3': rep['patient_volume_mm3'], 'box_volume_mm3': rep['box_volume_mm3'],
+        'seeds': rep['seeds'], 'cells_in_scaffold': rep['cells_in_scaffold'],
+        'porosity_voxel': rep['porosity_voxel'], 'pore_size_mm': rep['pore_size_mm']['mean'],
+        'triangles': rep['triangles'], 'bodies': rep['bodies'], 'cell_passes': len(rep['seed_solve'] or [1])}}
+"""
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--runs", type=int, default=1)
+    ap.add_argument("--voxel", type=float, default=0.1)
+    ap.add_argument("--pore-size", type=float, default=0.6)
+    args = ap.parse_args(argv)
+    bone = DATA / "clouthier_lumbar_L3_mean.stl"
+    if not bone.is_file():
+        print(f"needs {bone} (the shared data folder); nothing measured", file=sys.stderr)
+        return 1
+    rows, first = [], None
+    for where in ("box", "patient"):
+        code = RUN.format(bone=str(bone), clip=CLIP, pore=args.pore_size, voxel=args.voxel, seeds_in=where)
+        med, _ = median_runs(code, args.runs, warmup=0)
+        first = first or med
+        rows.append([where, f"{med['seeds']:.0f}", f"{med['cells_in_scaffold']:.0f}",
+                     f"{med['stages']['cells']:.2f} ({med['cell_passes']:.0f} passes)", f"{med['stages']['lattice']:.2f}", f"{med['total_s']:.1f}",
+                     f"{med['peak_rss_mb']:.0f}", f"{med['porosity_voxel']:.4f}", f"{med['pore_size_mm']:.4f}",
+                     f"{med['triangles']:.0f}", f"{med['bodies']:.0f}"])
+    print(f"L3 clip {CLIP} of clouthier_lumbar_L3_mean.stl: patient {first['patient_volume_mm3']:.0f} mm3 in a "
+          f"{first['box_volume_mm3']:.0f} mm3 box; pore size {args.pore_size} mm, porosity 0.7, voxel "
+          f"{args.voxel} mm; median of {args.runs} (shared machine: timings noisy)")
+    print(table(rows, ["seeds in", "cells", "cells in scaffold", "cells s", "lattice s", "total s",
+                       "peak RSS MiB", "porosity", "pore size mm", "triangles", "bodies"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
