@@ -139,6 +139,13 @@ def _add_build_options(g) -> None:
     frag.add_argument("--keep-fragments", dest="keep_fragments", action="store_true",
                       help="keep solid pieces not attached to the main body")
     g.set_defaults(keep_fragments=False)
+    voids = g.add_mutually_exclusive_group()
+    voids.add_argument("--fill-sealed-voids", dest="keep_sealed_voids", action="store_false",
+                       help="fill void pieces that do not reach the outside: closed cavities where resin or "
+                            "powder stays trapped (the default)")
+    voids.add_argument("--keep-sealed-voids", dest="keep_sealed_voids", action="store_true",
+                       help="keep them (they are counted in the report either way)")
+    g.set_defaults(keep_sealed_voids=False)
     g.add_argument("--seed", type=int, default=0, help="random seed; same inputs and seed, same bytes (default 0)")
     gg = g.add_argument_group("graded scaffolds (small pores at the cortex, large in the core)")
     gg.add_argument("--grade", default=None, metavar="DEPTH:SIZE,...",
@@ -211,7 +218,8 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                     shape=args.shape, size=args.size, seeds_in=args.seeds_in, skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
-                    remove_fragments=not args.keep_fragments, **graded)
+                    remove_fragments=not args.keep_fragments, fill_sealed_voids=not args.keep_sealed_voids,
+                    **graded)
 
 
 def _generate(args) -> int:
@@ -240,6 +248,10 @@ def _generate(args) -> int:
         ]
         if "triangles" in r:
             lines.append(f"  triangles {r['triangles']}, bodies {r['bodies']}, watertight {r['watertight']}")
+        sealed = r.get("sealed_voids")
+        if sealed and sealed["count"]:
+            lines.append(f"  sealed voids {sealed['count']} ({sealed['volume_mm3']:.4g} mm3), "
+                         + ("filled" if sealed["filled"] else "kept (--keep-sealed-voids)"))
         lines += _metric_lines(r)
         if r.get("grade"):
             lines.append(_grade_line(r["grade"]))

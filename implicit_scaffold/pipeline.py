@@ -14,7 +14,7 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import (blend_field, check_porosity, remove_fragments, sample, scaffold_field,
+from .field import (blend_field, check_porosity, fill_sealed_voids, remove_fragments, sample, scaffold_field,
                     solve_level_cut)
 from .grid import Grid, check_memory, run_bytes_per_voxel
 from .progress import Progress
@@ -47,6 +47,8 @@ class Params:
     voxel: float | None = None
     seed: int = 0
     remove_fragments: bool = True
+    #: fill the void pieces that do not reach the outside (closed cavities in the print)
+    fill_sealed_voids: bool = True
     seeds_in: str = "box"
     skin: float = 0.0
     smooth_cut: float = 0.0
@@ -149,7 +151,8 @@ def validate(**options) -> Params:
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, seed=seed,
                   voxel=None if p.voxel is None else positive_mm("voxel", p.voxel, example="0.04"),
-                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, **widths, **graded)
+                  remove_fragments=bool(p.remove_fragments), fill_sealed_voids=bool(p.fill_sealed_voids),
+                  seeds_in=seeds_in, **widths, **graded)
 
 
 def _validate_grade(p: Params, seeds, widths: dict) -> dict:
@@ -233,7 +236,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments, grade, calibration, relax, weighted (see :class:`Params`).
+        remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted (see :class:`Params`).
 
     Returns
     -------
@@ -392,11 +395,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                            smooth_cut=params.smooth_cut, out=base)
         del base
         fragments = remove_fragments(s, outside=h) if params.remove_fragments else None
+        sealed = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids)
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
-                          porosity_voxel, fragments)
+                          porosity_voxel, fragments, sealed)
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
@@ -525,7 +529,7 @@ def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
 
 
 def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, walls, grid: Grid, k, cutoff,
-                 level, porosity_voxel, fragments) -> dict:
+                 level, porosity_voxel, fragments, sealed) -> dict:
     """The report's keys that a whole-grid and a tiled run share."""
     from .metrics import cell_metrics
 
@@ -553,6 +557,9 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
         "cutoff_mm": float(cutoff),
         "porosity_voxel": porosity_voxel,
         "fragments_removed": fragments,
+        # counted before filling; a filled void is solid in the field, the mesh and the slices
+        "sealed_voids": {"count": int(sealed[0]), "volume_mm3": float(sealed[1] * float(grid.spacing) ** 3),
+                         "filled": bool(params.fill_sealed_voids)},
         "wall_thickness_mm": _report_stats(walls) if walls.size else None,
     }
     if params.style == "paper":
@@ -623,13 +630,14 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
+                            fill_sealed_voids=params.fill_sealed_voids,
                             prog=prog)
     finally:
         runner.close()
     try:
         cells_in = sample_slabs(tf.patient, grid, cells.seeds) < 0
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
-                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments)
+                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, tf.sealed)
         report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
                            "max_memory_mb": round(run.max_memory / 2**20, 1),
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
