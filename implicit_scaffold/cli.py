@@ -242,9 +242,7 @@ def _generate(args) -> int:
             f"  seeds {r['seeds']}, Sf {r['sf']:g}, Sv {r['sv']:g}, style {r['style']}",
             f"  {offset}, blend {r['blend_mm']:.4f} mm",
             f"  voxel {r['voxel_mm']:.4f} mm, grid {'x'.join(str(v) for v in r['grid_shape'])}",
-            f"  porosity: target {target}, closed form {r['porosity_closed_form']:.4f}, "
-            f"voxels {r['porosity_voxel']:.4f}"
-            + (f", mesh {r['porosity_mesh']:.4f}" if "porosity_mesh" in r else ""),
+            _porosity_line(r, target),
         ]
         if "triangles" in r:
             lines.append(f"  triangles {r['triangles']}, bodies {r['bodies']}, watertight {r['watertight']}")
@@ -260,6 +258,18 @@ def _generate(args) -> int:
                      + f"; total {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
     return 0
+
+
+def _porosity_line(r: dict, target: str) -> str:
+    """The headline: the porosity printed (the mesh's volume or the slices' grey levels), the voxels' beside it."""
+    how = (r.get("printed_level") or {}).get("by")
+    printed = r.get("porosity_printed")
+    head = f"  porosity: target {target}"
+    if printed is not None:
+        head += f", printed {printed:.4f} ({'mesh' if 'porosity_mesh' in r else 'slices'}"
+        head += ", level solved for it)" if how else ")"
+    head += f", voxels {r['porosity_voxel']:.4f}, closed form {r['porosity_closed_form']:.4f}"
+    return head
 
 
 def _metric_lines(r: dict) -> list[str]:
@@ -376,9 +386,8 @@ def _slice(args) -> int:
             f"to {args.output}",
             f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
-            f"  porosity: target {'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f')}, "
-            f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, "
-            f"voxels {solid:.4g} mm3",
+            _porosity_line(r, 'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f'))
+            + f"; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, voxels {solid:.4g} mm3",
             _memory_line(r),
             f"  time: {time.perf_counter() - t0:.1f} s",
         ]))

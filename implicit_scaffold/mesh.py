@@ -143,6 +143,46 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     return trimesh.Trimesh(vertices=_index_to_mm(verts, grid), faces=faces, process=False, validate=False)
 
 
+def prism_volume(field, spacing: float, *, y_faces: bool = False, z_faces: bool = False) -> tuple[float, float]:
+    """Volume and area of :func:`mesh_field`'s solid inside a prism that spans every x plane.
+
+    The prism's x faces are the grid's (forced outside, as :func:`mesh_field` does), its
+    y and z faces lie on voxel-centre planes inside the grid: the surface there is open,
+    and no cap is needed, since ``V = ∮ x n_x dA`` gets nothing from faces normal to y or
+    z. So the volume is exactly what the whole mesh holds in the prism, at the cost of
+    marching cubes on the prism only.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float32 ndarray, mm
+        The scaffold field on the prism (solid below 0); `nx` is the whole grid's.
+    spacing : float, mm
+    y_faces, z_faces : bool
+        The prism's y (z) faces are the grid's: forced outside too.
+
+    Returns
+    -------
+    (float, float)
+        Solid volume in the prism, mm^3, and the surface area in it, mm^2.
+    """
+    work = np.empty(field.shape, dtype=np.float32)
+    _prepare_planes(field, work, 0.0, float(spacing))
+    faces = [work[0], work[-1]] + ([work[:, 0], work[:, -1]] if y_faces else []) \
+        + ([work[:, :, 0], work[:, :, -1]] if z_faces else [])
+    for face in faces:
+        np.maximum(face, np.float32(1.0), out=face)
+    if not work.min() < 0:
+        return 0.0, 0.0
+    _break_face_ties(work)
+    verts, tris = _surface(work)
+    a, b, c = (verts[tris[:, i]].astype(np.float64) for i in range(3))
+    n = np.cross(b - a, c - a)  # twice the area, along the outward normal
+    h = float(spacing)
+    volume = float(np.sum((a[:, 0] + b[:, 0] + c[:, 0]) * n[:, 0]) / 6.0) * h ** 3
+    area = float(np.sum(np.linalg.norm(n, axis=1)) / 2.0) * h ** 2
+    return volume, area
+
+
 def _surface(work: np.ndarray, index=np.int64):
     """Marching cubes at 0 of a prepared, tie-broken copy: ``(verts, faces)``.
 

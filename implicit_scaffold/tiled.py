@@ -305,7 +305,8 @@ def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: Fie
 
 def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
-                   max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True) -> TiledField:
+                   max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
+                   printed=None) -> TiledField:
     """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
 
     Parameters
@@ -330,6 +331,9 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     prog : Progress, optional
     fill_sealed_voids : bool
         Fill the void pieces that do not reach the outside (always counted).
+    printed : (bands, callable(base, patient, level) -> level), optional
+        The calibration prism's y and z bands and the search for the level of what is
+        printed (:mod:`.printed`), given the prism's lattice and patient fields.
 
     Returns
     -------
@@ -355,6 +359,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             with prog.stage("offset"):
                 level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
                                      prog.bar("offset"))
+            if printed is not None:
+                (ys, zs), search = printed
+                with prog.stage("printed"):
+                    level = search(read_prism(field, slabs, ys, zs), read_prism(patient_file, slabs, ys, zs), level)
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
@@ -402,6 +410,14 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
     return solid, found, 1
+
+
+def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
+    """``source[:, ys, zs]`` of a field on disk, slab by slab, float32."""
+    out = np.empty((source.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.float32)
+    for slab in slabs:
+        out[slab.x0:slab.x1] = source.read(slab.x0, slab.x1)[:, ys, zs]
+    return out
 
 
 def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool) -> tuple[int, int]:
