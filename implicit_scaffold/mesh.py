@@ -784,6 +784,19 @@ def _stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, r
 # --------------------------------------------------------------------------- summary
 
 
+def mesh_volume(mesh) -> float:
+    """Signed enclosed volume of a mesh, mm^3, as :func:`mesh_summary` sums it.
+
+    A compiled loop over the triangles: trimesh's ``volume`` computes the whole mass
+    properties (inertia included) with many ``(F, 3)`` temporaries, 19 s on the default
+    cube's 10 M triangles against about 1 s here (same run, shared 2-core machine).
+    """
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if not len(faces):
+        return 0.0
+    return float(_face_measures(np.asarray(mesh.vertices, dtype=np.float64), faces)[1].sum())
+
+
 def mesh_summary(mesh) -> dict:
     """Counts and measures of a triangle mesh.
 

@@ -426,17 +426,18 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
     if mesh:
-        from .mesh import mesh_field, mesh_summary
+        from .mesh import mesh_field, mesh_summary, mesh_volume
 
         with prog.stage("mesh"):
             # mesh_summary below checks closure and winding; no need to check twice
             result.mesh = mesh_field(s, grid, check=False)
-            summary = mesh_summary(result.mesh)
-            step = _mesh_correction(summary, patient, params, calibration)
+            # the volume alone decides on a correction; the full summary is of the final mesh
+            step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
             if step is not None:
                 # s = max(lattice - level, patient): the new level's field, exactly, as the
                 # step is far below a voxel (removed fragments and filled voids keep their
                 # sign); the step may break a thin bridge or add an isolated voxel: clean again
+                result.mesh = None  # its memory, before the second mesh
                 np.maximum(s - np.float32(step), s_p, out=s)
                 if params.remove_fragments:
                     report["fragments_removed"] += remove_fragments(s, outside=h)
@@ -446,7 +447,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = float(level + step)
                 report["porosity_voxel"] = 1.0 - int(np.count_nonzero(s < 0)) / n_inside
                 result.mesh = mesh_field(s, grid, check=False)
-                summary = mesh_summary(result.mesh)
+            summary = mesh_summary(result.mesh)
         report.update({
             "triangles": summary["triangles"],
             "watertight": summary["watertight"],
@@ -553,13 +554,13 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
     return float(k), float(cutoff), next_cutoff
 
 
-def _mesh_correction(summary: dict, patient, params: Params, calibration) -> float | None:
+def _mesh_correction(volume: float, patient, params: Params, calibration) -> float | None:
     """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`."""
     from .printed import correction
 
     if not calibration or calibration.get("by") != "mesh":
         return None
-    printed = 1.0 - summary["volume_mm3"] / float(patient.volume)
+    printed = 1.0 - volume / float(patient.volume)
     step = correction(printed, params.porosity, calibration)
     if step is not None:
         calibration.update(corrected_by_mm=float(step), printed_before_correction=printed)
