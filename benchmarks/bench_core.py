@@ -1,7 +1,8 @@
 """Issue 2 benchmarks: B1 "paper cube", the paper's Fig. 9, B3 "peer" (PoreSpy's voronoi_edges);
-issue 11: B1's lattice kernel on every OpenCL device that works on this machine ("devices").
+issue 11: B1's lattice kernel on every OpenCL device that works on this machine ("devices");
+issue 13's MC: VTK's flying edges (the mesher) against scikit-image's Lewiner marching cubes.
 
-    python benchmarks/bench_core.py [--runs 3] [--only devices,b1,fig9,b3]
+    python benchmarks/bench_core.py [--runs 3] [--only devices,b1,fig9,b3,mc]
 
 Each figure is the median of --runs runs after a warm-up, each run in a fresh process
 (so its peak memory is its own). 2-core machines are noisy: read the medians.
@@ -152,6 +153,40 @@ def devices(runs):
     print(table(rows, ["device", "Mvoxel/s", "first call s", "max |kernel - oracle| mm",
                        "max |field - first device's| mm"]))
     print(f"chosen by default on this machine: {med['chosen']}")
+MC = """
+import time
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold import mesh as M
+from skimage.measure import marching_cubes
+r = implicit_scaffold.generate(seeds=500, porosity=0.8, voxel=0.04, mesh=False, morphometry=False)
+work = M._prepare_field(r.field, r.grid, 0.0)
+M._break_face_ties(work)
+t0 = time.perf_counter()
+v, f = M._flying_edges(work)
+t1 = time.perf_counter()
+lv, lf, _, _ = marching_cubes(work, 0.0, method='lewiner')
+t2 = time.perf_counter()
+vol = lambda v, f: abs(np.einsum('ij,ij->i', v[f[:, 0]].astype(float),
+                                 np.cross(v[f[:, 1]].astype(float), v[f[:, 2]].astype(float))).sum() / 6)
+_out = {'grid': 'x'.join(map(str, work.shape)), 'flying_edges_s': t1 - t0, 'lewiner_s': t2 - t1,
+        'fe_triangles': len(f), 'lewiner_triangles': len(lf), 'fe_bad_edges': M._bad_edge_count(f, len(v)),
+        'fe_volume_vox': vol(v, f), 'lewiner_volume_vox': vol(lv, lf),
+        'ambiguous_faces': len(M._ambiguous_faces(work))}
+"""
+
+
+def mc(runs):
+    med, _ = median_runs(MC, runs)
+    print(f"\nMC: marching cubes of the B1 field (grid {med['grid']}, prepared and tie-broken), same process, "
+          f"median of {runs} runs after a warm-up")
+    print(table([["VTK vtkFlyingEdges3D (the mesher)", f"{med['flying_edges_s']:.3f}", med["fe_triangles"],
+                  f"{med['fe_volume_vox']:.0f}"],
+                 ["scikit-image marching_cubes (lewiner)", f"{med['lewiner_s']:.3f}", med["lewiner_triangles"],
+                  f"{med['lewiner_volume_vox']:.0f}"]],
+                ["", "seconds", "triangles", "volume (voxels)"]))
+    print(f"speed-up {med['lewiner_s'] / med['flying_edges_s']:.1f}x; flying edges' open or inconsistent edges: "
+          f"{med['fe_bad_edges']}; ambiguous faces in the field: {med['ambiguous_faces']}")
 
 
 def b1(runs):
@@ -215,7 +250,7 @@ def b3(runs):
 def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--runs", type=int, default=3)
-    ap.add_argument("--only", default="devices,b1,fig9,b3")
+    ap.add_argument("--only", default="devices,b1,fig9,b3,mc")
     args = ap.parse_args()
     from implicit_scaffold import opencl
 
@@ -223,7 +258,7 @@ def main():
     print(f"load average at start (1, 5, 15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
           f"on {os.cpu_count()} CPUs")
     for name in args.only.split(","):
-        {"devices": devices, "b1": b1, "fig9": fig9, "b3": b3}[name.strip()](args.runs)
+        {"devices": devices, "b1": b1, "fig9": fig9, "b3": b3, "mc": mc}[name.strip()](args.runs)
 
 
 if __name__ == "__main__":

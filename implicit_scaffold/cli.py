@@ -167,6 +167,13 @@ def _add_build_options(g) -> None:
     frag.add_argument("--keep-fragments", dest="keep_fragments", action="store_true",
                       help="keep solid pieces not attached to the main body")
     g.set_defaults(keep_fragments=False)
+    voids = g.add_mutually_exclusive_group()
+    voids.add_argument("--fill-sealed-voids", dest="keep_sealed_voids", action="store_false",
+                       help="fill void pieces that do not reach the outside: closed cavities where resin or "
+                            "powder stays trapped (the default)")
+    voids.add_argument("--keep-sealed-voids", dest="keep_sealed_voids", action="store_true",
+                       help="keep them (they are counted in the report either way)")
+    g.set_defaults(keep_sealed_voids=False)
     g.add_argument("--seed", type=int, default=0, help="random seed; same inputs and seed, same bytes (default 0)")
     gg = g.add_argument_group("graded scaffolds (small pores at the cortex, large in the core)")
     gg.add_argument("--grade", default=None, metavar="DEPTH:SIZE,...",
@@ -253,7 +260,8 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                     skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
-                    remove_fragments=not args.keep_fragments, **graded)
+                    remove_fragments=not args.keep_fragments, fill_sealed_voids=not args.keep_sealed_voids,
+                    **graded)
 
 
 def _certificate_lines(cert: dict) -> list[str]:
@@ -331,12 +339,14 @@ def _generate(args) -> int:
             _seeds_line(r),
             f"  {offset}, blend {r['blend_mm']:.4f} mm",
             f"  voxel {r['voxel_mm']:.4f} mm, grid {'x'.join(str(v) for v in r['grid_shape'])}",
-            f"  porosity: target {target}, closed form {r['porosity_closed_form']:.4f}, "
-            f"voxels {r['porosity_voxel']:.4f}"
-            + (f", mesh {r['porosity_mesh']:.4f}" if "porosity_mesh" in r else ""),
+            _porosity_line(r, target),
         ]
         if "triangles" in r:
             lines.append(f"  triangles {r['triangles']}, bodies {r['bodies']}, watertight {r['watertight']}")
+        sealed = r.get("sealed_voids")
+        if sealed and sealed["count"]:
+            lines.append(f"  sealed voids {sealed['count']} ({sealed['volume_mm3']:.4g} mm3), "
+                         + ("filled" if sealed["filled"] else "kept (--keep-sealed-voids)"))
         lines += _metric_lines(r)
         if r.get("grade"):
             lines.append(_grade_line(r["grade"]))
@@ -366,6 +376,18 @@ def _seeds_line(r: dict) -> str:
     elif rule == "paper":
         text += f"\n  seed rule paper: n = V P / (pi Dp^3 / 6) for Dp = {r['pore_size_target_mm']:g} mm"
     return text
+
+
+def _porosity_line(r: dict, target: str) -> str:
+    """The headline: the porosity printed (the mesh's volume or the slices' grey levels), the voxels' beside it."""
+    how = (r.get("printed_level") or {}).get("by")
+    printed = r.get("porosity_printed")
+    head = f"  porosity: target {target}"
+    if printed is not None:
+        head += f", printed {printed:.4f} ({'mesh' if 'porosity_mesh' in r else 'slices'}"
+        head += ", level solved for it)" if how else ")"
+    head += f", voxels {r['porosity_voxel']:.4f}, closed form {r['porosity_closed_form']:.4f}"
+    return head
 
 
 def _metric_lines(r: dict) -> list[str]:
@@ -504,9 +526,8 @@ def _slice(args) -> int:
             f"to {args.output}",
             f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
-            f"  porosity: target {'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f')}, "
-            f"voxels {r['porosity_voxel']:.4f}; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, "
-            f"voxels {solid:.4g} mm3",
+            _porosity_line(r, 'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f'))
+            + f"; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, voxels {solid:.4g} mm3",
             *(_certificate_lines(r["print_check"]) if isinstance(r.get("print_check"), dict) else []),
             _memory_line(r),
             f"  time: {time.perf_counter() - t0:.1f} s",

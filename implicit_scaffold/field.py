@@ -170,6 +170,74 @@ def remove_fragments(field: np.ndarray, *, outside: float) -> int:
     return count - 1
 
 
+def void_mask(field: np.ndarray, *, first_x: bool = True, last_x: bool = True) -> np.ndarray:
+    """The void as the mesher sees it: ``field >= 0``, with the grid's outer layer of voxels void.
+
+    Marching cubes forces that layer outside (:func:`~implicit_scaffold.mesh.mesh_field`),
+    so a void piece touching it is open to the outside. `field` may be a slab of x
+    planes: its y and z faces are the grid's, its first and last planes only where
+    `first_x` / `last_x` say so.
+    """
+    void = field >= 0
+    void[:, 0] = void[:, -1] = True
+    void[:, :, 0] = void[:, :, -1] = True
+    if first_x:
+        void[0] = True
+    if last_x:
+        void[-1] = True
+    return void
+
+
+def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True) -> tuple[int, int]:
+    """Turn every void piece that does not reach the grid's outer layer into solid, in place.
+
+    A piece is a 6-connected set of void voxels (:func:`void_mask`). A sealed one
+    meshes as a closed cavity shell inside the solid, where resin or powder stays
+    trapped. The largest void piece is never filled: it is the outside, or, behind a
+    ``--skin`` that closes the patient surface, the porous interior the user asked for. Filling only adds solid next to solid, so it neither splits the solid nor
+    opens another void; it runs after :func:`remove_fragments` (a fragment floating in
+    a cavity joins the cavity). Once both ran, the solid is one 6-connected piece and
+    every void voxel is 6-connected to the outside: marching cubes then gives exactly
+    one closed surface.
+
+    Parameters
+    ----------
+    field : float32 ndarray, mm
+        Scaffold field, negative in the solid; modified in place when `fill`.
+    inside : float, mm
+        Magnitude of the (negative) value written into filled voxels, e.g. one voxel.
+    fill : bool
+        False only counts them.
+
+    Returns
+    -------
+    (int, int)
+        Sealed pieces and their voxels, counted before filling (the report's ``sealed_voids``).
+    """
+    from scipy import ndimage
+
+    labels, count = ndimage.label(void_mask(field))
+    if count <= 1:
+        return 0, 0
+    sealed = _sealed_labels(labels, count)
+    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes[0] = 0
+    sealed[int(np.argmax(sizes))] = False
+    n, voxels = int(np.count_nonzero(sealed)), int(sizes[sealed].sum())
+    if fill and n:
+        field[sealed[labels]] = -np.float32(inside)
+    return n, voxels
+
+
+def _sealed_labels(labels: np.ndarray, count: int) -> np.ndarray:
+    """``(count + 1,)`` bool: the labels that touch no face of the grid (label 0, solid, excluded)."""
+    sealed = np.ones(count + 1, bool)
+    sealed[0] = False
+    for face in (labels[0], labels[-1], labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]):
+        sealed[face] = False
+    return sealed
+
+
 def solve_level_cut(field: np.ndarray, patient_sdf: np.ndarray, porosity: float, *, skin: float = 0.0,
                     smooth_cut: float = 0.0, iterations: int = 8) -> float:
     """The level that meets `porosity` after a skin or a smooth cut is applied.

@@ -143,27 +143,98 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     return trimesh.Trimesh(vertices=_index_to_mm(verts, grid), faces=faces, process=False, validate=False)
 
 
+def prism_volume(field, spacing: float, *, y_faces: bool = False, z_faces: bool = False) -> tuple[float, float]:
+    """Volume and area of :func:`mesh_field`'s solid inside a prism that spans every x plane.
+
+    The prism's x faces are the grid's (forced outside, as :func:`mesh_field` does), its
+    y and z faces lie on voxel-centre planes inside the grid: the surface there is open,
+    and no cap is needed, since ``V = ∮ x n_x dA`` gets nothing from faces normal to y or
+    z. So the volume is exactly what the whole mesh holds in the prism, at the cost of
+    marching cubes on the prism only.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float32 ndarray, mm
+        The scaffold field on the prism (solid below 0); `nx` is the whole grid's.
+    spacing : float, mm
+    y_faces, z_faces : bool
+        The prism's y (z) faces are the grid's: forced outside too.
+
+    Returns
+    -------
+    (float, float)
+        Solid volume in the prism, mm^3, and the surface area in it, mm^2.
+    """
+    work = np.empty(field.shape, dtype=np.float32)
+    _prepare_planes(field, work, 0.0, float(spacing))
+    faces = [work[0], work[-1]] + ([work[:, 0], work[:, -1]] if y_faces else []) \
+        + ([work[:, :, 0], work[:, :, -1]] if z_faces else [])
+    for face in faces:
+        np.maximum(face, np.float32(1.0), out=face)
+    if not work.min() < 0:
+        return 0.0, 0.0
+    _break_face_ties(work)
+    verts, tris = _surface(work)
+    a, b, c = (verts[tris[:, i]].astype(np.float64) for i in range(3))
+    n = np.cross(b - a, c - a)  # twice the area, along the outward normal
+    h = float(spacing)
+    volume = float(np.sum((a[:, 0] + b[:, 0] + c[:, 0]) * n[:, 0]) / 6.0) * h ** 3
+    area = float(np.sum(np.linalg.norm(n, axis=1)) / 2.0) * h ** 2
+    return volume, area
+
+
 def _surface(work: np.ndarray, index=np.int64):
     """Marching cubes at 0 of a prepared, tie-broken copy: ``(verts, faces)``.
 
     ``verts`` ``(V, 3)`` float32, voxel index coordinates of `work`; ``faces`` ``(F, 3)``
-    `index` (int64, or int32, which scikit-image's numbers fit), without duplicate
-    vertices or collapsed triangles, wound so that normals point out of the solid.
+    `index` (int64, or int32, which the numbers fit), without duplicate vertices or
+    collapsed triangles, wound so that normals point out of the solid.
+
+    VTK's flying edges (``vtkFlyingEdges3D``; VTK comes with pyvista) computes it: 4 to 6
+    times faster than scikit-image's Lewiner marching cubes on our fields (same run, see
+    ``benchmarks/bench_core.py``), one vertex per cut edge, and its output order does not
+    depend on its threads. Its case table settles an ambiguous face by the corners' signs
+    alone, so the two cubes sharing the face agree and the surface is closed (the tests
+    check closedness and orientation on noise fields with thousands of ambiguous faces);
+    a grid edge whose two ends are void is never cut, so 6-connected void stays connected
+    and 6-connected solid stays one body, which is what fragment removal and void filling
+    count.
     """
-    from skimage.measure import marching_cubes
-
-    verts, faces, _normals, _values = marching_cubes(work, 0.0, method="lewiner",
-                                                     gradient_direction="descent")
-    del _normals, _values
+    verts, faces = _flying_edges(work)
     faces = np.ascontiguousarray(faces, dtype=index)
-    verts = np.ascontiguousarray(verts, dtype=np.float32)
-
     verts, faces = _merge_duplicate_vertices(verts, faces)
     faces = faces.astype(index, copy=False)
     # Marching cubes orients every triangle the same way relative to the field's
-    # gradient; which way "descent" is, is checked once on a one-voxel solid.
+    # gradient; which way that is, is checked once on a one-voxel solid.
     if not _descent_points_out():
         faces = np.ascontiguousarray(faces[:, ::-1])
+    return verts, faces
+
+
+def _flying_edges(work: np.ndarray):
+    """VTK's flying edges at 0 of a float32 C-order array: ``(V, 3)`` float32 index coordinates,
+    ``(F, 3)`` int64 triangles (VTK's own winding)."""
+    from vtkmodules.util.numpy_support import numpy_to_vtk, vtk_to_numpy
+    from vtkmodules.vtkCommonDataModel import vtkImageData
+    from vtkmodules.vtkFiltersCore import vtkFlyingEdges3D
+
+    work = np.ascontiguousarray(work, dtype=np.float32)
+    nx, ny, nz = work.shape
+    image = vtkImageData()
+    image.SetDimensions(nz, ny, nx)  # VTK's first axis varies fastest: our z
+    image.GetPointData().SetScalars(numpy_to_vtk(work.reshape(-1), deep=False))
+    flying = vtkFlyingEdges3D()
+    flying.SetInputData(image)
+    flying.SetValue(0, 0.0)
+    flying.ComputeNormalsOff()
+    flying.ComputeGradientsOff()
+    flying.ComputeScalarsOff()
+    flying.Update()
+    out = flying.GetOutput()
+    if out.GetNumberOfPoints() == 0:
+        return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64)
+    verts = np.ascontiguousarray(vtk_to_numpy(out.GetPoints().GetData())[:, ::-1], dtype=np.float32)
+    faces = vtk_to_numpy(out.GetPolys().GetConnectivityArray()).reshape(-1, 3).astype(np.int64)
     return verts, faces
 
 
@@ -458,16 +529,14 @@ def _face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
 
 @functools.lru_cache(maxsize=None)
 def _descent_points_out() -> bool:
-    """Whether scikit-image's "descent" winding gives outward normals for ``field < level``.
+    """Whether flying edges' winding gives outward normals for ``field < level``.
 
     Decided once, on a single solid voxel: its octahedron's signed volume.
     """
-    from skimage.measure import marching_cubes
-
     probe = np.ones((3, 3, 3), dtype=np.float32)
     probe[1, 1, 1] = -1.0
-    verts, faces, _, _ = marching_cubes(probe, 0.0, method="lewiner", gradient_direction="descent")
-    return bool(_face_measures(verts.astype(np.float64), faces.astype(np.int64))[1].sum() > 0)
+    verts, faces = _flying_edges(probe)
+    return bool(_face_measures(verts.astype(np.float64), faces)[1].sum() > 0)
 
 
 # --------------------------------------------------------------------------- compiled kernels
@@ -713,6 +782,19 @@ def _stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, r
 
 
 # --------------------------------------------------------------------------- summary
+
+
+def mesh_volume(mesh) -> float:
+    """Signed enclosed volume of a mesh, mm^3, as :func:`mesh_summary` sums it.
+
+    A compiled loop over the triangles: trimesh's ``volume`` computes the whole mass
+    properties (inertia included) with many ``(F, 3)`` temporaries, 19 s on the default
+    cube's 10 M triangles against about 1 s here (same run, shared 2-core machine).
+    """
+    faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    if not len(faces):
+        return 0.0
+    return float(_face_measures(np.asarray(mesh.vertices, dtype=np.float64), faces)[1].sum())
 
 
 def mesh_summary(mesh) -> dict:

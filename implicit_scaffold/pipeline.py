@@ -14,7 +14,7 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import blend_field, check_porosity, sample, scaffold_field, solve_level_cut
+from .field import blend_field, check_porosity, fill_sealed_voids, sample, scaffold_field, solve_level_cut
 from .grid import Grid, check_memory, run_bytes_per_voxel
 from .progress import Progress
 from .seeds import SEED_RULES
@@ -27,6 +27,10 @@ FIELD_FORMATS = (".npy", ".vti", ".nii.gz", ".nii", ".nrrd", ".mha", ".tif", ".t
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
+#: printed porosity this far from the target (a fraction) is warned about
+PRINTED_TOLERANCE = 0.003
+#: voxel and printed porosity this far apart say the walls are under-resolved
+UNRESOLVED = 0.05
 #: voxels across the median wall when the voxel size is left to the tool
 VOXELS_PER_WALL = 4.0
 
@@ -47,6 +51,8 @@ class Params:
     voxel: float | None = None
     seed: int = 0
     remove_fragments: bool = True
+    #: fill the void pieces that do not reach the outside (closed cavities in the print)
+    fill_sealed_voids: bool = True
     #: where the seeds are drawn: "box" (the paper) or "patient" (plus one cell); None: the patient
     #: when one is given to :func:`generate`, the box for the built-in shapes (which fill it anyway)
     seeds_in: str | None = None
@@ -157,8 +163,8 @@ def validate(**options) -> Params:
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, seed=seed,
                   voxel=None if p.voxel is None else positive_mm("voxel", p.voxel, example="0.04"),
-                  remove_fragments=bool(p.remove_fragments), seeds_in=seeds_in, seed_rule=seed_rule, **widths,
-                  **graded)
+                  remove_fragments=bool(p.remove_fragments), fill_sealed_voids=bool(p.fill_sealed_voids),
+                  seeds_in=seeds_in, seed_rule=seed_rule, **widths, **graded)
 
 
 def _validate_grade(p: Params, seeds, widths: dict) -> dict:
@@ -245,7 +251,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         lands in ``report["print_check"]``.
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments, grade, calibration, relax, weighted (see :class:`Params`).
+        remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted (see :class:`Params`).
 
     Returns
     -------
@@ -406,6 +412,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             plan = grading.level_plan(gfield, s_p, grid)
     h = grid.spacing
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
+    calibration = None
     for _ in range(6):
         with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
             if params.style == "paper":
@@ -422,6 +429,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             else:
                 level = 0.0 if params.porosity is None else solve_level_cut(
                     base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
+        printed = _printed_kind(params, mesh, slices, graded=plan is not None)
+        if printed is not None:
+            with prog.stage("printed", f"the level for the {printed}"):
+                ys, zs = _prism(grid)
+                level, calibration = _printed_level(printed, base[:, ys, zs], s_p[:, ys, zs], level, grid, params,
+                                                    slices, ys, zs)
         # every value that the level and the blend read must be unclamped
         wider = next_cutoff(level, cutoff)
         if wider is None:
@@ -441,16 +454,21 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         pieces, n_pieces = label_pieces(inside)
         removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
         fragments = None if removal is None else removal["removed"]
+        sealed = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids)
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
         piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
         del pieces
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
-                          porosity_voxel, fragments, seed_solve=tried or None)
+                          porosity_voxel, fragments, sealed, seed_solve=tried or None)
     report["fragments_removed_mm3"] = None if removal is None else removal["removed_voxels"] * grid.voxel_volume
     report["patient_pieces_count"] = n_pieces
     report["patient_pieces"] = piece_rows[:REPORT_PIECES]
+    report["printed_level"] = calibration
+    if report["printed_level"] is None and params.porosity is not None:
+        report["printed_level"] = {"by": None, "why": "graded: the level is solved per depth bin in voxels"
+                                   if graded else "no mesh or slices: the field meets the target in voxels"}
     if graded:
         with prog.stage("profiles"):
             report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
@@ -464,11 +482,28 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
     if mesh:
-        from .mesh import mesh_field, mesh_summary
+        from .mesh import mesh_field, mesh_summary, mesh_volume
 
         with prog.stage("mesh"):
             # mesh_summary below checks closure and winding; no need to check twice
             result.mesh = mesh_field(s, grid, check=False)
+            # the volume alone decides on a correction; the full summary is of the final mesh
+            step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
+            if step is not None:
+                # s = max(lattice - level, patient): the new level's field, exactly, as the
+                # step is far below a voxel (removed fragments and filled voids keep their
+                # sign); the step may break a thin bridge or add an isolated voxel: clean again
+                result.mesh = None  # its memory, before the second mesh
+                np.maximum(s - np.float32(step), s_p, out=s)
+                if params.remove_fragments:
+                    report["fragments_removed"] += remove_fragments_by_piece(
+                        s, label_pieces(s_p < 0)[0], outside=h)["removed"]
+                more = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids)
+                report["sealed_voids"]["count"] += more[0]
+                report["sealed_voids"]["volume_mm3"] += more[1] * h ** 3
+                report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = float(level + step)
+                report["porosity_voxel"] = 1.0 - int(np.count_nonzero(s < 0)) / n_inside
+                result.mesh = mesh_field(s, grid, check=False)
             summary = mesh_summary(result.mesh)
         report.update({
             "triangles": summary["triangles"],
@@ -479,6 +514,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             "surface_area_mm2": summary["surface_area_mm2"],
             "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
         })
+        report["porosity_printed"] = report["porosity_mesh"]
     if morphometry:
         from .morphometry import morphometry as measure
 
@@ -496,6 +532,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
     if slices is not None:
         report["slices"] = _write_stack(s, grid, slices, prog)
+        report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
     report["warnings"] = _check_built(report, params, [small_pieces])
     if out_path is not None:
         with prog.stage("write"):
@@ -581,6 +618,55 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
     return float(k), float(cutoff), next_cutoff
 
 
+def _mesh_correction(volume: float, patient, params: Params, calibration) -> float | None:
+    """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`."""
+    from .printed import correction
+
+    if not calibration or calibration.get("by") != "mesh":
+        return None
+    printed = 1.0 - volume / float(patient.volume)
+    step = correction(printed, params.porosity, calibration)
+    if step is not None:
+        calibration.update(corrected_by_mm=float(step), printed_before_correction=printed)
+    return step
+
+
+def _printed_kind(params: Params, mesh: bool, slices, *, graded: bool) -> str | None:
+    """What the level is solved for: ``"mesh"``, ``"slices"``, or None (the voxel count).
+
+    A mesh when one is made, else printer slices; a field written alone (``mesh=False``,
+    .npy and the volume formats) keeps the voxel count, as does a graded run (its level
+    is a field of depth bins, solved in voxels).
+    """
+    if params.porosity is None or graded:
+        return None
+    return "mesh" if mesh else ("slices" if slices is not None else None)
+
+
+def _prism(grid: Grid):
+    """The calibration prism's y and z bands (:func:`.printed.prism_bands`)."""
+    from .printed import prism_bands
+
+    return prism_bands(grid.shape)
+
+
+def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Params, slices, ys, zs):
+    """The level that meets the target on what is printed (:func:`.printed.printed_level`),
+    from the lattice and patient fields on the calibration prism; and the report's record."""
+    from functools import partial
+
+    from .printed import clean_prism, printed_level, printed_measure
+
+    slices = slices or {}
+    measure = printed_measure(printed, grid, ys, zs, pixel=slices.get("pixel"), layer=slices.get("layer"))
+    clean = partial(clean_prism, spacing=grid.spacing, remove_fragments=params.remove_fragments,
+                    fill_sealed_voids=params.fill_sealed_voids,
+                    cut_y=(ys.stop - ys.start) < grid.shape[1], cut_z=(zs.stop - zs.start) < grid.shape[2])
+    found, info = printed_level(np.ascontiguousarray(base, np.float32), np.ascontiguousarray(s_p, np.float32),
+                                level, measure, spacing=grid.spacing, skin=params.skin, smooth_cut=params.smooth_cut, clean=clean)
+    return found, {"by": printed, **info}
+
+
 def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
     """The paper style's blend width, mm."""
     # a Gaussian of support k closes a void channel narrower than about k/2: the default
@@ -589,7 +675,7 @@ def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
 
 
 def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, walls, grid: Grid, k, cutoff,
-                 level, porosity_voxel, fragments, seed_solve=None) -> dict:
+                 level, porosity_voxel, fragments, sealed, seed_solve=None) -> dict:
     """The report's keys that a whole-grid and a tiled run share."""
     from .metrics import cell_metrics
 
@@ -622,6 +708,9 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
         "cutoff_mm": float(cutoff),
         "porosity_voxel": porosity_voxel,
         "fragments_removed": fragments,
+        # counted before filling; a filled void is solid in the field, the mesh and the slices
+        "sealed_voids": {"count": int(sealed[0]), "volume_mm3": float(sealed[1] * float(grid.spacing) ** 3),
+                         "filled": bool(params.fill_sealed_voids)},
         "wall_thickness_mm": _report_stats(walls) if walls.size else None,
     }
     if params.style == "paper":
@@ -721,17 +810,31 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
     runner = runner_for(scheduler)
+    printed, calibration = _printed_kind(params, mesh, run.slices, graded=False), {}
+    search = None
+    if printed is not None:
+        bands = _prism(grid)
+
+        def level_for(base, s_p, level):
+            found, info = _printed_level(printed, base, s_p, level, grid, params, run.slices, *bands)
+            calibration.clear()
+            calibration.update(info)
+            return found
+
+        search = (bands, level_for)
     try:
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
+                            fill_sealed_voids=params.fill_sealed_voids, printed=search,
                             prog=prog)
     finally:
         runner.close()
     try:
         cells_in = sample_slabs(tf.patient, grid, cells.seeds) < 0
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
-                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, seed_solve=seed_solve)
+                              tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, tf.sealed, seed_solve=seed_solve)
+        report["printed_level"] = calibration or None
         report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
                            "max_memory_mb": round(run.max_memory / 2**20, 1),
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
@@ -752,6 +855,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
                 "mesh_workers": summary.get("workers", 1),
             })
+            report["porosity_printed"] = report["porosity_mesh"]
         elif ext == ".npy":
             from .mesh import write_field
 
@@ -759,6 +863,8 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 write_field(tf.field, out_path)
         if run.slices is not None:
             report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
+            report.setdefault("porosity_printed",
+                              1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
         report["warnings"] = _check_built(report, params)
     finally:
         tf.close()
@@ -829,7 +935,10 @@ def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
                              layer=slices.get("layer"), progress=prog.bar("slices"), **kwargs)
     return {"folder": str(slices["out_dir"]), "layers": stack.layers, "width": stack.width,
             "height": stack.height, "pixel_mm": stack.pixel_mm, "layer_mm": stack.layer_mm,
-            "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3}
+            "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3,
+            # the grey levels summed: the solid a printer cures from these anti-aliased layers
+            "grey_volume_mm3": float(np.sum(stack.grey_mean)) * stack.width * stack.height
+            * stack.pixel_mm ** 2 * stack.layer_mm}
 
 
 def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
@@ -846,8 +955,25 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     found = []
     h = report["voxel_mm"]
     target, voxel = report["porosity_target"], report["porosity_voxel"]
+    removed = report.get("fragments_removed") or 0
+    printed = report.get("porosity_printed")
+    if target is not None and printed is not None and (report.get("printed_level") or {}).get("by"):
+        # the level was solved for what is printed: that is what must meet the target
+        if abs(printed - target) > PRINTED_TOLERANCE:
+            why = (f"removing {removed} solid fragments not attached to the main body moved it"
+                   if removed else "the struts are under-resolved")
+            found.append(f"the printed porosity {printed:.4f} misses the target {target:g} by "
+                         f"{100 * abs(printed - target):.1f} points: {why} at {h:.3g} mm voxels; use a finer "
+                         f"--voxel (e.g. {h / 2:.3g})" + (" or --keep-fragments" if removed else ""))
+        if abs(printed - voxel) > UNRESOLVED:
+            found.append(f"the voxels' porosity {voxel:.4f} is {100 * abs(printed - voxel):.1f} points from the "
+                         f"printed {printed:.4f}: the walls are only a few {h:.3g} mm voxels thick, so the print "
+                         f"is coarse; a finer --voxel (e.g. {h / 2:.3g}) resolves them")
+        found += [m for m in found_before if m]
+        for message in found:
+            warnings.warn(message, ScaffoldWarning, stacklevel=3)
+        return found
     if target is not None and abs(voxel - target) > 0.005:
-        removed = report.get("fragments_removed") or 0
         volume = report.get("fragments_removed_mm3")
         share = "" if volume is None else (f" ({volume:.4g} mm3, {100 * volume / report['patient_volume_mm3']:.2g} % "
                                            "of the patient)")

@@ -11,7 +11,8 @@ value is the one the whole-grid run computes, bit for bit. The passes:
 2. the exact order statistics that give the surface offset (:class:`~.tiles.StreamQuantile`);
 3. the scaffold field ``max(lattice - level, patient)`` of each slab, with its solid
    pieces labelled and joined across slabs (:class:`~.tiles.SlabComponents`);
-4. the solid fragments turned into void.
+4. the solid fragments turned into void;
+5. the sealed void pieces (joined across slabs the same way) turned into solid.
 
 The finished field stays on disk for the outputs (streamed mesh, printer slices, .npy),
 which read it slab by slab too.
@@ -27,7 +28,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ScaffoldError
-from .field import blend_field, scaffold_field
+from .field import blend_field, scaffold_field, void_mask
 from .grid import Grid, available_memory
 from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_from_ranks, level_ranks, \
     plan_slabs
@@ -244,6 +245,8 @@ class TiledField:
     pieces : int
         Solid pieces left (6-connected).
     slabs : list of Slab
+    sealed : (int, int)
+        Sealed void pieces and their voxels, counted before any filling.
     """
 
     field: FieldFile
@@ -255,6 +258,7 @@ class TiledField:
     fragments: int | None
     pieces: int
     slabs: list
+    sealed: tuple = (0, 0)
 
     def close(self) -> None:
         """Remove the files."""
@@ -301,7 +305,8 @@ def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: Fie
 
 def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
-                   max_voxels: int, runner=None, prog=None) -> TiledField:
+                   max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
+                   printed=None) -> TiledField:
     """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
 
     Parameters
@@ -324,6 +329,11 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         Voxels a slab may hold, halo included.
     runner : LocalRunner or DaskRunner, optional
     prog : Progress, optional
+    fill_sealed_voids : bool
+        Fill the void pieces that do not reach the outside (always counted).
+    printed : (bands, callable(base, patient, level) -> level), optional
+        The calibration prism's y and z bands and the search for the level of what is
+        printed (:mod:`.printed`), given the prism's lattice and patient fields.
 
     Returns
     -------
@@ -349,6 +359,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             with prog.stage("offset"):
                 level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
                                      prog.bar("offset"))
+            if printed is not None:
+                (ys, zs), search = printed
+                with prog.stage("printed"):
+                    level = search(read_prism(field, slabs, ys, zs), read_prism(patient_file, slabs, ys, zs), level)
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
@@ -356,6 +370,9 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         with prog.stage("scaffold"):
             solid, fragments, pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
                                                       remove_fragments, prog.bar("scaffold"))
+            sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids)
+            if fill_sealed_voids:
+                solid += sealed[1]
     except BaseException:
         field.close()
         patient_file.close()
@@ -365,7 +382,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs)
+                      pieces, slabs, sealed)
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
@@ -393,6 +410,35 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
     return solid, found, 1
+
+
+def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
+    """``source[:, ys, zs]`` of a field on disk, slab by slab, float32."""
+    out = np.empty((source.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.float32)
+    for slab in slabs:
+        out[slab.x0:slab.x1] = source.read(slab.x0, slab.x1)[:, ys, zs]
+    return out
+
+
+def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool) -> tuple[int, int]:
+    """Passes 5 and 6: the void pieces joined across slabs; the sealed ones filled, as
+    :func:`~implicit_scaffold.field.fill_sealed_voids` does on the whole grid."""
+    voids = SlabComponents()
+    last = len(slabs) - 1
+
+    def mask(i, s):
+        return void_mask(s, first_x=i == 0, last_x=i == last)
+
+    for i, slab in enumerate(slabs):
+        voids.add(mask(i, field.read(slab.x0, slab.x1)))
+    voids.finish()
+    count, voxels = voids.sealed()
+    if fill and count:
+        for i, slab in enumerate(slabs):
+            s = field.read(slab.x0, slab.x1)
+            s[voids.sealed_mask(i, mask(i, s))] = -np.float32(spacing)
+            field.write(slab.x0, s)
+    return count, voxels
 
 
 def sample_slabs(source, grid: Grid, points) -> np.ndarray:

@@ -12,7 +12,9 @@ passes that keep only small summaries:
   :func:`~implicit_scaffold.field.solve_level` finds on the whole field, bit for bit;
 - the solid pieces not attached to the main body are found by labelling each slab and
   joining labels across slab faces (:class:`SlabComponents`), with the same choice of
-  main body as :func:`~implicit_scaffold.field.remove_fragments` on the whole field.
+  main body as :func:`~implicit_scaffold.field.remove_fragments` on the whole field;
+  the same joins find the sealed void pieces (those that touch no face of the grid) that
+  :func:`~implicit_scaffold.field.fill_sealed_voids` fills.
 """
 from __future__ import annotations
 
@@ -212,6 +214,8 @@ class SlabComponents:
     :meth:`finish` picks the main body as :func:`~implicit_scaffold.field.remove_fragments`
     does on the whole grid (the largest piece; on a tie the one met first in C
     order); :meth:`fragment_mask` then tells, slab by slab, which voxels to drop.
+    The pieces that touch no face of the grid are the sealed ones (:meth:`sealed`,
+    :meth:`sealed_mask`), as :func:`~implicit_scaffold.field.fill_sealed_voids` finds them.
     """
 
     def __init__(self):
@@ -220,6 +224,7 @@ class SlabComponents:
         self._parent = np.zeros(0, np.int64)
         self._last_plane: np.ndarray | None = None
         self._last_offset = 0
+        self._edge: list[np.ndarray] = []   # global labels on a face of the grid
         self.main: int | None = None
 
     def _find(self, i: np.ndarray) -> np.ndarray:
@@ -244,6 +249,11 @@ class SlabComponents:
         self._sizes.append(np.bincount(labels.ravel(), minlength=count + 1)[1:])
         self._parent = np.concatenate([self._parent, np.arange(offset, offset + count, dtype=np.int64)])
         first = labels[0]
+        faces = [labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]]
+        if self._last_plane is None:
+            faces.append(first)  # the grid's first plane
+        edge = np.unique(np.concatenate([f.ravel() for f in faces]))
+        self._edge.append(edge[edge > 0].astype(np.int64) - 1 + offset)
         if self._last_plane is not None:
             both = (self._last_plane > 0) & (first > 0)
             a = self._last_plane[both].astype(np.int64) - 1 + self._last_offset
@@ -268,7 +278,27 @@ class SlabComponents:
         # labels are numbered in C order within a slab and slabs come in x order, so the
         # smallest root of equal size is the piece that whole-grid labelling numbers first
         self.main = int(np.argmax(sizes))
+        self._piece_sizes = sizes
+        last = np.unique(self._last_plane)
+        edge = np.concatenate(self._edge + [last[last > 0].astype(np.int64) - 1 + self._last_offset])
+        self._open = np.zeros(len(self._parent), bool)
+        self._open[roots[edge]] = True
         return int(np.count_nonzero(sizes)) - 1
+
+    def sealed(self) -> tuple[int, int]:
+        """After :meth:`finish`: the pieces that touch no face of the grid, and their voxels."""
+        if not len(self._parent):
+            return 0, 0
+        pick = (self._piece_sizes > 0) & ~self._open
+        pick[self.main] = False  # the largest is never sealed (fill_sealed_voids)
+        return int(np.count_nonzero(pick)), int(self._piece_sizes[pick].sum())
+
+    def sealed_mask(self, index: int, mask: np.ndarray) -> np.ndarray:
+        """Pass 2: voxels of slab `index` (same mask as given to :meth:`add`) in a sealed piece."""
+        labels, count = self._label(mask)
+        root = self._roots[self._offsets[index]:self._offsets[index] + count]
+        sealed = np.concatenate([[False], ~self._open[root] & (root != self.main)])
+        return sealed[labels]
 
     def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same solid as given to :meth:`add`) to turn into void."""

@@ -179,7 +179,8 @@ def test_femur_shaft_segment_scaffold(data_dir, tmp_path):
                  output=tmp_path / "femur.stl")
     rep = r.report
     assert rep["watertight"] and rep["bodies"] == 1
-    assert abs(rep["porosity_voxel"] - 0.7) < 0.01
+    # what is printed meets the target: the mesh's own (trimesh) volume in the segment's
+    assert abs(1.0 - r.mesh.volume / rep["patient_volume_mm3"] - 0.7) < 0.003
     # inside the bone: every vertex within one voxel of the kept segment
     v = np.asarray(r.mesh.vertices)
     h = r.grid.spacing

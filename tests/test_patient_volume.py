@@ -294,7 +294,8 @@ def test_l1_vertebra_scaffold_is_watertight_and_inside(data_dir):
     assert rep["watertight"] and rep["bodies"] == 1
     assert rep["patient_volume_mm3"] == pytest.approx(patient.volume)
     assert float(patient.sdf(result.mesh.vertices).max()) <= voxel
-    assert rep["porosity_voxel"] == pytest.approx(0.7, abs=0.02)
+    # what is printed meets the target: the mesh's own (trimesh) volume in the patient's
+    assert abs(1.0 - result.mesh.volume / rep["patient_volume_mm3"] - 0.7) < 0.003
 
 
 def test_a_plate_one_voxel_thin_is_kept(tmp_path):

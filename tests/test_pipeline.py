@@ -26,12 +26,17 @@ def default_like(tmp_path_factory):
     return r, out
 
 
+def printed(r, volume):
+    """Porosity of the built mesh by trimesh's own volume, against the shape's closed-form volume."""
+    return 1.0 - r.mesh.volume / volume
+
+
 def test_target_porosity_met(default_like):
     r, _ = default_like
-    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005
+    # what is printed (the mesh) meets the target within the issue's 0.3 points
+    assert abs(printed(r, 1000.0) - 0.7) < 0.003
     assert r.report["warnings"] == []
-    # the mesh volume measures the same solid, within 1 point
-    assert abs(r.report["porosity_mesh"] - r.report["porosity_voxel"]) < 0.01
+    assert r.report["porosity_printed"] == pytest.approx(printed(r, 1000.0), abs=1e-9)
 
 
 def test_mesh_is_a_closed_solid_inside_the_patient(default_like):
@@ -76,7 +81,7 @@ def test_same_seed_same_bytes(tmp_path, ext):
 def test_other_shapes(shape, cls):
     r = implicit_scaffold.generate(shape=shape, size=6.0, seeds=150, voxel=0.06, porosity=0.75)
     patient = cls(6.0)
-    assert abs(r.report["porosity_voxel"] - 0.75) < 0.005
+    assert abs(printed(r, patient.volume) - 0.75) < 0.003
     assert r.mesh.is_watertight and r.report["bodies"] == 1
     assert patient.sdf(r.mesh.vertices).max() <= r.grid.spacing
     # porosity is measured against the shape's own volume, not its box
@@ -85,9 +90,9 @@ def test_other_shapes(shape, cls):
 
 def test_struts_meet_their_porosity():
     r = implicit_scaffold.generate(style="struts", seeds=200, voxel=0.06, size=6.0, porosity=0.85)
-    assert abs(r.report["porosity_voxel"] - 0.85) < 0.005
+    assert abs(printed(r, 216.0) - 0.85) < 0.003
     assert r.report["strut_radius_mm"] > 0
-    assert r.mesh.is_watertight and abs(r.report["porosity_mesh"] - 0.85) < 0.01
+    assert r.mesh.is_watertight
 
 
 def test_field_only():
@@ -108,12 +113,12 @@ def test_seeds_in_patient_follow_the_patient_volume():
     assert expected < r.report["seeds"] < box_count
     # Poisson count inside the sphere: within 4 standard deviations of the expected number
     assert abs(r.report["cells_in_scaffold"] - expected) < 4 * np.sqrt(expected)
-    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005 and r.report["bodies"] == 1
+    assert abs(printed(r, Sphere(8.0).volume) - 0.7) < 0.003 and r.report["bodies"] == 1
 
 
 def test_skin_is_solid_and_porosity_still_met():
     r = implicit_scaffold.generate(shape="cylinder", size=6.0, seeds=120, voxel=0.06, porosity=0.7, skin=0.3)
-    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005
+    assert abs(printed(r, Cylinder(6.0).volume) - 0.7) < 0.003
     # every voxel of the 0.3 mm shell (less half a voxel for the sampling) is solid
     s_p = r.patient_sdf
     shell = (s_p < -0.03) & (s_p > -0.27)
@@ -123,7 +128,7 @@ def test_skin_is_solid_and_porosity_still_met():
 
 def test_smooth_cut_meets_porosity_and_stays_inside():
     r = implicit_scaffold.generate(shape="sphere", size=6.0, seeds=150, voxel=0.06, porosity=0.7, smooth_cut=0.2)
-    assert abs(r.report["porosity_voxel"] - 0.7) < 0.005
+    assert abs(printed(r, Sphere(6.0).volume) - 0.7) < 0.003
     assert Sphere(6.0).sdf(r.mesh.vertices).max() <= r.grid.spacing
 
 
@@ -138,11 +143,11 @@ def test_default_blend_keeps_narrow_channels_open(sf, sv):
 
 
 def test_under_resolved_struts_are_reported():
-    # 2 mm pores at 0.4 mm voxels: struts thinner than a voxel break into pieces whose
-    # removal overshoots the porosity target; the run must say so, and how to fix it
+    # 2 mm pores at 0.4 mm voxels: walls thinner than a voxel; the mesh meets the target,
+    # but the voxels read far from it: the run must say the print is coarse, and the fix
     from implicit_scaffold.errors import ScaffoldWarning
 
-    with pytest.warns(ScaffoldWarning, match="misses the target 0.8: removing .* use a finer --voxel"):
+    with pytest.warns(ScaffoldWarning, match="points from the printed .* finer --voxel"):
         r = implicit_scaffold.generate(size=6.0, pore_size=2.0, voxel=0.4)
-    assert r.report["fragments_removed"] > 0 and r.report["porosity_voxel"] > 0.805
-    assert any("misses the target" in w for w in r.report["warnings"])
+    assert abs(printed(r, 216.0) - 0.8) < 0.003 and abs(r.report["porosity_voxel"] - 0.8) > 0.05
+    assert any("points from the printed" in w for w in r.report["warnings"])
