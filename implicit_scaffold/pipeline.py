@@ -242,7 +242,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
     from .metrics import interior_face_pairs, trabecular_thicknesses
-    from .patient import patient_sdf as eval_patient, primitive
+    from .patient import clamp_far_field, patient_sdf as eval_patient, primitive
     from .seeds import seed_count, seeds_in_patient, uniform_seeds
     from .skeleton import scaled_skeleton, voronoi_edges
 
@@ -272,7 +272,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         max_memory = default_max_memory()
     elif isinstance(max_memory, str):
         max_memory = parse_memory(max_memory)
-    run = _RunPlan(run_bytes, int(max_memory), tiled, params, patient, out_path, slices)
+    graded = params.grade is not None or params.calibration is not None
+    # the patient as the fine grid reads it: beyond the skin and smooth-cut widths only its sign
+    # matters, so a mesh's far field is clamped there and computed slab by slab; a graded run
+    # reads the depth below the surface far inside, so it keeps the whole-grid far field
+    fine_patient = patient if graded else clamp_far_field(patient, params.skin + params.smooth_cut)
+    run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
     if params.voxel is not None:
         run.plan(Grid.covering(lo, hi, params.voxel))
     prog = Progress(verbose)
@@ -282,7 +287,6 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     p0 = closed_form_porosity(params.sf, params.sv)
     seed_volume = box_volume if params.seeds_in == "box" else float(patient.volume)
-    graded = params.grade is not None or params.calibration is not None
     if graded:
         from . import grade as grading
 
@@ -350,7 +354,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
                                window_p25, slab_voxels, scheduler, prog, mesh, out_path)
     with prog.stage("patient"):
-        s_p = eval_patient(patient, grid)
+        s_p = eval_patient(fine_patient, grid)
         inside = s_p < 0
         n_inside = int(np.count_nonzero(inside))
         if n_inside == 0:
@@ -620,7 +624,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
     runner = runner_for(scheduler)
     try:
-        tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=patient, grid=grid,
+        tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
                             prog=prog)
