@@ -591,9 +591,6 @@ class _RunPlan:
             return None
         why = (f"the whole grid ({grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels, about "
                f"{whole / 2**30:.1f} GiB) exceeds --max-memory {self.max_memory / 2**30:.1f} GiB")
-        if self.params.skin > 0 or self.params.smooth_cut > 0:
-            raise ScaffoldError(f"{why}, and --skin and --smooth-cut are not available in a tiled run yet: "
-                                "drop them, raise --max-memory or use a larger --voxel")
         ext = output_format(self.out_path) if self.out_path is not None else None
         if ext is not None and ext not in MESH_FORMATS + (".npy",):
             raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
@@ -627,7 +624,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
-                            prog=prog)
+                            prog=prog, skin=params.skin, smooth_cut=params.smooth_cut)
     finally:
         runner.close()
     try:

@@ -100,9 +100,27 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
     with pytest.raises(ScaffoldError, match="write .stl, .ply, .3mf or .npy"):
         generate(output=tmp_path / "a.vti", tiled=True, **SMALL)
-    with pytest.raises(ScaffoldError, match="--skin"):
-        generate(output=tmp_path / "a.npy", mesh=False, tiled=True, skin=0.1, **SMALL)
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("cut", [dict(skin=0.12), dict(smooth_cut=0.1), dict(skin=0.08, smooth_cut=0.06)])
+@pytest.mark.parametrize("mesh_patient", [False, True])
+def test_skin_and_smooth_cut_in_slabs_give_the_whole_grid_bytes(tmp_path, monkeypatch, cut, mesh_patient):
+    import implicit_scaffold.tiled as tiled_mod
+
+    refines = []
+    real = tiled_mod._refine
+    monkeypatch.setattr(tiled_mod, "_refine", lambda *a, **k: refines.append(1) or real(*a, **k))
+    kw = dict(MESH, patient=_ball()) if mesh_patient else dict(SMALL)
+    whole = generate(output=tmp_path / "whole.npy", mesh=False, morphometry=False, tiled=False, **cut, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    rep = generate(output=tmp_path / "t.npy", mesh=False, morphometry=False, tiled=(7 + 16) * plane, **cut,
+                   **kw).report
+    assert rep["tiled"]["slabs"] >= 4
+    assert len(refines) >= 2  # the level was corrected for the skin's or the cut's solid, slab by slab
+    assert (tmp_path / "t.npy").read_bytes() == (tmp_path / "whole.npy").read_bytes()
+    for key in ("porosity_voxel", "fragments_removed", "surface_offset_mm", "skin_mm", "smooth_cut_mm"):
+        assert rep[key] == whole.report[key], key
 
 
 def _ball(radius=1.4, centre=1.5):
