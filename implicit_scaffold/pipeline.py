@@ -592,9 +592,9 @@ class _RunPlan:
         why = (f"the whole grid ({grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels, about "
                f"{whole / 2**30:.1f} GiB) exceeds --max-memory {self.max_memory / 2**30:.1f} GiB")
         ext = output_format(self.out_path) if self.out_path is not None else None
-        if ext is not None and ext not in MESH_FORMATS + (".npy",):
-            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
-                                f"or .npy instead of {ext}, or raise --max-memory")
+        if ext == ".zarr":
+            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write the field as .nii.gz, "
+                                ".nrrd, .mha, .vti or .npy instead of .zarr, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         from .tiled import SLAB_BYTES_PER_VOXEL
 
@@ -651,11 +651,14 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
                 "mesh_workers": summary.get("workers", 1),
             })
-        elif ext == ".npy":
-            from .mesh import write_field
+        elif ext in FIELD_FORMATS:
+            from .export import write_volume
+            from .tiled import process_memory
 
             with prog.stage("write"):
-                write_field(tf.field, out_path)
+                # z blocks cut from the field on disk, within what --max-memory leaves
+                write_volume(tf.field, grid, out_path,
+                             max_bytes=max((run.max_memory - process_memory()) // 2, 2**26))
         if run.slices is not None:
             report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
         report["warnings"] = _check_built(report, params)
