@@ -161,6 +161,18 @@ def test_volume_outputs_stream_from_slabs_with_the_whole_grid_bytes(tmp_path, ex
     assert whole.field is not None and rep["porosity_voxel"] == whole.report["porosity_voxel"]
 
 
+def test_a_tiled_run_measures_euler_conn_d_fragments_and_bs_bv_as_the_whole_grid(tmp_path):
+    kw = dict(SMALL, remove_fragments=False)
+    whole = generate(output=tmp_path / "w.stl", tiled=False, **kw).report
+    tiled = generate(output=tmp_path / "t.stl", tiled=20 * PLANE, **kw).report
+    assert tiled["tiled"]["slabs"] >= 4
+    for key in ("euler_characteristic", "connectivity_density_per_mm3", "fragments"):
+        assert tiled[key] == whole[key], key
+    # the two meshes' sums (another triangle order)
+    assert tiled["bs_bv_per_mm"] == pytest.approx(whole["bs_bv_per_mm"], rel=1e-6)
+    assert "strut thickness" in tiled["morphometry"] and "strut_thickness_mm" not in tiled
+
+
 def _stl_vertices(path) -> np.ndarray:
     """The ``(n, 3, 3)`` float32 vertices of a binary STL's triangles, in file order."""
     data = path.read_bytes()
