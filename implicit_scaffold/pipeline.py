@@ -77,6 +77,9 @@ class Result:
     field : (nx, ny, nz) float32 ndarray, mm
         The scaffold's signed distance, negative in the solid.
     patient_sdf : (nx, ny, nz) float32 ndarray, mm
+        The patient's signed distance as the run read it: a mesh patient's is clamped
+        beyond the skin and smooth-cut widths plus 3 voxels, where only its sign matters
+        (:meth:`.patient_mesh.MeshPatient.clamp_far_field`), except in a graded run.
     mesh : trimesh.Trimesh or None
     """
 
