@@ -311,6 +311,37 @@ def euler_characteristic(solid) -> int:
     return vertices - edges + faces - cubes
 
 
+def euler_characteristic_by_slabs(source, x_ranges) -> int:
+    """:func:`euler_characteristic` of the solid ``field < 0`` of a field read by plane ranges, exact.
+
+    The characteristic counts each cell (vertex, edge, face, cube) of the union of closed
+    voxels once. Slab ``[x0, x1)`` is read with the plane before it, ``h``: the cells of
+    ``h ∪ slab`` that are not cells of ``h`` alone are the slab's cubes and the cells
+    between them, plus those of the plane ``h | slab`` that only the slab's voxels touch
+    (the others were counted with the previous slab). So ``chi`` is the sum over slabs of
+    ``chi(h ∪ slab) - chi(h)``: a one-plane halo, whatever the slab sizes.
+
+    Parameters
+    ----------
+    source : object with ``read(x0, x1)`` giving planes ``(x1 - x0, ny, nz)`` of a field, mm
+        E.g. a :class:`~implicit_scaffold.tiles.FieldFile` or ``ArraySlabs``.
+    x_ranges : iterable of (x0, x1)
+        Consecutive plane ranges covering the grid.
+
+    Returns
+    -------
+    int
+    """
+    chi = 0
+    for x0, x1 in x_ranges:
+        lo = max(int(x0) - 1, 0)
+        solid = source.read(lo, int(x1)) < 0
+        chi += euler_characteristic(solid)
+        if lo < x0:
+            chi -= euler_characteristic(solid[:1])
+    return chi
+
+
 def connectivity_density(solid, voxel: float, region=None) -> float:
     """Connectivity density ``(1 - chi) / V``, mm⁻³, with ``V`` the region's volume (the whole array without one)."""
     solid, h, region = _check_volume(solid, voxel, region)

@@ -183,6 +183,18 @@ def patient_sdf(patient, grid: Grid, x_range=None) -> np.ndarray:
 _CUT_CELLS = 64
 
 
+def clamp_far_field(patient, reach: float):
+    """`patient`, or a copy of it whose distance may be clamped beyond `reach` mm from the
+    surface (plus a few voxels) so that it can be computed slab by slab.
+
+    Only a mesh patient (and a cut of one) has a far field that needs the whole grid;
+    the others are returned as they are. The clamp changes no sign and no value a run
+    reads (see :meth:`.patient_mesh.MeshPatient.clamp_far_field`).
+    """
+    clamp = getattr(patient, "clamp_far_field", None)
+    return patient if clamp is None else clamp(reach)
+
+
 def cut_halfspaces(clip=None, cut_planes=None) -> np.ndarray:
     """The half-spaces ``n . x <= d`` (unit ``n``) that keep what a surgeon keeps.
 
@@ -324,3 +336,11 @@ class CutPatient:
         """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm,
         negative inside what is kept."""
         return self._sdf_on(grid, x_range)
+
+    def clamp_far_field(self, reach: float) -> "CutPatient":
+        """This cut of the base patient with the base's far field clamped (:func:`clamp_far_field`)."""
+        import copy
+
+        out = copy.copy(self)
+        out.base = clamp_far_field(self.base, reach)
+        return out

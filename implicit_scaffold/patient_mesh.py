@@ -71,11 +71,14 @@ def _edge_signs(V2, F, pu, pv, fid):
     return signs, weights
 
 
-def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: float, nv: int):
+def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: float, nv: int, *,
+              first_u: int = 0):
     """Where the lines along `axis` through a 2D lattice of points cross the triangles.
 
     Lines pass through ``(u0 + i hu, v0 + j hv)`` in the two other axes (in
-    increasing order), ``0 <= i < nu``, ``0 <= j < nv``.
+    increasing order), ``first_u <= i < first_u + nu``, ``0 <= j < nv``. A slab of a
+    grid passes the whole grid's `u0` and its first plane as `first_u`, so that its
+    lines' coordinates are computed exactly as the whole grid's.
 
     Parameters
     ----------
@@ -86,7 +89,7 @@ def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: flo
     Returns
     -------
     column : (k,) int64 ndarray
-        ``i * nv + j`` of each crossing's line.
+        ``(i - first_u) * nv + j`` of each crossing's line.
     t : (k,) float64 ndarray, mm
         Coordinate of the crossing along `axis`.
     """
@@ -94,8 +97,8 @@ def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: flo
     V2 = np.ascontiguousarray(V[:, [ua, va]])
     tri = V2[F]                                    # (m, 3, 2)
     tmin, tmax = tri.min(axis=1), tri.max(axis=1)
-    i0 = np.maximum(np.ceil((tmin[:, 0] - u0) / hu), 0).astype(np.int64)
-    i1 = np.minimum(np.floor((tmax[:, 0] - u0) / hu), nu - 1).astype(np.int64)
+    i0 = np.maximum(np.ceil((tmin[:, 0] - u0) / hu), first_u).astype(np.int64)
+    i1 = np.minimum(np.floor((tmax[:, 0] - u0) / hu), first_u + nu - 1).astype(np.int64)
     j0 = np.maximum(np.ceil((tmin[:, 1] - v0) / hv), 0).astype(np.int64)
     j1 = np.minimum(np.floor((tmax[:, 1] - v0) / hv), nv - 1).astype(np.int64)
     ni = np.maximum(i1 - i0 + 1, 0)
@@ -125,7 +128,7 @@ def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: flo
         # barycentric weights: the edge opposite a vertex weighs that vertex
         va_, vb_, vc_ = (V[F[fid, k], axis] for k in range(3))
         t = (w[1] * va_ + w[2] * vb_ + w[0] * vc_) / np.where(total != 0, total, 1.0)
-        cols.append(ii * nv + jj)
+        cols.append((ii - first_u) * nv + jj)
         ts.append(t)
         start = stop
     if not cols:
@@ -133,36 +136,47 @@ def crossings(V, F, axis: int, u0: float, hu: float, nu: int, v0: float, hv: flo
     return np.concatenate(cols), np.concatenate(ts)
 
 
-def inside_votes(V, F, grid: Grid) -> tuple[np.ndarray, float]:
+def inside_votes(V, F, grid: Grid, x_range=None) -> tuple[np.ndarray, float]:
     """Inside/outside of every voxel by ray parity along x, y and z with a vote.
+
+    The parity decomposes by slab: a line along x is intersected whole (its crossings
+    before the slab flip its first plane, those after it only count in its total), and
+    lines along y and z lie in one plane each. So the planes `x_range` alone get the
+    whole grid's answer, bit for bit.
 
     Parameters
     ----------
     V : (nv, 3) float64 ndarray, mm
     F : (m, 3) int ndarray
     grid : Grid
+    x_range : (x0, x1), optional
+        The planes to decide; all of them by default.
 
     Returns
     -------
-    inside : (nx, ny, nz) bool ndarray
+    inside : (x1 - x0, ny, nz) bool ndarray
     odd_share : float
-        Share of the grid lines that meet the surface and cross it an odd number of
-        times (0 for a closed surface).
+        Share of the grid lines (of the slab) that meet the surface and cross it an odd
+        number of times (0 for a closed surface).
     """
-    shape = grid.shape
+    x0, x1 = (0, grid.shape[0]) if x_range is None else (int(x_range[0]), int(x_range[1]))
+    shape = (x1 - x0,) + tuple(grid.shape[1:])
     score = np.zeros(shape, np.int8)
     raw = np.zeros(shape, np.uint8)
     odd = hit = 0
     for axis in range(3):
         ua, va = _axes_uv(axis)
         nu, nv = shape[ua], shape[va]
-        col, t = crossings(V, F, axis, grid.origin[ua], grid.spacing, nu, grid.origin[va], grid.spacing, nv)
+        col, t = crossings(V, F, axis, grid.origin[ua], grid.spacing, nu, grid.origin[va], grid.spacing, nv,
+                           first_u=x0 if ua == 0 else 0)
         per_col = np.bincount(col, minlength=nu * nv)
         even = (per_col % 2 == 0).reshape(nu, nv)
         odd += int(np.count_nonzero(per_col % 2))
         hit += int(np.count_nonzero(per_col))
         # first voxel beyond each crossing; crossings past the grid only count in the totals
         k = np.ceil((t - grid.origin[axis]) / grid.spacing).astype(np.int64)
+        if axis == 0:
+            k -= x0  # in the whole grid's frame, then the slab's: crossings before it flip its first plane
         keep = k < shape[axis]
         k = np.maximum(k[keep], 0)
         ci, cj = np.divmod(col[keep], nv)
@@ -206,20 +220,23 @@ def _pack_triangles(V, F, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return data, lo, hi
 
 
-def _tiles(grid: Grid, tile_blocks: int = 8):
+def _tiles(grid: Grid, tile_blocks: int = 8, x_range=None):
     step = tile_blocks * BLOCK
-    return [(x0, min(x0 + step, grid.shape[0])) for x0 in range(0, grid.shape[0], step)]
+    x0, x1 = (0, grid.shape[0]) if x_range is None else x_range
+    return [(t0, min(t0 + step, x1)) for t0 in range(x0, x1, step)]
 
 
-def _run(kernel, grid, out, tile_inputs, buffers, scalars):
-    """Launch `kernel` over `grid` tile by tile into `out` (host array over the grid)."""
+def _run(kernel, grid, out, tile_inputs, buffers, scalars, x_range=None):
+    """Launch `kernel` over the planes `x_range` of `grid` (all by default) tile by tile into
+    `out` (host array over those planes), in the whole grid's frame."""
     import pyopencl as cl
 
     ctx, queue = opencl.context()
     cy, cz = block_counts(grid, BLOCK)[1:]
     ny, nz = grid.shape[1:]
+    first = 0 if x_range is None else int(x_range[0])
     pad = lambda n: -(-n // BLOCK) * BLOCK  # noqa: E731
-    for x0, x1 in _tiles(grid):
+    for x0, x1 in _tiles(grid, x_range=x_range):
         nx = x1 - x0
         dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=out.itemsize * nx * ny * nz)
         extra = [opencl.to_device(f(x0, x1), np.int32) for f in tile_inputs]
@@ -228,7 +245,7 @@ def _run(kernel, grid, out, tile_inputs, buffers, scalars):
                np.int32(cy), np.int32(cz), np.float32(grid.spacing), *extra, *buffers, *scalars)
         host = np.empty((nx, ny, nz), out.dtype)
         cl.enqueue_copy(queue, host, dev_out, is_blocking=True)
-        out[x0:x1] = host
+        out[x0 - first:x1 - first] = host
 
 
 def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndarray:
@@ -260,7 +277,7 @@ def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndar
         lists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=cutoff)
         _run(opencl.kernel("patient", "triangle_nearest", BLOCK=BLOCK), grid, nearest, [],
              [opencl.to_device(lists.offsets, np.int32), opencl.to_device(lists.items, np.int32), tris],
-             [np.float32(cutoff)])
+             [np.float32(cutoff), np.int32(0)])
         far = nearest < 0
         if not far.all():
             break
@@ -285,6 +302,45 @@ def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndar
     out = np.empty(grid.shape, np.float32)
     _run(opencl.kernel("patient", "triangle_distance", BLOCK=BLOCK), grid, out, [which], [tris], [])
     return out
+
+
+def clamped_distance(V, F, grid: Grid, *, reach: float, x_range=None) -> np.ndarray:
+    """Unsigned distance from the voxel centres of the planes `x_range` to the triangles,
+    exact (to float32) up to `reach` and `reach` beyond, ``(x1 - x0, ny, nz)`` float32, mm.
+
+    Every voxel is decided by the triangles within `reach` of its block alone, in the
+    whole grid's frame, so a slab gets the whole grid's values bit for bit; nothing
+    global (such as :func:`triangle_distance`'s feature transform) is needed.
+
+    Parameters
+    ----------
+    V : (nv, 3) float ndarray, mm
+    F : (m, 3) int ndarray
+        Non-degenerate triangles.
+    grid : Grid
+    reach : float, mm
+        The widest distance that matters; farther values are clamped to it.
+    x_range : (x0, x1), optional
+        The planes to compute; all of them by default.
+    """
+    V = np.asarray(V, np.float64)
+    x0, x1 = (0, grid.shape[0]) if x_range is None else (int(x_range[0]), int(x_range[1]))
+    data, lo, hi = _pack_triangles(V, F, grid.origin)
+    rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
+    b0, b1 = x0 // BLOCK, -(-x1 // BLOCK)
+    lists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=reach, block_range=(b0, b1))
+    cy, cz = block_counts(grid, BLOCK)[1:]
+    tris = opencl.to_device(data.reshape(-1, 4))
+    shape = (x1 - x0,) + tuple(grid.shape[1:])
+    nearest = np.empty(shape, np.int32)
+    _run(opencl.kernel("patient", "triangle_nearest", BLOCK=BLOCK), grid, nearest, [],
+         [opencl.to_device(lists.offsets, np.int32), opencl.to_device(lists.items, np.int32), tris],
+         [np.float32(reach), np.int32(b0 * cy * cz)], x_range=(x0, x1))
+    out = np.empty(shape, np.float32)
+    _run(opencl.kernel("patient", "triangle_distance", BLOCK=BLOCK), grid, out,
+         [lambda t0, t1: nearest[t0 - x0:t1 - x0]], [tris], [], x_range=(x0, x1))
+    # no triangle within reach gives INFINITY: the clamp
+    return np.minimum(out, np.float32(reach), out=out)
 
 
 def triangle_distance_reference(points, triangles) -> np.ndarray:
@@ -373,18 +429,45 @@ class MeshPatient:
             share = max(share, np.count_nonzero(per % 2) / hit if hit else 1.0)
         return float(share)
 
-    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
-        """Signed distance on `grid`, ``(nx, ny, nz)`` float32, mm, negative inside.
+    def clamp_far_field(self, reach: float) -> "MeshPatient":
+        """This patient with its distance exact up to `reach` mm beyond the exact band and
+        clamped farther out (the same mesh, shared): its field is then computed slab by slab.
 
-        Far from the surface the distance comes from a transform of the whole grid, so
-        a mesh patient has no slab-by-slab evaluation (`x_range`) yet.
+        A run reads the patient's distance only up to its skin and smooth-cut widths
+        (and a few voxels for marching cubes and sampling, the band); beyond them
+        only the sign matters.
         """
-        if x_range is not None and (int(x_range[0]), int(x_range[1])) != (0, grid.shape[0]):
+        import copy
+
+        out = copy.copy(self)
+        out.far_reach = float(reach)
+        return out
+
+    #: mm beyond the exact band up to which the distance is exact and clamped beyond
+    #: (:meth:`clamp_far_field`); None: exact near the surface and a feature transform
+    #: of the whole grid farther out
+    far_reach: float | None = None
+
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm,
+        negative inside.
+
+        With :attr:`far_reach` set, the distance is clamped at ``far_reach`` plus the
+        exact band, and any slab gets the whole grid's values bit for bit. Without it,
+        far from the surface the distance comes from a transform of the whole grid, so
+        `x_range` must cover the whole grid.
+        """
+        x0, x1 = (0, grid.shape[0]) if x_range is None else (int(x_range[0]), int(x_range[1]))
+        if self.far_reach is None and (x0, x1) != (0, grid.shape[0]):
             raise ScaffoldError(
-                f"a mesh patient ({self.name}) is evaluated on the whole grid, so this run cannot be "
-                "tiled: raise --max-memory, use a larger --voxel, or give the CT segmentation instead")
-        inside, _ = inside_votes(self.vertices, self.faces, grid)
-        out = triangle_distance(self.vertices, self.solid_faces, grid)
+                f"a mesh patient ({self.name}) without a clamped far field is evaluated on the whole grid, "
+                "so this run cannot be tiled: raise --max-memory or use a larger --voxel")
+        inside, _ = inside_votes(self.vertices, self.faces, grid, x_range=(x0, x1))
+        if self.far_reach is None:
+            out = triangle_distance(self.vertices, self.solid_faces, grid)
+        else:
+            out = clamped_distance(self.vertices, self.solid_faces, grid, x_range=(x0, x1),
+                                   reach=self.far_reach + BAND_VOXELS * grid.spacing)
         np.negative(out, out=out, where=inside)
         return out
 

@@ -88,6 +88,9 @@ class Result:
     field : (nx, ny, nz) float32 ndarray, mm
         The scaffold's signed distance, negative in the solid.
     patient_sdf : (nx, ny, nz) float32 ndarray, mm
+        The patient's signed distance as the run read it: a mesh patient's is clamped
+        beyond the skin and smooth-cut widths plus 3 voxels, where only its sign matters
+        (:meth:`.patient_mesh.MeshPatient.clamp_far_field`), except in a graded run.
     mesh : trimesh.Trimesh or None
     """
 
@@ -230,7 +233,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     morphometry : bool
         Measure the built solid's voxels (stage ``metrics``: local thickness, Conn.D,
         interconnected porosity, fragments, BS/BV); False leaves those keys out. A tiled
-        run cannot (it needs the whole grid) and says so in the report.
+        run measures the Euler characteristic, Conn.D, fragments and BS/BV slab by slab,
+        not the others (they need the whole grid), and says so in the report.
     max_memory : int or str, optional
         Bytes (or a size such as ``"4G"``) the run may hold; by default a safe share of
         the free memory. A grid whose whole-grid run would not fit is run in slabs
@@ -260,7 +264,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .cells import voronoi_cells
     from .lattice import lattice_sdf, struts_field
     from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
-    from .patient import patient_sdf as eval_patient, primitive
+    from .patient import clamp_far_field, patient_sdf as eval_patient, primitive
     from .pieces import (REPORT_PIECES, label_pieces, piece_table, remove_fragments_by_piece,
                          small_pieces_warning)
     from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
@@ -300,7 +304,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         max_memory = default_max_memory()
     elif isinstance(max_memory, str):
         max_memory = parse_memory(max_memory)
-    run = _RunPlan(run_bytes, int(max_memory), tiled, params, patient, out_path, slices)
+    graded = params.grade is not None or params.calibration is not None
+    # the patient as the fine grid reads it: beyond the skin and smooth-cut widths only its sign
+    # matters, so a mesh's far field is clamped there and computed slab by slab; a graded run
+    # reads the depth below the surface far inside, so it keeps the whole-grid far field
+    fine_patient = patient if graded else clamp_far_field(patient, params.skin + params.smooth_cut)
+    run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
     if params.voxel is not None:
         run.plan(Grid.covering(lo, hi, params.voxel))
     prog = Progress(verbose)
@@ -310,7 +319,6 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     p0 = closed_form_porosity(params.sf, params.sv)
     seed_volume = box_volume if params.seeds_in == "box" else float(patient.volume)
-    graded = params.grade is not None or params.calibration is not None
     if graded:
         from . import grade as grading
 
@@ -382,15 +390,16 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     grid = Grid.covering(lo, hi, voxel)
     from .tiles import blend_halo
 
-    slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25))
-                           if params.style == "paper" else 0)
-
     skeleton = edges = None
     with prog.stage("skeleton"):
         if params.style == "paper":
             skeleton = scaled_skeleton(cells, params.sf, params.sv)
         else:
             edges = voronoi_edges(cells)
+    # planned once the cells and the skeleton are held, so that the memory they take is not
+    # also given to the slabs
+    slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25))
+                           if params.style == "paper" else 0)
     if slab_voxels is not None and graded:
         raise ScaffoldError("a graded scaffold is built on the whole grid, which does not fit in --max-memory "
                             "here; use a larger --voxel or raise --max-memory")
@@ -399,9 +408,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                             "in --max-memory here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
-                               window_p25, slab_voxels, scheduler, prog, mesh, out_path, seed_solve=tried or None)
+                               window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
+                               seed_solve=tried or None)
     with prog.stage("patient"):
-        s_p = eval_patient(patient, grid)
+        s_p = eval_patient(fine_patient, grid)
         inside = s_p < 0
         n_inside = int(np.count_nonzero(inside))
         if n_inside == 0:
@@ -768,13 +778,10 @@ class _RunPlan:
             return None
         why = (f"the whole grid ({grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels, about "
                f"{whole / 2**30:.1f} GiB) exceeds --max-memory {self.max_memory / 2**30:.1f} GiB")
-        if self.params.skin > 0 or self.params.smooth_cut > 0:
-            raise ScaffoldError(f"{why}, and --skin and --smooth-cut are not available in a tiled run yet: "
-                                "drop them, raise --max-memory or use a larger --voxel")
         ext = output_format(self.out_path) if self.out_path is not None else None
-        if ext is not None and ext not in MESH_FORMATS + (".npy",):
-            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write .stl, .ply, .3mf "
-                                f"or .npy instead of {ext}, or raise --max-memory")
+        if ext == ".zarr":
+            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write the field as .nii.gz, "
+                                ".nrrd, .mha, .vti or .npy instead of .zarr, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         if self.params.remove_fragments:
             from .pieces import label_pieces
@@ -801,9 +808,29 @@ class _RunPlan:
         return voxels
 
 
+def _slab_morphometry(tf, grid: Grid, prog) -> dict:
+    """The voxel measures a tiled run takes slab by slab (the whole grid's keys and meanings).
+
+    The Euler characteristic is additive over slabs with a one-plane halo
+    (:func:`~.morphometry.euler_characteristic_by_slabs`) and the fragments are the pieces
+    the slabs' union-find found. Strut thickness and pore diameter (maximal spheres) would
+    need a halo of twice the largest inscribed radius, and the interconnected porosity the
+    void's components joined across slabs: not measured yet, and the report says so.
+    """
+    from .morphometry import euler_characteristic_by_slabs
+
+    with prog.stage("metrics", "Euler characteristic by slabs"):
+        chi = euler_characteristic_by_slabs(tf.field, [(sl.x0, sl.x1) for sl in tf.slabs])
+    return {"euler_characteristic": chi,
+            "connectivity_density_per_mm3": (1 - chi) / (tf.n_inside * grid.spacing ** 3),
+            "fragments": max(0, tf.pieces - 1),
+            "morphometry": "in slabs: Euler characteristic, Conn.D, fragments, BS/BV; strut thickness, pore "
+                           "diameter and interconnected porosity need the whole grid (not measured)"}
+
+
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
                     wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
-                    seed_solve=None) -> Result:
+                    morphometry: bool = True, seed_solve=None) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
     from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold
 
@@ -823,11 +850,11 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
 
         search = (bands, level_for)
     try:
-        tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=patient, grid=grid,
+        tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
                             fill_sealed_voids=params.fill_sealed_voids, printed=search,
-                            prog=prog)
+                            prog=prog, skin=params.skin, smooth_cut=params.smooth_cut)
     finally:
         runner.close()
     try:
@@ -839,8 +866,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                            "max_memory_mb": round(run.max_memory / 2**20, 1),
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
                                                                                      scheduler))}
-        report["morphometry"] = "not measured: a tiled run does not hold the whole grid"
         report["bodies_voxels"] = tf.pieces
+        if morphometry:
+            report.update(_slab_morphometry(tf, grid, prog))
         ext = output_format(out_path) if out_path is not None else None
         if mesh and ext in MESH_FORMATS:
             with prog.stage("mesh", "streamed to " + out_path.name):
@@ -856,11 +884,18 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "mesh_workers": summary.get("workers", 1),
             })
             report["porosity_printed"] = report["porosity_mesh"]
-        elif ext == ".npy":
-            from .mesh import write_field
+            if morphometry:
+                # as the whole-grid morphometry takes them: the mesh's area over its volume
+                report["bs_bv_per_mm"] = (summary["surface_area_mm2"] / summary["volume_mm3"]
+                                          if summary["volume_mm3"] > 0 else None)
+        elif ext in FIELD_FORMATS:
+            from .export import write_volume
+            from .tiled import process_memory
 
             with prog.stage("write"):
-                write_field(tf.field, out_path)
+                # z blocks cut from the field on disk, within what --max-memory leaves
+                write_volume(tf.field, grid, out_path,
+                             max_bytes=max((run.max_memory - process_memory()) // 2, 2**26))
         if run.slices is not None:
             report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
             report.setdefault("porosity_printed",

@@ -287,26 +287,74 @@ def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: Fiel
 
 
 def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: FieldFile, n_inside: int,
-                 lo: float, hi: float, porosity: float | None, progress=None) -> float:
-    """Pass 2: the level :func:`~implicit_scaffold.field.solve_level` finds on the whole grid."""
+                 lo: float, hi: float, porosity: float | None, progress=None, *, skin: float = 0.0,
+                 smooth_cut: float = 0.0) -> float:
+    """Pass 2: the level :func:`~implicit_scaffold.field.solve_level_cut` finds on the whole grid."""
     if porosity is None:
         return 0.0
     ranks = level_ranks(n_inside, porosity)
     if ranks is None:
         solid = int(round((1.0 - porosity) * n_inside))
-        return lo - 1e-6 if solid <= 0 else hi + 1e-6
+        level = lo - 1e-6 if solid <= 0 else hi + 1e-6
+    else:
+        _refine(quantile, ranks, slabs, field, patient, progress)
+        level = level_from_ranks(*quantile.values())
+    if skin <= 0 and smooth_cut <= 0:
+        return level
+    return _correct_level_cut(quantile, slabs, field, patient, n_inside, porosity, level, skin, smooth_cut)
+
+
+def _refine(quantile: StreamQuantile, ranks, slabs, field: FieldFile, patient: FieldFile, progress=None) -> None:
+    """The quantile's second pass for `ranks`, over the patient's voxels of every slab."""
     quantile.select(*ranks)
     for done, slab in enumerate(slabs, 1):
         quantile.refine(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1) < 0)
         if progress is not None:
             progress(done, len(slabs))
-    return level_from_ranks(*quantile.values())
+
+
+def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patient: FieldFile, n_inside: int,
+                       porosity: float, level: float, skin: float, smooth_cut: float,
+                       iterations: int = 8) -> float:
+    """:func:`~implicit_scaffold.field.solve_level_cut`'s corrections for a skin or a smooth cut,
+    each an exact count over the slabs and, for the new level, two order statistics.
+
+    Every figure is the whole grid's: the solid voxels and the patient's values below the
+    level are sums over slabs, and the order statistics come from the streamed quantile.
+    The arithmetic is the whole-grid function's (the comparison with the level in float64,
+    as ``np.searchsorted`` makes it; the midpoint of two float32 values in float32).
+    """
+    from .field import scaffold_field
+
+    target = int(round((1.0 - porosity) * n_inside))
+    for _ in range(iterations):
+        solid = below = 0
+        for slab in slabs:
+            base, s_p = field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1)
+            s = scaffold_field(base, s_p, level=level, skin=skin, smooth_cut=smooth_cut)
+            solid += int(np.count_nonzero(s < 0))
+            del s
+            below += int(np.count_nonzero((base < np.float64(level)) & (s_p < 0)))
+        error = solid - target
+        if error == 0:
+            break
+        rank = below - error
+        if rank <= 0 or rank >= n_inside:
+            raise ScaffoldError(f"porosity {porosity:g} cannot be reached with this skin/smooth cut; "
+                                "lower --skin or raise the porosity target")
+        _refine(quantile, (rank - 1, rank), slabs, field, patient)
+        a, b = (np.float32(v) for v in quantile.values())
+        new = float(a + (b - a) / 2)
+        if new == level:
+            break
+        level = new
+    return level
 
 
 def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
                    max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
-                   printed=None) -> TiledField:
+                   printed=None, skin: float = 0.0, smooth_cut: float = 0.0) -> TiledField:
     """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
 
     Parameters
@@ -334,6 +382,9 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     printed : (bands, callable(base, patient, level) -> level), optional
         The calibration prism's y and z bands and the search for the level of what is
         printed (:mod:`.printed`), given the prism's lattice and patient fields.
+    skin, smooth_cut : float, mm
+        As in :func:`~implicit_scaffold.field.scaffold_field`: voxel by voxel, from the
+        patient's distance of the same voxel, so they need no halo.
 
     Returns
     -------
@@ -358,7 +409,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
             with prog.stage("offset"):
                 level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
-                                     prog.bar("offset"))
+                                     prog.bar("offset"), skin=skin, smooth_cut=smooth_cut)
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
@@ -369,7 +420,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             cutoff = wider
         with prog.stage("scaffold"):
             solid, fragments, pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
-                                                      remove_fragments, prog.bar("scaffold"))
+                                                      remove_fragments, prog.bar("scaffold"), skin=skin,
+                                                      smooth_cut=smooth_cut)
             sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids)
             if fill_sealed_voids:
                 solid += sealed[1]
@@ -386,12 +438,14 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
-                   remove: bool, progress) -> tuple[int, int | None, int]:
+                   remove: bool, progress, *, skin: float = 0.0,
+                   smooth_cut: float = 0.0) -> tuple[int, int | None, int]:
     """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void."""
     pieces = SlabComponents()
     solid = 0
     for done, slab in enumerate(slabs, 1):
-        s = scaffold_field(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1), level=level)
+        s = scaffold_field(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1), level=level, skin=skin,
+                           smooth_cut=smooth_cut)
         field.write(slab.x0, s)
         inside = s < 0
         pieces.add(inside)

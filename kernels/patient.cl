@@ -18,17 +18,18 @@ inline float triangle_dist2(float3 p, __global const float4 *tris, int t, float 
 
 // Index of the nearest triangle nearer than `cutoff`, or -1. Ties go to the
 // lowest index (the block's list is ascending), so the result depends neither on
-// the order of the list nor on the tiling.
+// the order of the list nor on the tiling. The lists may cover a slab of the grid
+// only: they start at block `first_block` of the whole grid.
 __kernel void triangle_nearest(
     __global int *nearest, VOXEL_ARGS,
     __global const int *offsets, __global const int *items,
-    __global const float4 *tris, const float cutoff)
+    __global const float4 *tris, const float cutoff, const int first_block)
 {
     VOXEL_SETUP
     if (!inside_tile) return;
     float best = cutoff * cutoff;
     int arg = -1;
-    const int k0 = offsets[block_id], k1 = offsets[block_id + 1];
+    const int k0 = offsets[block_id - first_block], k1 = offsets[block_id - first_block + 1];
     for (int k = k0; k < k1; ++k) {
         const int t = items[k];
         float plane;

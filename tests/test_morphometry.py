@@ -262,3 +262,21 @@ def test_volume_resampled_to_the_voxel_asked(tmp_path):
     assert a.solid.shape == (10, 10, 10)
     assert np.array_equal(a.solid, vol[np.ix_(idx, idx, idx)])
     assert a.report["voxel_mm"] == 0.15 and "nearest" in a.report["resampled"]
+
+
+def test_euler_characteristic_is_additive_over_slabs_with_a_one_plane_halo():
+    from implicit_scaffold.tiles import ArraySlabs
+
+    rng = np.random.default_rng(5)
+    # a random solid: many components, tunnels and cavities crossing every slab boundary
+    solid = rng.random((23, 17, 19)) < 0.45
+    field = np.where(solid, -1.0, 1.0).astype(np.float32)
+    source = ArraySlabs(field, Grid((0.0, 0.0, 0.0), 1.0, field.shape))
+    whole = M.euler_characteristic(solid)
+    for cuts in ([0, 23], [0, 1, 23], [0, 5, 6, 14, 22, 23], list(range(24))):
+        assert M.euler_characteristic_by_slabs(source, zip(cuts[:-1], cuts[1:])) == whole, cuts
+    # the oracles for the whole: a solid torus 0, a hollow ball 2 (test above), here two balls 2
+    two = np.zeros((12, 5, 5), bool)
+    two[1:4, 1:4, 1:4] = two[7:10, 1:4, 1:4] = True
+    src = ArraySlabs(np.where(two, -1.0, 1.0).astype(np.float32), Grid((0.0, 0.0, 0.0), 1.0, two.shape))
+    assert M.euler_characteristic_by_slabs(src, [(0, 3), (3, 8), (8, 12)]) == 2

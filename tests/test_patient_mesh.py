@@ -8,8 +8,8 @@ import trimesh
 from implicit_scaffold import generate
 from implicit_scaffold.grid import Grid
 from implicit_scaffold.patient import CutPatient, Cylinder, Sphere, cut_halfspaces
-from implicit_scaffold.patient_mesh import (inside_votes, mesh_patient_from_trimesh, triangle_distance,
-                                            triangle_distance_reference)
+from implicit_scaffold.patient_mesh import (clamped_distance, inside_votes, mesh_patient_from_trimesh,
+                                            triangle_distance, triangle_distance_reference)
 
 
 def sphere_mesh(size=10.0, subdivisions=5):
@@ -122,6 +122,59 @@ def test_kernel_distance_equals_brute_force():
     # of it (a feature transform's nearest band voxel may see another nearest triangle near a medial axis)
     assert np.all(got[~band] >= want[~band] - 1e-4)
     assert np.max(got[~band] - want[~band]) < grid.spacing
+
+
+def test_clamped_distance_is_exact_within_reach_and_slab_by_slab():
+    rng = np.random.default_rng(11)
+    centres = rng.uniform(0.5, 2.5, (25, 1, 3))
+    triangles = centres + rng.normal(0, 0.5, (25, 3, 3))
+    V = triangles.reshape(-1, 3)
+    F = np.arange(len(V)).reshape(-1, 3)
+    grid = Grid((-0.37, -0.41, -0.29), 0.13, (29, 31, 27))  # odd sizes: partial blocks and tiles
+    reach = 0.61  # several voxels, past the exact band of 3 voxels
+    got = clamped_distance(V, F, grid, reach=reach)
+    want = brute_distance(grid.points(), triangles).reshape(grid.shape)
+    near = want < reach - 1e-4
+    assert near.sum() > 1000 and (~near).sum() > 1000
+    # exact (float32 coordinates relative to the grid origin) within reach, the reach beyond it
+    assert np.max(np.abs(got[near] - want[near])) < 1e-4
+    assert np.all(got[want > reach + 1e-4] == np.float32(reach))
+    # any slab (crossing block and tile boundaries) gets the whole grid's bits
+    for x0, x1 in ((0, 5), (5, 13), (13, 29), (7, 8)):
+        assert clamped_distance(V, F, grid, reach=reach, x_range=(x0, x1)).tobytes() == got[x0:x1].tobytes()
+
+
+def test_ray_parity_decomposes_by_slab():
+    mesh = sphere_mesh(3.0, subdivisions=3)
+    V, F = np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    grid = Grid((-0.2, -0.13, -0.17), 0.11, (33, 31, 30))
+    whole, _ = inside_votes(V, F, grid)
+    parts = [inside_votes(V, F, grid, x_range=(x0, min(x0 + 7, 33)))[0] for x0 in range(0, 33, 7)]
+    assert np.array_equal(np.concatenate(parts), whole)
+    # the oracle: the analytic ball (voxel centres farther than the facets' sag from its sphere)
+    r = np.linalg.norm(grid.points() - 1.5, axis=1).reshape(grid.shape)
+    clear = np.abs(r - 1.5) > 0.05
+    assert np.array_equal(whole[clear], (r < 1.5)[clear])
+
+
+def test_a_clamped_mesh_patient_keeps_its_sign_and_near_field():
+    patient = mesh_patient_from_trimesh(sphere_mesh(3.0, subdivisions=3), name="ball")
+    grid = Grid.covering(patient.lo - 0.3, patient.hi + 0.3, 0.07)
+    exact = patient.sdf_grid(grid)
+    clamped = patient.clamp_far_field(0.2)
+    assert patient.far_reach is None  # the original is untouched
+    reach = np.float32(0.2 + 3 * 0.07)
+    got = clamped.sdf_grid(grid)
+    assert np.array_equal(got < 0, exact < 0)
+    near = np.abs(exact) <= 3 * 0.07
+    assert np.array_equal(got[near], exact[near])
+    assert np.max(np.abs(got)) == reach
+    part = clamped.sdf_grid(grid, x_range=(9, 30))
+    assert part.tobytes() == got[9:30].tobytes()
+    cut = CutPatient(patient, cut_halfspaces(cut_planes=[0, 0, 1.0, 0, 0, -1, 0, 0, 2.0, 0, 0, 1]))
+    whole_cut = cut.clamp_far_field(0.2).sdf_grid(grid)
+    assert cut.clamp_far_field(0.2).sdf_grid(grid, x_range=(3, 11)).tobytes() == whole_cut[3:11].tobytes()
+    assert np.array_equal(whole_cut < 0, cut.sdf_grid(grid) < 0)
 
 
 @pytest.mark.slow
