@@ -188,13 +188,15 @@ def void_mask(field: np.ndarray, *, first_x: bool = True, last_x: bool = True) -
     return void
 
 
-def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True) -> tuple[int, int]:
+def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True,
+                      keep_interior: bool = False) -> tuple[int, int]:
     """Turn every void piece that does not reach the grid's outer layer into solid, in place.
 
     A piece is a 6-connected set of void voxels (:func:`void_mask`). A sealed one
     meshes as a closed cavity shell inside the solid, where resin or powder stays
-    trapped. The largest void piece is never filled: it is the outside, or, behind a
-    ``--skin`` that closes the patient surface, the porous interior the user asked for. Filling only adds solid next to solid, so it neither splits the solid nor
+    trapped. With `keep_interior` (a ``--skin`` that closes the patient surface) the largest
+    sealed piece is kept: the porous interior the user asked for, behind the skin. Filling only
+    adds solid next to solid, so it neither splits the solid nor
     opens another void; it runs after :func:`remove_fragments` (a fragment floating in
     a cavity joins the cavity). Once both ran, the solid is one 6-connected piece and
     every void voxel is 6-connected to the outside: marching cubes then gives exactly
@@ -208,6 +210,8 @@ def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True) ->
         Magnitude of the (negative) value written into filled voxels, e.g. one voxel.
     fill : bool
         False only counts them.
+    keep_interior : bool
+        Keep the largest sealed piece (neither counted nor filled).
 
     Returns
     -------
@@ -222,7 +226,8 @@ def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True) ->
     sealed = _sealed_labels(labels, count)
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
     sizes[0] = 0
-    sealed[int(np.argmax(sizes))] = False
+    if keep_interior and sealed.any():
+        sealed[int(np.argmax(np.where(sealed, sizes, -1)))] = False
     n, voxels = int(np.count_nonzero(sealed)), int(sizes[sealed].sum())
     if fill and n:
         field[sealed[labels]] = -np.float32(inside)

@@ -443,8 +443,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         if printed is not None:
             with prog.stage("printed", f"the level for the {printed}"):
                 ys, zs = _prism(grid)
+                # the patient's pieces on the prism: each keeps its main body, as in the scaffold stage
+                prism_pieces = label_pieces(s_p < 0)[0][:, ys, zs] if params.remove_fragments else None
                 level, calibration = _printed_level(printed, base[:, ys, zs], s_p[:, ys, zs], level, grid, params,
-                                                    slices, ys, zs)
+                                                    slices, ys, zs, pieces=prism_pieces)
+                del prism_pieces
         # every value that the level and the blend read must be unclamped
         wider = next_cutoff(level, cutoff)
         if wider is None:
@@ -464,7 +467,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         pieces, n_pieces = label_pieces(inside)
         removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
         fragments = None if removal is None else removal["removed"]
-        sealed = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids)
+        sealed = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids, keep_interior=params.skin > 0)
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
         piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
@@ -508,7 +511,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 if params.remove_fragments:
                     report["fragments_removed"] += remove_fragments_by_piece(
                         s, label_pieces(s_p < 0)[0], outside=h)["removed"]
-                more = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids)
+                more = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids,
+                                         keep_interior=params.skin > 0)
                 report["sealed_voids"]["count"] += more[0]
                 report["sealed_voids"]["volume_mm3"] += more[1] * h ** 3
                 report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = float(level + step)
@@ -660,7 +664,8 @@ def _prism(grid: Grid):
     return prism_bands(grid.shape)
 
 
-def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Params, slices, ys, zs):
+def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Params, slices, ys, zs,
+                   pieces=None):
     """The level that meets the target on what is printed (:func:`.printed.printed_level`),
     from the lattice and patient fields on the calibration prism; and the report's record."""
     from functools import partial
@@ -670,7 +675,7 @@ def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Pa
     slices = slices or {}
     measure = printed_measure(printed, grid, ys, zs, pixel=slices.get("pixel"), layer=slices.get("layer"))
     clean = partial(clean_prism, spacing=grid.spacing, remove_fragments=params.remove_fragments,
-                    fill_sealed_voids=params.fill_sealed_voids,
+                    fill_sealed_voids=params.fill_sealed_voids, pieces=pieces, keep_interior=params.skin > 0,
                     cut_y=(ys.stop - ys.start) < grid.shape[1], cut_z=(zs.stop - zs.start) < grid.shape[2])
     found, info = printed_level(np.ascontiguousarray(base, np.float32), np.ascontiguousarray(s_p, np.float32),
                                 level, measure, spacing=grid.spacing, skin=params.skin, smooth_cut=params.smooth_cut, clean=clean)

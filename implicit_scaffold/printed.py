@@ -106,12 +106,15 @@ def printed_measure(by: str, grid, ys: slice, zs: slice, *, pixel: float | None 
 
 
 def clean_prism(s: np.ndarray, spacing: float, *, remove_fragments: bool, fill_sealed_voids: bool,
-                cut_y: bool, cut_z: bool) -> np.ndarray:
+                cut_y: bool, cut_z: bool, pieces: np.ndarray | None = None,
+                keep_interior: bool = False) -> np.ndarray:
     """What the scaffold stage does after the level, on a prism: fragments out, sealed voids filled.
 
     A piece that touches a face where the prism cuts the grid (`cut_y`, `cut_z`) may go
     on outside it: it is kept as solid, or left open as void. On the whole grid this is
-    :func:`~.field.remove_fragments` then :func:`~.field.fill_sealed_voids`, exactly.
+    :func:`~.field.remove_fragments` then :func:`~.field.fill_sealed_voids`, exactly. With the
+    patient's `pieces` (their labels on the prism), each piece keeps its own main body, as the
+    scaffold stage does (:func:`.pieces.remove_fragments_by_piece`).
     """
     from scipy import ndimage
 
@@ -122,8 +125,13 @@ def clean_prism(s: np.ndarray, spacing: float, *, remove_fragments: bool, fill_s
         if count > 1:
             sizes = np.bincount(labels.ravel())
             sizes[0] = 0
-            keep = np.zeros(count + 1, bool)
-            keep[int(np.argmax(sizes))] = True
+            if pieces is not None:
+                from .pieces import main_bodies
+
+                keep = main_bodies(labels, sizes, pieces)
+            else:
+                keep = np.zeros(count + 1, bool)
+                keep[int(np.argmax(sizes))] = True
             for face in ([labels[:, 0], labels[:, -1]] if cut_y else []) + \
                         ([labels[:, :, 0], labels[:, :, -1]] if cut_z else []):
                 keep[face] = True
@@ -131,7 +139,7 @@ def clean_prism(s: np.ndarray, spacing: float, *, remove_fragments: bool, fill_s
             s[~keep[labels]] = np.float32(spacing)
     if fill_sealed_voids:
         # void pieces on a cut face touch the prism's (forced void) outer layer: open
-        fill_sealed_voids(s, inside=spacing)
+        fill_sealed_voids(s, inside=spacing, keep_interior=keep_interior)
     return s
 
 

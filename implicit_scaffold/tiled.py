@@ -422,7 +422,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             solid, fragments, pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
                                                       remove_fragments, prog.bar("scaffold"), skin=skin,
                                                       smooth_cut=smooth_cut)
-            sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids)
+            sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
             if fill_sealed_voids:
                 solid += sealed[1]
     except BaseException:
@@ -474,7 +474,7 @@ def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
     return out
 
 
-def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool) -> tuple[int, int]:
+def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool, keep_interior: bool = False) -> tuple[int, int]:
     """Passes 5 and 6: the void pieces joined across slabs; the sealed ones filled, as
     :func:`~implicit_scaffold.field.fill_sealed_voids` does on the whole grid."""
     voids = SlabComponents()
@@ -486,7 +486,7 @@ def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool) -> tuple[i
     for i, slab in enumerate(slabs):
         voids.add(mask(i, field.read(slab.x0, slab.x1)))
     voids.finish()
-    count, voxels = voids.sealed()
+    count, voxels = voids.sealed(keep_interior)
     if fill and count:
         for i, slab in enumerate(slabs):
             s = field.read(slab.x0, slab.x1)

@@ -285,19 +285,23 @@ class SlabComponents:
         self._open[roots[edge]] = True
         return int(np.count_nonzero(sizes)) - 1
 
-    def sealed(self) -> tuple[int, int]:
-        """After :meth:`finish`: the pieces that touch no face of the grid, and their voxels."""
+    def sealed(self, keep_interior: bool = False) -> tuple[int, int]:
+        """After :meth:`finish`: the pieces that touch no face of the grid, and their voxels; with
+        `keep_interior`, all but the largest of them (as :func:`~.field.fill_sealed_voids`)."""
+        self._kept = -1
         if not len(self._parent):
             return 0, 0
         pick = (self._piece_sizes > 0) & ~self._open
-        pick[self.main] = False  # the largest is never sealed (fill_sealed_voids)
+        if keep_interior and pick.any():
+            self._kept = int(np.argmax(np.where(pick, self._piece_sizes, -1)))
+            pick[self._kept] = False
         return int(np.count_nonzero(pick)), int(self._piece_sizes[pick].sum())
 
     def sealed_mask(self, index: int, mask: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same mask as given to :meth:`add`) in a sealed piece."""
         labels, count = self._label(mask)
         root = self._roots[self._offsets[index]:self._offsets[index] + count]
-        sealed = np.concatenate([[False], ~self._open[root] & (root != self.main)])
+        sealed = np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
         return sealed[labels]
 
     def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:

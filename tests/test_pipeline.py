@@ -151,3 +151,20 @@ def test_under_resolved_struts_are_reported():
         r = implicit_scaffold.generate(size=6.0, pore_size=2.0, voxel=0.4)
     assert abs(printed(r, 216.0) - 0.8) < 0.003 and abs(r.report["porosity_voxel"] - 0.8) > 0.05
     assert any("points from the printed" in w for w in r.report["warnings"])
+
+
+def test_a_skin_closing_the_patient_keeps_its_porous_interior():
+    # the skin seals the whole interior void from the outside: that void is the scaffold asked for,
+    # not a cavity to fill (filling it gave a solid ball, porosity 0)
+    import implicit_scaffold
+
+    r = implicit_scaffold.generate(shape="sphere", size=3.0, skin=0.12, porosity=0.75, voxel=0.04,
+                                   pore_size=0.6, mesh=False, morphometry=False)
+    assert abs(r.report["porosity_voxel"] - 0.75) < 0.02
+    inside = r.patient_sdf < 0
+    void = inside & (r.field >= 0)
+    # the interior is one void piece (6-connected) holding nearly all of the void
+    from scipy import ndimage
+
+    labels, n = ndimage.label(void)
+    assert n >= 1 and np.bincount(labels.ravel())[1:].max() > 0.95 * np.count_nonzero(void)
