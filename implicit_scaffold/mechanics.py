@@ -325,8 +325,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     precond : callable
     b : (m, 3, N) float ndarray
         Right-hand sides, zero on fixed nodes.
-    free : (N,) bool ndarray
-        The unknowns; K x is masked to them.
+    free : (N,) or (3, N) float ndarray of 0 and 1
+        The unknowns (per node, or per node and component); K x is masked to them.
     scale : (m,) floats
         The norm a residual is measured against (the load's scale, so that a zero load is
         converged at once).
@@ -465,3 +465,295 @@ def strain_tensor(k: int) -> np.ndarray:
         i, j = [(1, 2), (0, 2), (0, 1)][k - 3]
         eps[i, j] = eps[j, i] = 0.5
     return eps
+
+
+# ----------------------------------------------------------------------------- platen compression
+
+
+@dataclass
+class Compression:
+    """A uniaxial compression between rigid bonded platens (ISO 13314's setting)."""
+
+    axis: int
+    apparent_modulus_gpa: float
+    strain: float
+    von_mises_strain: np.ndarray  # (n1, n2, n3) float32, 0 in void and in parts carrying no load
+    iterations: int
+    residual: float
+    seconds: float
+    dropped_voxels: int  # solid voxels not joined to both platens (they carry no load)
+
+
+def load_path(solid: np.ndarray, axis: int) -> np.ndarray:
+    """The solid voxels face-connected to both faces of the box normal to `axis`.
+
+    A piece touching one platen or none carries no load (it is free at one end at least);
+    six-connectivity, since voxels that share only an edge or a corner form a hinge.
+    """
+    from scipy import ndimage
+
+    labels, count = ndimage.label(solid)
+    if count == 0:
+        return np.zeros_like(solid)
+    low = np.unique(np.take(labels, 0, axis=axis))
+    high = np.unique(np.take(labels, -1, axis=axis))
+    both = np.intersect1d(low, high)
+    both = both[both > 0]
+    return np.isin(labels, both)
+
+
+def von_mises_strain(strain: np.ndarray) -> np.ndarray:
+    """(ns,) equivalent strain ``sqrt(2/3 e':e')`` of Voigt strains (6, ns) (engineering shear)."""
+    tr = strain[:3].sum(axis=0) / 3
+    dev = strain[:3] - tr
+    shear = strain[3:] / 2
+    return np.sqrt(2 / 3 * ((dev ** 2).sum(axis=0) + 2 * (shear ** 2).sum(axis=0)))
+
+
+def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
+             tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy") -> Compression:
+    """Compress a voxel sample between two rigid platens on its faces normal to `axis`.
+
+    The lower platen holds its nodes' axial displacement at 0, the upper one moves them by
+    ``strain * L``; the other faces are free. By default the platens are lubricated (the
+    nodes slide on them), so a homogeneous block gives its material's own modulus, the
+    ideal ISO 13314 test; ``bonded=True`` holds them laterally too (no slip, the stiff end
+    of the friction range). The apparent modulus is the platen force over the box's
+    cross-section, over the strain. The sliding system keeps the rigid in-plane motions: it
+    is singular but consistent, which CG solves (they carry no force).
+
+    Raises
+    ------
+    ScaffoldError
+        No solid, or no piece of solid joins the two platens.
+    """
+    t0 = time.perf_counter()
+    solid = check_solid(solid)
+    if axis not in (0, 1, 2):
+        raise ScaffoldError(f"the compression axis is x, y or z (0, 1, 2), got {axis!r}")
+    kept = load_path(solid, axis)
+    if not kept.any():
+        raise ScaffoldError(f"the solid does not connect the two platens along {'xyz'[axis]}: no load path, "
+                            "nothing to compress")
+    model = voxel_model(kept, h, mat, periodic=False)
+    shape = model.shape
+    n = int(np.prod(shape))
+    length = (shape[axis] - 1) * h
+    index = np.unravel_index(np.arange(n), shape)[axis]
+    bottom, top = index == 0, index == shape[axis] - 1
+    base = np.zeros((1, 3, n))
+    base[0, axis, top] = -strain * length
+    platen = bottom | top
+    free = np.repeat(model.active[None], 3, axis=0)
+    free[axis] &= ~platen
+    if bonded:
+        free &= ~platen
+    free = free.astype(float)
+    op = _operator(model, backend)
+    b = -op(base) * free
+    ns = model.conn.shape[1]
+    unit = macro_displacements(h)[axis] * strain
+    scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
+    x, iterations, res = pcg(op, fft_preconditioner(model, free), b, free, scale=scale, tol=tol, maxiter=maxiter)
+    u = base + x
+    force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
+    area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
+    eps = strain_matrix(h, (0.0, 0.0, 0.0)) @ gather(model, u)[0]  # (6, ns)
+    field_vm = np.zeros(shape, np.float32)
+    field_vm[model.solid] = von_mises_strain(eps)
+    field_vm = field_vm[: solid.shape[0], : solid.shape[1], : solid.shape[2]]
+    return Compression(axis, float(force / area / strain), strain, field_vm, int(iterations), float(res.max()),
+                       time.perf_counter() - t0, int(solid.sum() - kept.sum()))
+
+
+# ----------------------------------------------------------------------------- moduli
+
+
+def engineering_constants(C: np.ndarray) -> dict:
+    """Young's and shear moduli, Poisson's ratios and the universal anisotropy index of a tensor.
+
+    A direction with no load path (its stiffness below :data:`NO_LOAD_PATH` of the largest)
+    gets modulus 0 and a note; the rest come from the compliance of the remaining block. A
+    block that still cannot be inverted gives every modulus 0 and a note, not an error.
+
+    Parameters
+    ----------
+    C : (6, 6) float ndarray, GPa
+
+    Returns
+    -------
+    dict
+        ``youngs_modulus_gpa`` {x, y, z}, ``shear_modulus_gpa`` {yz, xz, xy}, ``poisson_ratio``
+        {xy, xz, yz, yx, zx, zy} (nu_ij = -eps_j / eps_i under stress along i),
+        ``anisotropy_index`` (Ranganathan & Ostoja-Starzewski 2008, 0 when isotropic; None when
+        the tensor cannot be inverted), ``notes``.
+    """
+    C = np.asarray(C, float)
+    diag = np.diag(C)
+    top = diag.max() if diag.size else 0.0
+    keep = np.flatnonzero(diag > NO_LOAD_PATH * top) if top > 0 else np.array([], int)
+    notes = []
+    S = np.zeros((6, 6))
+    dropped = [VOIGT[i] for i in range(6) if i not in keep]
+    if dropped:
+        notes.append(f"no load path for {', '.join(dropped)}: those moduli are 0")
+    ok = keep.size > 0
+    if ok:
+        sub = C[np.ix_(keep, keep)]
+        if np.linalg.cond(sub) > 1e12:
+            ok = False
+        else:
+            S[np.ix_(keep, keep)] = np.linalg.inv(sub)
+    if not ok:
+        notes.append("the stiffness tensor cannot be inverted: every modulus reported as 0")
+        S[:] = 0
+    inv = lambda v: float(1 / v) if v > 0 else 0.0  # noqa: E731
+    youngs = {a: inv(S[i, i]) for i, a in enumerate("xyz")}
+    shear = {VOIGT[i]: inv(S[i, i]) for i in range(3, 6)}
+    poisson = {}
+    for i, a in enumerate("xyz"):
+        for j, b in enumerate("xyz"):
+            if i != j:
+                poisson[a + b] = float(-S[i, j] / S[i, i]) if S[i, i] > 0 else 0.0
+    anis = None
+    if ok and keep.size == 6:
+        Kv = (C[:3, :3].sum()) / 9
+        Gv = (np.trace(C[:3, :3]) - (C[0, 1] + C[0, 2] + C[1, 2]) + 3 * np.trace(C[3:, 3:])) / 15
+        Kr = 1 / S[:3, :3].sum()
+        Gr = 15 / (4 * np.trace(S[:3, :3]) - 4 * (S[0, 1] + S[0, 2] + S[1, 2]) + 3 * np.trace(S[3:, 3:]))
+        anis = float(5 * Gv / Gr + Kv / Kr - 6)
+    return {"youngs_modulus_gpa": youngs, "shear_modulus_gpa": shear, "poisson_ratio": poisson,
+            "anisotropy_index": anis, "notes": notes}
+
+
+def hashin_shtrikman_upper(E: float, nu: float, solid_fraction: float) -> tuple[float, float]:
+    """Hashin-Shtrikman upper bounds (bulk K, shear G, GPa) of a solid with pores (Hashin &
+    Shtrikman 1963, J Mech Phys Solids 11:127, with the second phase void). The lower bound is 0."""
+    K1, G1 = E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
+    phi, p = solid_fraction, 1 - solid_fraction
+    K = 4 * G1 * K1 * phi / (4 * G1 + 3 * K1 * p)
+    G = G1 + p / (-1 / G1 + 6 * phi * (K1 + 2 * G1) / (5 * G1 * (3 * K1 + 4 * G1)))
+    return float(K), float(G)
+
+
+def voigt_averages(C: np.ndarray) -> tuple[float, float]:
+    """Voigt averages (bulk, shear, GPa) of a stiffness tensor: its mean over orientations."""
+    C = np.asarray(C, float)
+    K = C[:3, :3].sum() / 9
+    G = (np.trace(C[:3, :3]) - (C[0, 1] + C[0, 2] + C[1, 2]) + 3 * np.trace(C[3:, 3:])) / 15
+    return float(K), float(G)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def choose_boundary(solid: np.ndarray) -> str:
+    """``periodic`` for a box sample, ``kinematic`` for a shaped one.
+
+    A box sample (a cube cut from a lattice, a generated box scaffold) shows its solid on
+    every face of its box at about the volume's solid fraction; a patient-shaped sample or a
+    bone touches its bounding box only in places. Half the volume's fraction on every face
+    tells them apart.
+    """
+    phi = solid.mean()
+    faces = [np.take(solid, i, axis=a).mean() for a in range(3) for i in (0, -1)]
+    return "periodic" if min(faces) >= 0.5 * phi else "kinematic"
+
+
+def bone_verdict(modulus_gpa: float) -> str:
+    """A plain-words verdict on stress shielding for an apparent modulus (GPa)."""
+    t_lo, t_hi, _ = BONE_BANDS["trabecular"]
+    c_lo, c_hi, _ = BONE_BANDS["cortical"]
+    e = f"{modulus_gpa:.3g} GPa"
+    if modulus_gpa <= 0:
+        return "no load path along the test axis: the scaffold carries no load there"
+    if modulus_gpa < t_lo:
+        return f"{e} is softer than trabecular bone ({t_lo}-{t_hi} GPa): no stress shielding, but it may not carry load"
+    if modulus_gpa <= t_hi:
+        return f"{e} lies in trabecular bone's band ({t_lo}-{t_hi} GPa): little risk of stress shielding"
+    if modulus_gpa < c_lo:
+        return (f"{e} is stiffer than trabecular bone ({t_lo}-{t_hi} GPa) and softer than cortical bone "
+                f"({c_lo}-{c_hi} GPa): it would shield cancellous bone from stress, not cortical bone")
+    if modulus_gpa <= c_hi:
+        return (f"{e} lies in cortical bone's band ({c_lo}-{c_hi} GPa): right for a cortical defect, "
+                "too stiff for cancellous bone")
+    return f"{e} is stiffer than cortical bone ({c_lo}-{c_hi} GPa): a risk of stress shielding"
+
+
+def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count: int = 10) -> list[dict]:
+    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain."""
+    flat = field_vm.ravel()
+    count = min(count, int((flat > 0).sum()))
+    if count == 0:
+        return []
+    top = np.argpartition(flat, -count)[-count:]
+    top = top[np.argsort(flat[top])[::-1]]
+    out = []
+    for t in top:
+        ijk = np.unravel_index(t, field_vm.shape)
+        out.append({"index": [int(v) for v in ijk],
+                    "centre_mm": [round(float(o + (i + 0.5) * h), 6) for o, i in zip(origin, ijk)],
+                    "von_mises_strain": float(flat[t])})
+    return out
+
+
+def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
+            backend: str = "numpy", origin=(0.0, 0.0, 0.0)) -> tuple[dict, Compression]:
+    """Every mechanical figure of a voxel sample, as the report's ``mechanics`` section.
+
+    Parameters
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+    h : float, mm
+    mat : Material
+    boundary : {"auto", "periodic", "kinematic"}
+        ``auto``: :func:`choose_boundary`.
+    axis : int
+        The compression axis (0, 1, 2 for x, y, z).
+    tol : float
+        Relative residual of the CG solves (1e-6: moduli to about 1e-6, far below the voxel
+        discretisation's error).
+
+    Returns
+    -------
+    dict, Compression
+        The keys of issue 14 (``stiffness_tensor_gpa`` ... ``solver``), the bone bands and the
+        verdict; the compression with its strain field (for the report's picture).
+    """
+    solid = check_solid(solid)
+    if boundary == "auto":
+        boundary = choose_boundary(solid)
+    hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend)
+    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend)
+    consts = engineering_constants(hom.stiffness)
+    K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
+    bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
+               "kinematic": "kinematic (uniform displacement u = E x on the faces of the box)"}[boundary]
+    notes = list(consts["notes"])
+    if comp.dropped_voxels:
+        notes.append(f"{comp.dropped_voxels} solid voxels do not join both platens and carry no load in compression")
+    report = {
+        "stiffness_tensor_gpa": [[float(v) for v in row] for row in hom.stiffness],
+        "voigt_order": list(VOIGT),
+        "youngs_modulus_gpa": consts["youngs_modulus_gpa"],
+        "shear_modulus_gpa": consts["shear_modulus_gpa"],
+        "poisson_ratio": consts["poisson_ratio"],
+        "anisotropy_index": consts["anisotropy_index"],
+        "solid_fraction": hom.solid_fraction,
+        "boundary_conditions": bc_text,
+        "material": {"name": mat.name, "E_gpa": mat.E_gpa, "nu": mat.nu, "source": mat.source},
+        "compression": {"axis": "xyz"[axis], "apparent_modulus_gpa": comp.apparent_modulus_gpa,
+                        "platens": "rigid, lubricated (ISO 13314 setting)", "applied_strain": comp.strain,
+                        "most_strained_voxels": most_strained(comp.von_mises_strain, h, origin)},
+        "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
+                   "residual": max(hom.residual, comp.residual),
+                   "seconds": round(hom.seconds + comp.seconds, 4),
+                   "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, FFT reference-medium "
+                             "preconditioner", "backend": backend, "voxel_mm": float(h),
+                   "grid_shape": list(solid.shape)},
+        "hashin_shtrikman_upper_gpa": {"bulk": K_hs, "shear": G_hs},
+        "bone_bands_gpa": {k: {"low": lo, "high": hi, "source": src} for k, (lo, hi, src) in BONE_BANDS.items()},
+        "stress_shielding": bone_verdict(comp.apparent_modulus_gpa),
+        "notes": notes,
+    }
+    return report, comp

@@ -1,0 +1,203 @@
+"""The voxel finite-element solver against closed forms and bounds (issue 14).
+
+Every expected value is an oracle the solver cannot tune itself to: the material's own
+tensor, the exact laminate, rigid-body modes, the Hashin-Shtrikman bounds, a finer grid.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from implicit_scaffold import mechanics as m
+from implicit_scaffold.errors import ScaffoldError
+
+TI = m.material("ti64")
+
+
+def sphere_pore(n: int, porosity: float) -> np.ndarray:
+    """One spherical pore of the given volume fraction in the middle of a periodic unit cell."""
+    radius = (3 * porosity / (4 * np.pi)) ** (1 / 3)
+    g = (np.arange(n) + 0.5) / n - 0.5
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    return x ** 2 + y ** 2 + z ** 2 > radius ** 2
+
+
+def test_element_stiffness_is_symmetric_and_has_exactly_the_rigid_modes():
+    ke = m.element_stiffness(TI.E_gpa, TI.nu, 0.1)
+    assert np.allclose(ke, ke.T, atol=1e-12 * abs(ke).max())
+    eig = np.linalg.eigvalsh(ke)
+    # six rigid-body modes (3 translations, 3 rotations) and nothing else at zero: full
+    # 2x2x2 integration leaves no hourglass mode
+    assert np.sum(eig < 1e-9 * eig.max()) == 6
+    x = m.CORNERS * 0.1
+    for k in range(3):
+        t = np.zeros((8, 3))
+        t[:, k] = 1
+        assert np.abs(ke @ t.ravel()).max() < 1e-10 * abs(ke).max()
+    rot = np.stack([-x[:, 1], x[:, 0], np.zeros(8)], axis=1)  # rotation about z
+    assert np.abs(ke @ rot.ravel()).max() < 1e-10 * abs(ke).max()
+
+
+def test_uniform_strain_energy_equals_the_continuum_one():
+    # a linear displacement is exact in a trilinear element: u.K u = V eps:C:eps
+    h = 0.07
+    ke = m.element_stiffness(TI.E_gpa, TI.nu, h)
+    D = m.isotropic_tensor(TI.E_gpa, TI.nu)
+    u0 = m.macro_displacements(h)
+    assert np.allclose(u0 @ ke @ u0.T, D * h ** 3, rtol=1e-12, atol=1e-12 * D.max() * h ** 3)
+
+
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_full_block_gives_the_material_tensor(boundary):
+    C = m.homogenize(np.ones((5, 6, 7), bool), 0.1, TI, boundary=boundary).stiffness
+    D = m.isotropic_tensor(TI.E_gpa, TI.nu)
+    assert np.abs(C - D).max() <= 1e-6 * D.max()
+
+
+def test_periodic_laminate_matches_the_exact_tensor():
+    # plates normal to z, 3 of 11 layers solid (odd sizes on purpose)
+    solid = np.zeros((7, 9, 11), bool)
+    solid[:, :, 2:5] = True
+    phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+    C = m.homogenize(solid, 0.05, TI).stiffness
+    exact = np.zeros((6, 6))
+    exact[0, 0] = exact[1, 1] = phi * E / (1 - nu ** 2)
+    exact[0, 1] = exact[1, 0] = phi * nu * E / (1 - nu ** 2)
+    exact[5, 5] = phi * E / (2 * (1 + nu))
+    nonzero = exact != 0
+    assert np.all(np.abs(C[nonzero] / exact[nonzero] - 1) < 0.01)
+    assert np.abs(C[~nonzero]).max() < 0.01 * exact.max()
+
+
+def test_no_load_path_is_a_zero_modulus_with_a_note():
+    solid = np.zeros((6, 6, 8), bool)
+    solid[:, :, :2] = True
+    c = m.engineering_constants(m.homogenize(solid, 0.1, TI).stiffness)
+    assert c["youngs_modulus_gpa"]["z"] == 0.0
+    assert c["shear_modulus_gpa"]["yz"] == 0.0 and c["shear_modulus_gpa"]["xz"] == 0.0
+    assert any("no load path" in n for n in c["notes"])
+    # in-plane, a free plate: Ex = phi E exactly (plane stress with free thickness)
+    assert c["youngs_modulus_gpa"]["x"] == pytest.approx(0.25 * TI.E_gpa, rel=1e-6)
+    assert c["poisson_ratio"]["xy"] == pytest.approx(TI.nu, rel=1e-6)
+
+
+def test_a_tensor_that_cannot_be_inverted_is_reported_with_a_note():
+    C = np.ones((6, 6))  # rank 1, every diagonal term alike
+    c = m.engineering_constants(C)
+    assert all(v == 0.0 for v in c["youngs_modulus_gpa"].values())
+    assert any("cannot be inverted" in n for n in c["notes"])
+    assert c["anisotropy_index"] is None
+
+
+def test_isotropic_material_has_zero_anisotropy_and_its_own_constants():
+    c = m.engineering_constants(m.isotropic_tensor(3.0, 0.25))
+    assert c["anisotropy_index"] == pytest.approx(0.0, abs=1e-10)
+    assert c["youngs_modulus_gpa"]["y"] == pytest.approx(3.0)
+    assert c["shear_modulus_gpa"]["xz"] == pytest.approx(3.0 / 2.5)
+    assert c["poisson_ratio"]["zx"] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("porosity", [0.05, 0.10, 0.20])
+def test_spherical_pore_lies_within_the_hashin_shtrikman_bounds(porosity):
+    # 16 voxels across: a displacement FE solution is stiff and converges from above, and the
+    # 5 % pore at 12 voxels (2.7 voxels radius) overshoots the shear bound by 0.07 %
+    solid = sphere_pore(16, porosity)
+    hom = m.homogenize(solid, 1 / 16, TI)
+    K, G = m.voigt_averages(hom.stiffness)
+    K_hs, G_hs = m.hashin_shtrikman_upper(TI.E_gpa, TI.nu, hom.solid_fraction)
+    assert 0 < K <= K_hs
+    assert 0 < G <= G_hs
+    assert 0 < hom.stiffness[0, 0] and 0 < hom.stiffness[3, 3]
+
+
+@pytest.mark.slow
+def test_spherical_pore_is_within_3_percent_of_a_finer_grid():
+    # the same pore at 16 and at 32 voxels across the cell
+    coarse = m.homogenize(sphere_pore(16, 0.1), 1 / 16, TI)
+    fine = m.homogenize(sphere_pore(32, 0.1), 1 / 32, TI)
+    for i, j in [(0, 0), (0, 1), (3, 3)]:
+        assert abs(coarse.stiffness[i, j] / fine.stiffness[i, j] - 1) < 0.03
+    # the preconditioner keeps the iteration count flat as the grid is refined
+    assert fine.iterations <= 1.5 * coarse.iterations
+
+
+@pytest.fixture(scope="module")
+def small_scaffold():
+    from implicit_scaffold.pipeline import generate
+
+    r = generate(mesh=False, morphometry=False, size=2.0, pore_size=0.6, porosity=0.7, voxel=0.1, seed=1)
+    inside = r.patient_sdf < 0
+    box = tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(inside))
+    return (r.field < 0)[box], 0.1
+
+
+def test_a_voronoi_scaffold_stays_under_the_hashin_shtrikman_upper_bound(small_scaffold):
+    solid, h = small_scaffold
+    for boundary in ("periodic", "kinematic"):
+        hom = m.homogenize(solid, h, TI, boundary=boundary)
+        K, G = m.voigt_averages(hom.stiffness)
+        K_hs, G_hs = m.hashin_shtrikman_upper(TI.E_gpa, TI.nu, hom.solid_fraction)
+        assert 0 < K <= K_hs and 0 < G <= G_hs
+        # and under Voigt's arithmetic bound, direction by direction
+        assert np.all(np.diag(hom.stiffness) <= hom.solid_fraction * np.diag(m.isotropic_tensor(TI.E_gpa, TI.nu)))
+
+
+def test_kinematic_is_stiffer_than_periodic(small_scaffold):
+    # uniform displacement on the faces over-constrains the sample: its energy bounds the
+    # periodic one from above (Hill), component by component on the diagonal
+    solid, h = small_scaffold
+    per = m.homogenize(solid, h, TI, boundary="periodic").stiffness
+    kin = m.homogenize(solid, h, TI, boundary="kinematic").stiffness
+    assert np.all(np.diag(kin) >= np.diag(per) * (1 - 1e-6))
+
+
+def test_compressing_a_block_gives_its_youngs_modulus():
+    c = m.compress(np.ones((5, 6, 7), bool), 0.1, TI, axis=2)
+    assert c.apparent_modulus_gpa == pytest.approx(TI.E_gpa, rel=1e-6)
+    # uniform uniaxial strain 1e-3 with lateral contraction nu: von Mises strain (1 + nu) 2/3 1e-3
+    assert np.allclose(c.von_mises_strain, 2 / 3 * (1 + TI.nu) * 1e-3, rtol=1e-5)
+
+
+def test_bonded_platens_are_stiffer_than_lubricated_ones():
+    block = np.ones((6, 6, 6), bool)
+    bonded = m.compress(block, 0.1, TI, bonded=True).apparent_modulus_gpa
+    assert bonded > TI.E_gpa
+    # and below the fully confined (uniaxial strain) modulus C11
+    assert bonded < m.isotropic_tensor(TI.E_gpa, TI.nu)[0, 0]
+
+
+def test_compressing_a_laminate_along_its_plates_gives_phi_e():
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, :, 3:6] = True
+    c = m.compress(solid, 0.1, TI, axis=0)
+    assert c.apparent_modulus_gpa == pytest.approx(0.3 * TI.E_gpa, rel=1e-6)
+
+
+def test_a_solid_that_does_not_join_the_platens_is_refused():
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, :, 3:6] = True
+    with pytest.raises(ScaffoldError, match="does not connect the two platens"):
+        m.compress(solid, 0.1, TI, axis=2)
+    with pytest.raises(ScaffoldError, match="no solid"):
+        m.homogenize(np.zeros((4, 4, 4), bool), 0.1, TI)
+
+
+def test_materials_and_their_errors():
+    for key, mat in m.MATERIALS.items():
+        assert mat.E_gpa > 0 and -1 < mat.nu < 0.5 and mat.source
+    assert m.material(E=2.0, nu=0.3).E_gpa == 2.0
+    with pytest.raises(ScaffoldError, match="unknown material"):
+        m.material("steel")
+    with pytest.raises(ScaffoldError, match="nu"):
+        m.material(E=1.0, nu=0.5)
+    with pytest.raises(ScaffoldError, match="--E"):
+        m.material(E=-1.0, nu=0.3)
+
+
+def test_boundary_choice_and_verdicts():
+    assert m.choose_boundary(np.ones((4, 4, 4), bool)) == "periodic"
+    ball = sphere_pore(12, 0.5) == 0  # a solid ball touching no face
+    assert m.choose_boundary(ball | False) == "kinematic"
+    assert "stress shielding" in m.bone_verdict(110.0)
+    assert "trabecular" in m.bone_verdict(1.0)
+    assert "cortical" in m.bone_verdict(17.0)
