@@ -723,8 +723,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     solid = check_solid(solid)
     if boundary == "auto":
         boundary = choose_boundary(solid)
+    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend)  # first: it refuses a solid with no load path
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend)
-    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend)
     consts = engineering_constants(hom.stiffness)
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
@@ -757,3 +757,75 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         "notes": notes,
     }
     return report, comp
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def load_sample(path, *, voxel: float | None = None, spacing=None) -> tuple[np.ndarray, float, str]:
+    """The solid voxels of a file, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
+
+    Parameters
+    ----------
+    path : str or Path
+        A closed mesh (voxelised at `voxel`), a binary volume (solid = non-zero), or a ``.npy``
+        field (solid = negative; its voxel from `voxel` or the JSON report written beside it).
+    voxel, spacing : see :func:`~implicit_scaffold.morphometry.analyze_file`.
+
+    Returns
+    -------
+    solid : (n1, n2, n3) bool ndarray
+        Cropped to the solid's bounding box (a mesh's margin layer removed).
+    h : float, mm
+    kind : str
+    """
+    import json
+    from pathlib import Path
+
+    from . import morphometry as mo
+    from .errors import positive_mm
+    from .grid import Grid
+
+    path = Path(path)
+    if voxel is not None:
+        voxel = positive_mm("voxel", voxel)
+    if not path.exists():
+        raise ScaffoldError(f"{path} does not exist; check the path")
+    suffix = mo._suffix(path)
+    if suffix == ".npy":
+        try:
+            field = np.load(path, mmap_mode="r")
+        except (OSError, ValueError) as exc:
+            raise ScaffoldError(f"cannot read {path.name} as a .npy field: {exc}") from None
+        if field.ndim != 3:
+            raise ScaffoldError(f"{path.name} is not a 3-D field (shape {field.shape})")
+        if voxel is None:
+            beside = path.with_suffix(".json")
+            try:
+                voxel = float(json.loads(beside.read_text())["voxel_mm"])
+            except (OSError, ValueError, KeyError, TypeError):
+                raise ScaffoldError(f"{path.name} carries no voxel size and no report {beside.name} is beside it; "
+                                    "give --voxel H (mm)") from None
+        solid, kind = np.asarray(field) < 0, "field"
+    elif path.is_dir() or suffix in mo.VOLUME_SUFFIXES:
+        solid, voxel, _ = mo._read_volume(path, spacing, voxel)
+        kind = "volume"
+    elif suffix in mo.MESH_SUFFIXES:
+        if voxel is None:
+            raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
+        mesh = mo._read_mesh(path)
+        lo, hi = mesh.bounds
+        solid = mo.voxelize(mesh.vertices, mesh.faces, Grid.covering(lo, hi, voxel))
+        kind = "mesh"
+    else:
+        raise ScaffoldError(f"cannot measure {path.name}: use a mesh ({' '.join(mo.MESH_SUFFIXES)}), a volume "
+                            f"({' '.join(mo.VOLUME_SUFFIXES)}) or a .npy field")
+    if not solid.any():
+        raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load")
+    return crop(solid), float(voxel), kind
+
+
+def crop(solid: np.ndarray) -> np.ndarray:
+    """`solid` cut to the bounding box of its solid voxels."""
+    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(solid))
+    return np.ascontiguousarray(solid[box])

@@ -201,3 +201,67 @@ def test_boundary_choice_and_verdicts():
     assert "stress shielding" in m.bone_verdict(110.0)
     assert "trabecular" in m.bone_verdict(1.0)
     assert "cortical" in m.bone_verdict(17.0)
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def _run(argv, capsys):
+    from implicit_scaffold.cli import main
+
+    code = main([str(a) for a in argv])
+    return code, capsys.readouterr()
+
+
+def _field(path, solid):
+    np.save(path, np.where(solid, -1.0, 1.0).astype(np.float32))
+    return path
+
+
+def test_cli_mechanics_writes_the_issue_keys(tmp_path, capsys):
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, 2:5, :] = True  # plates normal to y: a load path along x and z, none along y
+    src = _field(tmp_path / "plates.npy", solid)
+    out = tmp_path / "r.json"
+    code, cap = _run(["mechanics", src, "--voxel", 0.1, "--material", "pla", "-o", out, "-q"], capsys)
+    assert code == 0, cap.err
+    import json
+
+    r = json.loads(out.read_text())
+    for key in ("stiffness_tensor_gpa", "youngs_modulus_gpa", "shear_modulus_gpa", "poisson_ratio",
+                "solid_fraction", "boundary_conditions", "material", "compression", "solver"):
+        assert key in r
+    assert set(r["compression"]) >= {"axis", "apparent_modulus_gpa"}
+    assert set(r["solver"]) >= {"iterations", "residual", "seconds"}
+    assert np.array(r["stiffness_tensor_gpa"]).shape == (6, 6)
+    assert r["material"]["E_gpa"] == 3.5
+    # the cropped sample is the 3 solid plates only: a full block along z
+    assert r["compression"]["apparent_modulus_gpa"] == pytest.approx(3.5, rel=1e-5)
+    assert r["youngs_modulus_gpa"]["y"] > 0  # cropped to the solid: y is solid too
+
+
+def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys):
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, 2:5, :] = True
+    solid[0, 0, 0] = solid[-1, -1, -1] = True  # corners keep the box, so the plates stay plates
+    code, cap = _run(["mechanics", _field(tmp_path / "p.npy", solid), "--voxel", 0.1, "--boundary", "periodic"],
+                     capsys)
+    assert code == 0, cap.err
+    assert "y 0," in cap.out and "no load path" in cap.out
+
+
+@pytest.mark.parametrize("case, argv, words", [
+    ("void", ["--voxel", "0.1"], "no solid"),
+    ("plates", ["--voxel", "0.1", "--axis", "z"], "does not connect the two platens"),
+    ("block", ["--voxel", "0.1", "--material", "steel"], "unknown material"),
+    ("block", ["--voxel", "0.1", "--E", "2", "--nu", "0.5"], "--nu"),
+])
+def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
+    solid = np.zeros((6, 6, 9), bool)
+    if case == "plates":
+        solid[:, :, 1:3] = solid[:, :, 6:8] = True  # two plates, nothing between them
+    elif case == "block":
+        solid[:] = True
+    code, cap = _run(["mechanics", _field(tmp_path / "x.npy", solid), *argv], capsys)
+    assert code == 2
+    assert words in cap.err and cap.err.count("\n") == 1
