@@ -265,3 +265,48 @@ def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, 
     code, cap = _run(["mechanics", _field(tmp_path / "x.npy", solid), *argv], capsys)
     assert code == 2
     assert words in cap.err and cap.err.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------- the OpenCL operator
+
+
+def _devices():
+    from implicit_scaffold import opencl
+
+    return opencl.working_devices()
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
+    from implicit_scaffold import opencl
+    from implicit_scaffold.mechanics_cl import StiffnessOperator
+
+    rng = np.random.default_rng(3)
+    solid = rng.random((9, 10, 11)) < 0.4  # odd sizes, a random (hinged, holed) solid
+    model = m.voxel_model(solid, 0.1, TI, periodic=periodic)
+    u = rng.standard_normal((6, 3, int(np.prod(model.shape))))
+    ref = m.apply_stiffness(model, u)
+    devices = _devices()
+    assert devices, "no working OpenCL device"
+    for check in devices:
+        with opencl.using(check):
+            # float: about 1e-7 of the largest force from float32 round-off over 192 terms
+            got = StiffnessOperator(model, double=False)(u)
+            assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max(), check.name
+            from implicit_scaffold.mechanics_cl import has_double
+
+            if has_double():
+                got = StiffnessOperator(model, double=True)(u)
+                assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), check.name
+
+
+def test_opencl_backend_gives_the_exact_laminate():
+    solid = np.zeros((7, 9, 11), bool)
+    solid[:, :, 2:5] = True
+    phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+    C = m.homogenize(solid, 0.05, TI, backend="opencl").stiffness
+    assert C[0, 0] == pytest.approx(phi * E / (1 - nu ** 2), rel=1e-6)
+    assert C[0, 1] == pytest.approx(phi * nu * E / (1 - nu ** 2), rel=1e-6)
+    assert C[5, 5] == pytest.approx(phi * E / (2 * (1 + nu)), rel=1e-6)
+    c = m.compress(solid, 0.05, TI, axis=0, backend="opencl")
+    assert c.apparent_modulus_gpa == pytest.approx(phi * E, rel=1e-6)
