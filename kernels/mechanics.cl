@@ -29,30 +29,48 @@ __kernel void stiffness_apply(__global const uchar *solid, __constant real *ke, 
     const int n = n1 * n2 * n3;
     if (node >= n) return;
     const int i = node / (n2 * n3), j = (node / n3) % n2, k = node % n3;
-    real acc[3 * NCASE];
-    for (int c = 0; c < 3 * NCASE; ++c) acc[c] = (real)0;
+    /* the three planes around this node along each axis, wrapped once here (no % in the loops) */
+    const int I[3] = {(i == 0 ? n1 : i) - 1, i, i + 1 == n1 ? 0 : i + 1};
+    const int J[3] = {(j == 0 ? n2 : j) - 1, j, j + 1 == n2 ? 0 : j + 1};
+    const int K[3] = {(k == 0 ? n3 : k) - 1, k, k + 1 == n3 ? 0 : k + 1};
+    /* this node is corner b of the voxel whose low corner is node - offset(b) */
+    uchar s[8];
+    uchar any = 0;
+#pragma unroll
     for (int b = 0; b < 8; ++b) {
-        /* the voxel of which this node is corner b */
-        const int ei = (i - (b & 1) + n1) % n1;
-        const int ej = (j - ((b >> 1) & 1) + n2) % n2;
-        const int ek = (k - ((b >> 2) & 1) + n3) % n3;
-        if (!solid[(ei * n2 + ej) * n3 + ek]) continue;
-        for (int a = 0; a < 8; ++a) {
-            const int mi = (ei + (a & 1)) % n1;
-            const int mj = (ej + ((a >> 1) & 1)) % n2;
-            const int mk = (ek + ((a >> 2) & 1)) % n3;
-            const int m = (mi * n2 + mj) * n3 + mk;
-            __constant const real *row = ke + (3 * b) * 24 + 3 * a;
-            for (int c = 0; c < NCASE; ++c) {
-                const real ux = u[(3 * c + 0) * n + m];
-                const real uy = u[(3 * c + 1) * n + m];
-                const real uz = u[(3 * c + 2) * n + m];
-                acc[3 * c + 0] += row[0] * ux + row[1] * uy + row[2] * uz;
-                acc[3 * c + 1] += row[24] * ux + row[25] * uy + row[26] * uz;
-                acc[3 * c + 2] += row[48] * ux + row[49] * uy + row[50] * uz;
+        s[b] = solid[(I[1 - (b & 1)] * n2 + J[1 - ((b >> 1) & 1)]) * n3 + K[1 - ((b >> 2) & 1)]];
+        any |= s[b];
+    }
+    for (int c = 0; c < NCASE; ++c) {
+        real ax = (real)0, ay = (real)0, az = (real)0;
+        if (any) {
+            /* the 27 neighbours' displacements, read once */
+            real U[81];
+#pragma unroll
+            for (int q = 0; q < 27; ++q) {
+                const int m = (I[q % 3] * n2 + J[(q / 3) % 3]) * n3 + K[q / 9];
+                U[3 * q + 0] = u[(3 * c + 0) * n + m];
+                U[3 * q + 1] = u[(3 * c + 1) * n + m];
+                U[3 * q + 2] = u[(3 * c + 2) * n + m];
+            }
+#pragma unroll
+            for (int b = 0; b < 8; ++b) {
+                if (!s[b]) continue;
+#pragma unroll
+                for (int a = 0; a < 8; ++a) {
+                    /* corner a of that voxel is this node + offset(a) - offset(b) */
+                    const int q = (1 + (a & 1) - (b & 1)) + 3 * (1 + ((a >> 1) & 1) - ((b >> 1) & 1))
+                                  + 9 * (1 + ((a >> 2) & 1) - ((b >> 2) & 1));
+                    __constant const real *row = ke + (3 * b) * 24 + 3 * a;
+                    const real ux = U[3 * q], uy = U[3 * q + 1], uz = U[3 * q + 2];
+                    ax += row[0] * ux + row[1] * uy + row[2] * uz;
+                    ay += row[24] * ux + row[25] * uy + row[26] * uz;
+                    az += row[48] * ux + row[49] * uy + row[50] * uz;
+                }
             }
         }
+        f[(3 * c + 0) * n + node] = ax;
+        f[(3 * c + 1) * n + node] = ay;
+        f[(3 * c + 2) * n + node] = az;
     }
-    for (int c = 0; c < NCASE; ++c)
-        for (int d = 0; d < 3; ++d) f[(3 * c + d) * n + node] = acc[3 * c + d];
 }
