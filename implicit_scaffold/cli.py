@@ -194,7 +194,11 @@ def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
                             "raise --max-memory or use a larger --voxel")
     h = float(result.grid.spacing)
     solid = crop(result.field < 0) if (result.field < 0).any() else result.field < 0
-    mech, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis))
+    boundary = args.boundary
+    if boundary == "auto" and result.patient_sdf is not None:
+        # a box patient is a box sample (periodic); any other shape is not (kinematic)
+        boundary = "periodic" if crop(result.patient_sdf < 0).all() else "kinematic"
+    mech, comp = measure(solid, h, mat, boundary=boundary, axis="xyz".index(args.axis))
     return mech, comp, h
 
 

@@ -222,9 +222,12 @@ def test_cli_mechanics_writes_the_issue_keys(tmp_path, capsys):
     solid = np.zeros((8, 7, 10), bool)
     solid[:, 2:5, :] = True  # plates normal to y: a load path along x and z, none along y
     src = _field(tmp_path / "plates.npy", solid)
-    out = tmp_path / "r.json"
-    code, cap = _run(["mechanics", src, "--voxel", 0.1, "--material", "pla", "-o", out, "-q"], capsys)
+    out, page = tmp_path / "r.json", tmp_path / "r.html"
+    code, cap = _run(["mechanics", src, "--voxel", 0.1, "--material", "pla", "-o", out, "--report", page, "-q"],
+                     capsys)
     assert code == 0, cap.err
+    html = page.read_text()
+    assert "<h2>Mechanics</h2>" in html and "trabecular bone" in html and "data:image/png" in html
     import json
 
     r = json.loads(out.read_text())
@@ -368,3 +371,17 @@ def test_a_voronoi_scaffold_agrees_with_mugrid(small_scaffold):
     # every component within 1 % (the issue's bound); the ones near 0 against the largest
     assert np.all(np.abs(ours[big] / ref[big] - 1) < 0.01)
     assert np.all(np.abs(ours - ref)[~big] < 0.01 * 1e-3 * np.abs(ref).max())
+
+
+def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "s.npy"
+    code, cap = _run(["generate", "--shape", "cylinder", "--size", "1.6", "--voxel", "0.1", "--porosity", "0.6",
+                      "-o", out, "--mechanics", "--material", "peek"], capsys)
+    assert code == 0, cap.err
+    mech = json.loads((tmp_path / "s.json").read_text())["mechanics"]
+    assert mech["material"]["E_gpa"] == 3.6
+    assert mech["boundary_conditions"].startswith("kinematic")  # a cylinder is not a box sample
+    assert 0 < mech["compression"]["apparent_modulus_gpa"] < 3.6
+    assert "mechanics: PEEK" in cap.out
