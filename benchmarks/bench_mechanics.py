@@ -1,6 +1,6 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
-    python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid]
+    python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
 
 - **solve**: all six load cases of periodic homogenization (one block, PCG with the FFT
   reference-medium preconditioner, the element operator on the OpenCL device in double) of
@@ -108,6 +108,25 @@ _out = {{'rho': float(solid.mean()), 'E_rel': float(np.mean(list(c['youngs_modul
 """
 
 
+CONVERGE = """
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold import mechanics as M
+r = implicit_scaffold.generate(size={size!r}, voxel={voxel!r}, pore_size=0.6, porosity=0.7, seed=0, mesh=False,
+                               morphometry=False)
+inside = r.patient_sdf < 0
+box = tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(inside))
+solid = (r.field < 0)[box]
+mat = M.material('ti64')
+c = M.compress(solid, r.grid.spacing, mat, axis=2, tol=1e-6, backend='opencl')
+hom = M.homogenize(solid, r.grid.spacing, mat, boundary='periodic', tol=1e-6, backend='opencl')
+e = M.engineering_constants(hom.stiffness)['youngs_modulus_gpa']
+_out = {{'voxel': r.grid.spacing, 'grid': 'x'.join(map(str, solid.shape)), 'solid_fraction': float(solid.mean()),
+         'compression_gpa': c.apparent_modulus_gpa, 'Ez_gpa': e['z'], 'Ex_gpa': e['x'],
+         'iterations': [hom.iterations, c.iterations]}}
+"""
+
+
 def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "paper", pore: float = 0.6,
           seed: int = 0) -> tuple[Path, dict]:
     out = tmp / f"solid_{style}_{n}_{porosity}.npy"
@@ -123,6 +142,8 @@ def main(argv=None) -> int:
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--fit", action="store_true")
     ap.add_argument("--mugrid", action="store_true")
+    ap.add_argument("--convergence", action="store_true",
+                    help="a 2 mm cube at generate's default voxel and at half of it")
     args = ap.parse_args(argv)
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
@@ -162,6 +183,16 @@ def main(argv=None) -> int:
         print(table([[f"{a:.3f}", f"{b:.4g}", c] for a, b, c in pts], ["solid fraction rho", "E/Es", "CG its"]))
         print(f"fit over rho in 0.1-0.4: E/Es = {np.exp(intercept):.3f} rho^{slope:.3f} "
               f"(Roberts & Garboczi 2001: 0.93 rho^2.04; the issue asks n in 1.8-2.3)")
+    if args.convergence:
+        coarse = run_isolated(CONVERGE.format(size=2.0, voxel=None), timeout=7200)
+        fine = run_isolated(CONVERGE.format(size=2.0, voxel=coarse["voxel"] / 2), timeout=7200)
+        rows = [[f"{r['voxel']:.4f}", r["grid"], f"{r['solid_fraction']:.4f}", f"{r['compression_gpa']:.4g}",
+                 f"{r['Ez_gpa']:.4g}", f"{r['Ex_gpa']:.4g}", r["iterations"]] for r in (coarse, fine)]
+        print()
+        print(table(rows, ["voxel mm", "grid", "solid", "platens E_z GPa", "periodic E_z GPa", "periodic E_x GPa",
+                           "CG its (hom, comp)"]))
+        for key in ("compression_gpa", "Ez_gpa", "Ex_gpa"):
+            print(f"  {key}: h -> h/2 changes by {100 * (coarse[key] / fine[key] - 1):+.2f} %")
     return 0
 
 
