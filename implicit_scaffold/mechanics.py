@@ -4,10 +4,13 @@ One trilinear hexahedron per solid voxel (exact 2x2x2 Gauss stiffness); void vox
 no unknowns (a node is an unknown only when a solid voxel touches it). The system is
 solved by preconditioned conjugate gradients, all load cases as one block, with an
 FFT-based reference-medium preconditioner: the inverse of the same finite-element operator
-on the full (all-solid) periodic grid, which Fourier diagonalises. It is the preconditioner
-of the "Fourier-accelerated nodal solvers" (Leuschner & Fritzen 2018, Comput Mech 62:359;
-Ladecký et al. 2023, Appl Math Comput 446:127835), whose iteration count depends on the
-geometry, not on the voxel size.
+on the full (all-solid) periodic grid, which Fourier diagonalises, with Green-Jacobi
+scaling. It is the preconditioner of the "Fourier-accelerated nodal solvers" (Leuschner &
+Fritzen 2018, Comput Mech 62:359; Ladecký et al. 2023). Its iteration count stays flat as
+a pore cell is refined (a 20 % spherical pore: 20 and 25 iterations at 16 and 32 voxels
+across), but it grows on thin-strut scaffolds, where the void's infinite contrast is felt
+(a 30 % solid Voronoi scaffold at 0.04 mm: 231 iterations at 32^3, 343 at 64^3; muGrid's
+own Green-Jacobi FFT solver needs 280-292 per load case on the same 64^3 voxels).
 
 Three problems:
 
@@ -17,8 +20,7 @@ Three problems:
   sample is not periodic (a patient-shaped scaffold, a bone);
 - uniaxial compression between rigid bonded platens (ISO 13314's setting): apparent modulus.
 
-Units: mm and GPa (so forces are in kN and energies in J... scaled consistently; only the
-ratios are reported). Voigt order xx, yy, zz, yz, xz, xy with engineering shear strains.
+Units: mm and GPa (so forces are in kN: GPa times mm^2). Voigt order xx, yy, zz, yz, xz, xy with engineering shear strains.
 """
 from __future__ import annotations
 
