@@ -55,6 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--report", metavar="HTML", default=None,
                    help="also write a visual report: pictures, histograms, targets against measured values")
     _add_build_options(g)
+    g.add_argument("--mechanics", action="store_true",
+                   help="also measure the scaffold's stiffness (voxel FE): report section 'mechanics'")
+    _add_mechanics_options(g)
 
     sl = sub.add_parser("slice", help="write the layer images a DLP/SLA printer takes (PNG stack), no mesh",
                         description="Build a scaffold (same options as generate) and write its layers as "
@@ -111,9 +114,112 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("--require-printable", action="store_true",
                    help="exit with code 3 (after writing the certificate) when it fails")
     c.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    me = sub.add_parser("mechanics", help="stiffness tensor, moduli and a platen compression test (voxel FE)",
+                        description="The effective stiffness of a scaffold or a bone from its voxels: 6x6 tensor "
+                                    "(Voigt, GPa), moduli, a compression between rigid platens, beside bone's.")
+    me.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off), a binary volume (.nrrd .nii .nii.gz "
+                                 ".mha .mhd .tif, or a folder of .tif slices) or a .npy field (negative = solid)")
+    me.add_argument("--voxel", type=float, default=None,
+                    help="voxel size in mm (needed for a mesh; resamples a volume)")
+    me.add_argument("--spacing", type=_spacing, default=None,
+                    help="a volume's voxel spacing in mm, for files that carry none")
+    _add_mechanics_options(me)
+    me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
+    me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
+    me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
     sub.add_parser("info", help="versions and the OpenCL device")
     return parser
+
+
+def _add_mechanics_options(p) -> None:
+    mg = p.add_argument_group("mechanics (voxel finite elements)")
+    mg.add_argument("--material", default=None, metavar="NAME",
+                    help="ti64 pcl pla peek ha tcp cocr ta (default ti64; see implicit_scaffold.mechanics.MATERIALS)")
+    mg.add_argument("--E", dest="young", type=float, default=None, metavar="GPA",
+                    help="the solid's Young's modulus in GPa (instead of, or overriding, --material)")
+    mg.add_argument("--nu", type=float, default=None, metavar="V", help="the solid's Poisson's ratio, below 0.5")
+    mg.add_argument("--boundary", choices=["auto", "periodic", "kinematic"], default="auto",
+                    help="homogenization: periodic (a box sample), kinematic (a shaped one); auto tells them apart")
+    mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
+
+
+def _mechanics_setup(args):
+    """The material of a mechanics run, checked before any work."""
+    from .mechanics import material
+
+    return material(args.material, E=args.young, nu=args.nu)
+
+
+def _mechanics_lines(mech: dict) -> list[str]:
+    E = mech["youngs_modulus_gpa"]
+    G = mech["shear_modulus_gpa"]
+    comp = mech["compression"]
+    it = mech["solver"]["iterations"]
+    lines = [f"  mechanics: {mech['material']['name']} (E {mech['material']['E_gpa']:g} GPa, nu "
+             f"{mech['material']['nu']:g}), solid fraction {mech['solid_fraction']:.4f}, "
+             f"{mech['boundary_conditions'].split(' (')[0]} boundary conditions",
+             f"  Young's moduli (GPa): x {E['x']:.4g}, y {E['y']:.4g}, z {E['z']:.4g}; shear: yz {G['yz']:.4g}, "
+             f"xz {G['xz']:.4g}, xy {G['xy']:.4g}; anisotropy index "
+             + ("—" if mech["anisotropy_index"] is None else f"{mech['anisotropy_index']:.3g}"),
+             f"  compression along {comp['axis']}: apparent modulus {comp['apparent_modulus_gpa']:.4g} GPa",
+             f"  bone: {mech['stress_shielding']}",
+             f"  solver: {it['homogenization']} + {it['compression']} CG iterations, residual "
+             f"{mech['solver']['residual']:.1e}, {mech['solver']['seconds']:.1f} s"]
+    lines += [f"  note: {n}" for n in mech["notes"]]
+    return lines
+
+
+def _mechanics(args) -> int:
+    from .mechanics import load_sample, measure
+
+    t0 = time.perf_counter()
+    mat = _mechanics_setup(args)
+    for path, fmt in ((args.output, (".json",)), (args.report, None)):
+        if path is not None:
+            if fmt is None:
+                _check_report(path)
+            else:
+                from .mesh import check_writable
+
+                check_writable(path, formats=fmt)
+    solid, h, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing)
+    report, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis))
+    report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
+    if args.output is not None:
+        from .mesh import write_json
+
+        write_json(report, args.output)
+    if args.report is not None:
+        from .report import write_mechanics_report
+
+        write_mechanics_report(report, comp, h, args.report)
+    if not args.quiet:
+        grid = "x".join(str(v) for v in solid.shape)
+        lines = [f"{report['source']}: {kind}, voxel {h:.4g} mm, grid {grid}"] + _mechanics_lines(report)
+        written = [p for p in (args.output, args.report) if p]
+        if written:
+            lines.append("wrote " + " and ".join(written))
+        lines.append(f"  time {time.perf_counter() - t0:.1f} s")
+        print("\n".join(lines))
+    return 0
+
+
+def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
+    """Measure what generate built; the report's ``mechanics`` section."""
+    from .mechanics import crop, measure
+
+    if result.field is None:
+        raise ScaffoldError("--mechanics needs the whole field in memory, and this run was tiled; "
+                            "raise --max-memory or use a larger --voxel")
+    h = float(result.grid.spacing)
+    solid = crop(result.field < 0) if (result.field < 0).any() else result.field < 0
+    boundary = args.boundary
+    if boundary == "auto" and result.patient_sdf is not None:
+        # a box patient is a box sample (periodic); any other shape is not (kinematic)
+        boundary = "periodic" if crop(result.patient_sdf < 0).all() else "kinematic"
+    mech, comp = measure(solid, h, mat, boundary=boundary, axis="xyz".index(args.axis))
+    return mech, comp, h
 
 
 def _add_build_options(g) -> None:
@@ -323,11 +429,23 @@ def _generate(args) -> int:
     t0 = time.perf_counter()
     if args.report is not None:
         _check_report(args.report)
+    mat = _mechanics_setup(args) if args.mechanics else None
     result = _build(args, output=args.output)
+    comp = None
+    if args.mechanics:
+        from .mesh import write_json
+
+        result.report["mechanics"], comp, h = _generate_mechanics(result, mat, args)
+        write_json(result.report, result_json(args.output))
     if args.report is not None:
         from .report import write_run_report
 
-        write_run_report(result, args.report)
+        extra = None
+        if comp is not None:
+            from .report import strain_section_image
+
+            extra = {"compression: von Mises strain, middle section": strain_section_image(comp, h)}
+        write_run_report(result, args.report, extra_images=extra)
     if not args.quiet:
         r = result.report
         offset = (f"surface offset {r['surface_offset_mm']:+.4f} mm" if "surface_offset_mm" in r
@@ -352,6 +470,8 @@ def _generate(args) -> int:
             lines.append(_grade_line(r["grade"]))
         if isinstance(r.get("print_check"), dict):
             lines += _certificate_lines(r["print_check"])
+        if "mechanics" in r:
+            lines += _mechanics_lines(r["mechanics"])
         lines.append(_memory_line(r))
         lines.append("  time: " + ", ".join(f"{k} {v:.2f} s" for k, v in r["timings_s"].items())
                      + f"; total {time.perf_counter() - t0:.1f} s")
@@ -619,7 +739,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "check": _check,
-                "info": _info}
+                "info": _info, "mechanics": _mechanics}
     # a kill (SIGTERM) ends the run as Ctrl-C does, so the writers remove their temporary files
     from . import progress
 

@@ -307,6 +307,8 @@ def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Sc
         for q, m, t in certificate_rows(cert):
             parts.append(f"<tr><td>{html.escape(q)}</td><td>{html.escape(m)}</td><td>{html.escape(t)}</td></tr>")
         parts.append("</table>")
+    if isinstance(report.get("mechanics"), dict):
+        parts.append(mechanics_html(report["mechanics"]))
     parts.append("<h2>Pictures</h2>")
     for caption, png in images.items():
         b64 = base64.b64encode(png).decode("ascii")
@@ -318,8 +320,9 @@ def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Sc
             fh.write("\n".join(parts))
 
 
-def write_run_report(result, path) -> None:
-    """The page for a :func:`~implicit_scaffold.generate` result: pictures, histograms, table."""
+def write_run_report(result, path, *, extra_images: dict[str, bytes] | None = None) -> None:
+    """The page for a :func:`~implicit_scaffold.generate` result: pictures, histograms, table
+    (and `extra_images`, e.g. the mechanics' strain section)."""
     from .metrics import pore_sizes
 
     r = result.report
@@ -345,6 +348,7 @@ def write_run_report(result, path) -> None:
             prof["depth"], xlabel="depth below the patient surface (mm)", title=grade.get("field", "graded"))
         images[f"graded: porosity and pore size along {prof['axis_name']}"] = grade_profile_plot(
             prof["axis"], xlabel=f"{prof['axis_name']} (mm)", title=grade.get("field", "graded"))
+    images.update(extra_images or {})
     write_html(path, r, images, title=f"Scaffold report: {r.get('patient', 'patient')}")
 
 
@@ -380,3 +384,61 @@ def write_analysis_report(analysis, path) -> None:
     images["section through the middle (solid dark)"] = section_image(field, analysis.grid)
     images.update(_sphere_histograms(r))
     write_html(path, r, images, title=f"Morphometry of {r.get('source', 'a scaffold')}")
+
+
+# ----------------------------------------------------------------------------- mechanics (issue 14)
+
+
+def strain_section_image(compression, h: float) -> bytes:
+    """The compression's von Mises strain on the section through the middle, across the load axis."""
+    vm = compression.von_mises_strain
+    axis = 0 if compression.axis != 0 else 1  # a section that contains the load axis
+    index = vm.shape[axis] // 2
+    sl = np.take(vm, index, axis=axis)
+    axes = [a for a in range(3) if a != axis]
+    fig, ax = _figure(4.8, 4.2)
+    shown = np.ma.masked_where(sl <= 0, sl / compression.strain)
+    im = ax.imshow(shown.T, origin="lower", cmap="inferno", interpolation="nearest",
+                   extent=(0, sl.shape[0] * h, 0, sl.shape[1] * h))
+    fig.colorbar(im, ax=ax, label="von Mises strain / applied strain")
+    names = "xyz"
+    ax.set_title(f"compression along {names[compression.axis]}: section {names[axis]} = {(index + 0.5) * h:.2f} mm")
+    ax.set_xlabel(f"{names[axes[0]]} (mm)")
+    ax.set_ylabel(f"{names[axes[1]]} (mm)")
+    return _png(fig)
+
+
+def mechanics_html(mech: dict) -> str:
+    """The page's mechanics section: moduli beside bone's bands, the verdict, the solver."""
+    E, G = mech["youngs_modulus_gpa"], mech["shear_modulus_gpa"]
+    comp = mech["compression"]
+    rows = [(f"Young's modulus {a} (GPa)", _fmt(E[a])) for a in "xyz"]
+    rows += [(f"shear modulus {k} (GPa)", _fmt(v)) for k, v in G.items()]
+    rows.append((f"compression along {comp['axis']}, apparent modulus (GPa)", _fmt(comp["apparent_modulus_gpa"])))
+    for name, band in mech["bone_bands_gpa"].items():
+        rows.append((f"{name} bone (GPa)", f"{_fmt(band['low'])}–{_fmt(band['high'])}"))
+    rows.append(("anisotropy index", _fmt(mech["anisotropy_index"])))
+    rows.append(("solid fraction", _fmt(mech["solid_fraction"])))
+    sol = mech["solver"]
+    rows.append(("solver", f"{sol['iterations']['homogenization']} + {sol['iterations']['compression']} CG "
+                           f"iterations, residual {sol['residual']:.1e}, {sol['seconds']:.1f} s"))
+    mat = mech["material"]
+    out = ["<h2>Mechanics</h2>",
+           f"<p><b>{html.escape(mech['stress_shielding'])}</b></p>",
+           f"<p>{html.escape(mat['name'])}: E {_fmt(mat['E_gpa'])} GPa, ν {_fmt(mat['nu'])} "
+           f"({html.escape(mat.get('source', ''))}). Boundary conditions: {html.escape(mech['boundary_conditions'])}."
+           "</p><table><tr><th>quantity</th><th>value</th></tr>"]
+    out += [f"<tr><td>{html.escape(q)}</td><td>{html.escape(v)}</td></tr>" for q, v in rows]
+    out.append("</table>")
+    sources = "; ".join(f"{k}: {b['source']}" for k, b in mech["bone_bands_gpa"].items())
+    out.append(f"<p style='font-size:90%;color:#555'>Bone bands: {html.escape(sources)}.</p>")
+    out += [f"<p style='font-size:90%'>note: {html.escape(n)}</p>" for n in mech.get("notes", [])]
+    return "\n".join(out)
+
+
+def write_mechanics_report(report: dict, compression, h: float, path) -> None:
+    """The page for ``implicit-scaffold mechanics``: the mechanics section and the strain section."""
+    mech = {k: v for k, v in report.items() if k not in ("version", "source", "kind")}
+    page = {"version": report.get("version"), "kind": report.get("kind"), "voxel_mm": h, "mechanics": mech}
+    images = {"compression: von Mises strain, middle section": strain_section_image(compression, h)}
+    write_html(path, page, images, title=f"Mechanics of {report.get('source', 'a scaffold')}")

@@ -1,0 +1,861 @@
+"""Stiffness of a scaffold from its own voxels: a matrix-free voxel finite-element solver.
+
+One trilinear hexahedron per solid voxel (exact 2x2x2 Gauss stiffness); void voxels carry
+no unknowns (a node is an unknown only when a solid voxel touches it). The system is
+solved by preconditioned conjugate gradients, all load cases as one block, with an
+FFT-based reference-medium preconditioner: the inverse of the same finite-element operator
+on the full (all-solid) periodic grid, which Fourier diagonalises, with Green-Jacobi
+scaling. It is the preconditioner of the "Fourier-accelerated nodal solvers" (Leuschner &
+Fritzen 2018, Comput Mech 62:359; Ladecký et al. 2023). Its iteration count stays flat as
+a pore cell is refined (a 20 % spherical pore: 20 and 25 iterations at 16 and 32 voxels
+across), but it grows on thin-strut scaffolds, where the void's infinite contrast is felt
+(a 30 % solid Voronoi scaffold at 0.04 mm: 231 iterations at 32^3, 343 at 64^3; muGrid's
+own Green-Jacobi FFT solver needs 280-292 per load case on the same 64^3 voxels).
+
+Three problems:
+
+- periodic homogenization (six unit strains, the fluctuation periodic): the effective 6x6
+  stiffness of a periodic or box sample;
+- kinematic homogenization (uniform displacement ``u = E x`` on the box's faces) where the
+  sample is not periodic (a patient-shaped scaffold, a bone);
+- uniaxial compression between rigid bonded platens (ISO 13314's setting): apparent modulus.
+
+Units: mm and GPa (so forces are in kN: GPa times mm^2). Voigt order xx, yy, zz, yz, xz, xy with engineering shear strains.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import ScaffoldError
+
+VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
+#: corner a of a voxel is at offset (a & 1, a >> 1 & 1, a >> 2 & 1) voxels from its low corner
+CORNERS = np.array([(a & 1, (a >> 1) & 1, (a >> 2) & 1) for a in range(8)], dtype=np.int64)
+#: a stiffness below this share of the largest diagonal term is "no load path" (round-off of a
+#: solve to 1e-8 gives about 1e-8 of the largest term, well under it)
+NO_LOAD_PATH = 1e-6
+
+
+# ----------------------------------------------------------------------------- materials
+
+
+@dataclass(frozen=True)
+class Material:
+    """An isotropic linear-elastic material: Young's modulus (GPa), Poisson's ratio, source."""
+
+    name: str
+    E_gpa: float
+    nu: float
+    source: str = ""
+
+
+#: Dense (fully solid) material constants of the printable biomaterials. Values vary with the
+#: process and grade: these are the handbook figures the sources give, for comparison only.
+MATERIALS = {
+    "ti64": Material("Ti-6Al-4V", 113.8, 0.342,
+                     "Boyer, Welsch & Collings, Materials Properties Handbook: Titanium Alloys, ASM 1994 "
+                     "(annealed Ti-6Al-4V, E 110-114 GPa, nu 0.34)"),
+    "pcl": Material("PCL", 0.40, 0.30,
+                    "Woodruff & Hutmacher 2010, Prog Polym Sci 35:1217 (E 0.21-0.44 GPa); nu assumed 0.30"),
+    "pla": Material("PLA", 3.5, 0.36,
+                    "Farah, Anderson & Langer 2016, Adv Drug Deliv Rev 107:367 (PLLA E about 3.5 GPa, nu 0.36)"),
+    "peek": Material("PEEK", 3.6, 0.40,
+                     "Kurtz & Devine 2007, Biomaterials 28:4845 (E 3-4 GPa, nu about 0.4)"),
+    "ha": Material("hydroxyapatite", 114.0, 0.28,
+                   "Katz & Ukraincik 1971, J Biomech 4:221 (dense HA, E about 114 GPa, nu about 0.27-0.28)"),
+    "tcp": Material("beta-TCP", 90.0, 0.28,
+                    "Liang, Rulis & Ching 2010, Acta Biomater 6:3763 (dense beta-TCP, E about 90 GPa); "
+                    "nu taken as HA's"),
+    "cocr": Material("CoCrMo (ASTM F75)", 210.0, 0.30,
+                     "Niinomi 2008, J Mech Behav Biomed Mater 1:30 (CoCr alloys, E 200-230 GPa, nu 0.3)"),
+    "ta": Material("tantalum", 186.0, 0.34,
+                   "CRC Handbook of Chemistry and Physics (Ta, E 186 GPa, nu 0.34)"),
+}
+
+#: Apparent moduli of bone (GPa) the scaffold is compared against.
+BONE_BANDS = {
+    "trabecular": (0.1, 2.0, "Morgan, Bayraktar & Keaveny 2003, J Biomech 36:897 (0.1-3 GPa by site); "
+                             "Gibson & Ashby, Cellular Solids, 2nd ed. 1997"),
+    "cortical": (15.0, 20.0, "Reilly & Burstein 1975, J Biomech 8:393 (femoral cortex, longitudinal "
+                             "17 GPa, transverse 11.5 GPa)"),
+}
+
+
+def material(name: str | None = None, *, E: float | None = None, nu: float | None = None) -> Material:
+    """The material of a solve, from the table or from E and nu.
+
+    Parameters
+    ----------
+    name : str, optional
+        A key of :data:`MATERIALS` (``ti64 pcl pla peek ha tcp cocr ta``).
+    E : float, GPa, optional
+        Young's modulus (instead of a name, or overriding its modulus).
+    nu : float, optional
+        Poisson's ratio, in (-1, 0.5).
+
+    Raises
+    ------
+    ScaffoldError
+        An unknown name, a non-positive modulus, or nu outside (-1, 0.5).
+    """
+    if name is None and E is None:
+        name = "ti64"
+    if name is not None:
+        key = str(name).lower()
+        if key not in MATERIALS:
+            raise ScaffoldError(f"unknown material {name!r}; use one of {', '.join(MATERIALS)} or --E GPA --nu V")
+        base = MATERIALS[key]
+    else:
+        base = Material("custom", float("nan"), 0.3, "given on the command line")
+    E_gpa = base.E_gpa if E is None else float(E)
+    nu_v = base.nu if nu is None else float(nu)
+    if not (np.isfinite(E_gpa) and E_gpa > 0):
+        raise ScaffoldError(f"--E must be a positive modulus in GPa, got {E!r}")
+    if not (np.isfinite(nu_v) and -1.0 < nu_v < 0.5):
+        raise ScaffoldError(f"--nu must lie in (-1, 0.5) (0.5 is incompressible, which a displacement "
+                            f"solver cannot take), got {nu!r}")
+    if (E is not None or nu is not None) and name is not None:
+        return Material(base.name + " (modified)", E_gpa, nu_v, base.source + "; modified on the command line")
+    return Material(base.name, E_gpa, nu_v, base.source)
+
+
+# ----------------------------------------------------------------------------- the element
+
+
+def isotropic_tensor(E: float, nu: float) -> np.ndarray:
+    """(6, 6) float ndarray, GPa: the isotropic stiffness in Voigt notation (engineering shear)."""
+    lam = E * nu / ((1 + nu) * (1 - 2 * nu))
+    mu = E / (2 * (1 + nu))
+    C = np.zeros((6, 6))
+    C[:3, :3] = lam
+    C[np.arange(3), np.arange(3)] = lam + 2 * mu
+    C[np.arange(3, 6), np.arange(3, 6)] = mu
+    return C
+
+
+def strain_matrix(h: float, xi) -> np.ndarray:
+    """(6, 24) float ndarray, 1/mm: strain of a cube voxel of side `h` at natural point `xi` in [-1, 1]^3.
+
+    Degrees of freedom are ordered corner-major (3 a + c for corner a, component c).
+    """
+    s = 2 * CORNERS - 1  # corner signs in natural coordinates
+    xi = np.asarray(xi, float)
+    B = np.zeros((6, 24))
+    for a in range(8):
+        f = 1 + s[a] * xi  # the three linear factors of N_a
+        dN = np.array([s[a, 0] * f[1] * f[2], f[0] * s[a, 1] * f[2], f[0] * f[1] * s[a, 2]]) / 8 * (2 / h)
+        c = 3 * a
+        B[0, c], B[1, c + 1], B[2, c + 2] = dN
+        B[3, c + 1], B[3, c + 2] = dN[2], dN[1]  # 2 eps_yz = du_y/dz + du_z/dy
+        B[4, c + 0], B[4, c + 2] = dN[2], dN[0]
+        B[5, c + 0], B[5, c + 1] = dN[1], dN[0]
+    return B
+
+
+def element_stiffness(E: float, nu: float, h: float) -> np.ndarray:
+    """(24, 24) float ndarray, GPa mm: stiffness of a cube voxel of side `h`.
+
+    2x2x2 Gauss points integrate it exactly: the integrand is at most quadratic per direction.
+    """
+    D = isotropic_tensor(E, nu)
+    g = 1 / np.sqrt(3)
+    K = np.zeros((24, 24))
+    for p in CORNERS:
+        B = strain_matrix(h, (2 * p - 1) * g)
+        K += B.T @ D @ B
+    return K * (h / 2) ** 3
+
+
+def macro_displacements(h: float) -> np.ndarray:
+    """(6, 24) float ndarray, mm: the corner displacements ``E x`` of each unit Voigt strain."""
+    x = CORNERS * h
+    return np.stack([x @ strain_tensor(k).T for k in range(6)]).reshape(6, 24)
+
+
+# ----------------------------------------------------------------------------- the voxel model
+
+
+@dataclass
+class VoxelModel:
+    """Solid voxels on a periodic node grid (a box sample is padded by one void layer).
+
+    Attributes
+    ----------
+    shape : (3,) ints
+        The node grid (= the element grid, periodic).
+    solid : (n1, n2, n3) bool ndarray
+        Solid elements, element (i, j, k) spanning nodes (i..i+1, j..j+1, k..k+1) mod shape.
+    conn : (8, ns) int64 ndarray
+        Flat node index of each corner of each solid element.
+    ke : (24, 24) float ndarray
+    h : float, mm
+    """
+
+    shape: tuple
+    solid: np.ndarray
+    conn: np.ndarray
+    ke: np.ndarray
+    h: float
+    material: Material
+    active: np.ndarray = field(init=False)
+
+    def __post_init__(self):
+        n = int(np.prod(self.shape))
+        self.active = np.bincount(self.conn.ravel(), minlength=n) > 0
+
+
+def voxel_model(solid, h: float, mat: Material, *, periodic: bool) -> VoxelModel:
+    """The finite-element model of a solid voxel mask.
+
+    Parameters
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+    h : float, mm
+    mat : Material
+    periodic : bool
+        True: the node grid wraps (periodic homogenization). False: one void layer is added at
+        the high end of every axis, so the (n+1)^3 nodes of a box sample never wrap.
+    """
+    solid = np.asarray(solid, bool)
+    if not periodic:
+        solid = np.pad(solid, ((0, 1),) * 3)
+    shape = solid.shape
+    idx = np.array(np.nonzero(solid), dtype=np.int64)  # (3, ns)
+    conn = np.empty((8, idx.shape[1]), np.int64)
+    dims = np.array(shape, np.int64)[:, None]
+    for a, off in enumerate(CORNERS):
+        p = (idx + off[:, None]) % dims
+        conn[a] = np.ravel_multi_index(tuple(p), shape)
+    return VoxelModel(shape, solid, conn, element_stiffness(mat.E_gpa, mat.nu, h), float(h), mat)
+
+
+def gather(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+    """(m, 24, ns) element displacements from nodal ones `u` of shape (m, 3, N)."""
+    m = u.shape[0]
+    ue = u[:, :, model.conn]  # (m, 3, 8, ns)
+    return ue.transpose(0, 2, 1, 3).reshape(m, 24, -1)
+
+
+def apply_stiffness(model: VoxelModel, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
+    """K u, matrix-free: the NumPy reference of the element operator.
+
+    Parameters
+    ----------
+    u : (m, 3, N) float ndarray, mm
+        Nodal displacements of m load cases on the flat node grid.
+    element_extra : (m, 24) float ndarray, optional
+        A displacement added to every solid element (the macroscopic ``E x`` of periodic
+        homogenization, which is not periodic and so not nodal).
+
+    Returns
+    -------
+    (m, 3, N) float ndarray
+    """
+    m, _, n = u.shape
+    ue = gather(model, u)
+    if element_extra is not None:
+        ue = ue + element_extra[:, :, None]
+    fe = np.matmul(model.ke, ue)  # (m, 24, ns)
+    fe = fe.reshape(m, 8, 3, -1)
+    out = np.empty_like(u)
+    flat = model.conn.ravel()
+    for c in range(m):
+        for d in range(3):
+            out[c, d] = np.bincount(flat, weights=fe[c, :, d, :].ravel(), minlength=n)
+    return out
+
+
+# ----------------------------------------------------------------------------- preconditioner
+
+
+def reference_symbol_inverse(shape, ke: np.ndarray) -> np.ndarray:
+    """(n1, n2, n3//2+1, 3, 3) float32: the inverse Fourier symbol of the full-grid operator.
+
+    The all-solid periodic operator is a convolution with a 27-point stencil of 3x3 blocks,
+    ``S[d] = sum over corners A - B = d of Ke[B, A]``; its symbol at a frequency is the 3x3
+    matrix ``sum_d S[d] exp(2 pi i q.d / n)``. The zero frequency (rigid translation) is
+    singular and gets 0: the preconditioner is the pseudo-inverse.
+    """
+    q = [np.fft.fftfreq(n) for n in shape[:2]] + [np.fft.rfftfreq(shape[2])]
+    grids = np.meshgrid(*q, indexing="ij", sparse=True)
+    blocks = ke.reshape(8, 3, 8, 3)
+    sym = np.zeros(tuple(len(v) for v in q) + (3, 3), complex)
+    stencil = {}
+    for b in range(8):
+        for a in range(8):
+            d = tuple(CORNERS[a] - CORNERS[b])
+            stencil[d] = stencil.get(d, 0) + blocks[b, :, a, :]
+    for d, S in stencil.items():
+        phase = np.exp(2j * np.pi * (grids[0] * d[0] + grids[1] * d[1] + grids[2] * d[2]))
+        sym += phase[..., None, None] * S
+    sym = sym.real  # the stencil is centro-symmetric (S[-d] = S[d]): the symbol is real
+    sym[0, 0, 0] = np.eye(3)
+    inv = np.linalg.inv(sym)
+    inv[0, 0, 0] = 0.0
+    return inv.astype(np.float32)
+
+
+def diagonal(model: VoxelModel) -> np.ndarray:
+    """(3, N) float ndarray: the diagonal of K (0 on nodes no solid voxel touches)."""
+    d = np.diag(model.ke).reshape(8, 3)
+    n = int(np.prod(model.shape))
+    return np.stack([sum(np.bincount(model.conn[a], minlength=n) * d[a, c] for a in range(8)) for c in range(3)])
+
+
+def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = False, jacobi: bool = True):
+    """M r = P F^-1 Khat^-1 F P r, P the mask of the free nodes: SPD on the free nodes.
+
+    `single` runs the FFTs in float32 (twice as fast; enough for a CG to 1e-6, whose
+    preconditioner need only be close to K^-1, but it blurs M's symmetry below 1e-7).
+    """
+    import scipy.fft as sfft
+
+    inv = reference_symbol_inverse(model.shape, model.ke)
+    real = np.float32 if single else np.float64
+    # the symbol's inverse is symmetric: its 6 distinct entries, each a full frequency grid
+    pairs = [(0, 0), (1, 1), (2, 2), (0, 1), (0, 2), (1, 2)]
+    blocks = {pq: np.ascontiguousarray(inv[..., pq[0], pq[1]], real) for pq in pairs}
+    del inv
+    shape = model.shape
+    # Green-Jacobi scaling (Ladecky et al. 2023): D^-1/2 K_ref^-1 D^-1/2 with D the ratio of
+    # K's diagonal to the reference's, so that nodes with few solid voxels around them (a thin
+    # strut's surface) are not over-corrected
+    weight = free * np.sqrt(np.diag(model.ke).reshape(8, 3).sum(axis=0)[:, None] / np.maximum(diagonal(model), 1e-300))
+    if not jacobi:
+        weight = free * np.ones((3, 1))
+
+    def apply(r):
+        out = np.empty_like(r)
+        for c in range(r.shape[0]):
+            x = (r[c] * weight).astype(real, copy=False).reshape((3,) + shape)
+            rh = sfft.rfftn(x, axes=(1, 2, 3), workers=-1)
+            del x
+            z0 = blocks[0, 0] * rh[0] + blocks[0, 1] * rh[1] + blocks[0, 2] * rh[2]
+            z1 = blocks[0, 1] * rh[0] + blocks[1, 1] * rh[1] + blocks[1, 2] * rh[2]
+            rh[2] = blocks[0, 2] * rh[0] + blocks[1, 2] * rh[1] + blocks[2, 2] * rh[2]
+            rh[0], rh[1] = z0, z1
+            del z0, z1
+            out[c] = sfft.irfftn(rh, s=shape, axes=(1, 2, 3), workers=-1).reshape(3, -1) * weight
+        return out
+
+    return apply
+
+
+def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
+        maxiter: int = 2000):
+    """Preconditioned conjugate gradients on m systems at once (a block of load cases).
+
+    Parameters
+    ----------
+    apply : callable
+        (m, 3, N) -> K x (m, 3, N).
+    precond : callable
+    b : (m, 3, N) float ndarray
+        Right-hand sides, zero on fixed nodes.
+    free : (N,) or (3, N) float ndarray of 0 and 1
+        The unknowns (per node, or per node and component); K x is masked to them.
+    scale : (m,) floats
+        The norm a residual is measured against (the load's scale, so that a zero load is
+        converged at once).
+    tol : float
+        Stop when every ``|r| / scale`` is below it.
+
+    Returns
+    -------
+    x, iterations, relative residuals (m,)
+    """
+    x = np.zeros_like(b)
+    r = b * free
+    z = precond(r)
+    p = z.copy()
+    rz = np.einsum("mcn,mcn->m", r, z)
+    res = np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale
+    it = 0
+    while np.any(res > tol) and it < maxiter:
+        q = apply(p) * free
+        pq = np.einsum("mcn,mcn->m", p, q)
+        live = (res > tol) & (pq > 0)
+        alpha = np.where(live, rz / np.where(pq > 0, pq, 1), 0.0)
+        x += alpha[:, None, None] * p
+        r -= alpha[:, None, None] * q
+        z = precond(r)
+        rz_new = np.einsum("mcn,mcn->m", r, z)
+        beta = np.where(live, rz_new / np.where(rz != 0, rz, 1), 0.0)
+        p = z + beta[:, None, None] * p
+        rz = rz_new
+        res = np.where(live, np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale, res)
+        it += 1
+    return x, it, res
+
+
+# ----------------------------------------------------------------------------- homogenization
+
+
+@dataclass
+class Homogenization:
+    """The effective stiffness of a sample and how it was solved."""
+
+    stiffness: np.ndarray  # (6, 6) GPa
+    boundary_conditions: str
+    solid_fraction: float
+    iterations: int
+    residual: float
+    seconds: float
+    backend: str = "numpy"
+
+
+def _operator(model, backend):
+    if backend == "numpy":
+        return lambda u, extra=None: apply_stiffness(model, u, extra)
+    if backend == "opencl":
+        from .mechanics_cl import StiffnessOperator
+
+        return StiffnessOperator(model)
+    raise ValueError(f"backend must be 'numpy' or 'opencl', got {backend!r}")
+
+
+def check_solid(solid) -> np.ndarray:
+    """`solid` as a 3-D bool array with at least one solid voxel, or a ScaffoldError."""
+    solid = np.asarray(solid)
+    if solid.ndim != 3 or min(solid.shape) < 1:
+        raise ScaffoldError(f"a mechanics sample is a 3-D voxel volume, got shape {solid.shape}")
+    solid = solid.astype(bool)
+    if not solid.any():
+        raise ScaffoldError("the volume holds no solid voxel: nothing carries load")
+    return solid
+
+
+def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
+               maxiter: int = 2000, backend: str = "numpy") -> Homogenization:
+    """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
+
+    Parameters
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+    h : float, mm
+    mat : Material
+    boundary : {"periodic", "kinematic"}
+        Periodic fluctuations (a periodic or box sample) or uniform displacement ``u = E x`` on
+        the faces of the box (a sample that is not periodic).
+    tol : float
+        Relative residual of the CG solves.
+    backend : {"numpy", "opencl"}
+        Where the element operator runs.
+    """
+    t0 = time.perf_counter()
+    solid = check_solid(solid)
+    if boundary not in ("periodic", "kinematic"):
+        raise ValueError(f"boundary must be 'periodic' or 'kinematic', got {boundary!r}")
+    periodic = boundary == "periodic"
+    model = voxel_model(solid, h, mat, periodic=periodic)
+    n = int(np.prod(model.shape))
+    ns = model.conn.shape[1]
+    u0e = macro_displacements(h)  # (6, 24)
+    op = _operator(model, backend)
+    if periodic:
+        free = model.active.astype(float)
+        b = -op(np.zeros((6, 3, n)), u0e)
+        extra = u0e
+        base = np.zeros((6, 3, n))
+    else:
+        # u = E x at every node; the box's faces keep it, the inside nodes are solved for
+        idx = np.array(np.unravel_index(np.arange(n), model.shape), float) * h  # (3, N)
+        base = np.stack([(strain_tensor(k) @ idx) for k in range(6)])  # (6, 3, N)
+        inner = np.ones(model.shape, bool)
+        inner[0, :, :] = inner[-1, :, :] = inner[:, 0, :] = inner[:, -1, :] = False
+        inner[:, :, 0] = inner[:, :, -1] = False
+        free = (model.active & inner.ravel()).astype(float)
+        b = -op(base)
+        extra = None
+    scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
+    precond = fft_preconditioner(model, free, single=tol >= 1e-7)
+    x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter)
+    u = base + x
+    ue_sum = gather(model, u).sum(axis=2)  # (6, 24)
+    if extra is not None:
+        ue_sum = ue_sum + ns * extra
+    Bc = strain_matrix(h, (0.0, 0.0, 0.0))
+    total = solid.size  # the sample's voxels (before the padding layer)
+    mean_strain = (Bc @ ue_sum.T) / total  # (6 strain, 6 cases)
+    C = isotropic_tensor(mat.E_gpa, mat.nu) @ mean_strain
+    C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
+    return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
+                          time.perf_counter() - t0, backend)
+
+
+def strain_tensor(k: int) -> np.ndarray:
+    """(3, 3) float ndarray: the unit Voigt strain `k` as a tensor (engineering shear strain 1)."""
+    eps = np.zeros((3, 3))
+    if k < 3:
+        eps[k, k] = 1.0
+    else:
+        i, j = [(1, 2), (0, 2), (0, 1)][k - 3]
+        eps[i, j] = eps[j, i] = 0.5
+    return eps
+
+
+# ----------------------------------------------------------------------------- platen compression
+
+
+@dataclass
+class Compression:
+    """A uniaxial compression between rigid bonded platens (ISO 13314's setting)."""
+
+    axis: int
+    apparent_modulus_gpa: float
+    strain: float
+    von_mises_strain: np.ndarray  # (n1, n2, n3) float32, 0 in void and in parts carrying no load
+    iterations: int
+    residual: float
+    seconds: float
+    dropped_voxels: int  # solid voxels not joined to both platens (they carry no load)
+
+
+def load_path(solid: np.ndarray, axis: int) -> np.ndarray:
+    """The solid voxels face-connected to both faces of the box normal to `axis`.
+
+    A piece touching one platen or none carries no load (it is free at one end at least);
+    six-connectivity, since voxels that share only an edge or a corner form a hinge.
+    """
+    from scipy import ndimage
+
+    labels, count = ndimage.label(solid)
+    if count == 0:
+        return np.zeros_like(solid)
+    low = np.unique(np.take(labels, 0, axis=axis))
+    high = np.unique(np.take(labels, -1, axis=axis))
+    both = np.intersect1d(low, high)
+    both = both[both > 0]
+    return np.isin(labels, both)
+
+
+def von_mises_strain(strain: np.ndarray) -> np.ndarray:
+    """(ns,) equivalent strain ``sqrt(2/3 e':e')`` of Voigt strains (6, ns) (engineering shear)."""
+    tr = strain[:3].sum(axis=0) / 3
+    dev = strain[:3] - tr
+    shear = strain[3:] / 2
+    return np.sqrt(2 / 3 * ((dev ** 2).sum(axis=0) + 2 * (shear ** 2).sum(axis=0)))
+
+
+def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
+             tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy") -> Compression:
+    """Compress a voxel sample between two rigid platens on its faces normal to `axis`.
+
+    The lower platen holds its nodes' axial displacement at 0, the upper one moves them by
+    ``strain * L``; the other faces are free. By default the platens are lubricated (the
+    nodes slide on them), so a homogeneous block gives its material's own modulus, the
+    ideal ISO 13314 test; ``bonded=True`` holds them laterally too (no slip, the stiff end
+    of the friction range). The apparent modulus is the platen force over the box's
+    cross-section, over the strain. The sliding system keeps the rigid in-plane motions: it
+    is singular but consistent, which CG solves (they carry no force).
+
+    Raises
+    ------
+    ScaffoldError
+        No solid, or no piece of solid joins the two platens.
+    """
+    t0 = time.perf_counter()
+    solid = check_solid(solid)
+    if axis not in (0, 1, 2):
+        raise ScaffoldError(f"the compression axis is x, y or z (0, 1, 2), got {axis!r}")
+    kept = load_path(solid, axis)
+    if not kept.any():
+        raise ScaffoldError(f"the solid does not connect the two platens along {'xyz'[axis]}: no load path, "
+                            "nothing to compress")
+    model = voxel_model(kept, h, mat, periodic=False)
+    shape = model.shape
+    n = int(np.prod(shape))
+    length = (shape[axis] - 1) * h
+    index = np.unravel_index(np.arange(n), shape)[axis]
+    bottom, top = index == 0, index == shape[axis] - 1
+    base = np.zeros((1, 3, n))
+    base[0, axis, top] = -strain * length
+    platen = bottom | top
+    free = np.repeat(model.active[None], 3, axis=0)
+    free[axis] &= ~platen
+    if bonded:
+        free &= ~platen
+    free = free.astype(float)
+    op = _operator(model, backend)
+    b = -op(base) * free
+    ns = model.conn.shape[1]
+    unit = macro_displacements(h)[axis] * strain
+    scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
+    x, iterations, res = pcg(op, fft_preconditioner(model, free, single=tol >= 1e-7), b, free, scale=scale, tol=tol, maxiter=maxiter)
+    u = base + x
+    force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
+    area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
+    eps = strain_matrix(h, (0.0, 0.0, 0.0)) @ gather(model, u)[0]  # (6, ns)
+    field_vm = np.zeros(shape, np.float32)
+    field_vm[model.solid] = von_mises_strain(eps)
+    field_vm = field_vm[: solid.shape[0], : solid.shape[1], : solid.shape[2]]
+    return Compression(axis, float(force / area / strain), strain, field_vm, int(iterations), float(res.max()),
+                       time.perf_counter() - t0, int(solid.sum() - kept.sum()))
+
+
+# ----------------------------------------------------------------------------- moduli
+
+
+def engineering_constants(C: np.ndarray) -> dict:
+    """Young's and shear moduli, Poisson's ratios and the universal anisotropy index of a tensor.
+
+    A direction with no load path (its stiffness below :data:`NO_LOAD_PATH` of the largest)
+    gets modulus 0 and a note; the rest come from the compliance of the remaining block. A
+    block that still cannot be inverted gives every modulus 0 and a note, not an error.
+
+    Parameters
+    ----------
+    C : (6, 6) float ndarray, GPa
+
+    Returns
+    -------
+    dict
+        ``youngs_modulus_gpa`` {x, y, z}, ``shear_modulus_gpa`` {yz, xz, xy}, ``poisson_ratio``
+        {xy, xz, yz, yx, zx, zy} (nu_ij = -eps_j / eps_i under stress along i),
+        ``anisotropy_index`` (Ranganathan & Ostoja-Starzewski 2008, 0 when isotropic; None when
+        the tensor cannot be inverted), ``notes``.
+    """
+    C = np.asarray(C, float)
+    diag = np.diag(C)
+    top = diag.max() if diag.size else 0.0
+    keep = np.flatnonzero(diag > NO_LOAD_PATH * top) if top > 0 else np.array([], int)
+    notes = []
+    S = np.zeros((6, 6))
+    dropped = [VOIGT[i] for i in range(6) if i not in keep]
+    if dropped:
+        notes.append(f"no load path for {', '.join(dropped)}: those moduli are 0")
+    ok = keep.size > 0
+    if ok:
+        sub = C[np.ix_(keep, keep)]
+        if np.linalg.cond(sub) > 1e12:
+            ok = False
+        else:
+            S[np.ix_(keep, keep)] = np.linalg.inv(sub)
+    if not ok:
+        notes.append("the stiffness tensor cannot be inverted: every modulus reported as 0")
+        S[:] = 0
+    inv = lambda v: float(1 / v) if v > 0 else 0.0  # noqa: E731
+    youngs = {a: inv(S[i, i]) for i, a in enumerate("xyz")}
+    shear = {VOIGT[i]: inv(S[i, i]) for i in range(3, 6)}
+    poisson = {}
+    for i, a in enumerate("xyz"):
+        for j, b in enumerate("xyz"):
+            if i != j:
+                poisson[a + b] = float(-S[i, j] / S[i, i]) if S[i, i] > 0 else 0.0
+    anis = None
+    if ok and keep.size == 6:
+        Kv = (C[:3, :3].sum()) / 9
+        Gv = (np.trace(C[:3, :3]) - (C[0, 1] + C[0, 2] + C[1, 2]) + 3 * np.trace(C[3:, 3:])) / 15
+        Kr = 1 / S[:3, :3].sum()
+        Gr = 15 / (4 * np.trace(S[:3, :3]) - 4 * (S[0, 1] + S[0, 2] + S[1, 2]) + 3 * np.trace(S[3:, 3:]))
+        anis = float(5 * Gv / Gr + Kv / Kr - 6)
+    return {"youngs_modulus_gpa": youngs, "shear_modulus_gpa": shear, "poisson_ratio": poisson,
+            "anisotropy_index": anis, "notes": notes}
+
+
+def hashin_shtrikman_upper(E: float, nu: float, solid_fraction: float) -> tuple[float, float]:
+    """Hashin-Shtrikman upper bounds (bulk K, shear G, GPa) of a solid with pores (Hashin &
+    Shtrikman 1963, J Mech Phys Solids 11:127, with the second phase void). The lower bound is 0."""
+    K1, G1 = E / (3 * (1 - 2 * nu)), E / (2 * (1 + nu))
+    phi, p = solid_fraction, 1 - solid_fraction
+    K = 4 * G1 * K1 * phi / (4 * G1 + 3 * K1 * p)
+    G = G1 + p / (-1 / G1 + 6 * phi * (K1 + 2 * G1) / (5 * G1 * (3 * K1 + 4 * G1)))
+    return float(K), float(G)
+
+
+def voigt_averages(C: np.ndarray) -> tuple[float, float]:
+    """Voigt averages (bulk, shear, GPa) of a stiffness tensor: its mean over orientations."""
+    C = np.asarray(C, float)
+    K = C[:3, :3].sum() / 9
+    G = (np.trace(C[:3, :3]) - (C[0, 1] + C[0, 2] + C[1, 2]) + 3 * np.trace(C[3:, 3:])) / 15
+    return float(K), float(G)
+
+
+# ----------------------------------------------------------------------------- report
+
+
+def choose_boundary(solid: np.ndarray) -> str:
+    """``periodic`` for a box sample, ``kinematic`` for a shaped one.
+
+    A box sample (a cube cut from a lattice, a generated box scaffold) shows its solid on
+    every face of its box at about the volume's solid fraction; a patient-shaped sample or a
+    bone touches its bounding box only in places. Half the volume's fraction on every face
+    tells them apart.
+    """
+    phi = solid.mean()
+    faces = [np.take(solid, i, axis=a).mean() for a in range(3) for i in (0, -1)]
+    return "periodic" if min(faces) >= 0.5 * phi else "kinematic"
+
+
+def bone_verdict(modulus_gpa: float) -> str:
+    """A plain-words verdict on stress shielding for an apparent modulus (GPa)."""
+    t_lo, t_hi, _ = BONE_BANDS["trabecular"]
+    c_lo, c_hi, _ = BONE_BANDS["cortical"]
+    e = f"{modulus_gpa:.3g} GPa"
+    if modulus_gpa <= 0:
+        return "no load path along the test axis: the scaffold carries no load there"
+    if modulus_gpa < t_lo:
+        return f"{e} is softer than trabecular bone ({t_lo}-{t_hi} GPa): no stress shielding, but it may not carry load"
+    if modulus_gpa <= t_hi:
+        return f"{e} lies in trabecular bone's band ({t_lo}-{t_hi} GPa): little risk of stress shielding"
+    if modulus_gpa < c_lo:
+        return (f"{e} is stiffer than trabecular bone ({t_lo}-{t_hi} GPa) and softer than cortical bone "
+                f"({c_lo}-{c_hi} GPa): it would shield cancellous bone from stress, not cortical bone")
+    if modulus_gpa <= c_hi:
+        return (f"{e} lies in cortical bone's band ({c_lo}-{c_hi} GPa): right for a cortical defect, "
+                "too stiff for cancellous bone")
+    return f"{e} is stiffer than cortical bone ({c_lo}-{c_hi} GPa): a risk of stress shielding"
+
+
+def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count: int = 10) -> list[dict]:
+    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain."""
+    flat = field_vm.ravel()
+    count = min(count, int((flat > 0).sum()))
+    if count == 0:
+        return []
+    top = np.argpartition(flat, -count)[-count:]
+    top = top[np.argsort(flat[top])[::-1]]
+    out = []
+    for t in top:
+        ijk = np.unravel_index(t, field_vm.shape)
+        out.append({"index": [int(v) for v in ijk],
+                    "centre_mm": [round(float(o + (i + 0.5) * h), 6) for o, i in zip(origin, ijk)],
+                    "von_mises_strain": float(flat[t])})
+    return out
+
+
+def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
+            backend: str = "numpy", origin=(0.0, 0.0, 0.0)) -> tuple[dict, Compression]:
+    """Every mechanical figure of a voxel sample, as the report's ``mechanics`` section.
+
+    Parameters
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+    h : float, mm
+    mat : Material
+    boundary : {"auto", "periodic", "kinematic"}
+        ``auto``: :func:`choose_boundary`.
+    axis : int
+        The compression axis (0, 1, 2 for x, y, z).
+    tol : float
+        Relative residual of the CG solves (1e-6: moduli to about 1e-6, far below the voxel
+        discretisation's error).
+
+    Returns
+    -------
+    dict, Compression
+        The keys of issue 14 (``stiffness_tensor_gpa`` ... ``solver``), the bone bands and the
+        verdict; the compression with its strain field (for the report's picture).
+    """
+    solid = check_solid(solid)
+    if boundary == "auto":
+        boundary = choose_boundary(solid)
+    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend)  # first: it refuses a solid with no load path
+    hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend)
+    consts = engineering_constants(hom.stiffness)
+    K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
+    bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
+               "kinematic": "kinematic (uniform displacement u = E x on the faces of the box)"}[boundary]
+    notes = list(consts["notes"])
+    if comp.dropped_voxels:
+        notes.append(f"{comp.dropped_voxels} solid voxels do not join both platens and carry no load in compression")
+    report = {
+        "stiffness_tensor_gpa": [[float(v) for v in row] for row in hom.stiffness],
+        "voigt_order": list(VOIGT),
+        "youngs_modulus_gpa": consts["youngs_modulus_gpa"],
+        "shear_modulus_gpa": consts["shear_modulus_gpa"],
+        "poisson_ratio": consts["poisson_ratio"],
+        "anisotropy_index": consts["anisotropy_index"],
+        "solid_fraction": hom.solid_fraction,
+        "boundary_conditions": bc_text,
+        "material": {"name": mat.name, "E_gpa": mat.E_gpa, "nu": mat.nu, "source": mat.source},
+        "compression": {"axis": "xyz"[axis], "apparent_modulus_gpa": comp.apparent_modulus_gpa,
+                        "platens": "rigid, lubricated (ISO 13314 setting)", "applied_strain": comp.strain,
+                        "most_strained_voxels": most_strained(comp.von_mises_strain, h, origin)},
+        "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
+                   "residual": max(hom.residual, comp.residual),
+                   "seconds": round(hom.seconds + comp.seconds, 4),
+                   "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, FFT reference-medium "
+                             "preconditioner", "backend": backend, "voxel_mm": float(h),
+                   "grid_shape": list(solid.shape)},
+        "hashin_shtrikman_upper_gpa": {"bulk": K_hs, "shear": G_hs},
+        "bone_bands_gpa": {k: {"low": lo, "high": hi, "source": src} for k, (lo, hi, src) in BONE_BANDS.items()},
+        "stress_shielding": bone_verdict(comp.apparent_modulus_gpa),
+        "notes": notes,
+    }
+    return report, comp
+
+
+# ----------------------------------------------------------------------------- inputs
+
+
+def load_sample(path, *, voxel: float | None = None, spacing=None) -> tuple[np.ndarray, float, str]:
+    """The solid voxels of a file, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
+
+    Parameters
+    ----------
+    path : str or Path
+        A closed mesh (voxelised at `voxel`), a binary volume (solid = non-zero), or a ``.npy``
+        field (solid = negative; its voxel from `voxel` or the JSON report written beside it).
+    voxel, spacing : see :func:`~implicit_scaffold.morphometry.analyze_file`.
+
+    Returns
+    -------
+    solid : (n1, n2, n3) bool ndarray
+        Cropped to the solid's bounding box (a mesh's margin layer removed).
+    h : float, mm
+    kind : str
+    """
+    import json
+    from pathlib import Path
+
+    from . import morphometry as mo
+    from .errors import positive_mm
+    from .grid import Grid
+
+    path = Path(path)
+    if voxel is not None:
+        voxel = positive_mm("voxel", voxel)
+    if not path.exists():
+        raise ScaffoldError(f"{path} does not exist; check the path")
+    suffix = mo._suffix(path)
+    if suffix == ".npy":
+        try:
+            field = np.load(path, mmap_mode="r")
+        except (OSError, ValueError) as exc:
+            raise ScaffoldError(f"cannot read {path.name} as a .npy field: {exc}") from None
+        if field.ndim != 3:
+            raise ScaffoldError(f"{path.name} is not a 3-D field (shape {field.shape})")
+        if voxel is None:
+            beside = path.with_suffix(".json")
+            try:
+                voxel = float(json.loads(beside.read_text())["voxel_mm"])
+            except (OSError, ValueError, KeyError, TypeError):
+                raise ScaffoldError(f"{path.name} carries no voxel size and no report {beside.name} is beside it; "
+                                    "give --voxel H (mm)") from None
+        solid, kind = np.asarray(field) < 0, "field"
+    elif path.is_dir() or suffix in mo.VOLUME_SUFFIXES:
+        solid, voxel, _ = mo._read_volume(path, spacing, voxel)
+        kind = "volume"
+    elif suffix in mo.MESH_SUFFIXES:
+        if voxel is None:
+            raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
+        mesh = mo._read_mesh(path)
+        lo, hi = mesh.bounds
+        solid = mo.voxelize(mesh.vertices, mesh.faces, Grid.covering(lo, hi, voxel))
+        kind = "mesh"
+    else:
+        raise ScaffoldError(f"cannot measure {path.name}: use a mesh ({' '.join(mo.MESH_SUFFIXES)}), a volume "
+                            f"({' '.join(mo.VOLUME_SUFFIXES)}) or a .npy field")
+    if not solid.any():
+        raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load")
+    return crop(solid), float(voxel), kind
+
+
+def crop(solid: np.ndarray) -> np.ndarray:
+    """`solid` cut to the bounding box of its solid voxels."""
+    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(solid))
+    return np.ascontiguousarray(solid[box])

@@ -1,0 +1,68 @@
+"""The voxel finite-element operator on the OpenCL device (``kernels/mechanics.cl``).
+
+:func:`~implicit_scaffold.mechanics.apply_stiffness` is its NumPy reference; the tests hold
+them together. The conjugate gradients stay on the host in float64 (the FFT preconditioner
+is NumPy/SciPy); only ``K p`` runs here, in double when the device has ``cl_khr_fp64``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from . import opencl
+
+
+def has_double() -> bool:
+    """Whether the active device computes in double precision."""
+    ctx, _ = opencl.context()
+    return "cl_khr_fp64" in ctx.devices[0].extensions
+
+
+class StiffnessOperator:
+    """``K u`` of a :class:`~implicit_scaffold.mechanics.VoxelModel` on the device.
+
+    Parameters
+    ----------
+    model : VoxelModel
+    double : bool, optional
+        Compute in double (default: when the device can).
+    """
+
+    def __init__(self, model, *, double: bool | None = None):
+        self.model = model
+        self.double = has_double() if double is None else bool(double)
+        self.dtype = np.float64 if self.double else np.float32
+        self.solid = opencl.to_device(model.solid.ravel(), np.uint8)
+        self.ke = opencl.to_device(model.ke, self.dtype)
+        self.n = int(np.prod(model.shape))
+        self._buffers = {}
+
+    def _io(self, m):
+        import pyopencl as cl
+
+        if m not in self._buffers:
+            ctx, _ = opencl.context()
+            nbytes = m * 3 * self.n * np.dtype(self.dtype).itemsize
+            self._buffers[m] = (cl.Buffer(ctx, cl.mem_flags.READ_ONLY, nbytes),
+                                cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, nbytes))
+        return self._buffers[m]
+
+    def __call__(self, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
+        """K u for (m, 3, N) nodal displacements; with `element_extra` (a one-off right-hand side)
+        the NumPy reference does it."""
+        import pyopencl as cl
+
+        if element_extra is not None:
+            from .mechanics import apply_stiffness
+
+            return apply_stiffness(self.model, u, element_extra)
+        m = u.shape[0]
+        _, queue = opencl.context()
+        k = opencl.kernel("mechanics", "stiffness_apply", NCASE=m, USE_DOUBLE=int(self.double))
+        u_buf, f_buf = self._io(m)
+        host = np.ascontiguousarray(u, self.dtype)
+        cl.enqueue_copy(queue, u_buf, host)
+        n1, n2, n3 = self.model.shape
+        k(queue, (self.n,), None, self.solid, self.ke, u_buf, f_buf, np.int32(n1), np.int32(n2), np.int32(n3))
+        out = np.empty_like(host)
+        cl.enqueue_copy(queue, out, f_buf)
+        return out.astype(np.float64, copy=False)

@@ -1,0 +1,387 @@
+"""The voxel finite-element solver against closed forms and bounds (issue 14).
+
+Every expected value is an oracle the solver cannot tune itself to: the material's own
+tensor, the exact laminate, rigid-body modes, the Hashin-Shtrikman bounds, a finer grid.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from implicit_scaffold import mechanics as m
+from implicit_scaffold.errors import ScaffoldError
+
+TI = m.material("ti64")
+
+
+def sphere_pore(n: int, porosity: float) -> np.ndarray:
+    """One spherical pore of the given volume fraction in the middle of a periodic unit cell."""
+    radius = (3 * porosity / (4 * np.pi)) ** (1 / 3)
+    g = (np.arange(n) + 0.5) / n - 0.5
+    x, y, z = np.meshgrid(g, g, g, indexing="ij")
+    return x ** 2 + y ** 2 + z ** 2 > radius ** 2
+
+
+def test_element_stiffness_is_symmetric_and_has_exactly_the_rigid_modes():
+    ke = m.element_stiffness(TI.E_gpa, TI.nu, 0.1)
+    assert np.allclose(ke, ke.T, atol=1e-12 * abs(ke).max())
+    eig = np.linalg.eigvalsh(ke)
+    # six rigid-body modes (3 translations, 3 rotations) and nothing else at zero: full
+    # 2x2x2 integration leaves no hourglass mode
+    assert np.sum(eig < 1e-9 * eig.max()) == 6
+    x = m.CORNERS * 0.1
+    for k in range(3):
+        t = np.zeros((8, 3))
+        t[:, k] = 1
+        assert np.abs(ke @ t.ravel()).max() < 1e-10 * abs(ke).max()
+    rot = np.stack([-x[:, 1], x[:, 0], np.zeros(8)], axis=1)  # rotation about z
+    assert np.abs(ke @ rot.ravel()).max() < 1e-10 * abs(ke).max()
+
+
+def test_uniform_strain_energy_equals_the_continuum_one():
+    # a linear displacement is exact in a trilinear element: u.K u = V eps:C:eps
+    h = 0.07
+    ke = m.element_stiffness(TI.E_gpa, TI.nu, h)
+    D = m.isotropic_tensor(TI.E_gpa, TI.nu)
+    u0 = m.macro_displacements(h)
+    assert np.allclose(u0 @ ke @ u0.T, D * h ** 3, rtol=1e-12, atol=1e-12 * D.max() * h ** 3)
+
+
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_full_block_gives_the_material_tensor(boundary):
+    C = m.homogenize(np.ones((5, 6, 7), bool), 0.1, TI, boundary=boundary).stiffness
+    D = m.isotropic_tensor(TI.E_gpa, TI.nu)
+    assert np.abs(C - D).max() <= 1e-6 * D.max()
+
+
+def test_periodic_laminate_matches_the_exact_tensor():
+    # plates normal to z, 3 of 11 layers solid (odd sizes on purpose)
+    solid = np.zeros((7, 9, 11), bool)
+    solid[:, :, 2:5] = True
+    phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+    C = m.homogenize(solid, 0.05, TI).stiffness
+    exact = np.zeros((6, 6))
+    exact[0, 0] = exact[1, 1] = phi * E / (1 - nu ** 2)
+    exact[0, 1] = exact[1, 0] = phi * nu * E / (1 - nu ** 2)
+    exact[5, 5] = phi * E / (2 * (1 + nu))
+    nonzero = exact != 0
+    assert np.all(np.abs(C[nonzero] / exact[nonzero] - 1) < 0.01)
+    assert np.abs(C[~nonzero]).max() < 0.01 * exact.max()
+
+
+def test_no_load_path_is_a_zero_modulus_with_a_note():
+    solid = np.zeros((6, 6, 8), bool)
+    solid[:, :, :2] = True
+    c = m.engineering_constants(m.homogenize(solid, 0.1, TI).stiffness)
+    assert c["youngs_modulus_gpa"]["z"] == 0.0
+    assert c["shear_modulus_gpa"]["yz"] == 0.0 and c["shear_modulus_gpa"]["xz"] == 0.0
+    assert any("no load path" in n for n in c["notes"])
+    # in-plane, a free plate: Ex = phi E exactly (plane stress with free thickness)
+    assert c["youngs_modulus_gpa"]["x"] == pytest.approx(0.25 * TI.E_gpa, rel=1e-6)
+    assert c["poisson_ratio"]["xy"] == pytest.approx(TI.nu, rel=1e-6)
+
+
+def test_a_tensor_that_cannot_be_inverted_is_reported_with_a_note():
+    C = np.ones((6, 6))  # rank 1, every diagonal term alike
+    c = m.engineering_constants(C)
+    assert all(v == 0.0 for v in c["youngs_modulus_gpa"].values())
+    assert any("cannot be inverted" in n for n in c["notes"])
+    assert c["anisotropy_index"] is None
+
+
+def test_isotropic_material_has_zero_anisotropy_and_its_own_constants():
+    c = m.engineering_constants(m.isotropic_tensor(3.0, 0.25))
+    assert c["anisotropy_index"] == pytest.approx(0.0, abs=1e-10)
+    assert c["youngs_modulus_gpa"]["y"] == pytest.approx(3.0)
+    assert c["shear_modulus_gpa"]["xz"] == pytest.approx(3.0 / 2.5)
+    assert c["poisson_ratio"]["zx"] == pytest.approx(0.25)
+
+
+@pytest.mark.parametrize("porosity", [0.05, 0.10, 0.20])
+def test_spherical_pore_lies_within_the_hashin_shtrikman_bounds(porosity):
+    # 16 voxels across: a displacement FE solution is stiff and converges from above, and the
+    # 5 % pore at 12 voxels (2.7 voxels radius) overshoots the shear bound by 0.07 %
+    solid = sphere_pore(16, porosity)
+    hom = m.homogenize(solid, 1 / 16, TI)
+    K, G = m.voigt_averages(hom.stiffness)
+    K_hs, G_hs = m.hashin_shtrikman_upper(TI.E_gpa, TI.nu, hom.solid_fraction)
+    assert 0 < K <= K_hs
+    assert 0 < G <= G_hs
+    assert 0 < hom.stiffness[0, 0] and 0 < hom.stiffness[3, 3]
+
+
+@pytest.mark.slow
+def test_spherical_pore_is_within_3_percent_of_a_finer_grid():
+    # the same pore at 16 and at 32 voxels across the cell
+    coarse = m.homogenize(sphere_pore(16, 0.1), 1 / 16, TI)
+    fine = m.homogenize(sphere_pore(32, 0.1), 1 / 32, TI)
+    for i, j in [(0, 0), (0, 1), (3, 3)]:
+        assert abs(coarse.stiffness[i, j] / fine.stiffness[i, j] - 1) < 0.03
+    # the preconditioner keeps the iteration count flat as the grid is refined
+    assert fine.iterations <= 1.5 * coarse.iterations
+
+
+@pytest.fixture(scope="module")
+def small_scaffold():
+    from implicit_scaffold.pipeline import generate
+
+    r = generate(mesh=False, morphometry=False, size=2.0, pore_size=0.6, porosity=0.7, voxel=0.1, seed=1)
+    inside = r.patient_sdf < 0
+    box = tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(inside))
+    return (r.field < 0)[box], 0.1
+
+
+def test_a_voronoi_scaffold_stays_under_the_hashin_shtrikman_upper_bound(small_scaffold):
+    solid, h = small_scaffold
+    for boundary in ("periodic", "kinematic"):
+        hom = m.homogenize(solid, h, TI, boundary=boundary)
+        K, G = m.voigt_averages(hom.stiffness)
+        K_hs, G_hs = m.hashin_shtrikman_upper(TI.E_gpa, TI.nu, hom.solid_fraction)
+        assert 0 < K <= K_hs and 0 < G <= G_hs
+        # and under Voigt's arithmetic bound, direction by direction
+        assert np.all(np.diag(hom.stiffness) <= hom.solid_fraction * np.diag(m.isotropic_tensor(TI.E_gpa, TI.nu)))
+
+
+def test_kinematic_is_stiffer_than_periodic(small_scaffold):
+    # uniform displacement on the faces over-constrains the sample: its energy bounds the
+    # periodic one from above (Hill), component by component on the diagonal
+    solid, h = small_scaffold
+    per = m.homogenize(solid, h, TI, boundary="periodic").stiffness
+    kin = m.homogenize(solid, h, TI, boundary="kinematic").stiffness
+    assert np.all(np.diag(kin) >= np.diag(per) * (1 - 1e-6))
+
+
+def test_compressing_a_block_gives_its_youngs_modulus():
+    c = m.compress(np.ones((5, 6, 7), bool), 0.1, TI, axis=2)
+    assert c.apparent_modulus_gpa == pytest.approx(TI.E_gpa, rel=1e-6)
+    # uniform uniaxial strain 1e-3 with lateral contraction nu: von Mises strain (1 + nu) 2/3 1e-3
+    assert np.allclose(c.von_mises_strain, 2 / 3 * (1 + TI.nu) * 1e-3, rtol=1e-5)
+
+
+def test_bonded_platens_are_stiffer_than_lubricated_ones():
+    block = np.ones((6, 6, 6), bool)
+    bonded = m.compress(block, 0.1, TI, bonded=True).apparent_modulus_gpa
+    assert bonded > TI.E_gpa
+    # and below the fully confined (uniaxial strain) modulus C11
+    assert bonded < m.isotropic_tensor(TI.E_gpa, TI.nu)[0, 0]
+
+
+def test_compressing_a_laminate_along_its_plates_gives_phi_e():
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, :, 3:6] = True
+    c = m.compress(solid, 0.1, TI, axis=0)
+    assert c.apparent_modulus_gpa == pytest.approx(0.3 * TI.E_gpa, rel=1e-6)
+
+
+def test_a_solid_that_does_not_join_the_platens_is_refused():
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, :, 3:6] = True
+    with pytest.raises(ScaffoldError, match="does not connect the two platens"):
+        m.compress(solid, 0.1, TI, axis=2)
+    with pytest.raises(ScaffoldError, match="no solid"):
+        m.homogenize(np.zeros((4, 4, 4), bool), 0.1, TI)
+
+
+def test_materials_and_their_errors():
+    for key, mat in m.MATERIALS.items():
+        assert mat.E_gpa > 0 and -1 < mat.nu < 0.5 and mat.source
+    assert m.material(E=2.0, nu=0.3).E_gpa == 2.0
+    with pytest.raises(ScaffoldError, match="unknown material"):
+        m.material("steel")
+    with pytest.raises(ScaffoldError, match="nu"):
+        m.material(E=1.0, nu=0.5)
+    with pytest.raises(ScaffoldError, match="--E"):
+        m.material(E=-1.0, nu=0.3)
+
+
+def test_boundary_choice_and_verdicts():
+    assert m.choose_boundary(np.ones((4, 4, 4), bool)) == "periodic"
+    ball = sphere_pore(12, 0.5) == 0  # a solid ball touching no face
+    assert m.choose_boundary(ball | False) == "kinematic"
+    assert "stress shielding" in m.bone_verdict(110.0)
+    assert "trabecular" in m.bone_verdict(1.0)
+    assert "cortical" in m.bone_verdict(17.0)
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def _run(argv, capsys):
+    from implicit_scaffold.cli import main
+
+    code = main([str(a) for a in argv])
+    return code, capsys.readouterr()
+
+
+def _field(path, solid):
+    np.save(path, np.where(solid, -1.0, 1.0).astype(np.float32))
+    return path
+
+
+def test_cli_mechanics_writes_the_issue_keys(tmp_path, capsys):
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, 2:5, :] = True  # plates normal to y: a load path along x and z, none along y
+    src = _field(tmp_path / "plates.npy", solid)
+    out, page = tmp_path / "r.json", tmp_path / "r.html"
+    code, cap = _run(["mechanics", src, "--voxel", 0.1, "--material", "pla", "-o", out, "--report", page, "-q"],
+                     capsys)
+    assert code == 0, cap.err
+    html = page.read_text()
+    assert "<h2>Mechanics</h2>" in html and "trabecular bone" in html and "data:image/png" in html
+    import json
+
+    r = json.loads(out.read_text())
+    for key in ("stiffness_tensor_gpa", "youngs_modulus_gpa", "shear_modulus_gpa", "poisson_ratio",
+                "solid_fraction", "boundary_conditions", "material", "compression", "solver"):
+        assert key in r
+    assert set(r["compression"]) >= {"axis", "apparent_modulus_gpa"}
+    assert set(r["solver"]) >= {"iterations", "residual", "seconds"}
+    assert np.array(r["stiffness_tensor_gpa"]).shape == (6, 6)
+    assert r["material"]["E_gpa"] == 3.5
+    # the cropped sample is the 3 solid plates only: a full block along z
+    assert r["compression"]["apparent_modulus_gpa"] == pytest.approx(3.5, rel=1e-5)
+    assert r["youngs_modulus_gpa"]["y"] > 0  # cropped to the solid: y is solid too
+
+
+def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys):
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, 2:5, :] = True
+    solid[0, 0, 0] = solid[-1, -1, -1] = True  # corners keep the box, so the plates stay plates
+    code, cap = _run(["mechanics", _field(tmp_path / "p.npy", solid), "--voxel", 0.1, "--boundary", "periodic"],
+                     capsys)
+    assert code == 0, cap.err
+    assert "y 0," in cap.out and "no load path" in cap.out
+
+
+@pytest.mark.parametrize("case, argv, words", [
+    ("void", ["--voxel", "0.1"], "no solid"),
+    ("plates", ["--voxel", "0.1", "--axis", "z"], "does not connect the two platens"),
+    ("block", ["--voxel", "0.1", "--material", "steel"], "unknown material"),
+    ("block", ["--voxel", "0.1", "--E", "2", "--nu", "0.5"], "--nu"),
+])
+def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
+    solid = np.zeros((6, 6, 9), bool)
+    if case == "plates":
+        solid[:, :, 1:3] = solid[:, :, 6:8] = True  # two plates, nothing between them
+    elif case == "block":
+        solid[:] = True
+    code, cap = _run(["mechanics", _field(tmp_path / "x.npy", solid), *argv], capsys)
+    assert code == 2
+    assert words in cap.err and cap.err.count("\n") == 1
+
+
+# ----------------------------------------------------------------------------- the OpenCL operator
+
+
+def _devices():
+    from implicit_scaffold import opencl
+
+    return opencl.working_devices()
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
+    from implicit_scaffold import opencl
+    from implicit_scaffold.mechanics_cl import StiffnessOperator
+
+    rng = np.random.default_rng(3)
+    solid = rng.random((9, 10, 11)) < 0.4  # odd sizes, a random (hinged, holed) solid
+    model = m.voxel_model(solid, 0.1, TI, periodic=periodic)
+    u = rng.standard_normal((6, 3, int(np.prod(model.shape))))
+    ref = m.apply_stiffness(model, u)
+    devices = _devices()
+    assert devices, "no working OpenCL device"
+    for check in devices:
+        with opencl.using(check):
+            # float: about 1e-7 of the largest force from float32 round-off over 192 terms
+            got = StiffnessOperator(model, double=False)(u)
+            assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max(), check.name
+            from implicit_scaffold.mechanics_cl import has_double
+
+            if has_double():
+                got = StiffnessOperator(model, double=True)(u)
+                assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), check.name
+
+
+def test_opencl_backend_gives_the_exact_laminate():
+    solid = np.zeros((7, 9, 11), bool)
+    solid[:, :, 2:5] = True
+    phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+    C = m.homogenize(solid, 0.05, TI, backend="opencl").stiffness
+    assert C[0, 0] == pytest.approx(phi * E / (1 - nu ** 2), rel=1e-6)
+    assert C[0, 1] == pytest.approx(phi * nu * E / (1 - nu ** 2), rel=1e-6)
+    assert C[5, 5] == pytest.approx(phi * E / (2 * (1 + nu)), rel=1e-6)
+    c = m.compress(solid, 0.05, TI, axis=0, backend="opencl")
+    assert c.apparent_modulus_gpa == pytest.approx(phi * E, rel=1e-6)
+
+
+# ----------------------------------------------------------------------------- muGrid, an independent solver
+
+
+def mugrid_homogenize(solid, h, E, nu, tol=1e-8):
+    """The six unit strains with muGrid's fused Q1 operator, Green-Jacobi FFT preconditioner and CG
+    (void as lambda = mu = 0): the same discrete problem by other code."""
+    muGrid = pytest.importorskip("muGrid", reason="muGrid (pip install muGrid) is the independent oracle; "
+                                                  "not installed here")
+    from muGrid import Preconditioners, Solvers
+
+    lam_s, mu_s = E * nu / ((1 + nu) * (1 - 2 * nu)), E / (2 * (1 + nu))
+    engine = muGrid.FFTEngine(list(solid.shape), nb_ghosts_left=[1, 1, 1], nb_ghosts_right=[1, 1, 1])
+    fc = engine.real_space_collection
+    op = muGrid.IsotropicStiffnessOperator3D([h, h, h])
+    lam, mu = fc.real_field("lambda", 1), fc.real_field("mu", 1)
+    lam.p[...] = np.where(solid, lam_s, 0.0).reshape(lam.p.shape)
+    mu.p[...] = np.where(solid, mu_s, 0.0).reshape(mu.p.shape)
+    engine.communicate_ghosts(lam)
+    engine.communicate_ghosts(mu)
+    u, rhs = fc.real_field("u", 3), fc.real_field("rhs", 3)
+    prec = Preconditioners.make_green_jacobi_preconditioner(
+        engine, op, lam, mu, 3, reference_lambda=lam_s, reference_mu=mu_s, element=muGrid.FEMElement.q1,
+        grid_spacing=[h, h, h])
+
+    def hessp(x, ax):
+        engine.communicate_ghosts(x)
+        op.apply(x, lam, mu, ax)
+
+    C = np.zeros((6, 6))
+    for k, (i, j) in enumerate([(0, 0), (1, 1), (2, 2), (1, 2), (0, 2), (0, 1)]):
+        strain = np.zeros((3, 3))
+        strain[i, j] = strain[j, i] = 1.0 if i == j else 0.5
+        rhs.p[...] = 0
+        u.p[...] = 0
+        op.apply_macro_rhs(lam, mu, strain.ravel().tolist(), rhs)
+        rhs.p[...] *= -1
+        Solvers.conjugate_gradients(engine.communicator, fc, rhs, u, hessp=hessp, prec=prec, rtol=tol,
+                                    maxiter=5000, atol=tol * np.sqrt(solid.size) * E * h ** 2)
+        engine.communicate_ghosts(u)
+        s = np.asarray(op.average_stress(u, lam, mu, strain.ravel().tolist())).reshape(3, 3) / solid.size / h ** 3
+        C[:, k] = [s[0, 0], s[1, 1], s[2, 2], s[1, 2], s[0, 2], s[0, 1]]
+    return C
+
+
+def test_a_voronoi_scaffold_agrees_with_mugrid(small_scaffold):
+    import warnings
+
+    solid, h = small_scaffold
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # muGrid's notes on its own preconditioner
+        ref = mugrid_homogenize(solid, h, TI.E_gpa, TI.nu)
+    ours = m.homogenize(solid, h, TI, backend="opencl").stiffness
+    big = np.abs(ref) > 1e-3 * np.abs(ref).max()
+    # every component within 1 % (the issue's bound); the ones near 0 against the largest
+    assert np.all(np.abs(ours[big] / ref[big] - 1) < 0.01)
+    assert np.all(np.abs(ours - ref)[~big] < 0.01 * 1e-3 * np.abs(ref).max())
+
+
+def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
+    import json
+
+    out = tmp_path / "s.npy"
+    code, cap = _run(["generate", "--shape", "cylinder", "--size", "1.6", "--voxel", "0.1", "--porosity", "0.6",
+                      "-o", out, "--mechanics", "--material", "peek"], capsys)
+    assert code == 0, cap.err
+    mech = json.loads((tmp_path / "s.json").read_text())["mechanics"]
+    assert mech["material"]["E_gpa"] == 3.6
+    assert mech["boundary_conditions"].startswith("kinematic")  # a cylinder is not a box sample
+    assert 0 < mech["compression"]["apparent_modulus_gpa"] < 3.6
+    assert "mechanics: PEEK" in cap.out
