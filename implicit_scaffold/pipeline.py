@@ -1000,8 +1000,7 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     if target is not None and printed is not None and (report.get("printed_level") or {}).get("by"):
         # the level was solved for what is printed: that is what must meet the target
         if abs(printed - target) > PRINTED_TOLERANCE:
-            why = (f"removing {removed} solid fragments not attached to the main body moved it"
-                   if removed else "the struts are under-resolved")
+            why = _fragments_why(report, removed, "the struts are under-resolved")
             found.append(f"the printed porosity {printed:.4f} misses the target {target:g} by "
                          f"{100 * abs(printed - target):.1f} points: {why} at {h:.3g} mm voxels; use a finer "
                          f"--voxel (e.g. {h / 2:.3g})" + (" or --keep-fragments" if removed else ""))
@@ -1014,11 +1013,7 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
             warnings.warn(message, ScaffoldWarning, stacklevel=3)
         return found
     if target is not None and abs(voxel - target) > 0.005:
-        volume = report.get("fragments_removed_mm3")
-        share = "" if volume is None else (f" ({volume:.4g} mm3, {100 * volume / report['patient_volume_mm3']:.2g} % "
-                                           "of the patient)")
-        why = (f"removing {removed} solid fragments{share} not attached to the main body of their patient piece "
-               "moved it" if removed else "the patient's voxels leave no level closer")
+        why = _fragments_why(report, removed, "the patient's voxels leave no level closer")
         found.append(f"porosity {voxel:.4f} misses the target {target:g}: {why}; the struts are "
                      f"under-resolved at {h:.3g} mm voxels: use a finer --voxel (e.g. {h / 2:.3g})"
                      + (" or --keep-fragments" if removed else ""))
@@ -1030,6 +1025,16 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     for message in found:
         warnings.warn(message, ScaffoldWarning, stacklevel=3)
     return found
+
+
+def _fragments_why(report: dict, removed: int, otherwise: str) -> str:
+    """Why the porosity moved: the fragments removed (with their volume), or `otherwise`."""
+    if not removed:
+        return otherwise
+    volume = report.get("fragments_removed_mm3")
+    share = "" if volume is None else (f" ({volume:.4g} mm3, {100 * volume / report['patient_volume_mm3']:.2g} % "
+                                       "of the patient)")
+    return f"removing {removed} solid fragments{share} not attached to the main body of their patient piece moved it"
 
 
 def _coarse_patient(patient, cells_across: float = 64.0):
