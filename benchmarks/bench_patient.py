@@ -22,9 +22,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import FEMUR_SHAFT, median_runs, table  # noqa: E402
+from _common import DATA, FEMUR_SHAFT, median_runs, table  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 FIGURE = Path(__file__).resolve().parent / "figures" / "femur_shaft.png"
 
 RUN = FEMUR_SHAFT + """

@@ -16,9 +16,8 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import STAGE_MEMORY, median_runs, table  # noqa: E402
+from _common import DATA, STAGE_MEMORY, median_runs, table  # noqa: E402
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CLIP = (-30.0, 20.0, -10.0, -10.0, 40.0, 10.0)
 
 RUN = STAGE_MEMORY.replace("{", "{{").replace("}", "}}") + """

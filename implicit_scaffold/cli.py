@@ -82,13 +82,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Measure a scaffold (from this tool or any other) or bone as bone "
                                    "morphometry does: strut thickness and pore diameter by maximal spheres, "
                                    "connectivity density, interconnected porosity, fragments, BS/BV.")
-    a.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off) or a binary volume (.nrrd .nii "
-                                ".nii.gz .mha .mhd .tif, or a folder of .tif slices; solid = non-zero)")
-    a.add_argument("--voxel", type=float, default=None,
-                   help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
-                        "resampled to it (default: the volume's own spacing)")
-    a.add_argument("--spacing", type=_spacing, default=None,
-                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
+    _add_scaffold_file(a, "a closed mesh (.stl .ply .obj .3mf .off) or a binary volume (.nrrd .nii .nii.gz .mha "
+                          ".mhd .tif, or a folder of .tif slices; solid = non-zero)")
     a.add_argument("--region", metavar="FILE", default=None,
                    help="count porosity inside this patient, as generate does: a patient mesh or volume, or the "
                         "run's .json report (its patient, on its grid; then --voxel may be left out); default: "
@@ -102,14 +97,10 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Check a scaffold (mesh, .npy field, or binary volume) against a printer "
                                    "profile: thinnest solid, narrowest throat, drainage, cell infiltration, "
                                    "sealed voids, floating solid, overhangs, and the same as built.")
-    c.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off), a .npy signed distance written by "
-                                "generate (its .json beside it gives the voxel), or a binary volume")
+    _add_scaffold_file(c, "a closed mesh (.stl .ply .obj .3mf .off), a .npy signed distance written by generate "
+                          "(its .json beside it gives the voxel), or a binary volume")
     c.add_argument("--printer", required=True, metavar="NAME",
                    help=", ".join(_printer_names()) + ", or custom:min_strut=MM,min_throat=MM,...")
-    c.add_argument("--voxel", type=float, default=None,
-                   help="voxel size in mm: a mesh is voxelised at it (needed for a mesh)")
-    c.add_argument("--spacing", type=_spacing, default=None,
-                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
     c.add_argument("-o", "--output", metavar="JSON", default=None, help="write the certificate as JSON")
     c.add_argument("--require-printable", action="store_true",
                    help="exit with code 3 (after writing the certificate) when it fails")
@@ -117,12 +108,8 @@ def build_parser() -> argparse.ArgumentParser:
     me = sub.add_parser("mechanics", help="stiffness tensor, moduli and a platen compression test (voxel FE)",
                         description="The effective stiffness of a scaffold or a bone from its voxels: 6x6 tensor "
                                     "(Voigt, GPa), moduli, a compression between rigid platens, beside bone's.")
-    me.add_argument("file", help="a closed mesh (.stl .ply .obj .3mf .off), a binary volume (.nrrd .nii .nii.gz "
-                                 ".mha .mhd .tif, or a folder of .tif slices) or a .npy field (negative = solid)")
-    me.add_argument("--voxel", type=float, default=None,
-                    help="voxel size in mm (needed for a mesh; resamples a volume)")
-    me.add_argument("--spacing", type=_spacing, default=None,
-                    help="a volume's voxel spacing in mm, for files that carry none")
+    _add_scaffold_file(me, "a closed mesh (.stl .ply .obj .3mf .off), a binary volume (.nrrd .nii .nii.gz .mha "
+                           ".mhd .tif, or a folder of .tif slices) or a .npy field (negative = solid)")
     _add_mechanics_options(me)
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
@@ -130,6 +117,16 @@ def build_parser() -> argparse.ArgumentParser:
 
     sub.add_parser("info", help="versions and the OpenCL device")
     return parser
+
+
+def _add_scaffold_file(p, what: str) -> None:
+    """The file argument of the commands that read a scaffold or bone, with its --voxel and --spacing."""
+    p.add_argument("file", help=what)
+    p.add_argument("--voxel", type=float, default=None,
+                   help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
+                        "resampled to it (default: the volume's own spacing)")
+    p.add_argument("--spacing", type=_spacing, default=None,
+                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
 
 
 def _add_mechanics_options(p) -> None:
@@ -397,7 +394,8 @@ def _certificate_lines(cert: dict) -> list[str]:
 
 
 def _check(args) -> int:
-    from .printability import certificate, printer_profile, read_scaffold
+    from .morphometry import read_scaffold
+    from .printability import certificate, printer_profile
 
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)

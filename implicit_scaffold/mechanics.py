@@ -809,47 +809,13 @@ def load_sample(path, *, voxel: float | None = None, spacing=None) -> tuple[np.n
     h : float, mm
     kind : str
     """
-    import json
     from pathlib import Path
 
-    from . import morphometry as mo
-    from .errors import positive_mm
-    from .grid import Grid
+    from .morphometry import read_scaffold
 
     path = Path(path)
-    if voxel is not None:
-        voxel = positive_mm("voxel", voxel)
-    if not path.exists():
-        raise ScaffoldError(f"{path} does not exist; check the path")
-    suffix = mo._suffix(path)
-    if suffix == ".npy":
-        try:
-            field = np.load(path, mmap_mode="r")
-        except (OSError, ValueError) as exc:
-            raise ScaffoldError(f"cannot read {path.name} as a .npy field: {exc}") from None
-        if field.ndim != 3:
-            raise ScaffoldError(f"{path.name} is not a 3-D field (shape {field.shape})")
-        if voxel is None:
-            beside = path.with_suffix(".json")
-            try:
-                voxel = float(json.loads(beside.read_text())["voxel_mm"])
-            except (OSError, ValueError, KeyError, TypeError):
-                raise ScaffoldError(f"{path.name} carries no voxel size and no report {beside.name} is beside it; "
-                                    "give --voxel H (mm)") from None
-        solid, kind = np.asarray(field) < 0, "field"
-    elif path.is_dir() or suffix in mo.VOLUME_SUFFIXES:
-        solid, voxel, _ = mo._read_volume(path, spacing, voxel)
-        kind = "volume"
-    elif suffix in mo.MESH_SUFFIXES:
-        if voxel is None:
-            raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
-        mesh = mo._read_mesh(path)
-        lo, hi = mesh.bounds
-        solid = mo.voxelize(mesh.vertices, mesh.faces, Grid.covering(lo, hi, voxel))
-        kind = "mesh"
-    else:
-        raise ScaffoldError(f"cannot measure {path.name}: use a mesh ({' '.join(mo.MESH_SUFFIXES)}), a volume "
-                            f"({' '.join(mo.VOLUME_SUFFIXES)}) or a .npy field")
+    sample = read_scaffold(path, voxel=voxel, spacing=spacing)
+    solid, voxel, kind = sample.solid, sample.voxel, sample.kind
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load")
     return crop(solid), float(voxel), kind

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import os
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -772,6 +773,85 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
     if patient is None:
         report["box_volume_mm3"] = region_volume
     return Analysis(report, solid, grid, mesh)
+
+
+
+@dataclass(frozen=True)
+class Scaffold:
+    """A scaffold read from a file: its voxels and what they came from (lengths in mm).
+
+    ``kind`` is ``"field"``, ``"volume"`` or ``"mesh"``; ``field`` is the signed distance of a
+    ``.npy`` field (else None); ``region`` where the scaffold is (None: the whole grid)."""
+
+    kind: str
+    solid: np.ndarray
+    voxel: float
+    origin: tuple
+    field: np.ndarray | None
+    region: np.ndarray | None
+    region_name: str
+
+
+def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
+    """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
+    written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
+    binary volume (solid = non-zero).
+
+    The region (the void that counts) is the mesh's bounding box, the volume, or for a field the
+    grid (the patient is not in a ``.npy``; its voxels outside the patient are void that joins the
+    outside, as they do on the printer).
+    """
+    import json
+    from pathlib import Path
+
+    from .grid import Grid
+
+    path = Path(path)
+    if not path.exists():
+        raise ScaffoldError(f"{path} does not exist; check the path")
+    if voxel is not None:
+        voxel = positive_mm("voxel", voxel)
+    suffix = _suffix(path)
+    if suffix == ".npy":
+        try:
+            field = np.load(path, mmap_mode="r")
+        except (OSError, ValueError) as exc:
+            raise ScaffoldError(f"cannot read {path.name} as a .npy field: {exc}") from None
+        if field.ndim != 3 or field.dtype.kind not in "fiu":
+            raise ScaffoldError(f"{path.name} is not a 3-D signed distance (shape {field.shape}, {field.dtype}); "
+                                "give the .npy that generate wrote")
+        meta = path.with_suffix(".json")
+        origin = (0.0, 0.0, 0.0)
+        if meta.is_file():
+            try:
+                report = json.loads(meta.read_text())
+            except ValueError:
+                report = {}
+            voxel = voxel or report.get("voxel_mm")
+            origin = tuple(report.get("grid_origin_mm", origin))
+        if voxel is None:
+            raise ScaffoldError(f"{path.name} carries no voxel size and no run report beside it; give --voxel")
+        field = np.asarray(field, np.float32)
+        return Scaffold("field", field < 0, float(voxel), origin, field, None, "the grid")
+    if path.is_dir() or suffix in VOLUME_SUFFIXES:
+        solid, step, _ = _read_volume(path, spacing, voxel)
+        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume")
+    if suffix not in MESH_SUFFIXES:
+        raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
+                            f"volume ({' '.join(VOLUME_SUFFIXES)})")
+    if voxel is None:
+        raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
+    mesh = _read_mesh(path)
+    lo, hi = mesh.bounds
+    # its layer of outside all round: the scaffold's faces open onto free space
+    grid = Grid.covering(lo, hi, voxel)
+    solid = voxelize(mesh.vertices, mesh.faces, grid)
+    if not solid.any():
+        raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
+    pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
+    inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
+    region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), None, region, "the mesh's bounding box")
 
 
 def _read_mesh(path):

@@ -1008,19 +1008,16 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
             found.append(f"the voxels' porosity {voxel:.4f} is {100 * abs(printed - voxel):.1f} points from the "
                          f"printed {printed:.4f}: the walls are only a few {h:.3g} mm voxels thick, so the print "
                          f"is coarse; a finer --voxel (e.g. {h / 2:.3g}) resolves them")
-        found += [m for m in found_before if m]
-        for message in found:
-            warnings.warn(message, ScaffoldWarning, stacklevel=3)
-        return found
-    if target is not None and abs(voxel - target) > 0.005:
-        why = _fragments_why(report, removed, "the patient's voxels leave no level closer")
-        found.append(f"porosity {voxel:.4f} misses the target {target:g}: {why}; the struts are "
-                     f"under-resolved at {h:.3g} mm voxels: use a finer --voxel (e.g. {h / 2:.3g})"
-                     + (" or --keep-fragments" if removed else ""))
-    if "porosity_mesh" in report and abs(report["porosity_mesh"] - voxel) > 0.01:
-        found.append(f"the mesh's porosity {report['porosity_mesh']:.4f} differs from the voxels' {voxel:.4f} "
-                     f"by {100 * abs(report['porosity_mesh'] - voxel):.1f} points: marching cubes thins struts "
-                     f"only a few voxels thick; a finer --voxel (e.g. {h / 2:.3g}) brings them together")
+    else:
+        if target is not None and abs(voxel - target) > 0.005:
+            why = _fragments_why(report, removed, "the patient's voxels leave no level closer")
+            found.append(f"porosity {voxel:.4f} misses the target {target:g}: {why}; the struts are "
+                         f"under-resolved at {h:.3g} mm voxels: use a finer --voxel (e.g. {h / 2:.3g})"
+                         + (" or --keep-fragments" if removed else ""))
+        if "porosity_mesh" in report and abs(report["porosity_mesh"] - voxel) > 0.01:
+                found.append(f"the mesh's porosity {report['porosity_mesh']:.4f} differs from the voxels' {voxel:.4f} "
+                         f"by {100 * abs(report['porosity_mesh'] - voxel):.1f} points: marching cubes thins struts "
+                         f"only a few voxels thick; a finer --voxel (e.g. {h / 2:.3g}) brings them together")
     found += [m for m in found_before if m]
     for message in found:
         warnings.warn(message, ScaffoldWarning, stacklevel=3)
