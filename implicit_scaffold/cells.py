@@ -81,6 +81,38 @@ class Cells:
         keep = np.ones(len(self.face_cell), bool) if walls else self.face_neighbor >= 0
         return np.bincount(self.face_cell[keep], minlength=self.n)
 
+    def subset(self, keep) -> "Cells":
+        """The cells where `keep` (bool, one per cell) holds, numbered ``0..k-1`` in their order.
+
+        Each keeps its faces in their order, so whatever is built face by face on the
+        subset (rims, cages, quads) is, value for value and in the same order, what is
+        built on those faces of the whole. ``face_neighbor`` keeps the whole's numbering.
+        """
+        keep = np.asarray(keep, bool)
+        new_id = np.cumsum(keep) - 1
+        faces = keep[self.face_cell]
+        counts = np.diff(self.face_start)
+        verts = np.repeat(faces, counts)
+        return Cells(seeds=self.seeds[keep], lo=self.lo, hi=self.hi, volumes=self.volumes[keep],
+                     centroids=self.centroids[keep], face_cell=new_id[self.face_cell[faces]],
+                     face_neighbor=self.face_neighbor[faces],
+                     face_start=np.concatenate([[0], np.cumsum(counts[faces])]),
+                     face_vertices=self.face_vertices[verts], face_normals=self.face_normals[faces],
+                     face_areas=self.face_areas[faces], face_centroids=self.face_centroids[faces],
+                     radii=None if self.radii is None else self.radii[keep],
+                     seed_index=None if self.seed_index is None else self.seed_index[keep])
+
+    def x_extents(self) -> tuple[np.ndarray, np.ndarray]:
+        """The least and greatest x of each cell's vertices, mm."""
+        counts = np.diff(self.face_start)
+        cell_of_vertex = np.repeat(self.face_cell, counts)
+        x = self.face_vertices[:, 0]
+        lo = np.full(self.n, np.inf)
+        hi = np.full(self.n, -np.inf)
+        np.minimum.at(lo, cell_of_vertex, x)
+        np.maximum.at(hi, cell_of_vertex, x)
+        return lo, hi
+
     def interior_cells(self, margin: float) -> np.ndarray:
         """Boolean mask of the cells whose seeds lie at least `margin` mm from every wall."""
         return np.all((self.seeds - self.lo >= margin) & (self.hi - self.seeds >= margin), axis=1)
@@ -89,6 +121,13 @@ class Cells:
 #: peak bytes per seed while voro++ builds the cells and the skeleton is derived from them
 #: (measured: 54 KB at 20,000 and at 80,000 seeds; rounded up)
 BYTES_PER_SEED = 64 * 1024
+#: bytes per seed that the cells, the paper skeleton and its packed primitives hold through
+#: the lattice stage (measured at 40,000 seeds: cells 120 MiB, skeleton 710 MiB, packed
+#: primitives 690 MiB; 39 KB per seed), rounded up
+HELD_BYTES_PER_SEED = 40 * 1024
+#: of that, the cells' arrays alone (3.1 KB per seed measured), rounded up: what a tiled run
+#: holds for the whole tessellation, the rest being built slab by slab
+CELLS_BYTES_PER_SEED = 4 * 1024
 
 
 def check_seed_memory(n: int, pore_size: float | None = None, available: int | None = None) -> int:
@@ -108,7 +147,7 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     int
         The estimate, bytes.
     """
-    from .grid import available_memory
+    from .memory import available_memory
 
     need = int(n) * BYTES_PER_SEED
     have = available_memory() if available is None else int(available)

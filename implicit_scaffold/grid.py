@@ -127,32 +127,6 @@ class Grid:
         return self.size * int(bytes_per_voxel)
 
 
-def available_memory() -> int:
-    """Bytes of memory this process can still take (free plus reclaimable cache)."""
-    import psutil
-
-    return int(psutil.virtual_memory().available)
-
-
-def check_memory(grid: Grid, bytes_per_voxel: int = PIPELINE_BYTES_PER_VOXEL,
-                 available: int | None = None) -> int:
-    """Raise a :class:`ScaffoldError` before allocating a grid that cannot fit.
-
-    Returns
-    -------
-    int
-        The estimate, bytes.
-    """
-    need = grid.memory_estimate(bytes_per_voxel)
-    have = available_memory() if available is None else int(available)
-    if need > have:
-        raise ScaffoldError(
-            f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
-            f"{need / 2**30:.1f} GiB but only {have / 2**30:.1f} GiB is free; "
-            f"use a larger --voxel (e.g. {grid.spacing * (need / have) ** (1 / 3) * 1.1:.3g} mm)")
-    return need
-
-
 def evaluate_by_slabs(grid: Grid, fn, *, max_voxels: int, x_range=None) -> np.ndarray:
     """``fn(x, y, z)`` on the voxel centres of `grid`, slab by slab along x, as float32.
 

@@ -130,11 +130,31 @@ def _pack_paper(skeleton: Skeleton, grid: Grid):
     from types import SimpleNamespace
 
     quads = _pack_quads(skeleton, grid.origin)
+    quad_buffer = opencl.to_device(quads.data.reshape(-1, 4))
+    # the device holds its own copy: only the boxes stay on the host, for binning
+    quads = Primitives(quads.kind, np.zeros((0, QUAD_WORDS, 4), np.float32), quads.lo, quads.hi)
     boxes, planes, plane_start, lo, hi = _pack_pieces(skeleton, grid.origin)
-    return SimpleNamespace(quads=quads, quad_buffer=opencl.to_device(quads.data.reshape(-1, 4)),
+    return SimpleNamespace(quads=quads, quad_buffer=quad_buffer,
                            piece_lo=lo, piece_hi=hi, piece_boxes=opencl.to_device(boxes.reshape(-1, 4)),
                            plane_start=opencl.to_device(plane_start, np.int32),
                            planes=opencl.to_device(planes))
+
+
+def packed_bytes(*, cells=None, edges=None) -> int:
+    """Bytes the lattice stage holds for its primitives: for the paper style (`cells`), the
+    skeleton (:func:`~.skeleton.skeleton_bytes`) and its quads and pieces packed for the
+    device (a CPU device's buffers are host memory too); for struts, the packed `edges`.
+    """
+    if cells is not None:
+        from .skeleton import skeleton_bytes
+
+        m, nf = len(cells.face_vertices), len(cells.face_cell)
+        planes, pieces = m + 3 * nf, cells.n + nf
+        # device quads; quad boxes (float64 on the host, float32 to bin); pieces' boxes, planes and starts
+        return skeleton_bytes(cells) + m * (QUAD_WORDS * 16 + 48 + 32) + planes * 16 + pieces * (32 + 48 + 4)
+    if edges is not None:
+        return len(edges) * (32 + 48 + 32)
+    return 0
 
 
 def _ulps(magnitude: float, n: int) -> float:

@@ -55,7 +55,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ScaffoldError
-from .grid import available_memory
+from .memory import available_memory
 from .mesh import (_FACE_CHUNK, _TIE_ROUNDS, _break_face_ties, _check_level, _check_meshable, _face_measures,
                    _folder_of, _force_outside, _index_to_mm, _jit, _new_temp, _nothing_to_mesh, _ply_header,
                    _prepare_planes, _remove_quietly, _STL_HEADER, _stl_buffer, _stl_chunk, _surface,
@@ -119,6 +119,8 @@ def mesh_slab_bytes_per_voxel(source, *, level: float = 0.0, samples: int = 8) -
 #: Planes a slab reads beyond its last cube layer: that layer's far plane, and the
 #: planes tie breaking looks ahead (module notes).
 _AHEAD = 1 + _TIE_ROUNDS
+#: the two-sided halo that the slabs are planned with: a slab reads at least 1 + 2 * this planes
+MESH_HALO_PLANES = (_AHEAD + 1) // 2
 #: Global vertex numbers are PLY's int32.
 _KEY_BASE = 2 ** 31
 #: Bytes kept for the PLY header, written last: room for counts of 20 digits.
@@ -206,7 +208,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
                             f"by size; got {workers!r}")
     # slabs of cube layers (nx - 1 of them), each reading _AHEAD planes past its last
     # layer and none before: a two-sided halo of half that keeps it within max_voxels
-    slabs = plan_slabs((nx - 1, ny, nz), max_voxels=max_voxels, halo=(_AHEAD + 1) // 2)
+    slabs = plan_slabs((nx - 1, ny, nz), max_voxels=max_voxels, halo=MESH_HALO_PLANES)
     spec = _worker_source(source)
     if workers is None:
         # a second slab in flight only where it fits in the memory free now (a safety net:

@@ -241,12 +241,73 @@ def _threads() -> int:
     return int(numba.get_num_threads())
 
 
+class ThicknessTally:
+    """Voxel counts of local-thickness maps by the squared radius of their spheres, added slab by slab.
+
+    :func:`local_thickness` gives every phase voxel ``2 h sqrt(v)`` for an integer squared
+    radius ``v`` (voxels²), so a count per ``v`` holds the whole map's distribution: maps
+    of slabs add up to the whole grid's exactly, and the statistics come from the counts
+    in one order whatever the slabs.
+
+    Parameters
+    ----------
+    voxel : float, mm
+    """
+
+    def __init__(self, voxel: float):
+        self.voxel = float(voxel)
+        self.counts = np.zeros(1, np.int64)
+
+    def add(self, thickness, phase) -> "ThicknessTally":
+        """Count the phase voxels of a local-thickness map (a slab's owned planes)."""
+        t = np.asarray(thickness)[np.asarray(phase, bool)].astype(np.float64)
+        if t.size:
+            v = np.rint((t / (2 * self.voxel)) ** 2).astype(np.int64)
+            c = np.bincount(v)
+            if len(c) > len(self.counts):
+                c[:len(self.counts)] += self.counts
+                self.counts = c
+            else:
+                self.counts[:len(c)] += c
+        return self
+
+    @property
+    def max_voxels(self) -> float:
+        """The largest thickness counted, in voxels (0 when none)."""
+        v = np.nonzero(self.counts)[0]
+        return 2.0 * math.sqrt(int(v[-1])) if v.size else 0.0
+
+    def stats(self) -> dict:
+        """:func:`thickness_stats` of everything added."""
+        v = np.nonzero(self.counts)[0]
+        if v.size == 0:
+            return {"mean": None, "sd": None, "max": None, "histogram": {"edges_mm": [], "counts": []}}
+        # the float32 values local_thickness wrote
+        values = np.float32(2.0 * self.voxel * np.sqrt(v.astype(np.float64))).astype(np.float64)
+        counts = self.counts[v]
+        n = int(counts.sum())
+        mean = float(np.dot(values, counts) / n)
+        sd = float(math.sqrt(max(0.0, float(np.dot((values - mean) ** 2, counts)) / n)))
+        tmax = float(values[-1])
+        h = self.voxel
+        width = h * max(1, math.ceil(tmax / h / MAX_BINS))
+        nbins = max(1, math.ceil(tmax / width + 1e-9))
+        if nbins * width <= tmax:  # the maximum sits on the last edge: one more bin holds it
+            nbins += 1
+        edges = np.arange(nbins + 1) * width
+        hist = np.bincount(np.minimum((values / width).astype(np.int64), nbins - 1), weights=counts,
+                           minlength=nbins)
+        return {"mean": mean, "sd": sd, "max": tmax,
+                "histogram": {"edges_mm": [float(e) for e in edges], "counts": [int(c) for c in hist]}}
+
+
 def thickness_stats(thickness, phase, voxel: float) -> dict:
     """Mean, sd and max of a local-thickness map over a phase, with its histogram.
 
     Parameters
     ----------
     thickness : (nx, ny, nz) float ndarray, mm
+        As :func:`local_thickness` gives it.
     phase : (nx, ny, nz) bool ndarray
     voxel : float, mm
 
@@ -257,18 +318,7 @@ def thickness_stats(thickness, phase, voxel: float) -> dict:
         empty phase) and ``histogram``: ``edges_mm`` (bins of a whole number of voxels from
         0, at most :data:`MAX_BINS`) and ``counts`` (voxels per bin).
     """
-    t = np.asarray(thickness)[np.asarray(phase, bool)].astype(np.float64)
-    if t.size == 0:
-        return {"mean": None, "sd": None, "max": None, "histogram": {"edges_mm": [], "counts": []}}
-    tmax = float(t.max())
-    width = voxel * max(1, math.ceil(tmax / voxel / MAX_BINS))
-    nbins = max(1, math.ceil(tmax / width + 1e-9))
-    if nbins * width <= tmax:  # the maximum sits on the last edge: one more bin holds it
-        nbins += 1
-    edges = np.arange(nbins + 1) * width
-    counts = np.bincount(np.minimum((t / width).astype(np.int64), nbins - 1), minlength=nbins)
-    return {"mean": float(t.mean()), "sd": float(t.std()), "max": tmax,
-            "histogram": {"edges_mm": [float(e) for e in edges], "counts": [int(c) for c in counts]}}
+    return ThicknessTally(voxel).add(thickness, phase).stats()
 
 
 # --------------------------------------------------------------------------- topology
@@ -485,6 +535,106 @@ def morphometry(solid, voxel: float, *, region=None, surface_area_mm2: float | N
         bv = solid_volume_mm3 if solid_volume_mm3 is not None else n_solid * h ** 3
         out["surface_area_mm2"] = float(surface_area_mm2)
         out["bs_bv_per_mm"] = float(surface_area_mm2) / bv if bv > 0 else None
+    return out
+
+
+#: bytes per voxel of a slab (its halo included) while :func:`morphometry_by_slabs` takes its
+#: local thickness: the phase, its padded copy, the squared distances, the thickness map, labels
+SLAB_MORPHOMETRY_BYTES_PER_VOXEL = 28
+
+
+def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo: int,
+                         progress=None) -> dict:
+    """:func:`morphometry`'s voxel measures of the solid ``source < 0`` within the region
+    ``patient < 0``, read slab by slab: the same figures as on the whole grid.
+
+    - Local thickness (strut thickness, pore diameter): each slab is measured with `halo`
+      planes on either side, the halo's outer faces standing for non-phase as the grid's
+      faces do. A sphere of radius ``r`` that paints an owned voxel has its centre within
+      ``r`` of it, and that centre's distance is exact when the halo is at least ``2 r``
+      wide; a halo narrower than that shows, since some owned voxel then reads a thickness
+      of at least the halo (the centre of the widest sphere is owned by some slab, where
+      its distance is either exact or at least the halo). So the thickest owned voxel
+      bounds what was needed: when it exceeds `halo`, every slab is measured again with a
+      wider one. The counts per sphere radius add up to the whole grid's
+      (:class:`ThicknessTally`), so the statistics are identical.
+    - Euler characteristic: :func:`euler_characteristic_by_slabs` (one-plane halo).
+    - Interconnected porosity and fragments: the void's and the solid's 6-connected
+      pieces joined across slab faces (:class:`~.tiles.SlabComponents`).
+
+    Parameters
+    ----------
+    source, patient : objects with ``read(x0, x1)`` giving planes ``(x1 - x0, ny, nz)``, mm
+        The scaffold's and the patient's signed distances (a FieldFile or ArraySlabs).
+    voxel : float, mm
+    max_voxels : int
+        Voxels a slab may read, its halo included.
+    halo : int
+        Planes of halo to start with (e.g. from the largest cell); widened as needed.
+    progress : callable(done, total), optional
+
+    Returns
+    -------
+    dict
+        The keys of :func:`morphometry` but ``porosity_voxel`` and the surface's, and
+        ``morphometry_halo_planes``: the halo the thicknesses were measured with.
+    """
+    from .tiles import SlabComponents
+
+    nx, ny, nz = (int(n) for n in source.grid.shape)
+    h = float(voxel)
+    plane = ny * nz
+
+    def ranges(width):
+        owned = max(1, int(max_voxels) // plane - 2 * width)
+        return [(x0, min(x0 + owned, nx)) for x0 in range(0, nx, owned)]
+
+    halo = max(1, int(halo))
+    out: dict = {}
+    while True:
+        if (1 + 2 * halo) * plane > max_voxels and nx > 1 + 2 * halo:
+            # the thinnest slab with its halo does not fit: the topology is still measured
+            out["morphometry"] = (f"strut thickness and pore diameter not measured: a slab with its halo of {halo} "
+                                  f"planes needs {(1 + 2 * halo) * plane * SLAB_MORPHOMETRY_BYTES_PER_VOXEL / 2**30:.2f}"
+                                  " GiB, over what --max-memory leaves; raise --max-memory")
+            strut = pore = None
+            break
+        strut, pore = ThicknessTally(h), ThicknessTally(h)
+        spans = ranges(halo)
+        for done, (x0, x1) in enumerate(spans, 1):
+            lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+            solid = source.read(lo, hi) < 0
+            void = (patient.read(lo, hi) < 0) & ~solid
+            own = slice(x0 - lo, x1 - lo)
+            strut.add(local_thickness(solid, h)[own], solid[own])
+            pore.add(local_thickness(void, h)[own], void[own])
+            del solid, void
+            if progress is not None:
+                progress(done, len(spans))
+        if max(strut.max_voxels, pore.max_voxels) <= halo or len(spans) == 1:
+            break
+        halo = max(2 * halo, int(math.ceil(max(strut.max_voxels, pore.max_voxels))) + 2)
+    out["strut_thickness_mm"] = None if strut is None else strut.stats()
+    out["pore_diameter_mm"] = None if pore is None else pore.stats()
+    spans = ranges(0)
+    out["euler_characteristic"] = euler_characteristic_by_slabs(source, spans)
+    solids, opens = SlabComponents(), SlabComponents()
+    n_region = 0
+    for x0, x1 in spans:
+        solid = source.read(x0, x1) < 0
+        region = patient.read(x0, x1) < 0
+        n_region += int(np.count_nonzero(region))
+        solids.add(solid)
+        # the void and the outside together; the outside (beyond the region) opens its piece
+        opens.add(~solid, opens=~region & ~solid, tally=region & ~solid)
+    if n_region == 0:
+        raise ScaffoldError("the region holds no voxel; nothing to measure")
+    out["connectivity_density_per_mm3"] = (1 - out["euler_characteristic"]) / (n_region * h ** 3)
+    opens.finish()
+    reached, total = opens.open_tally()
+    out["interconnected_porosity"] = reached / total if total else None
+    out["fragments"] = solids.finish()
+    out["morphometry_halo_planes"] = halo
     return out
 
 
@@ -712,7 +862,8 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
     from pathlib import Path
 
     from . import __version__
-    from .grid import Grid, check_memory
+    from .grid import Grid
+    from .memory import check_memory
 
     path = Path(path)
     if voxel is not None:

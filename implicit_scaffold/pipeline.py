@@ -15,10 +15,11 @@ import numpy as np
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
 from .field import blend_field, check_porosity, fill_sealed_voids, sample, scaffold_field, solve_level_cut
-from .grid import Grid, check_memory, run_bytes_per_voxel
+from .grid import Grid, run_bytes_per_voxel
+from .memory import check_memory
 from .progress import Progress
 from .seeds import SEED_RULES
-from .skeleton import check_scale, closed_form_porosity
+from .skeleton import check_scale, closed_form_porosity, quad_areas
 
 STYLES = ("paper", "struts")
 MESH_FORMATS = (".stl", ".ply", ".obj", ".3mf")
@@ -81,7 +82,8 @@ class Result:
         The same dict as the JSON report.
     cells : Cells
     skeleton : Skeleton or None
-        The paper style's skeleton; None for struts.
+        The paper style's skeleton (a :class:`~.skeleton.SkeletonSource` in a tiled run, which builds
+        it slab by slab); None for struts.
     edges : (ne, 2, 3) ndarray or None
         The struts' axes; None for the paper style.
     grid : Grid
@@ -269,7 +271,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                          small_pieces_warning)
     from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
                         seed_count, seeds_in_patient, uniform_seeds)
-    from .skeleton import scaled_skeleton, voronoi_edges
+    from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
 
     params = validate(**options)
     if printer is not None and not hasattr(printer, "min_strut_mm"):
@@ -298,20 +300,15 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     # everything that can be checked before the work starts is checked now
     opencl.context()
     run_bytes = run_bytes_per_voxel(mesh=mesh, morphometry=morphometry)
-    from .tiled import default_max_memory, parse_memory
+    from .memory import budget
 
-    if max_memory is None:
-        max_memory = default_max_memory()
-    elif isinstance(max_memory, str):
-        max_memory = parse_memory(max_memory)
+    max_memory = budget(max_memory)
     graded = params.grade is not None or params.calibration is not None
     # the patient as the fine grid reads it: beyond the skin and smooth-cut widths only its sign
     # matters, so a mesh's far field is clamped there and computed slab by slab; a graded run
     # reads the depth below the surface far inside, so it keeps the whole-grid far field
     fine_patient = patient if graded else clamp_far_field(patient, params.skin + params.smooth_cut)
     run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
-    if params.voxel is not None:
-        run.plan(Grid.covering(lo, hi, params.voxel))
     prog = Progress(verbose)
     if getattr(patient, "load_seconds", None) is not None:
         # a patient read from a file (patient_io.load_patient) was loaded before this call
@@ -338,6 +335,18 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .cells import check_seed_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size)
+    if params.voxel is not None:
+        from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
+        from .tiles import blend_halo
+
+        # before the cells: what they, the skeleton and the packed primitives will hold, and the
+        # blend's halo at the widest the walls allow (half a wall; a wall is at most 1 - Sv of
+        # two cells' spans), estimated
+        span = (seed_volume / n) ** (1 / 3)
+        halo = blend_halo(params.voxel, params.blend if params.blend is not None else (1 - params.sv) * span)
+        run.plan(Grid.covering(lo, hi, params.voxel), halo=halo if params.style == "paper" else 0,
+                 reserve=n * HELD_BYTES_PER_SEED,
+                 slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
     # solve the seed count for the measured pore size: the Poisson-Voronoi estimate above, then
     # corrected for what the cells measure (cells cut by the box walls are smaller)
     solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
@@ -373,6 +382,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         if abs(measured / params.pore_size - 1) <= PORE_SIZE_TOLERANCE:
             break
         n = corrected_count(n, measured, params.pore_size)
+    from .memory import release
+
+    release()  # voro++'s cells as Python objects leave megabytes per thousand seeds in the heap
     if weighted:
         # seeds whose power cell is empty are gone: the lattice and the report count the others
         empty_power_cells = len(seeds) - cells.n
@@ -391,15 +403,22 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .tiles import blend_halo
 
     skeleton = edges = None
-    with prog.stage("skeleton"):
-        if params.style == "paper":
-            skeleton = scaled_skeleton(cells, params.sf, params.sv)
-        else:
+    from .lattice import packed_bytes
+
+    if params.style == "paper":
+        # planned from the cells: a whole grid holds the whole skeleton, a slab the skeleton of
+        # the cells that reach it (SkeletonSource), about its share of the whole
+        primitives = packed_bytes(cells=cells)
+        slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25)),
+                               reserve=primitives, slab_share=primitives)
+        with prog.stage("skeleton", "whole" if slab_voxels is None else "slab by slab"):
+            skeleton = (scaled_skeleton(cells, params.sf, params.sv) if slab_voxels is None
+                        else SkeletonSource(cells, params.sf, params.sv))
+    else:
+        with prog.stage("skeleton"):
             edges = voronoi_edges(cells)
-    # planned once the cells and the skeleton are held, so that the memory they take is not
-    # also given to the slabs
-    slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25))
-                           if params.style == "paper" else 0)
+        # planned once the edges are held, so that the memory they take is not also given to the slabs
+        slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges))
     if slab_voxels is not None and graded:
         raise ScaffoldError("a graded scaffold is built on the whole grid, which does not fit in --max-memory "
                             "here; use a larger --voxel or raise --max-memory")
@@ -551,7 +570,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if out_path is not None:
         with prog.stage("write"):
             write_outputs(result, out_path)
-    from .tiled import peak_memory
+    from .memory import peak_memory
 
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
@@ -608,8 +627,7 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
         p0 = closed_form_porosity(params.sf, params.sv)
         k = _paper_blend(params, wall_p10, window_p25)
         # estimate of the offset: the porosity change spread over the lattice surface
-        area = float(np.linalg.norm(np.cross(skeleton.quads[:, 2] - skeleton.quads[:, 0],
-                                             skeleton.quads[:, 3] - skeleton.quads[:, 1]), axis=1).sum() / 2)
+        area = float((skeleton.quad_areas() if hasattr(skeleton, "quad_areas") else quad_areas(skeleton)).sum())
         t_est = 0.0 if params.porosity is None else (p0 - params.porosity) * box_volume / max(area, 1e-12)
         cutoff = 2 * abs(t_est) + k + 3 * h
 
@@ -759,6 +777,11 @@ def _paper_count(params: Params, patient, box_volume: float) -> int:
                       params.pore_size)
 
 
+#: a refusal names this much more than the estimate of the smallest budget: the estimate
+#: before the cells are built is short of the one after by what the process grows
+SMALLEST_MARGIN = 1.1
+
+
 class _RunPlan:
     """Whole grid or slabs: decided from the memory bound, checked before the work starts."""
 
@@ -771,13 +794,24 @@ class _RunPlan:
         """The voxels per slab asked for by ``tiled=<int>``, else None."""
         return None if isinstance(self.tiled, bool) or not self.tiled else int(self.tiled)
 
-    def plan(self, grid: Grid, halo: int = 0) -> int | None:
-        """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits."""
-        from .tiled import check_disk, process_memory, slab_voxels
+    def plan(self, grid: Grid, halo: int = 0, reserve: int = 0, slab_share: int = 0) -> int | None:
+        """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits.
+
+        `reserve` is what the stages hold beside the grid's voxels on the whole grid (the
+        lattice's primitives, :func:`~.lattice.packed_bytes`); of that, `slab_share` is
+        built slab by slab in a tiled run, in proportion to the slab's voxels (twice, for the
+        primitives that reach a slab from beyond it). Every stage's thinnest slab must fit
+        beside what the process holds and the reserve, from the lattice to the mesh: a
+        budget too small for that is refused now, naming the smallest that would do.
+        """
+        from .memory import format_size, release
+        from .tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, check_disk
         from .tiles import plan_slabs
 
-        held = process_memory()
-        whole = grid.memory_estimate(self.run_bytes) + held
+        held = release() + STAGE_RESERVE
+        whole = grid.memory_estimate(self.run_bytes) + held + int(reserve)
+        held += int(reserve) - int(slab_share)
+        per_voxel = SLAB_BYTES_PER_VOXEL + 2 * int(slab_share) / grid.size
         if self.tiled is False or (self.tiled is None and whole <= self.max_memory):
             check_memory(grid, self.run_bytes)
             return None
@@ -797,47 +831,58 @@ class _RunPlan:
                 raise ScaffoldError(f"{why}, and the patient is in {pieces} pieces, whose fragments a tiled run "
                                     "cannot remove piece by piece yet: raise --max-memory, use a larger --voxel, "
                                     "or pass --keep-fragments")
-        from .tiled import SLAB_BYTES_PER_VOXEL
+        from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
-        voxels = slab_voxels(self.max_memory, held)  # raises when the cells leave no room
-        voxels = self.forced_voxels or voxels
-        thinnest = (1 + 2 * halo) * grid.shape[1] * grid.shape[2] * SLAB_BYTES_PER_VOXEL
-        if thinnest + held > self.max_memory and self.tiled in (None, True):
+        plane = grid.shape[1] * grid.shape[2]
+        thinnest = int((1 + 2 * halo) * plane * per_voxel)
+        if ext in MESH_FORMATS:
+            thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
+        smallest = held + thinnest
+        if smallest > self.max_memory and self.tiled in (None, True):
             raise ScaffoldError(
-                f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels is too large even in slabs: "
-                f"its thinnest slab needs about {(thinnest + held) / 2**30:.1f} GiB but only "
-                f"{self.max_memory / 2**30:.1f} GiB is allowed (--max-memory); use a larger --voxel "
-                f"(e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g} mm)")
-        plan_slabs(grid.shape, max_voxels=voxels, halo=halo)
+                f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
+                f"{format_size(smallest)} of memory even in slabs (its thinnest slab beside "
+                f"{held / 2**30:.2f} GiB of cells, skeleton and libraries) but --max-memory is "
+                f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * smallest)} "
+                "or more"
+                + (f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
+                   " mm)" if self.max_memory > held else ""))
+        voxels = self.forced_voxels or max(1, int((self.max_memory - held) // per_voxel))
+        plan_slabs(grid.shape, max_voxels=max(voxels, (1 + 2 * halo) * plane), halo=halo)
         check_disk(grid)
         return voxels
 
 
-def _slab_morphometry(tf, grid: Grid, prog) -> dict:
-    """The voxel measures a tiled run takes slab by slab (the whole grid's keys and meanings).
+def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
+    """The voxel measures of a tiled run, slab by slab (:func:`~.morphometry.morphometry_by_slabs`):
+    the whole grid's keys, meanings and figures.
 
-    The Euler characteristic is additive over slabs with a one-plane halo
-    (:func:`~.morphometry.euler_characteristic_by_slabs`) and the fragments are the pieces
-    the slabs' union-find found. Strut thickness and pore diameter (maximal spheres) would
-    need a halo of twice the largest inscribed radius, and the interconnected porosity the
-    void's components joined across slabs: not measured yet, and the report says so.
+    The local thickness's halo starts at the widest cell (its volume's sphere diameter),
+    which bounds the largest sphere in the void (a pore and its channels lie within its
+    cell and the windows' necks); the measure widens it where that falls short.
     """
-    from .morphometry import euler_characteristic_by_slabs
+    from .memory import release
+    from .morphometry import SLAB_MORPHOMETRY_BYTES_PER_VOXEL, morphometry_by_slabs
 
-    with prog.stage("metrics", "Euler characteristic by slabs"):
-        chi = euler_characteristic_by_slabs(tf.field, [(sl.x0, sl.x1) for sl in tf.slabs])
-    return {"euler_characteristic": chi,
-            "connectivity_density_per_mm3": (1 - chi) / (tf.n_inside * grid.spacing ** 3),
-            "fragments": max(0, tf.pieces - 1),
-            "morphometry": "in slabs: Euler characteristic, Conn.D, fragments, BS/BV; strut thickness, pore "
-                           "diameter and interconnected porosity need the whole grid (not measured)"}
+    halo = int(math.ceil(float((6 * np.max(cells.volumes) / math.pi) ** (1 / 3)) / grid.spacing))
+    if run.forced_voxels:
+        # slabs of the size asked for, with room for the halo widened twice
+        max_voxels = run.forced_voxels + 8 * halo * grid.shape[1] * grid.shape[2]
+    else:
+        max_voxels = max(1, max(0, run.max_memory - release()) // SLAB_MORPHOMETRY_BYTES_PER_VOXEL)
+    with prog.stage("metrics", "by slabs"):
+        found = morphometry_by_slabs(tf.field, tf.patient, grid.spacing, max_voxels=max_voxels, halo=halo,
+                                     progress=prog.bar("metrics"))
+    found.pop("morphometry_halo_planes", None)
+    return found
 
 
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
                     wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
                     morphometry: bool = True, seed_solve=None) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
-    from .tiled import peak_memory, runner_for, sample_slabs, tiled_scaffold
+    from .memory import peak_memory
+    from .tiled import runner_for, sample_slabs, tiled_scaffold
 
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
@@ -873,7 +918,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                                                                                      scheduler))}
         report["bodies_voxels"] = tf.pieces
         if morphometry:
-            report.update(_slab_morphometry(tf, grid, prog))
+            report.update(_slab_morphometry(tf, grid, cells, run, prog))
         ext = output_format(out_path) if out_path is not None else None
         if mesh and ext in MESH_FORMATS:
             with prog.stage("mesh", "streamed to " + out_path.name):
@@ -895,7 +940,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                                           if summary["volume_mm3"] > 0 else None)
         elif ext in FIELD_FORMATS:
             from .export import write_volume
-            from .tiled import process_memory
+            from .memory import process_memory
 
             with prog.stage("write"):
                 # z blocks cut from the field on disk, within what --max-memory leaves
@@ -935,15 +980,14 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -
     from .errors import ScaffoldWarning
     from .mesh import write_mesh
     from .mesh_stream import write_mesh_slabs
-    from .tiled import process_memory
-
-    from .mesh_stream import mesh_slab_bytes_per_voxel
+    from .memory import process_memory, release
+    from .mesh_stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel
 
     # marching cubes holds more per voxel than the field passes did, the more the denser the
-    # surface (and two slabs may be in flight)
+    # surface (and two slabs may be in flight); the plan kept room for its thinnest slab
     per_voxel = mesh_slab_bytes_per_voxel(field)
-    slab_voxels = run.forced_voxels or min(slab_voxels,
-                                           max(1, int((run.max_memory - process_memory()) // per_voxel)))
+    thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
+    slab_voxels = run.forced_voxels or min(slab_voxels, max(thinnest, int((run.max_memory - release()) // per_voxel)))
     ext = output_format(out_path)
     if ext in (".stl", ".ply"):
         return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))

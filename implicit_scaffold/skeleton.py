@@ -248,3 +248,62 @@ def voronoi_edges(cells: Cells, *, walls: bool = False) -> np.ndarray:
         seg = seg[~on_wall]
     length = np.linalg.norm(seg[:, 1] - seg[:, 0], axis=1)
     return seg[length > tol]
+
+
+#: bytes a Skeleton holds per channel-side quad (rims, cages, quads, normals, owning face)
+#: and per plane of the void's pieces, and per piece (boxes)
+SKELETON_BYTES_PER_QUAD = 24 + 24 + 96 + 24 + 8
+SKELETON_BYTES_PER_PLANE = 32
+SKELETON_BYTES_PER_PIECE = 56
+
+
+def skeleton_bytes(cells: Cells) -> int:
+    """Bytes :func:`scaled_skeleton` of `cells` holds (a close upper estimate, from the cells alone).
+
+    A face of ``k`` vertices gives ``k`` quads, a channel of ``k + 2`` planes and a pore plane.
+    """
+    m, nf = len(cells.face_vertices), len(cells.face_cell)
+    return (m * SKELETON_BYTES_PER_QUAD + (m + 3 * nf) * SKELETON_BYTES_PER_PLANE
+            + (cells.n + nf) * SKELETON_BYTES_PER_PIECE)
+
+
+class SkeletonSource:
+    """The scaled skeleton of a tessellation, built on demand for the cells near a band of x.
+
+    A tiled run holds the cells only; each slab builds the skeleton of the cells that can
+    reach its voxels (:meth:`near`). The skeleton is built face by face, so a subset's
+    quads and pieces are the whole skeleton's, value for value and in the same relative
+    order, and a slab's field is bit for bit the one the whole skeleton gives.
+
+    Parameters
+    ----------
+    cells : Cells
+    sf, sv : float
+    """
+
+    def __init__(self, cells: Cells, sf: float, sv: float):
+        self.cells = cells
+        self.sf = check_scale("sf", sf)
+        self.sv = check_scale("sv", sv)
+        self.x_lo, self.x_hi = cells.x_extents()
+
+    def near(self, x_lo: float, x_hi: float) -> Skeleton:
+        """The skeleton of the cells whose x extent meets ``[x_lo, x_hi]`` (mm); every quad and
+        piece of the others lies outside that band."""
+        return scaled_skeleton(self.cells.subset((self.x_hi >= x_lo) & (self.x_lo <= x_hi)), self.sf, self.sv)
+
+    def quad_areas(self, chunk: int = 20000) -> np.ndarray:
+        """Area of every quad of the whole skeleton, mm², in its order, built `chunk` cells at a time."""
+        out = []
+        n = self.cells.n
+        for c0 in range(0, n, chunk):
+            keep = np.zeros(n, bool)
+            keep[c0:c0 + chunk] = True
+            out.append(quad_areas(scaled_skeleton(self.cells.subset(keep), self.sf, self.sv)))
+        return np.concatenate(out) if out else np.zeros(0)
+
+
+def quad_areas(skeleton: Skeleton) -> np.ndarray:
+    """Area of each channel-side quad, mm² (half the cross product of its diagonals)."""
+    q = skeleton.quads
+    return np.linalg.norm(np.cross(q[:, 2] - q[:, 0], q[:, 3] - q[:, 1]), axis=1) / 2

@@ -29,72 +29,21 @@ import numpy as np
 
 from .errors import ScaffoldError
 from .field import blend_field, scaffold_field, void_mask
-from .grid import Grid, available_memory
+from .grid import Grid
+from .memory import release
 from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_from_ranks, level_ranks, \
     plan_slabs
 
 #: bytes per voxel of a slab at the peak of pass 1 (lattice and blended planes, the
 #: blend's own temporary, the patient planes, masks and quantile keys), rounded up
 SLAB_BYTES_PER_VOXEL = 48
-#: the default --max-memory: this share of the memory free when the run starts
-DEFAULT_MEMORY_SHARE = 0.8
+#: bytes a tiled run holds beside its slabs, cells, skeleton and packed primitives: the
+#: OpenCL runtime's own buffers, the libraries the later stages load, the calibration
+#: prism (measured: 190 MiB from the skeleton to the mesh stage of a 400-seed cube at
+#: 0.04 mm with the freed heap returned between stages), rounded up
+STAGE_RESERVE = 256 * 2**20
 #: bytes on disk per voxel while a tiled run goes: the scaffold and patient fields
 DISK_BYTES_PER_VOXEL = 8
-
-
-def default_max_memory() -> int:
-    """The default memory bound, bytes: a safe share of what is free now."""
-    return int(DEFAULT_MEMORY_SHARE * available_memory())
-
-
-def parse_memory(text) -> int:
-    """A memory size such as ``4G``, ``3.5GB``, ``800M`` or ``800MiB`` (a bare number is GiB), as bytes."""
-    units = {"": 2**30, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
-    raw = str(text).strip().lower()
-    for suffix in ("ib", "b"):
-        if raw.endswith(suffix) and raw[:-len(suffix)][-1:] in "kmgt":
-            raw = raw[:-len(suffix)]
-            break
-    unit = raw[-1:] if raw[-1:] in "kmgt" else ""
-    try:
-        value = float(raw[:len(raw) - len(unit)])
-    except ValueError:
-        raise ScaffoldError(f"--max-memory must be a size such as 4G or 800M, got {text!r}") from None
-    if not (np.isfinite(value) and value > 0):
-        raise ScaffoldError(f"--max-memory must be a positive size such as 4G, got {text!r}")
-    return int(value * units[unit])
-
-
-def process_memory() -> int:
-    """Bytes this process holds now (resident set)."""
-    import psutil
-
-    return int(psutil.Process().memory_info().rss)
-
-
-def peak_memory(children: bool = False) -> int:
-    """The most bytes this process has held (its peak resident set), or the largest of its
-    finished child processes' peaks."""
-    import resource
-
-    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
-    return int(resource.getrusage(who).ru_maxrss) * 1024
-
-
-def slab_voxels(max_memory: int, held: int | None = None) -> int:
-    """Voxels a slab may hold (halo included) so that the run stays within `max_memory` bytes.
-
-    Raises
-    ------
-    ScaffoldError
-        What the process already holds leaves no room for a slab.
-    """
-    held = process_memory() if held is None else int(held)
-    room = int(max_memory) - held
-    if room < 64 * 2**20:
-        raise ScaffoldError(f"--max-memory {max_memory / 2**30:.2f} GiB leaves no room for a slab: the run "
-                            f"already holds {held / 2**30:.2f} GiB (cells and skeleton); raise --max-memory")
-    return room // SLAB_BYTES_PER_VOXEL
 
 
 def check_disk(grid: Grid, folder=None) -> None:
@@ -152,11 +101,25 @@ def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarra
 
     grid = work.grid
     if work.style == "paper":
-        base = lattice_sdf(work.skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1))
+        skeleton = work.skeleton
+        if hasattr(skeleton, "near"):
+            skeleton = skeleton.near(*_band(grid, (slab.h0, slab.h1), work.cutoff))
+        base = lattice_sdf(skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1))
+        del skeleton
         base = np.ascontiguousarray(blend_field(base, grid.spacing, work.k)[slab.owned])
     else:
         base = struts_field(work.edges, grid, cutoff=work.cutoff, blend=work.k, x_range=(slab.x0, slab.x1))
     return slab, base, patient_sdf(work.patient, grid, (slab.x0, slab.x1))
+
+
+def _band(grid: Grid, x_range, cutoff: float) -> tuple[float, float]:
+    """The x band (mm) whose primitives can reach the blocks of planes `x_range` within `cutoff`."""
+    from .lattice import BLOCK
+
+    b0, b1 = int(x_range[0]) // BLOCK * BLOCK, -(-int(x_range[1]) // BLOCK) * BLOCK
+    margin = float(cutoff) + 2 * grid.spacing
+    x0 = float(grid.origin[0])
+    return x0 + b0 * grid.spacing - margin, x0 + b1 * grid.spacing + margin
 
 
 class LocalRunner:
@@ -281,6 +244,7 @@ def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: Fiel
         field.write(slab.x0, base)
         patient.write(slab.x0, s_p)
         del base, s_p, inside
+        release()  # what the slab's kernels and temporaries left in the heap, before the next
         if progress is not None:
             progress(done, len(slabs))
     return quantile, n_inside, lo, hi

@@ -225,6 +225,7 @@ class SlabComponents:
         self._last_plane: np.ndarray | None = None
         self._last_offset = 0
         self._edge: list[np.ndarray] = []   # global labels on a face of the grid
+        self._tallies: list[np.ndarray] = []
         self.main: int | None = None
 
     def _find(self, i: np.ndarray) -> np.ndarray:
@@ -241,17 +242,26 @@ class SlabComponents:
 
         return ndimage.label(solid)
 
-    def add(self, solid: np.ndarray) -> None:
-        """Pass 1: the solid (bool, owned planes only) of the next slab along x."""
+    def add(self, solid: np.ndarray, opens: np.ndarray | None = None, tally: np.ndarray | None = None) -> None:
+        """Pass 1: the solid (bool, owned planes only) of the next slab along x.
+
+        `opens` marks voxels that make their piece open as a face of the grid does (for
+        the void: the space outside the patient); `tally` marks voxels counted per piece
+        (:meth:`open_tally`).
+        """
         labels, count = self._label(solid)
         offset = len(self._parent)
         self._offsets.append(offset)
         self._sizes.append(np.bincount(labels.ravel(), minlength=count + 1)[1:])
+        if tally is not None:
+            self._tallies.append(np.bincount(labels[tally], minlength=count + 1)[1:])
         self._parent = np.concatenate([self._parent, np.arange(offset, offset + count, dtype=np.int64)])
         first = labels[0]
         faces = [labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]]
         if self._last_plane is None:
             faces.append(first)  # the grid's first plane
+        if opens is not None:
+            faces.append(labels[opens])
         edge = np.unique(np.concatenate([f.ravel() for f in faces]))
         self._edge.append(edge[edge > 0].astype(np.int64) - 1 + offset)
         if self._last_plane is not None:
@@ -284,6 +294,14 @@ class SlabComponents:
         self._open = np.zeros(len(self._parent), bool)
         self._open[roots[edge]] = True
         return int(np.count_nonzero(sizes)) - 1
+
+    def open_tally(self) -> tuple[int, int]:
+        """After :meth:`finish`: the `tally` voxels in open pieces, and in all pieces."""
+        tallies = np.concatenate(self._tallies or [np.zeros(0, np.int64)])
+        if not len(self._parent) or not tallies.size:
+            return 0, 0
+        per_root = np.bincount(self._roots, weights=tallies, minlength=len(self._parent))
+        return int(per_root[self._open].sum()), int(tallies.sum())
 
     def sealed(self, keep_interior: bool = False) -> tuple[int, int]:
         """After :meth:`finish`: the pieces that touch no face of the grid, and their voxels; with

@@ -49,9 +49,13 @@ def test_quads_are_planar_and_point_into_the_solid(cube_cells):
     # a point just outside a quad (along its normal) lies in no piece of the void
     mid = q.mean(axis=1) + 1e-6 * sk.quad_normals
     inside = np.zeros(len(mid), bool)
+    order = np.argsort(mid[:, 0])
+    xs = mid[order, 0]
     for i in range(len(sk.piece_start) - 1):
+        # only the points within the piece's x range can lie in it
+        near = order[np.searchsorted(xs, sk.piece_lo[i, 0] - 1e-6):np.searchsorted(xs, sk.piece_hi[i, 0] + 1e-6)]
         pl = sk.planes[sk.piece_start[i]:sk.piece_start[i + 1]]
-        inside |= np.all(mid @ pl[:, :3].T - pl[:, 3] <= 0, axis=1)
+        inside[near] |= np.all(mid[near] @ pl[:, :3].T - pl[:, 3] <= 0, axis=1)
     assert inside.mean() < 0.001
 
 
@@ -73,3 +77,34 @@ def test_voronoi_edges_of_cubes():
     # each of the 3 central lines x=1,y=1 (etc.) is cut into 2 unit edges at the centre
     assert len(edges) == 6
     np.testing.assert_allclose(lengths, 1.0, atol=1e-6)
+
+
+def test_skeleton_near_a_band_is_the_whole_skeletons_part_there():
+    """The skeleton a slab builds (SkeletonSource.near) holds, in the same order and with the same
+    values, the whole skeleton's quads and pieces of the cells that reach the band; every quad of
+    the other cells lies outside the band."""
+    from implicit_scaffold.cells import voronoi_cells
+    from implicit_scaffold.skeleton import SkeletonSource, quad_areas
+
+    rng = np.random.default_rng(4)
+    cells = voronoi_cells(rng.uniform(0, 3, (120, 3)), [0, 0, 0], [3, 3, 3])
+    whole = scaled_skeleton(cells, 0.7, 0.8)
+    source = SkeletonSource(cells, 0.7, 0.8)
+    x_lo, x_hi = 1.1, 1.6
+    part = source.near(x_lo, x_hi)
+    # which cells reach the band, from their own vertices, face by face (independently of x_extents)
+    cell_lo, cell_hi = np.full(cells.n, np.inf), np.full(cells.n, -np.inf)
+    for f, c in enumerate(cells.face_cell):
+        x = cells.face_vertices[cells.face_start[f]:cells.face_start[f + 1], 0]
+        cell_lo[c], cell_hi[c] = min(cell_lo[c], x.min()), max(cell_hi[c], x.max())
+    keep = (cell_hi >= x_lo) & (cell_lo <= x_hi)
+    assert 0 < keep.sum() < cells.n
+    mine = keep[cells.face_cell[whole.quad_face]]
+    np.testing.assert_array_equal(part.quads, whole.quads[mine])
+    np.testing.assert_array_equal(part.quad_normals, whole.quad_normals[mine])
+    others = whole.quads[~mine]
+    assert np.all((others[..., 0].max(axis=1) < x_lo) | (others[..., 0].min(axis=1) > x_hi))
+    # pores then channels, each in the whole's order
+    pores = np.nonzero(keep)[0]
+    np.testing.assert_array_equal(part.piece_lo[:len(pores)], whole.piece_lo[pores])
+    np.testing.assert_array_equal(source.quad_areas(chunk=7), quad_areas(whole))

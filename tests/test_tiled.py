@@ -6,7 +6,7 @@ import pytest
 
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.pipeline import generate
-from implicit_scaffold.tiled import parse_memory
+from implicit_scaffold.memory import parse_memory
 
 # a 3 mm cube at 0.04 mm: 77^3 voxels, ~100 seeds; slabs of 6,000 voxels hold one plane
 SMALL = dict(size=3.0, pore_size=0.6, porosity=0.75, voxel=0.04, seed=3)
@@ -99,7 +99,7 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
     from implicit_scaffold.patient_mesh import MeshPatient
     import trimesh
 
-    with pytest.raises(ScaffoldError, match="leaves no room"):
+    with pytest.raises(ScaffoldError, match=r"pass --max-memory \d+M or more"):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
     with pytest.raises(ScaffoldError, match="instead of .zarr"):
         generate(output=tmp_path / "a.zarr", tiled=True, **SMALL)
@@ -164,16 +164,18 @@ def test_volume_outputs_stream_from_slabs_with_the_whole_grid_bytes(tmp_path, ex
     assert whole.field is not None and rep["porosity_voxel"] == whole.report["porosity_voxel"]
 
 
-def test_a_tiled_run_measures_euler_conn_d_fragments_and_bs_bv_as_the_whole_grid(tmp_path):
+def test_a_tiled_run_measures_the_whole_grids_morphometry(tmp_path):
     kw = dict(SMALL, remove_fragments=False)
     whole = generate(output=tmp_path / "w.stl", tiled=False, **kw).report
     tiled = generate(output=tmp_path / "t.stl", tiled=20 * PLANE, **kw).report
     assert tiled["tiled"]["slabs"] >= 4
-    for key in ("euler_characteristic", "connectivity_density_per_mm3", "fragments"):
+    for key in ("euler_characteristic", "connectivity_density_per_mm3", "fragments", "strut_thickness_mm",
+                "pore_diameter_mm", "interconnected_porosity"):
         assert tiled[key] == whole[key], key
+    assert whole["strut_thickness_mm"]["mean"] > 0 and whole["pore_diameter_mm"]["mean"] > 0
     # the two meshes' sums (another triangle order)
     assert tiled["bs_bv_per_mm"] == pytest.approx(whole["bs_bv_per_mm"], rel=1e-6)
-    assert "strut thickness" in tiled["morphometry"] and "strut_thickness_mm" not in tiled
+    assert "morphometry" not in tiled
 
 
 def _stl_vertices(path) -> np.ndarray:
@@ -232,3 +234,31 @@ def test_a_tiled_3mf_is_the_streamed_mesh_written_whole(tmp_path):
     assert len(loaded.faces) == rep["triangles"] == whole["triangles"]
     assert loaded.volume == pytest.approx(whole["mesh_volume_mm3"], rel=1e-6)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.3mf", "t.json", "w.json", "w.stl"]
+
+
+def test_a_refused_budget_names_one_that_works_and_the_run_keeps_it(tmp_path):
+    """The smallest budget a refusal names is enough: the run then completes, in slabs, and its
+    peak resident set (measured by the kernel, in a fresh process) stays within it."""
+    import json
+    import re
+    import subprocess
+    import sys
+
+    from implicit_scaffold.morphometry import local_thickness
+
+    # the thickness kernels compiled and cached on disk first: compiling is not the run's memory
+    local_thickness(np.ones((3, 3, 3), bool), 1.0)
+    args = [sys.executable, "-m", "implicit_scaffold", "generate", "--seeds", "60", "--size", "4",
+            "--voxel", "0.02", "-q", "-o", str(tmp_path / "a.stl")]
+    refused = subprocess.run(args + ["--max-memory", "300M"], capture_output=True, text=True)
+    assert refused.returncode == 2, refused.stderr
+    assert "Traceback" not in refused.stderr and len(refused.stderr.strip().splitlines()) == 1
+    named = re.search(r"pass --max-memory (\d+)M or more", refused.stderr)
+    assert named, refused.stderr
+    assert not list(tmp_path.iterdir())
+    done = subprocess.run(args + ["--max-memory", f"{named.group(1)}M"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "a.json").read_text())
+    assert report["tiled"]["slabs"] > 1
+    assert report["peak_memory_mb"] <= int(named.group(1))
+    assert report["bodies"] == 1 and report["watertight"]
