@@ -140,7 +140,7 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     pore_size : float, mm, optional
         The target pore size that gave `n`, to suggest one that fits.
     available : int, optional
-        Bytes free (default: what the machine has free now).
+        Bytes free (default: what the machine has free now); e.g. what ``--max-memory`` leaves.
 
     Returns
     -------
@@ -149,13 +149,14 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     """
     from .memory import available_memory
 
-    need = int(n) * BYTES_PER_SEED
+    # voro++'s cells of one chunk (and its margins' seeds) at a time, the arrays of all of them
+    need = min(int(n), 2 * CHUNK_SEEDS) * BYTES_PER_SEED + int(n) * CELLS_BYTES_PER_SEED
     have = available_memory() if available is None else int(available)
     if need > have:
         fix = (f"use a larger --pore-size (e.g. {pore_size * (need / have) ** (1 / 3) * 1.1:.3g} mm)"
-               if pore_size else f"use fewer --seeds (at most {int(have / BYTES_PER_SEED):,})")
+               if pore_size else f"use fewer --seeds (at most {int(have / CELLS_BYTES_PER_SEED) // 2:,})")
         raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "
-                            f"{have / 2**30:.1f} GiB is free; {fix}")
+                            f"{have / 2**30:.1f} GiB is free within --max-memory; {fix}")
     return need
 
 
@@ -211,6 +212,138 @@ def check_radii(radii, n: int) -> np.ndarray:
     return r
 
 
+#: seeds whose cells voro++ builds at once: its cells come back as Python objects, about
+#: 54 KB per seed at the peak (BYTES_PER_SEED), so more seeds are built in chunks along x
+CHUNK_SEEDS = 20000
+
+
+def _flatten(raw) -> dict:
+    """voro++'s cells (pyvoro2's dicts, in any order) as arrays, faces grouped by cell in id order.
+
+    Returns ``ids`` (the cells' ids, ascending), ``volumes``, ``vertex_means`` (per cell),
+    ``polygons`` (every face's vertices in turn), ``counts`` (vertices per face), ``owner``
+    and ``neighbor`` (per face; -1 and below for a box wall).
+    """
+    raw = sorted(raw, key=lambda c: c["id"])
+    ids = np.array([c["id"] for c in raw], dtype=np.int64)
+    volumes = np.array([c["volume"] for c in raw], dtype=np.float64)
+    verts_all, idx_all, counts, owner, neighbor, means = [], [], [], [], [], []
+    base = 0
+    for c in raw:
+        v = np.asarray(c["vertices"], dtype=np.float64).reshape(-1, 3)
+        verts_all.append(v)
+        means.append(v.mean(axis=0) if len(v) else np.zeros(3))
+        for face in c["faces"]:
+            idx = face["vertices"]
+            idx_all.extend(i + base for i in idx)
+            counts.append(len(idx))
+            owner.append(c["id"])
+            neighbor.append(face["adjacent_cell"])
+        base += len(v)
+    polygons = (np.concatenate(verts_all)[np.asarray(idx_all, dtype=np.int64)] if idx_all
+                else np.zeros((0, 3)))
+    return {"ids": ids, "volumes": volumes, "vertex_means": np.asarray(means).reshape(-1, 3),
+            "polygons": polygons, "counts": np.asarray(counts, dtype=np.int64),
+            "owner": np.asarray(owner, dtype=np.int64),
+            "neighbor": np.maximum(np.asarray(neighbor, dtype=np.int64), -1)}
+
+
+def _voro_cells(seeds, lo, hi, radii) -> dict:
+    """Every seed's cell by voro++, as :func:`_flatten`'s arrays over all seeds (in id order),
+    with ``kept`` (bool per seed): the seeds that have a (non-empty) cell.
+
+    Up to :data:`CHUNK_SEEDS` seeds are computed at once. More are cut into chunks of
+    that many consecutive seeds in x order, each computed with the seeds within a margin
+    of it. A chunk's cell is kept only when it is provably the whole tessellation's: no
+    seed beyond the margin can cut it, as every vertex's empty ball (for power cells, the
+    ball a seed of the largest radius would need) lies within the margin or the box. A
+    chunk that fails is computed again with twice the margin. The chunks depend on the
+    seeds alone, never on the memory, so the same seeds always give the same cells.
+    """
+    import pyvoro2
+
+    n = len(seeds)
+    box = pyvoro2.Box(tuple(zip(lo, hi)))
+    kw = {"mode": "power", "radii": radii} if radii is not None else {}
+
+    def compute(sel):
+        extra = {"mode": "power", "radii": radii[sel]} if radii is not None else {}
+        return pyvoro2.compute(seeds[sel], domain=box, output="cells", ids=sel.tolist(), **extra)
+
+    if n <= CHUNK_SEEDS:
+        raw = pyvoro2.compute(seeds, domain=box, output="cells", **kw)
+        if radii is not None:
+            raw = [c for c in raw if c["faces"] and c["volume"] > 0]
+        parts = [_flatten(raw)]
+    else:
+        order = np.argsort(seeds[:, 0], kind="stable")
+        xs = seeds[order, 0]
+        spacing = float(np.prod(hi - lo) / n) ** (1 / 3)
+        w_max = float(np.max(radii) ** 2) if radii is not None else 0.0
+        parts = []
+        for c0 in range(0, n, CHUNK_SEEDS):
+            chunk = np.sort(order[c0:c0 + CHUNK_SEEDS])
+            a, b = xs[c0], xs[min(c0 + CHUNK_SEEDS, n) - 1]
+            margin = 4 * spacing
+            while True:
+                i0, i1 = np.searchsorted(xs, a - margin), np.searchsorted(xs, b + margin, side="right")
+                near = np.sort(order[i0:i1])
+                mine = set(chunk.tolist())
+                raw = [c for c in compute(near) if c["id"] in mine]
+                if radii is not None:
+                    raw = [c for c in raw if c["faces"] and c["volume"] > 0]
+                reach_lo = a - margin if i0 > 0 else -np.inf
+                reach_hi = b + margin if i1 < n else np.inf
+                if all(_cell_settled(c, seeds, radii, w_max, reach_lo, reach_hi) for c in raw):
+                    break
+                margin *= 2
+            parts.append(_flatten(raw))
+            del raw
+    ids = np.concatenate([q["ids"] for q in parts])
+    kept = np.zeros(n, bool)
+    kept[ids] = True
+    if len(parts) == 1:
+        return {"kept": kept, **parts[0]}
+    cell_order = np.argsort(ids, kind="stable")
+    # faces grouped by their cell, cells in id order, each cell's faces as voro++ gave them
+    face_chunks = []
+    for q in parts:
+        starts = np.concatenate([[0], np.cumsum(q["counts"])])
+        cell_first = np.searchsorted(q["owner"], q["ids"])  # faces are grouped by owner, in id order
+        cell_last = np.searchsorted(q["owner"], q["ids"], side="right")
+        face_chunks.append((q, starts, cell_first, cell_last))
+    polys, counts, owner, neighbor = [], [], [], []
+    where = np.concatenate([np.full(len(q["ids"]), i) for i, q in enumerate(parts)])
+    local = np.concatenate([np.arange(len(q["ids"])) for q in parts])
+    for k in cell_order:
+        q, starts, first, last = face_chunks[where[k]]
+        f0, f1 = first[local[k]], last[local[k]]
+        polys.append(q["polygons"][starts[f0]:starts[f1]])
+        counts.append(q["counts"][f0:f1])
+        owner.append(q["owner"][f0:f1])
+        neighbor.append(q["neighbor"][f0:f1])
+    return {"kept": kept, "volumes": np.concatenate([q["volumes"] for q in parts])[cell_order],
+            "vertex_means": np.concatenate([q["vertex_means"] for q in parts])[cell_order],
+            "polygons": np.concatenate(polys) if polys else np.zeros((0, 3)),
+            "counts": np.concatenate(counts), "owner": np.concatenate(owner), "neighbor": np.concatenate(neighbor)}
+
+
+def _cell_settled(cell, seeds, radii, w_max: float, reach_lo: float, reach_hi: float) -> bool:
+    """True when no seed with x outside ``[reach_lo, reach_hi]`` can cut `cell`.
+
+    A seed ``t`` cuts the cell only if some vertex ``v`` is nearer to it (in power distance)
+    than to the cell's seed ``s``: ``|v - t|² - w_t < |v - s|² - w_s``, so ``t`` lies within
+    ``sqrt(|v - s|² - w_s + w_max)`` of ``v``.
+    """
+    v = np.asarray(cell["vertices"], dtype=np.float64).reshape(-1, 3)
+    s = seeds[cell["id"]]
+    d2 = np.einsum("ij,ij->i", v - s, v - s)
+    if radii is not None:
+        d2 = d2 - float(radii[cell["id"]]) ** 2 + w_max
+    r = np.sqrt(np.maximum(d2, 0.0))
+    return bool(np.all(v[:, 0] - r >= reach_lo) and np.all(v[:, 0] + r <= reach_hi))
+
+
 def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     """The Voronoi cells of `seeds`, clipped to the box ``[lo, hi]``.
 
@@ -230,8 +363,6 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     -------
     Cells
     """
-    import pyvoro2
-
     seeds = np.ascontiguousarray(seeds, dtype=np.float64)
     lo = np.asarray(lo, dtype=np.float64)
     hi = np.asarray(hi, dtype=np.float64)
@@ -243,49 +374,28 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     weighted = radii is not None
     if weighted:
         radii = check_radii(radii, n)
-        raw = pyvoro2.compute(seeds, domain=pyvoro2.Box(tuple(zip(lo, hi))), output="cells", mode="power",
-                              radii=radii)
-    else:
-        raw = pyvoro2.compute(seeds, domain=pyvoro2.Box(tuple(zip(lo, hi))), output="cells")
-    raw = sorted(raw, key=lambda c: c["id"])
+    flat = _voro_cells(seeds, lo, hi, radii)
     seed_index = renumber = None
     if weighted:
         # voro++ leaves out the seeds whose power cell is empty: the others are renumbered 0..n'-1
-        raw = [c for c in raw if c["faces"] and c["volume"] > 0]
-        seed_index = np.array([c["id"] for c in raw], dtype=np.int64)
+        seed_index = np.nonzero(flat["kept"])[0].astype(np.int64)
         if len(seed_index) < 2:
             raise ScaffoldError(f"only {len(seed_index)} of {n} seeds keep a power cell; the radii differ too "
                                 "much for the seeds' spacing, give closer radii")
         renumber = np.full(n, -1, np.int64)
         renumber[seed_index] = np.arange(len(seed_index))
         seeds, radii, n = seeds[seed_index], radii[seed_index], len(seed_index)
-    elif len(raw) != n:
-        raise ScaffoldError(f"voro++ returned {len(raw)} cells for {n} seeds; are two seeds identical?")
+    elif not flat["kept"].all():
+        raise ScaffoldError(f"voro++ returned {int(flat['kept'].sum())} cells for {n} seeds; are two seeds identical?")
 
-    volumes = np.array([c["volume"] for c in raw], dtype=np.float64)
-    # flatten every cell's faces into one vertex array (each face its own copy)
-    verts_all, idx_all, counts, owner, neighbor = [], [], [], [], []
-    base = 0
-    for c in raw:
-        verts_all.append(np.asarray(c["vertices"], dtype=np.float64))
-        for face in c["faces"]:
-            idx = face["vertices"]
-            idx_all.extend(i + base for i in idx)
-            counts.append(len(idx))
-            owner.append(c["id"])
-            neighbor.append(face["adjacent_cell"])
-        base += len(c["vertices"])
-    all_verts = np.concatenate(verts_all)[np.asarray(idx_all, dtype=np.int64)]
-    counts = np.asarray(counts, dtype=np.int64)
-    owner = np.asarray(owner, dtype=np.int64)
-    neighbor = np.maximum(np.asarray(neighbor, dtype=np.int64), -1)
+    volumes = flat["volumes"]
+    all_verts, counts, owner, neighbor = flat["polygons"], flat["counts"], flat["owner"], flat["neighbor"]
     if weighted:
         owner = renumber[owner]
         neighbor = np.where(neighbor >= 0, renumber[np.maximum(neighbor, 0)], -1)
     # the point faces are oriented and pyramids summed from: the seed lies inside its Voronoi
     # cell, but not always inside its power cell; the mean of a cell's vertices always does
-    ref = (np.array([np.mean(np.asarray(c["vertices"], dtype=np.float64), axis=0) for c in raw])
-           if weighted else seeds)
+    ref = flat["vertex_means"] if weighted else seeds
     start = np.concatenate([[0], np.cumsum(counts)])
     # drop repeated vertices: voro++ can emit edges of zero length
     prev = np.arange(len(all_verts)) - 1

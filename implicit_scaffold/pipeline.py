@@ -16,7 +16,7 @@ from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
 from .field import blend_field, check_porosity, fill_sealed_voids, sample, scaffold_field, solve_level_cut
 from .grid import Grid, run_bytes_per_voxel
-from .memory import check_memory
+from .memory import available_memory, check_memory
 from .progress import Progress
 from .seeds import SEED_RULES
 from .skeleton import check_scale, closed_form_porosity, quad_areas
@@ -334,7 +334,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         n = max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * seed_volume)))
     from .cells import check_seed_memory
 
-    check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size)
+    from .memory import process_memory
+
+    check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
+                      available=min(max_memory - process_memory(), available_memory()))
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
         from .tiles import blend_halo

@@ -51,14 +51,16 @@ def test_too_few_seeds():
 
 
 def test_too_many_seeds_for_memory_fail_before_the_work():
-    from implicit_scaffold.cells import BYTES_PER_SEED, check_seed_memory
+    from implicit_scaffold.cells import BYTES_PER_SEED, CELLS_BYTES_PER_SEED, CHUNK_SEEDS, check_seed_memory
 
     # 2 M seeds on a machine with 8 GiB free: refused, with a pore size that would fit
     with pytest.raises(ScaffoldError, match=r"2,000,000 seeds need about .* GiB .* --pore-size \(e\.g\. "):
         check_seed_memory(2_000_000, pore_size=0.6, available=8 * 2**30)
     with pytest.raises(ScaffoldError, match="fewer --seeds"):
         check_seed_memory(2_000_000, available=8 * 2**30)
-    assert check_seed_memory(1000, available=8 * 2**30) == 1000 * BYTES_PER_SEED
+    assert check_seed_memory(1000, available=8 * 2**30) == 1000 * (BYTES_PER_SEED + CELLS_BYTES_PER_SEED)
+    # beyond a chunk, voro++'s peak stays that of two chunks: 10 M seeds fit in 64 GiB
+    assert check_seed_memory(10**7, available=64 * 2**30) < 10**7 * CELLS_BYTES_PER_SEED + 2 * CHUNK_SEEDS * BYTES_PER_SEED + 1
 
 
 # --- power (Laguerre) cells ----------------------------------------------------------
@@ -158,3 +160,39 @@ def test_bad_radii(radii, match):
     with pytest.raises(ScaffoldError, match=match) as err:
         voronoi_cells(seeds, [0, 0, 0], [1, 1, 1], radii=radii)
     assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_cells_built_in_chunks_are_the_cells_built_at_once(monkeypatch, weighted):
+    """Beyond CHUNK_SEEDS the cells are built in chunks along x, each with the seeds within a
+    margin, widened until no seed beyond it can cut a kept cell: the same cells as one voro++ run
+    (volumes, and every shared face's area and centroid), here with a sparse end whose big cells
+    need the margin widened."""
+    import implicit_scaffold.cells as C
+
+    rng = np.random.default_rng(7)
+    seeds = np.concatenate([rng.uniform(0, 1, (700, 3)) * [1, 3, 3],
+                            rng.uniform(0, 1, (6, 3)) * [5, 3, 3] + [1, 0, 0]])
+    radii = rng.uniform(0.05, 0.1, len(seeds)) if weighted else None
+    once = C.voronoi_cells(seeds, [0, 0, 0], [6, 3, 3], radii=radii)
+    margins = []
+    real = C._cell_settled
+    monkeypatch.setattr(C, "_cell_settled",
+                        lambda c, s, r, w, lo, hi: margins.append((lo, hi)) or real(c, s, r, w, lo, hi))
+    monkeypatch.setattr(C, "CHUNK_SEEDS", 150)
+    chunked = C.voronoi_cells(seeds, [0, 0, 0], [6, 3, 3], radii=radii)
+    assert len(set(margins)) > -(-len(seeds) // 150)  # 5 chunks, and at least one margin widened
+    assert chunked.n == once.n
+    np.testing.assert_allclose(chunked.volumes, once.volumes, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(chunked.volumes.sum(), 6 * 3 * 3, rtol=1e-12)
+
+    def shared(c):
+        m = c.face_neighbor >= 0
+        k = np.lexsort((c.face_neighbor[m], c.face_cell[m]))
+        return c.face_cell[m][k], c.face_neighbor[m][k], c.face_areas[m][k], c.face_centroids[m][k]
+
+    a, b = shared(once), shared(chunked)
+    np.testing.assert_array_equal(a[0], b[0])
+    np.testing.assert_array_equal(a[1], b[1])
+    np.testing.assert_allclose(a[2], b[2], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(a[3], b[3], rtol=0, atol=1e-12)
