@@ -160,6 +160,10 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     return need
 
 
+#: polygon vertices whose properties are computed at once (bounds the temporaries, ~0.3 GB)
+_PROPERTY_CHUNK = 2_000_000
+
+
 def polygon_properties(vertices: np.ndarray, start: np.ndarray):
     """Newell normals, areas and area centroids of many planar polygons.
 
@@ -176,6 +180,19 @@ def polygon_properties(vertices: np.ndarray, start: np.ndarray):
     areas : (k,) float64 ndarray, mm²
     centroids : (k, 3) float64 ndarray, mm
     """
+    start = np.asarray(start, np.int64)
+    if len(vertices) <= _PROPERTY_CHUNK:
+        return _polygon_properties(vertices, start)
+    # polygon by polygon the same values, in bounded memory: chunks of whole polygons
+    cuts = np.unique(np.concatenate([[0], np.searchsorted(start, np.arange(_PROPERTY_CHUNK, len(vertices),
+                                                                                _PROPERTY_CHUNK)),
+                                     [len(start) - 1]]))
+    parts = [_polygon_properties(vertices[start[a]:start[b]], start[a:b + 1] - start[a])
+             for a, b in zip(cuts[:-1], cuts[1:])]
+    return tuple(np.concatenate([q[i] for q in parts]) for i in range(3))
+
+
+def _polygon_properties(vertices: np.ndarray, start: np.ndarray):
     counts = np.diff(start)
     poly = np.repeat(np.arange(len(counts)), counts)
     nxt = np.arange(len(vertices)) + 1
@@ -194,6 +211,25 @@ def polygon_properties(vertices: np.ndarray, start: np.ndarray):
     np.add.at(cen, poly, w[:, None] * (first + a + b) / 3)
     centroids = cen / np.where(areas > 0, areas, 1)[:, None]
     return normals, areas, centroids
+
+
+def _gather_polygons(vertices: np.ndarray, start: np.ndarray, source: np.ndarray, reverse=None):
+    """Polygons ``source[i]`` of ``(vertices, start)`` in turn, each reversed where `reverse` holds.
+
+    Returns
+    -------
+    vertices : (m', 3) ndarray
+    start : (len(source) + 1,) int64 ndarray
+    """
+    source = np.asarray(source, np.int64)
+    counts = np.diff(start)[source]
+    out_start = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    k = np.arange(out_start[-1], dtype=np.int64) - np.repeat(out_start[:-1], counts)
+    idx = np.repeat(np.asarray(start, np.int64)[source], counts)
+    if reverse is not None:
+        r = np.repeat(np.asarray(reverse, bool), counts)
+        k = np.where(r, np.repeat(counts, counts) - 1 - k, k)
+    return vertices[idx + k], out_start
 
 
 def check_radii(radii, n: int) -> np.ndarray:
@@ -254,10 +290,9 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
 
     Up to :data:`CHUNK_SEEDS` seeds are computed at once. More are cut into chunks of
     that many consecutive seeds in x order, each computed with the seeds within a margin
-    of it. A chunk's cell is kept only when it is provably the whole tessellation's: no
-    seed beyond the margin can cut it, as every vertex's empty ball (for power cells, the
-    ball a seed of the largest radius would need) lies within the margin or the box. A
-    chunk that fails is computed again with twice the margin. The chunks depend on the
+    of it. A chunk's cells are kept only when they are provably the whole tessellation's:
+    no seed beyond the margin cuts them (:func:`_chunk_settled`). A chunk that fails is
+    computed again with twice the margin. The chunks depend on the
     seeds alone, never on the memory, so the same seeds always give the same cells.
     """
     import pyvoro2
@@ -276,25 +311,25 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
             raw = [c for c in raw if c["faces"] and c["volume"] > 0]
         parts = [_flatten(raw)]
     else:
+        from scipy.spatial import cKDTree
+
+        tree = cKDTree(seeds)
         order = np.argsort(seeds[:, 0], kind="stable")
         xs = seeds[order, 0]
         spacing = float(np.prod(hi - lo) / n) ** (1 / 3)
-        w_max = float(np.max(radii) ** 2) if radii is not None else 0.0
         parts = []
         for c0 in range(0, n, CHUNK_SEEDS):
             chunk = np.sort(order[c0:c0 + CHUNK_SEEDS])
+            mine = set(chunk.tolist())
             a, b = xs[c0], xs[min(c0 + CHUNK_SEEDS, n) - 1]
             margin = 4 * spacing
             while True:
                 i0, i1 = np.searchsorted(xs, a - margin), np.searchsorted(xs, b + margin, side="right")
-                near = np.sort(order[i0:i1])
-                mine = set(chunk.tolist())
-                raw = [c for c in compute(near) if c["id"] in mine]
+                raw = [c for c in compute(np.sort(order[i0:i1])) if c["id"] in mine]
                 if radii is not None:
                     raw = [c for c in raw if c["faces"] and c["volume"] > 0]
-                reach_lo = a - margin if i0 > 0 else -np.inf
-                reach_hi = b + margin if i1 < n else np.inf
-                if all(_cell_settled(c, seeds, radii, w_max, reach_lo, reach_hi) for c in raw):
+                if _chunk_settled(raw, seeds, radii, tree, a - margin if i0 > 0 else -np.inf,
+                                  b + margin if i1 < n else np.inf):
                     break
                 margin *= 2
             parts.append(_flatten(raw))
@@ -328,20 +363,41 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
             "counts": np.concatenate(counts), "owner": np.concatenate(owner), "neighbor": np.concatenate(neighbor)}
 
 
-def _cell_settled(cell, seeds, radii, w_max: float, reach_lo: float, reach_hi: float) -> bool:
-    """True when no seed with x outside ``[reach_lo, reach_hi]`` can cut `cell`.
+def _chunk_settled(raw, seeds, radii, tree, reach_lo: float, reach_hi: float) -> bool:
+    """True when no seed outside the x range ``[reach_lo, reach_hi]`` that a chunk was computed
+    with can cut one of its cells `raw`.
 
-    A seed ``t`` cuts the cell only if some vertex ``v`` is nearer to it (in power distance)
-    than to the cell's seed ``s``: ``|v - t|² - w_t < |v - s|² - w_s``, so ``t`` lies within
-    ``sqrt(|v - s|² - w_s + w_max)`` of ``v``.
+    A seed ``t`` cuts a cell of seed ``s`` only if some vertex ``v`` is nearer to it, in power
+    distance, than to ``s``: ``|v - t|² - w_t < |v - s|² - w_s`` (``w = r²``, 0 for plain
+    Voronoi cells). So a vertex whose ball of radius ``sqrt(|v - s|² - w_s + max w)`` stays
+    within the range is settled; the others (cells that reach into empty space, at the
+    patient's surface) are checked against every seed with a k-d tree of them all.
     """
-    v = np.asarray(cell["vertices"], dtype=np.float64).reshape(-1, 3)
-    s = seeds[cell["id"]]
-    d2 = np.einsum("ij,ij->i", v - s, v - s)
+    if not raw:
+        return True
+    counts = np.array([len(c["vertices"]) for c in raw])
+    v = np.concatenate([np.asarray(c["vertices"], dtype=np.float64).reshape(-1, 3) for c in raw])
+    own = np.repeat(np.array([c["id"] for c in raw], dtype=np.int64), counts)
+    d2 = np.einsum("ij,ij->i", v - seeds[own], v - seeds[own])
+    w_max = 0.0
     if radii is not None:
-        d2 = d2 - float(radii[cell["id"]]) ** 2 + w_max
-    r = np.sqrt(np.maximum(d2, 0.0))
-    return bool(np.all(v[:, 0] - r >= reach_lo) and np.all(v[:, 0] + r <= reach_hi))
+        w_max = float(np.max(radii) ** 2)
+        d2 = d2 - radii[own] ** 2
+    r = np.sqrt(np.maximum(d2 + w_max, 0.0))
+    cross = np.nonzero((v[:, 0] - r < reach_lo) | (v[:, 0] + r > reach_hi))[0]
+    if cross.size == 0:
+        return True
+    # rounding: a seed on the ball itself (the vertex's own seeds) does not cut
+    tol = 1e-9 * (1.0 + float(np.abs(v).max()))
+    if radii is None:
+        nearest, _ = tree.query(v[cross], k=1)
+        return bool(np.all(nearest >= r[cross] - tol))
+    for i, near in zip(cross, tree.query_ball_point(v[cross], r[cross] + tol)):
+        near = np.asarray(near, dtype=np.int64)
+        power = np.einsum("ij,ij->i", seeds[near] - v[i], seeds[near] - v[i]) - radii[near] ** 2
+        if near.size and float(power.min()) < float(d2[i]) - tol * (1.0 + abs(float(d2[i]))):
+            return False
+    return True
 
 
 def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
@@ -406,24 +462,25 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     counts = np.bincount(face_of[keep], minlength=len(counts))
     all_verts = all_verts[keep]
     start = np.concatenate([[0], np.cumsum(counts)])
-    polys = [all_verts[start[f]:start[f + 1]] for f in range(len(counts))]
     good = counts >= 3
-    polys = [p for p, g in zip(polys, good) if g]
+    verts, start = _gather_polygons(all_verts, start, np.nonzero(good)[0])
     owner, neighbor = owner[good], neighbor[good]
+    del all_verts
 
     # make both copies of a shared face identical: the lower cell's copy wins
-    index = {(o, nb): f for f, (o, nb) in enumerate(zip(owner.tolist(), neighbor.tolist())) if nb >= 0}
-    twin = np.full(len(polys), -1, np.int64)
-    for f, (o, nb) in enumerate(zip(owner.tolist(), neighbor.tolist())):
-        if 0 <= nb < o:
-            g = index.get((nb, o))
-            if g is not None:
-                twin[f] = g
-                polys[f] = polys[g][::-1].copy()
-
-    counts = np.array([len(p) for p in polys], dtype=np.int64)
-    start = np.concatenate([[0], np.cumsum(counts)])
-    verts = np.concatenate(polys)
+    key = owner * np.int64(n) + np.maximum(neighbor, 0)
+    interior = np.nonzero(neighbor >= 0)[0]
+    by_key = interior[np.argsort(key[interior], kind="stable")]
+    twin = np.full(len(owner), -1, np.int64)
+    higher = np.nonzero((neighbor >= 0) & (neighbor < owner))[0]
+    want = neighbor[higher] * np.int64(n) + owner[higher]
+    at = np.minimum(np.searchsorted(key[by_key], want), max(len(by_key) - 1, 0))
+    found = (key[by_key[at]] == want) if len(by_key) else np.zeros(len(want), bool)
+    twin[higher[found]] = by_key[at[found]]
+    source = np.arange(len(owner))
+    source[twin >= 0] = twin[twin >= 0]
+    verts, start = _gather_polygons(verts, start, source, reverse=twin >= 0)
+    counts = np.diff(start)
     normals, areas, fcen = polygon_properties(verts, start)
     # the twin's properties, bit for bit: a rim built on either copy is the same
     copy = np.nonzero(twin >= 0)[0]
@@ -431,15 +488,12 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     # orient every face outward from its cell's seed (or its vertex mean)
     flip = np.einsum("ij,ij->i", normals, fcen - ref[owner]) < 0
     if np.any(flip):
-        for f in np.nonzero(flip)[0]:
-            verts[start[f]:start[f + 1]] = verts[start[f]:start[f + 1]][::-1]
+        verts, start = _gather_polygons(verts, start, np.arange(len(owner)), reverse=flip)
         normals[flip] *= -1
     keep = areas > 1e-14 * float(np.max(hi - lo)) ** 2
     if not np.all(keep):
         sel = np.nonzero(keep)[0]
-        counts = counts[sel]
-        verts = np.concatenate([verts[start[f]:start[f + 1]] for f in sel])
-        start = np.concatenate([[0], np.cumsum(counts)])
+        verts, start = _gather_polygons(verts, start, sel)
         owner, neighbor, normals, areas, fcen = owner[sel], neighbor[sel], normals[sel], areas[sel], fcen[sel]
 
     # volume centroid: pyramids from the seed (or the vertex mean) over every face
