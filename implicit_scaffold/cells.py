@@ -251,6 +251,9 @@ def check_radii(radii, n: int) -> np.ndarray:
 #: seeds whose cells voro++ builds at once: its cells come back as Python objects, about
 #: 54 KB per seed at the peak (BYTES_PER_SEED), so more seeds are built in chunks along x
 CHUNK_SEEDS = 20000
+#: a chunk whose margin would take more than this many chunks' seeds is given up: the cells
+#: are then built at once
+MAX_CHUNK_REACH = 3
 
 
 def _flatten(raw) -> dict:
@@ -292,7 +295,9 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
     that many consecutive seeds in x order, each computed with the seeds within a margin
     of it. A chunk's cells are kept only when they are provably the whole tessellation's:
     no seed beyond the margin cuts them (:func:`_chunk_settled`). A chunk that fails is
-    computed again with twice the margin. The chunks depend on the
+    computed again with twice the margin, up to :data:`MAX_CHUNK_REACH` chunks' seeds;
+    beyond, every cell is built at once (seeds drawn only in a patient leave cells at its
+    surface that reach the box's walls, cut by seeds anywhere along the surface). The chunks depend on the
     seeds alone, never on the memory, so the same seeds always give the same cells.
     """
     import pyvoro2
@@ -303,28 +308,37 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
 
     def compute(sel):
         extra = {"mode": "power", "radii": radii[sel]} if radii is not None else {}
-        return pyvoro2.compute(seeds[sel], domain=box, output="cells", ids=sel.tolist(), **extra)
+        return pyvoro2.compute(seeds[sel], domain=box, output="cells", ids=sel.tolist(), return_adjacency=False,
+                               **extra)
 
-    if n <= CHUNK_SEEDS:
-        raw = pyvoro2.compute(seeds, domain=box, output="cells", **kw)
+    def at_once():
+        raw = pyvoro2.compute(seeds, domain=box, output="cells", return_adjacency=False, **kw)
         if radii is not None:
             raw = [c for c in raw if c["faces"] and c["volume"] > 0]
-        parts = [_flatten(raw)]
+        return [_flatten(raw)]
+
+    if n <= CHUNK_SEEDS:
+        parts = at_once()
     else:
         from scipy.spatial import cKDTree
 
         tree = cKDTree(seeds)
         order = np.argsort(seeds[:, 0], kind="stable")
         xs = seeds[order, 0]
-        spacing = float(np.prod(hi - lo) / n) ** (1 / 3)
+        # the seeds' own spacing (drawn in a patient, they fill less than the box)
+        spacing = float(np.prod(np.ptp(seeds, axis=0)) / n) ** (1 / 3)
         parts = []
         for c0 in range(0, n, CHUNK_SEEDS):
             chunk = np.sort(order[c0:c0 + CHUNK_SEEDS])
             mine = set(chunk.tolist())
             a, b = xs[c0], xs[min(c0 + CHUNK_SEEDS, n) - 1]
             margin = 4 * spacing
+            raw = None
             while True:
                 i0, i1 = np.searchsorted(xs, a - margin), np.searchsorted(xs, b + margin, side="right")
+                if i1 - i0 > MAX_CHUNK_REACH * CHUNK_SEEDS:
+                    raw = None
+                    break
                 raw = [c for c in compute(np.sort(order[i0:i1])) if c["id"] in mine]
                 if radii is not None:
                     raw = [c for c in raw if c["faces"] and c["volume"] > 0]
@@ -332,6 +346,12 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
                                   b + margin if i1 < n else np.inf):
                     break
                 margin *= 2
+            if raw is None:
+                # cells that reach far into empty space (seeds drawn in a patient: its surface cells
+                # run to the box's walls) are cut by seeds anywhere along it: no chunk settles them
+                del parts
+                parts = at_once()
+                break
             parts.append(_flatten(raw))
             del raw
     ids = np.concatenate([q["ids"] for q in parts])
@@ -340,27 +360,18 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
     if len(parts) == 1:
         return {"kept": kept, **parts[0]}
     cell_order = np.argsort(ids, kind="stable")
+    volumes = np.concatenate([q.pop("volumes") for q in parts])[cell_order]
+    means = np.concatenate([q.pop("vertex_means") for q in parts])[cell_order]
+    counts = np.concatenate([q.pop("counts") for q in parts])
+    owner = np.concatenate([q.pop("owner") for q in parts])
+    neighbor = np.concatenate([q.pop("neighbor") for q in parts])
+    polygons = np.concatenate([q.pop("polygons") for q in parts])
+    del parts
     # faces grouped by their cell, cells in id order, each cell's faces as voro++ gave them
-    face_chunks = []
-    for q in parts:
-        starts = np.concatenate([[0], np.cumsum(q["counts"])])
-        cell_first = np.searchsorted(q["owner"], q["ids"])  # faces are grouped by owner, in id order
-        cell_last = np.searchsorted(q["owner"], q["ids"], side="right")
-        face_chunks.append((q, starts, cell_first, cell_last))
-    polys, counts, owner, neighbor = [], [], [], []
-    where = np.concatenate([np.full(len(q["ids"]), i) for i, q in enumerate(parts)])
-    local = np.concatenate([np.arange(len(q["ids"])) for q in parts])
-    for k in cell_order:
-        q, starts, first, last = face_chunks[where[k]]
-        f0, f1 = first[local[k]], last[local[k]]
-        polys.append(q["polygons"][starts[f0]:starts[f1]])
-        counts.append(q["counts"][f0:f1])
-        owner.append(q["owner"][f0:f1])
-        neighbor.append(q["neighbor"][f0:f1])
-    return {"kept": kept, "volumes": np.concatenate([q["volumes"] for q in parts])[cell_order],
-            "vertex_means": np.concatenate([q["vertex_means"] for q in parts])[cell_order],
-            "polygons": np.concatenate(polys) if polys else np.zeros((0, 3)),
-            "counts": np.concatenate(counts), "owner": np.concatenate(owner), "neighbor": np.concatenate(neighbor)}
+    faces = np.argsort(owner, kind="stable")
+    polygons, start = _gather_polygons(polygons, np.concatenate([[0], np.cumsum(counts)]), faces)
+    return {"kept": kept, "volumes": volumes, "vertex_means": means, "polygons": polygons,
+            "counts": np.diff(start), "owner": owner[faces], "neighbor": neighbor[faces]}
 
 
 def _chunk_settled(raw, seeds, radii, tree, reach_lo: float, reach_hi: float) -> bool:
@@ -444,14 +455,15 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     elif not flat["kept"].all():
         raise ScaffoldError(f"voro++ returned {int(flat['kept'].sum())} cells for {n} seeds; are two seeds identical?")
 
-    volumes = flat["volumes"]
-    all_verts, counts, owner, neighbor = flat["polygons"], flat["counts"], flat["owner"], flat["neighbor"]
+    volumes = flat.pop("volumes")
+    all_verts, counts, owner, neighbor = flat.pop("polygons"), flat.pop("counts"), flat.pop("owner"), flat.pop("neighbor")
     if weighted:
         owner = renumber[owner]
         neighbor = np.where(neighbor >= 0, renumber[np.maximum(neighbor, 0)], -1)
     # the point faces are oriented and pyramids summed from: the seed lies inside its Voronoi
     # cell, but not always inside its power cell; the mean of a cell's vertices always does
-    ref = flat["vertex_means"] if weighted else seeds
+    ref = flat.pop("vertex_means") if weighted else seeds
+    del flat
     start = np.concatenate([[0], np.cumsum(counts)])
     # drop repeated vertices: voro++ can emit edges of zero length
     prev = np.arange(len(all_verts)) - 1

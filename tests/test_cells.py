@@ -180,6 +180,7 @@ def test_cells_built_in_chunks_are_the_cells_built_at_once(monkeypatch, weighted
     monkeypatch.setattr(C, "_chunk_settled",
                         lambda c, s, r, tree, lo, hi: margins.append((lo, hi)) or real(c, s, r, tree, lo, hi))
     monkeypatch.setattr(C, "CHUNK_SEEDS", 150)
+    monkeypatch.setattr(C, "MAX_CHUNK_REACH", 100)
     chunked = C.voronoi_cells(seeds, [0, 0, 0], [6, 3, 3], radii=radii)
     assert len(margins) > -(-len(seeds) // 150)  # 7 chunks, and at least one margin widened
     assert chunked.n == once.n
@@ -212,3 +213,26 @@ def test_polygon_properties_in_chunks_are_bit_for_bit_the_same(monkeypatch, smal
     v = c.face_vertices[c.face_start[f]:c.face_start[f + 1]]
     fan = sum(np.linalg.norm(np.cross(v[i] - v[0], v[i + 1] - v[0])) / 2 for i in range(1, len(v) - 1))
     assert whole[1][f] == pytest.approx(fan, rel=1e-12)
+
+
+def test_cells_that_no_chunk_settles_are_built_at_once(monkeypatch):
+    """Seeds in a ball within a large box: the outer cells reach the walls, cut by seeds all
+    around; chunks give up and the cells are built at once, the same as without chunks."""
+    import implicit_scaffold.cells as C
+
+    rng = np.random.default_rng(2)
+    p = rng.normal(size=(2000, 3))
+    seeds = 5 + 1.5 * p / np.linalg.norm(p, axis=1, keepdims=True) * rng.uniform(0, 1, (2000, 1)) ** (1 / 3)
+    once = C.voronoi_cells(seeds, [0, 0, 0], [10, 10, 10])
+    import pyvoro2
+
+    monkeypatch.setattr(C, "CHUNK_SEEDS", 100)
+    monkeypatch.setattr(C, "MAX_CHUNK_REACH", 12)
+    sizes = []
+    real = pyvoro2.compute
+    monkeypatch.setattr(pyvoro2, "compute", lambda points, **kw: sizes.append(len(points)) or real(points, **kw))
+    chunked = C.voronoi_cells(seeds, [0, 0, 0], [10, 10, 10])
+    # a chunk was tried and widened, then given up for one run over every seed
+    assert len(sizes) >= 3 and sizes[0] < sizes[1] < len(seeds) and sizes[-1] == len(seeds)
+    np.testing.assert_array_equal(chunked.volumes, once.volumes)
+    np.testing.assert_array_equal(chunked.face_vertices, once.face_vertices)
