@@ -337,7 +337,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     from .memory import process_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
-                      available=min(max_memory - process_memory(), available_memory()))
+                      available=min(max_memory - process_memory(), available_memory()),
+                      chunked=params.seeds_in == "box" and not graded)
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
         from .tiles import blend_halo
@@ -825,15 +826,6 @@ class _RunPlan:
             raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write the field as .nii.gz, "
                                 ".nrrd, .mha, .vti or .npy instead of .zarr, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
-        if self.params.remove_fragments:
-            from .pieces import label_pieces
-
-            # the slabs keep one main body for the whole grid: a second piece of bone would lose its scaffold
-            pieces = label_pieces(_coarse_patient(self.patient)[0] < 0)[1]
-            if pieces > 1:
-                raise ScaffoldError(f"{why}, and the patient is in {pieces} pieces, whose fragments a tiled run "
-                                    "cannot remove piece by piece yet: raise --max-memory, use a larger --voxel, "
-                                    "or pass --keep-fragments")
         from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
         plane = grid.shape[1] * grid.shape[2]
@@ -920,6 +912,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
                                                                                      scheduler))}
         report["bodies_voxels"] = tf.pieces
+        report["patient_pieces_count"] = tf.patient_pieces
         if morphometry:
             report.update(_slab_morphometry(tf, grid, cells, run, prog))
         ext = output_format(out_path) if out_path is not None else None

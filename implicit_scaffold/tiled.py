@@ -210,6 +210,8 @@ class TiledField:
     slabs : list of Slab
     sealed : (int, int)
         Sealed void pieces and their voxels, counted before any filling.
+    patient_pieces : int
+        The patient's 6-connected pieces on the grid.
     """
 
     field: FieldFile
@@ -222,6 +224,7 @@ class TiledField:
     pieces: int
     slabs: list
     sealed: tuple = (0, 0)
+    patient_pieces: int = 1
 
     def close(self) -> None:
         """Remove the files."""
@@ -383,7 +386,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                 break
             cutoff = wider
         with prog.stage("scaffold"):
-            solid, fragments, pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
+            solid, fragments, pieces, patient_pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
                                                       remove_fragments, prog.bar("scaffold"), skin=skin,
                                                       smooth_cut=smooth_cut)
             sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
@@ -398,27 +401,51 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed)
+                      pieces, slabs, sealed, patient_pieces)
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0,
-                   smooth_cut: float = 0.0) -> tuple[int, int | None, int]:
-    """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void."""
-    pieces = SlabComponents()
+                   smooth_cut: float = 0.0) -> tuple[int, int | None, int, int]:
+    """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
+
+    Each piece of the patient keeps its own main body, as
+    :func:`~implicit_scaffold.pieces.remove_fragments_by_piece` does on the whole grid:
+    the patient's pieces are joined across slabs like the solid's, and each solid piece
+    lies in one of them.
+
+    Returns
+    -------
+    solid, fragments (None when not removed), bodies, patient pieces
+    """
+    pieces, patient_pieces = SlabComponents(), SlabComponents()
+    where = []  # per slab: the patient label (local) of each solid label (local)
     solid = 0
     for done, slab in enumerate(slabs, 1):
-        s = scaffold_field(field.read(slab.x0, slab.x1), patient.read(slab.x0, slab.x1), level=level, skin=skin,
-                           smooth_cut=smooth_cut)
+        s_p = patient.read(slab.x0, slab.x1)
+        s = scaffold_field(field.read(slab.x0, slab.x1), s_p, level=level, skin=skin, smooth_cut=smooth_cut)
         field.write(slab.x0, s)
         inside = s < 0
-        pieces.add(inside)
+        labels = pieces.add(inside)
+        patient_labels = patient_pieces.add(s_p < 0)
+        piece_of = np.zeros(int(labels.max(initial=0)) + 1, np.int64)
+        piece_of[labels[inside]] = patient_labels[inside]
+        where.append(piece_of)
         solid += int(np.count_nonzero(inside))
+        del s, s_p, labels, patient_labels, inside
         if progress is not None:
             progress(done, 2 * len(slabs) if remove else len(slabs))
+    n_patient = patient_pieces.finish() + 1
     found = pieces.finish()
+    if n_patient > 1 and found:
+        group = np.full(pieces.labels, -1, np.int64)
+        for i, piece_of in enumerate(where):
+            group[pieces.roots_of(i, np.arange(1, len(piece_of)))] = patient_pieces.roots_of(i, piece_of[1:])
+        pieces.keep_largest_per(group)
+        found = pieces.fragments()
+    total = pieces.piece_count
     if not remove or found == 0:
-        return solid, (0 if remove else None), found + 1 if solid else 0
+        return solid, (0 if remove else None), total, n_patient
     for i, slab in enumerate(slabs):
         s = field.read(slab.x0, slab.x1)
         drop = pieces.fragment_mask(i, s < 0)
@@ -427,7 +454,7 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         field.write(slab.x0, s)
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
-    return solid, found, 1
+    return solid, found, total - found, n_patient
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:

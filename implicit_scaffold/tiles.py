@@ -242,12 +242,12 @@ class SlabComponents:
 
         return ndimage.label(solid)
 
-    def add(self, solid: np.ndarray, opens: np.ndarray | None = None, tally: np.ndarray | None = None) -> None:
+    def add(self, solid: np.ndarray, opens: np.ndarray | None = None, tally: np.ndarray | None = None) -> np.ndarray:
         """Pass 1: the solid (bool, owned planes only) of the next slab along x.
 
         `opens` marks voxels that make their piece open as a face of the grid does (for
         the void: the space outside the patient); `tally` marks voxels counted per piece
-        (:meth:`open_tally`).
+        (:meth:`open_tally`). Returns the slab's labels (1-based, 0 for none).
         """
         labels, count = self._label(solid)
         offset = len(self._parent)
@@ -276,6 +276,7 @@ class SlabComponents:
                     self._parent[max(ru, rv)] = min(ru, rv)
         self._last_plane = labels[-1].copy()
         self._last_offset = offset
+        return labels
 
     def finish(self) -> int:
         """Choose the main body; return the number of fragments (pieces but the main one)."""
@@ -322,11 +323,49 @@ class SlabComponents:
         sealed = np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
         return sealed[labels]
 
+    @property
+    def labels(self) -> int:
+        """Labels given so far, over all slabs (a piece's root is one of them)."""
+        return len(self._parent)
+
+    @property
+    def piece_count(self) -> int:
+        """After :meth:`finish`: the pieces (of any size) joined across the slabs."""
+        return int(np.count_nonzero(self._piece_sizes > 0)) if len(self._parent) else 0
+
+    def roots_of(self, index: int, local: np.ndarray) -> np.ndarray:
+        """After :meth:`finish`: the pieces (roots) of labels `local` (1-based) of slab `index`; -1 for 0."""
+        local = np.asarray(local, np.int64)
+        roots = self._roots[np.maximum(local - 1, 0) + self._offsets[index]] if len(self._parent) else local * 0
+        return np.where(local > 0, roots, -1)
+
+    def keep_largest_per(self, group: np.ndarray) -> None:
+        """After :meth:`finish`: keep the largest piece of each group instead of the one main body.
+
+        `group` gives each root its group (e.g. the patient piece it lies in; any value for
+        the other indices). On a tie the root met first in C order is kept, as
+        :func:`~implicit_scaffold.pieces.main_bodies` does on the whole grid.
+        """
+        roots = np.nonzero(self._piece_sizes > 0)[0]
+        order = np.lexsort((roots, -self._piece_sizes[roots], group[roots]))
+        first = np.ones(len(roots), bool)
+        first[1:] = group[roots][order[1:]] != group[roots][order[:-1]]
+        self._kept_roots = np.zeros(len(self._parent), bool)
+        self._kept_roots[roots[order[first]]] = True
+
+    def fragments(self) -> int:
+        """After :meth:`finish` (and :meth:`keep_largest_per`): the pieces that are not kept."""
+        kept = getattr(self, "_kept_roots", None)
+        return self.piece_count - (int(kept.sum()) if kept is not None else min(self.piece_count, 1))
+
     def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same solid as given to :meth:`add`) to turn into void."""
         labels, _ = self._label(solid)
         global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index]
                                                         + int(labels.max(initial=0))]])
+        kept = getattr(self, "_kept_roots", None)
+        if kept is not None:
+            return (labels > 0) & ~kept[np.maximum(global_root, 0)][labels]
         return (labels > 0) & (global_root[labels] != self.main)
 
 

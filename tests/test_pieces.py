@@ -123,11 +123,18 @@ def test_main_body_per_piece_against_brute_force():
     assert np.array_equal(out, want)
 
 
-def test_a_tiled_run_refuses_a_patient_in_pieces_rather_than_drop_one():
-    # the slabs pick one main body for the whole grid: refused before the work, with the ways out
-    from implicit_scaffold import ScaffoldError
-
+@pytest.mark.parametrize("planes", [9, 40])
+def test_a_tiled_run_keeps_each_pieces_scaffold_with_the_whole_grid_bytes(tmp_path, planes):
+    # the patient's pieces are joined across slabs as the solid's are: each keeps its main body,
+    # with slabs that cut through both balls and the gap between them
     parts = [_ball([3, 3, 3], 2.5), _ball([10, 3, 3], 2.0)]
-    with pytest.raises(ScaffoldError, match="patient is in 2 pieces.*--keep-fragments"):
-        implicit_scaffold.generate(patient=_Union(parts), pore_size=1.0, porosity=0.7, voxel=0.1, tiled=True,
-                                   mesh=False, morphometry=False)
+    kw = dict(pore_size=1.0, porosity=0.7, voxel=0.1, mesh=False, morphometry=False)
+    whole = implicit_scaffold.generate(patient=_Union(parts), output=tmp_path / "w.npy", tiled=False, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    tiled = implicit_scaffold.generate(patient=_Union(parts), output=tmp_path / "t.npy",
+                                       tiled=(planes + 10) * plane, **kw).report
+    assert tiled["tiled"]["slabs"] > 2
+    assert (tmp_path / "t.npy").read_bytes() == (tmp_path / "w.npy").read_bytes()
+    assert tiled["fragments_removed"] == whole.report["fragments_removed"] > 0
+    assert tiled["patient_pieces_count"] == whole.report["patient_pieces_count"] == 2
+    assert tiled["bodies_voxels"] == 2
