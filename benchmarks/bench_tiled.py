@@ -1,6 +1,7 @@
 """Issue 5 benchmarks: fine and large grids in bounded memory (tiled runs).
 
-    python benchmarks/bench_tiled.py [--only b2,b5,scaling] [--runs 3] [--warmup 0] [--no-figure]
+    python benchmarks/bench_tiled.py [--only b2,b5,scaling,femur,femur-fine,ct] [--runs 3] [--warmup 0]
+                                     [--no-figure] [--write]
 
 - B2 "fine pores": the 10 mm cube, pore size 0.5 mm, porosity 0.8 (12,223 seeds), voxel
   0.02 mm (502^3 voxels with the outer layer), written as STL with ``max_memory="4G"``:
@@ -13,9 +14,15 @@
   out, ``max_memory="4G"`` except where the seeds alone need more (the 100,000 seeds'
   cells); a log-log plot goes to benchmarks/figures/scaling.png.
 
+- femur, femur-fine, ct (issue 12, need ../shared/data): the 20 mm femoral shaft of
+  ``jigsaw_femur.stl`` at 0.05 mm with the defaults (the default budget, 4 GiB), at 0.02 mm
+  (about 1.7 G voxels) to STL and to a PNG stack, and the CT label of
+  ``totalseg_example_seg.nii.gz`` (label 31, L1) at 0.1 mm with the voxel morphometry.
+
 Every run is a fresh process (its peak resident memory is its own), on this machine's
 OpenCL device; the figures are medians of --runs runs. Outputs go to a temporary folder
-and are removed after each run.
+and are removed after each run. With --write the table goes to benchmarks/scaling.md too
+(with the date, the command and the load average), replacing what was there.
 """
 from __future__ import annotations
 
@@ -24,9 +31,10 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import median_runs, table  # noqa: E402
+from _common import DATA, median_runs, table  # noqa: E402
 
 FIGURE = Path(__file__).resolve().parent / "figures" / "scaling.png"
+SCALING = Path(__file__).resolve().parent / "scaling.md"
 
 RUN = """
 import os, shutil, tempfile, threading, time
@@ -50,13 +58,19 @@ threading.Thread(target=sample, daemon=True).start()
 opencl.context()
 folder = tempfile.mkdtemp(dir={folder!r})
 kind = {kind!r}
+patient_file, patient_options = {patient!r}
 t0 = time.perf_counter()
+if patient_file is not None:
+    from implicit_scaffold.patient_io import load_patient
+    options = dict({options!r}, patient=load_patient(patient_file, **patient_options))
+else:
+    options = {options!r}
 try:
     if kind == 'slices':
         r = implicit_scaffold.generate(mesh=False, morphometry=False, slices={{'out_dir': os.path.join(folder, 'stack')}},
-                                       **{options!r})
+                                       **options)
     else:
-        r = implicit_scaffold.generate(output=os.path.join(folder, 'scaffold.stl'), **{options!r})
+        r = implicit_scaffold.generate(output=os.path.join(folder, 'scaffold.stl'), **options)
     seconds = time.perf_counter() - t0
     size = sum(f.stat().st_size for f in __import__('pathlib').Path(folder).rglob('*') if f.is_file())
 finally:
@@ -67,12 +81,16 @@ _out = {{'seconds': seconds, 'voxels': int(__import__('numpy').prod(rep['grid_sh
         'porosity_mesh': rep.get('porosity_mesh', float('nan')), 'watertight': rep.get('watertight'),
         'slabs': (rep.get('tiled') or {{}}).get('slabs', 1), 'output_mb': size / 2**20,
         'peak_tree_mb': tree['peak'] / 2**20, 'mesh_workers': rep.get('mesh_workers', 1),
-        'stages': rep['timings_s']}}
+        'stages': rep['timings_s'], 'strut_mean_mm': (rep.get('strut_thickness_mm') or {{}}).get('mean'),
+        'pore_diameter_mean_mm': (rep.get('pore_diameter_mm') or {{}}).get('mean'),
+        'interconnected_porosity': rep.get('interconnected_porosity'),
+        'conn_d_per_mm3': rep.get('connectivity_density_per_mm3')}}
 """
 
 
-def measure(options: dict, runs: int, warmup: int, kind: str = "stl", folder: str | None = None) -> dict:
-    med, _ = median_runs(RUN.format(options=options, kind=kind, folder=folder), runs, warmup)
+def measure(options: dict, runs: int, warmup: int, kind: str = "stl", folder: str | None = None,
+            patient=(None, {})) -> dict:
+    med, _ = median_runs(RUN.format(options=options, kind=kind, folder=folder, patient=patient), runs, warmup)
     return med
 
 
@@ -94,14 +112,15 @@ def main(argv=None) -> int:
     ap.add_argument("--warmup", type=int, default=0)
     ap.add_argument("--no-figure", action="store_true")
     ap.add_argument("--folder", default=None, help="where the outputs are written (a temporary folder)")
+    ap.add_argument("--write", action="store_true", help="write the table to benchmarks/scaling.md")
     args = ap.parse_args(argv)
     only = set(args.only.split(","))
     rows, cache = [], {}
 
-    def run(name, options, kind="stl"):
-        key = (kind, tuple(sorted(options.items())))
+    def run(name, options, kind="stl", patient=(None, {})):
+        key = (kind, tuple(sorted(options.items())), str(patient))
         if key not in cache:
-            cache[key] = measure(options, args.runs, args.warmup, kind=kind, folder=args.folder)
+            cache[key] = measure(options, args.runs, args.warmup, kind=kind, folder=args.folder, patient=patient)
             rows.append(_row(name, cache[key]))
         return cache[key]
 
@@ -138,9 +157,48 @@ def main(argv=None) -> int:
             print(f"scaling seeds {seeds}: {m['seconds']:.1f} s, peak {m['peak_rss_mb'] / 1024:.2f} GiB", flush=True)
         if not args.no_figure:
             _plot(series)
+    femur = (str(DATA / "jigsaw_femur.stl"), {"cut_planes": (0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1)})
+    shaft = dict(pore_size=0.6, porosity=0.7)
+    if "femur" in only:
+        m = run("femoral shaft at 0.05 mm, defaults (4 GiB)", dict(shaft, voxel=0.05), patient=femur)
+        print(f"femur 0.05: {m['seconds']:.1f} s, peak with the mesh workers "
+              f"{max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4); stages {m['stages']}", flush=True)
+    if "femur-fine" in only:
+        for kind in ("stl", "slices"):
+            m = run(f"femoral shaft at 0.02 mm -> {'STL' if kind == 'stl' else 'PNG stack'}",
+                    dict(shaft, voxel=0.02), kind, patient=femur)
+            print(f"femur 0.02 {kind}: {m['seconds']:.1f} s, {m['seconds'] / (m['voxels'] / 1e9):.0f} s per 10^9 "
+                  f"voxels (target 160), peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4)",
+                  flush=True)
+    if "ct" in only:
+        label = (str(DATA / "totalseg_example_seg.nii.gz"), {"label": 31})
+        for name, pore in (("L1 (CT label 31) at 0.1 mm, 0.8 mm pores, morphometry", 0.8),):
+            m = run(name, dict(voxel=0.1, pore_size=pore), patient=label)
+            print(f"ct: {m['seconds']:.1f} s, peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB; strut "
+                  f"{m['strut_mean_mm']}, pore {m['pore_diameter_mean_mm']}, interconnected "
+                  f"{m['interconnected_porosity']}, Conn.D {m['conn_d_per_mm3']}", flush=True)
     print()
     print(table(rows, HEADER))
+    if args.write:
+        _write(rows, argv)
     return 0
+
+
+def _write(rows, argv) -> None:
+    """benchmarks/scaling.md: this run's table, its date, command and load."""
+    import datetime
+    import os
+
+    load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
+    command = "python benchmarks/bench_tiled.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    text = (f"# How time and memory grow (issues 5 and 12)\n\nWritten by `{command}` on "
+            f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, on this project's 2-core machine; "
+            f"load average at the end {load}. Each row is the median of the runs asked for, each run a fresh "
+            "process; peaks are resident memory, of the run alone and of the run with its mesh workers "
+            "(proportional set sizes summed, each page once). Runs without `max_memory` use the default "
+            "budget (4 GiB).\n\n" + table(rows, HEADER) + "\n")
+    SCALING.write_text(text)
+    print(f"wrote {SCALING}")
 
 
 def _plot(series: dict) -> None:

@@ -157,6 +157,12 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     need = (min(int(n), 2 * CHUNK_SEEDS) if chunked else int(n)) * BYTES_PER_SEED + int(n) * CELLS_BYTES_PER_SEED
     have = available_memory() if available is None else int(available)
     if need > have:
+        if have < need / 8:
+            from .memory import format_size, process_memory
+
+            raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.2f} GiB to build their cells, beyond what "
+                                f"this run holds already: pass --max-memory {format_size(process_memory() + need)} "
+                                "or more")
         fix = (f"use a larger --pore-size (e.g. {pore_size * (need / have) ** (1 / 3) * 1.1:.3g} mm)"
                if pore_size else f"use fewer --seeds (at most {int(have / CELLS_BYTES_PER_SEED) // 2:,})")
         raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "

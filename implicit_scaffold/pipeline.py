@@ -334,11 +334,6 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         n = max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * seed_volume)))
     from .cells import check_seed_memory
 
-    from .memory import process_memory
-
-    check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
-                      available=min(max_memory - process_memory(), available_memory()),
-                      chunked=params.seeds_in == "box" and not graded)
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
         from .tiles import blend_halo
@@ -351,6 +346,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         run.plan(Grid.covering(lo, hi, params.voxel), halo=halo if params.style == "paper" else 0,
                  reserve=n * HELD_BYTES_PER_SEED,
                  slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
+    from .memory import process_memory
+
+    check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
+                      available=min(max_memory - process_memory(), available_memory()),
+                      chunked=params.seeds_in == "box" and not graded)
     # solve the seed count for the measured pore size: the Poisson-Voronoi estimate above, then
     # corrected for what the cells measure (cells cut by the box walls are smaller)
     solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
