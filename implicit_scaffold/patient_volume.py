@@ -20,10 +20,14 @@ The bone's surface is a smooth signed distance built from the voxel mask:
    carried outwards by the distance transform), so the field is a signed distance in mm;
 4. a constant offset, solved so that the surface encloses the mask's volume (voxel count
    times voxel volume), removes what bias remains; ``volume`` is then measured on the
-   surface itself (marching cubes at two resolutions, extrapolated);
+   surface itself (the trilinear interpolant's, column by column in each cell);
 5. the field is interpolated trilinearly at any point mapped through the inverse of
    ``direction @ diag(spacing)``, tile by tile; outside the crop it grows with the distance
    to the crop, so it stays positive (outside) everywhere beyond the bone.
+
+Steps 1, 3 and 4 and the bounds run as compiled kernels (:mod:`.volume_kernels`); their
+NumPy/SciPy forms stay here as oracles (``load_volume(..., reference=True)``), 6-25x slower
+(``benchmarks/bench_load.py``).
 """
 from __future__ import annotations
 
@@ -48,6 +52,13 @@ KEEP_VOXELS = 0.1
 MARGIN_VOXELS = 8
 #: grid points evaluated per tile in :meth:`VolumePatient.sdf_grid` (bounds the work arrays)
 _TILE_POINTS = 1_000_000
+#: columns per cell side in :meth:`VolumePatient._level_volume` (the cross-section's samples)
+VOLUME_COLUMNS = 4
+#: the volume fit stops within this share of the mask's volume
+VOLUME_TOLERANCE = 1e-5
+#: the redistance's Newton steps stop after a chord step this short (voxels; the closest points then
+#: move by less than 1e-6 voxel)
+NEWTON_STILL = 1e-5
 
 
 def _name(path: Path) -> str:
@@ -134,8 +145,26 @@ def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarr
     return mask, "non-zero voxels"
 
 
+def _signed_box_distance(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+    """Signed distance (mm, float32, negative inside) from each voxel centre to the boundary of
+    the union of the mask's voxel boxes: :func:`_box_distance` outside minus inside, by the
+    compiled feature transform (:mod:`.volume_kernels`).
+    """
+    from .volume_kernels import feature_transform, kernels
+
+    h = [float(v) for v in spacing]
+    out = np.zeros(mask.shape, np.float32)
+    box = kernels().box_distance
+    for features, sign in ((mask, 1.0), (~mask, -1.0)):
+        fi, fj, fk = feature_transform(features, h)
+        box(features, fi, fj, fk, h[0], h[1], h[2], sign, out)
+        del fi, fj, fk
+    return out
+
+
 def _box_distance(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
-    """Distance (mm) from each voxel centre outside `mask` to the union of the mask's voxel boxes.
+    """Distance (mm) from each voxel centre outside `mask` to the union of the mask's voxel boxes
+    (the NumPy/SciPy oracle of :func:`_signed_box_distance`).
 
     The nearest voxel centre (Euclidean, anisotropic) is found by the distance transform;
     the distance to that voxel's box is the half-voxel correction, exact across a face.
@@ -155,6 +184,31 @@ def _box_distance(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
 
 
 def _unbiased_gaussian(field: np.ndarray, sigma: float) -> np.ndarray:
+    """:func:`_unbiased_gaussian_reference` in 7 one-axis passes instead of 12 (the 1-D
+    Gaussians are shared between the terms; float32 throughout, as there)."""
+    from scipy import ndimage
+
+    if sigma <= 0:
+        return field.astype(np.float32, copy=True)
+
+    def g(a, axis, order):
+        return ndimage.gaussian_filter1d(a, sigma, axis=axis, order=order, mode="nearest", output=np.float32)
+
+    half = np.float32(sigma ** 2 / 2)
+    a, b = g(field, 2, 0), g(field, 2, 2)            # along k: G, G''
+    c = g(a, 1, 0)                                   # G G
+    d = g(a, 1, 2)                                   # G'' G
+    d += g(b, 1, 0)                                  # + G G''
+    del a, b
+    d *= half
+    np.subtract(c, d, out=d)                         # G G - sigma²/2 (G'' G + G G'')
+    out = g(d, 0, 0)
+    del d
+    out -= half * g(c, 0, 2)                         # - sigma²/2 G'' G G
+    return out
+
+
+def _unbiased_gaussian_reference(field: np.ndarray, sigma: float) -> np.ndarray:
     """A Gaussian of `sigma` voxels without its curvature bias: ``G - sigma²/2 · ΔG``.
 
     A Gaussian moves a curved surface by ``sigma²/2 · Δf`` (it shrinks convex parts); the
@@ -174,7 +228,7 @@ def _unbiased_gaussian(field: np.ndarray, sigma: float) -> np.ndarray:
     return out
 
 
-def _smooth_surface(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
+def _smooth_surface(mask: np.ndarray, spacing: np.ndarray, *, reference: bool = False) -> np.ndarray:
     """A smooth field whose zero level is the bone's surface without the voxel staircase.
 
     The signed distance to the union of the voxel boxes is smoothed by an unbiased
@@ -183,10 +237,15 @@ def _smooth_surface(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     voxels the tube is wide across the thick slices, where the steps are) and with every voxel
     centre :data:`KEEP_VOXELS` on its own side (so a plate one voxel thin, which a plain
     Gaussian erases, is kept), then smoothed again lightly to round the constraints' kinks.
-    Negative inside, mm.
+    Negative inside, mm. `reference`: the box distance by SciPy's feature transform.
     """
-    box = _box_distance(mask, spacing) - _box_distance(~mask, spacing)
-    field = _unbiased_gaussian(box, SMOOTH_VOXELS)
+    if reference:
+        box = _box_distance(mask, spacing) - _box_distance(~mask, spacing)
+        gaussian = _unbiased_gaussian_reference
+    else:
+        box = _signed_box_distance(mask, spacing)
+        gaussian = _unbiased_gaussian
+    field = gaussian(box, SMOOTH_VOXELS)
     # the voxel's extent along the unit normal n: sum |n_a| h_a (its support width)
     grad = np.gradient(field, *spacing)
     norm = np.sqrt(sum(g * g for g in grad))
@@ -202,17 +261,59 @@ def _smooth_surface(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     np.maximum(lower, margin, out=lower, where=~mask)
     del tube
     np.clip(field, lower, upper, out=field)
-    field = _unbiased_gaussian(field, SMOOTH_VOXELS / 2)
+    field = gaussian(field, SMOOTH_VOXELS / 2)
     return np.clip(field, lower, upper, out=field)
+
+
+def _band(field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(inside, band)``: the voxels below 0, and those next to a sign change with their neighbours."""
+    from scipy import ndimage
+
+    inside = field < 0
+    band = ndimage.binary_dilation(inside) & ~ndimage.binary_erosion(inside, border_value=1)
+    return inside, ndimage.binary_dilation(band)
 
 
 def _redistance(field: np.ndarray, spacing: np.ndarray, newton: int = 5) -> np.ndarray:
     """The signed distance (mm) to the zero level of `field`, on the same grid.
 
     Points near the surface are projected onto it by Newton steps along the gradient
-    (closest points on the smooth surface); every other point takes the distance to
-    the closest point of its nearest near-surface voxel.
+    (closest points on the smooth surface: a cubic spline of `field`); every other point
+    takes the distance to the closest point of its nearest near-surface voxel. The
+    compiled form (:mod:`.volume_kernels`) of :func:`_redistance_reference`: the spline's
+    analytic gradient where that one takes central differences of 0.05 voxel, the feature
+    transform's choice among equally near band voxels, otherwise the same steps.
     """
+    from scipy import ndimage
+
+    from .volume_kernels import feature_transform, kernels
+
+    k = kernels()
+    h = np.asarray(spacing, np.float64)
+    inside = field < 0
+    band = np.empty(field.shape, bool)
+    k.band(inside, band)
+    pts = np.argwhere(band).astype(np.int32)                # crop indices
+    coef = ndimage.spline_filter(field, order=3, output=np.float32, mode="nearest")
+    q = np.empty(pts.shape, np.float64)
+    valid = np.empty(len(pts), bool)
+    # two full Newton steps, then the gradient is kept (see _redistance_reference)
+    k.newton(coef, pts, h, newton, 2, 2 * float(h.max()), NEWTON_STILL * float(h.min()), 0.01 * float(h.min()),
+             q, valid)
+    del coef
+    lookup = np.full(field.shape, -1, np.int32)
+    lookup[band] = np.arange(len(pts), dtype=np.int32)
+    chosen = np.empty(len(pts), np.int64)
+    k.choose(pts, q, valid, lookup, h, chosen)
+    q = q[chosen]
+    fi, fj, fk = feature_transform(band, h)
+    out = np.empty(field.shape, np.float32)
+    k.owner_distance(inside, fi, fj, fk, lookup, q, h, out)
+    return out
+
+
+def _redistance_reference(field: np.ndarray, spacing: np.ndarray, newton: int = 5) -> np.ndarray:
+    """:func:`_redistance` in NumPy and SciPy (its oracle, 10-30x slower)."""
     from scipy import ndimage
 
     spacing = np.asarray(spacing, np.float64)
@@ -287,7 +388,8 @@ class VolumePatient:
         Axis-aligned bounds of the bone's surface in physical space.
     volume : float, mm³
         Volume enclosed by the smooth surface (the zero level of :meth:`sdf_grid`); equal to
-        the mask's voxel count times the voxel volume (by construction, to 1e-4).
+        the mask's voxel count times the voxel volume (by construction, to
+        :data:`VOLUME_TOLERANCE`; 1e-4 with ``reference=True``).
     spacing : (3,) float64 ndarray, mm
         The volume's voxel size along its index axes i, j, k.
     image_shape : (3,) tuple of int
@@ -299,7 +401,7 @@ class VolumePatient:
     """
 
     def __init__(self, field: np.ndarray, affine: np.ndarray, shift: np.ndarray, *, source: str,
-                 selection: str, image_shape, spacing, mask_voxels: int):
+                 selection: str, image_shape, spacing, mask_voxels: int, reference: bool = False):
         self._field = np.ascontiguousarray(field, np.float32)
         self._affine = np.asarray(affine, np.float64)          # physical = A[:, :3] @ index + A[:, 3]
         self._inverse = np.linalg.inv(self._affine[:, :3])
@@ -309,8 +411,13 @@ class VolumePatient:
         self.image_shape = tuple(int(v) for v in image_shape)
         self.spacing = np.asarray(spacing, np.float64)
         self.mask_voxels = int(mask_voxels)
-        self.volume = self._fit_volume(self.mask_voxels * float(np.prod(self.spacing)))
-        self.lo, self.hi = self._bounds()
+        target = self.mask_voxels * float(np.prod(self.spacing))
+        if reference:
+            self.volume = self._fit_volume_reference(target)
+            self.lo, self.hi = self._bounds_reference()
+        else:
+            self.volume = self._fit_volume(target)
+            self.lo, self.hi = self._bounds()
 
     # --- evaluation ---------------------------------------------------------------------
     def _to_index(self, x, y, z) -> np.ndarray:
@@ -435,7 +542,41 @@ class VolumePatient:
         v2, area = self._mc_volume(2, level)
         return (4 * v2 - v1) / 3, area
 
+    def _level_volume(self, level: float) -> tuple[float, float]:
+        """Volume (mm³) inside the `level` set of the interpolated field cut by the image's box,
+        and its derivative with `level` (mm²).
+
+        Each cell of the crop is cut into :data:`VOLUME_COLUMNS`² columns along k, along which the
+        trilinear field is linear, so the length inside each column is exact; the columns'
+        midpoints sample the cell's cross-section (compiled, :mod:`.volume_kernels`).
+        """
+        from .volume_kernels import kernels
+
+        shape = np.asarray(self.image_shape, np.float64)
+        vol, der = kernels().level_volume(self._field, float(level), self._shift.astype(np.float64), shape,
+                                          self.spacing, VOLUME_COLUMNS)
+        cell = float(np.prod(self.spacing))
+        return vol * cell, der * cell
+
     def _fit_volume(self, target: float) -> float:
+        """Offset the surface so that it encloses `target` mm³; return the volume it then encloses.
+
+        The smoothing shrinks convex parts of the bone by about ``sigma² x mean curvature``;
+        a constant offset (the field stays a distance) restores the mask's volume on average.
+        Newton steps on :meth:`_level_volume` (its derivative comes with it) stop within
+        :data:`VOLUME_TOLERANCE` of `target`.
+        """
+        c = 0.0
+        vol, der = self._level_volume(c)
+        for _ in range(12):
+            if abs(vol - target) <= VOLUME_TOLERANCE * target or der <= 0:
+                break
+            c += (target - vol) / der
+            vol, der = self._level_volume(c)
+        self._field -= np.float32(c)
+        return vol
+
+    def _fit_volume_reference(self, target: float) -> float:
         """Offset the surface so that it encloses `target` mm³; return the volume it then encloses.
 
         The smoothing shrinks convex parts of the bone by about ``sigma² x mean curvature``;
@@ -461,6 +602,18 @@ class VolumePatient:
         return f1
 
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Axis-aligned bounds (mm) of the bone: :meth:`_bounds_reference`, compiled
+        (:mod:`.volume_kernels`), without the refined lattice in memory."""
+        from .volume_kernels import kernels
+
+        n0 = self._field.shape[0]
+        lo = np.full((n0, 3), np.inf)
+        hi = np.full((n0, 3), -np.inf)
+        kernels().near_bounds(self._field, self._shift.astype(np.float64), np.asarray(self.image_shape, np.float64),
+                              self.spacing, float(self.spacing.max()), self._affine, lo, hi)
+        return lo.min(axis=0), hi.max(axis=0)
+
+    def _bounds_reference(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds (mm) of the bone: inscribed balls of the inside samples.
 
         A sample at signed distance ``-d`` has the ball of radius ``d`` inside the bone, and
@@ -493,7 +646,7 @@ class VolumePatient:
                 f"{' x '.join(f'{s:.1f}' for s in size)} mm, {self.volume:.1f} mm3")
 
 
-def load_volume(path, *, label=None, threshold=None) -> VolumePatient:
+def load_volume(path, *, label=None, threshold=None, reference: bool = False) -> VolumePatient:
     """Read a bone volume and build its smooth signed distance.
 
     Parameters
@@ -505,6 +658,10 @@ def load_volume(path, *, label=None, threshold=None) -> VolumePatient:
     threshold : float, optional
         Keep the voxels whose intensity is at least this (Hounsfield units for a CT).
         Without `label` or `threshold`, every non-zero voxel is bone.
+    reference : bool
+        Build the field by the NumPy/SciPy oracles of the compiled steps (SciPy's feature
+        transform, the redistance in NumPy, marching cubes' volume at two resolutions):
+        10-30x slower; for tests and benchmarks.
 
     Returns
     -------
@@ -559,8 +716,10 @@ def load_volume(path, *, label=None, threshold=None) -> VolumePatient:
         mask[tuple(slice(a, b) for a, b in zip(lo_in, hi_in))]
     del array, mask
 
-    field = _redistance(_smooth_surface(crop, spacing), spacing)
+    smooth = _smooth_surface(crop, spacing, reference=reference)
+    field = (_redistance_reference if reference else _redistance)(smooth, spacing)
+    del smooth
     affine = np.concatenate([direction * spacing[None, :], origin[:, None]], axis=1)
     patient = VolumePatient(field, affine, start, source=name, selection=selection, image_shape=size,
-                            spacing=spacing, mask_voxels=count)
+                            spacing=spacing, mask_voxels=count, reference=reference)
     return patient

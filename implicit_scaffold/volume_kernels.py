@@ -1,0 +1,557 @@
+"""Compiled kernels (numba) that turn a bone mask into its smooth signed distance.
+
+:mod:`implicit_scaffold.patient_volume` builds a volume patient in four steps (the distance
+to the voxel boxes, a Gaussian, a redistance, a volume fit); the steps that are not a
+separable filter run here, on the crop's own grid, without the temporaries of the NumPy
+formulas they replace (which stay in :mod:`~implicit_scaffold.patient_volume` as their
+oracles, ``reference=True``):
+
+- :func:`feature_transform`: the exact Euclidean feature transform (nearest feature voxel,
+  anisotropic spacing), by the lower envelopes of parabolas of Felzenszwalb & Huttenlocher
+  (2012), one axis at a time; it replaces ``scipy.ndimage.distance_transform_edt(...,
+  return_indices=True)``, 2.8x as slow on a 170³ crop (0.76 s against 0.27 s on two busy
+  cores). Where two feature voxels are equally near, either may be chosen (SciPy's choice is
+  not the same).
+- ``band``: the voxels next to a sign change, and their face neighbours.
+- ``box_distance``: the distance to the nearest feature voxel's box (the half-voxel correction).
+- ``newton``: closest points on the zero level of a cubic B-spline (SciPy's coefficients)
+  by Newton steps with the spline's own gradient, per band voxel.
+- ``choose``: each band voxel takes the nearest closest point of its 27 neighbours'.
+- ``owner_distance``: every voxel's distance to its nearest band voxel's closest point.
+- ``level_volume``: the volume inside a level set of the trilinear interpolant, and its
+  derivative with the level (columns along the axis nearest the surface's normal, each
+  integrated exactly along its length).
+- ``near_bounds``: the inscribed balls of the samples just inside the surface, at twice the
+  volume's resolution, as bounds.
+
+Every kernel is compiled on first use and cached on disk (``cache=True``).
+"""
+from __future__ import annotations
+
+import numba as nb
+import numpy as np
+
+#: no site (an envelope) or no feature
+inf = np.inf
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def envelope(f, w2, n, v, z, arg):  # pragma: no cover - compiled
+    # arg[p] = the site q minimising w2 (p - q)^2 + f[q] over q < n (f = inf: no site), -1 if none
+    k = -1
+    for q in range(n):
+        fq = f[q]
+        if fq == inf:
+            continue
+        if k < 0:
+            k = 0
+            v[0] = q
+            z[0] = -inf
+            z[1] = inf
+            continue
+        s = 0.0
+        while True:
+            r = v[k]
+            s = ((fq + w2 * q * q) - (f[r] + w2 * r * r)) / (2.0 * w2 * (q - r))
+            if s <= z[k]:
+                k -= 1          # z[0] is -inf: k stays >= 0
+            else:
+                break
+        k += 1
+        v[k] = q
+        z[k] = s
+        z[k + 1] = inf
+    if k < 0:
+        for p in range(n):
+            arg[p] = -1
+        return
+    j = 0
+    for p in range(n):
+        while z[j + 1] < p:
+            j += 1
+        arg[p] = v[j]
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def _feature_transform(feat, h0, h1, h2):  # pragma: no cover - compiled
+    n0, n1, n2 = feat.shape
+    fk = np.empty(feat.shape, np.int32)
+    fj = np.empty(feat.shape, np.int32)
+    fi = np.empty(feat.shape, np.int32)
+    # along k: the nearest feature in the row
+    for i in nb.prange(n0):
+        for j in range(n1):
+            last = -1
+            for k in range(n2):
+                if feat[i, j, k]:
+                    last = k
+                fk[i, j, k] = last
+            nxt = -1
+            for k in range(n2 - 1, -1, -1):
+                if feat[i, j, k]:
+                    nxt = k
+                lk = fk[i, j, k]
+                if nxt >= 0 and (lk < 0 or nxt - k < k - lk):
+                    fk[i, j, k] = nxt
+    # along j: lower envelope of the rows' parabolas
+    w1 = h1 * h1
+    w2 = h2 * h2
+    for i in nb.prange(n0):
+        f = np.empty(n1, np.float64)
+        col = np.empty(n1, np.int32)
+        v = np.empty(n1, np.int64)
+        z = np.empty(n1 + 1, np.float64)
+        arg = np.empty(n1, np.int64)
+        for k in range(n2):
+            for j in range(n1):
+                c = fk[i, j, k]
+                col[j] = c
+                f[j] = inf if c < 0 else w2 * (k - c) * (k - c)
+            envelope(f, w1, n1, v, z, arg)
+            for j in range(n1):
+                a = arg[j]
+                fj[i, j, k] = a
+                fk[i, j, k] = -1 if a < 0 else col[a]
+    # along i, a plane j at a time copied to contiguous buffers (the columns are strided)
+    w0 = h0 * h0
+    for j in nb.prange(n1):
+        f = np.empty(n0, np.float64)
+        bj = np.empty((n0, n2), np.int32)
+        bk = np.empty((n0, n2), np.int32)
+        ri = np.empty((n0, n2), np.int32)
+        v = np.empty(n0, np.int64)
+        z = np.empty(n0 + 1, np.float64)
+        arg = np.empty(n0, np.int64)
+        for i in range(n0):
+            for k in range(n2):
+                bj[i, k] = fj[i, j, k]
+                bk[i, k] = fk[i, j, k]
+        for k in range(n2):
+            for i in range(n0):
+                c = bk[i, k]
+                dj = j - bj[i, k]
+                f[i] = inf if c < 0 else w1 * dj * dj + w2 * (k - c) * (k - c)
+            envelope(f, w0, n0, v, z, arg)
+            for i in range(n0):
+                ri[i, k] = arg[i]
+        for i in range(n0):
+            for k in range(n2):
+                a = ri[i, k]
+                fi[i, j, k] = a
+                if a < 0:
+                    fj[i, j, k] = -1
+                    fk[i, j, k] = -1
+                else:
+                    fj[i, j, k] = bj[a, k]
+                    fk[i, j, k] = bk[a, k]
+    return fi, fj, fk
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def band(inside, out):  # pragma: no cover - compiled
+    # out: the voxels with a face neighbour on the other side of the surface (`inside` differs),
+    # and their face neighbours: scipy.ndimage's binary_dilation(binary_dilation(inside) &
+    # ~binary_erosion(inside, border_value=1)) with its default (face) structure
+    n0, n1, n2 = inside.shape
+    edge = np.zeros(inside.shape, np.bool_)
+    for i in nb.prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                s = inside[i, j, k]
+                e = False
+                if i > 0 and inside[i - 1, j, k] != s:
+                    e = True
+                elif i < n0 - 1 and inside[i + 1, j, k] != s:
+                    e = True
+                elif j > 0 and inside[i, j - 1, k] != s:
+                    e = True
+                elif j < n1 - 1 and inside[i, j + 1, k] != s:
+                    e = True
+                elif k > 0 and inside[i, j, k - 1] != s:
+                    e = True
+                elif k < n2 - 1 and inside[i, j, k + 1] != s:
+                    e = True
+                edge[i, j, k] = e
+    for i in nb.prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                out[i, j, k] = (edge[i, j, k] or (i > 0 and edge[i - 1, j, k]) or (i < n0 - 1 and edge[i + 1, j, k])
+                                or (j > 0 and edge[i, j - 1, k]) or (j < n1 - 1 and edge[i, j + 1, k])
+                                or (k > 0 and edge[i, j, k - 1]) or (k < n2 - 1 and edge[i, j, k + 1]))
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def box_distance(feat, fi, fj, fk, h0, h1, h2, sign, out):  # pragma: no cover - compiled
+    # out = sign x the distance (mm) from each voxel centre that is not a feature to the
+    # box of its nearest feature voxel; feature voxels are left as they are
+    n0, n1, n2 = feat.shape
+    for i in nb.prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                if feat[i, j, k] or fi[i, j, k] < 0:
+                    continue
+                a = max(abs(fi[i, j, k] - i) * h0 - h0 / 2, 0.0)
+                b = max(abs(fj[i, j, k] - j) * h1 - h1 / 2, 0.0)
+                c = max(abs(fk[i, j, k] - k) * h2 - h2 / 2, 0.0)
+                out[i, j, k] = sign * np.sqrt(a * a + b * b + c * c)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
+def weights(t, w, d):  # pragma: no cover - compiled
+    # the cubic B-spline's four weights at fraction t, and their derivatives
+    u = 1.0 - t
+    w[0] = u * u * u / 6.0
+    w[1] = (3.0 * t * t * t - 6.0 * t * t + 4.0) / 6.0
+    w[2] = (-3.0 * t * t * t + 3.0 * t * t + 3.0 * t + 1.0) / 6.0
+    w[3] = t * t * t / 6.0
+    d[0] = -u * u / 2.0
+    d[1] = (3.0 * t * t - 4.0 * t) / 2.0
+    d[2] = (-3.0 * t * t + 2.0 * t + 1.0) / 2.0
+    d[3] = t * t / 2.0
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def spline(coef, x0, x1, x2, grad, wa, wb, wc, da, db, dc):  # pragma: no cover - compiled
+    # value (and gradient in index units into grad, if grad.size) of the cubic spline with
+    # coefficients coef at (x0, x1, x2): scipy.ndimage.map_coordinates(order=3, mode="nearest",
+    # prefilter=False)
+    n0, n1, n2 = coef.shape
+    f0 = np.floor(x0)
+    f1 = np.floor(x1)
+    f2 = np.floor(x2)
+    weights(x0 - f0, wa, da)
+    weights(x1 - f1, wb, db)
+    weights(x2 - f2, wc, dc)
+    s0 = int(f0) - 1
+    s1 = int(f1) - 1
+    s2 = int(f2) - 1
+    val = 0.0
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
+    # the stencil clamped to the grid ("nearest") only where it leaves it
+    inner = s0 >= 0 and s1 >= 0 and s2 >= 0 and s0 + 3 < n0 and s1 + 3 < n1 and s2 + 3 < n2
+    want = grad.size > 0
+    for a in range(4):
+        ia = s0 + a if inner else min(max(s0 + a, 0), n0 - 1)
+        v1 = 0.0
+        e1 = 0.0
+        e2 = 0.0
+        for b in range(4):
+            ib = s1 + b if inner else min(max(s1 + b, 0), n1 - 1)
+            v2 = 0.0
+            e22 = 0.0
+            for c in range(4):
+                ic = s2 + c if inner else min(max(s2 + c, 0), n2 - 1)
+                cf = coef[ia, ib, ic]
+                v2 += wc[c] * cf
+                if want:
+                    e22 += dc[c] * cf
+            v1 += wb[b] * v2
+            if want:
+                e1 += db[b] * v2
+                e2 += wb[b] * e22
+        val += wa[a] * v1
+        if want:
+            g0 += da[a] * v1
+            g1 += wa[a] * e1
+            g2 += wa[a] * e2
+    if want:
+        grad[0] = g0
+        grad[1] = g1
+        grad[2] = g2
+    return val
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def newton(coef, pts, h, iters, gradient_iters, limit, still, tol, q, valid):  # pragma: no cover - compiled
+    # q[p]: pts[p] moved onto the zero level by at most `iters` Newton steps (the gradient taken
+    # anew in the first `gradient_iters`, kept after: a chord method), each at most `limit` mm,
+    # stopping after a chord step of at most `still` mm; valid[p]: |spline(q)| <= tol
+    n = pts.shape[0]
+    chunk = 4096
+    for ch in nb.prange((n + chunk - 1) // chunk):
+        wa = np.empty(4)
+        wb = np.empty(4)
+        wc = np.empty(4)
+        da = np.empty(4)
+        db = np.empty(4)
+        dc = np.empty(4)
+        g = np.zeros(3)
+        none = np.empty(0)
+        for p in range(ch * chunk, min(n, (ch + 1) * chunk)):
+            x0 = float(pts[p, 0])
+            x1 = float(pts[p, 1])
+            x2 = float(pts[p, 2])
+            m0 = 0.0
+            m1 = 0.0
+            m2 = 0.0
+            f = 0.0
+            done = False
+            for it in range(iters):
+                if it < gradient_iters:
+                    f = spline(coef, x0, x1, x2, g, wa, wb, wc, da, db, dc)
+                    m0 = g[0] / h[0]
+                    m1 = g[1] / h[1]
+                    m2 = g[2] / h[2]
+                else:
+                    f = spline(coef, x0, x1, x2, none, wa, wb, wc, da, db, dc)
+                g2 = max(m0 * m0 + m1 * m1 + m2 * m2, 1e-12)
+                s0 = f / g2 * m0
+                s1 = f / g2 * m1
+                s2 = f / g2 * m2
+                length = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+                if length > limit:
+                    s0 *= limit / length
+                    s1 *= limit / length
+                    s2 *= limit / length
+                x0 -= s0 / h[0]
+                x1 -= s1 / h[1]
+                x2 -= s2 / h[2]
+                if it >= gradient_iters and length <= still:
+                    done = True         # the steps left would not move it: f is already as small
+                    break
+            q[p, 0] = x0
+            q[p, 1] = x1
+            q[p, 2] = x2
+            if not done:
+                f = spline(coef, x0, x1, x2, none, wa, wb, wc, da, db, dc)
+            valid[p] = abs(f) <= tol
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def choose(pts, q, valid, lookup, h, chosen):  # pragma: no cover - compiled
+    # chosen[p]: the valid band neighbour (27, itself included, in np.ndindex order, the
+    # first of equals) whose closest point is nearest to pts[p]; p itself if none is valid
+    n = pts.shape[0]
+    n0, n1, n2 = lookup.shape
+    for p in nb.prange(n):
+        best = inf
+        ch = -1
+        for o0 in range(-1, 2):
+            a = pts[p, 0] + o0
+            if a < 0 or a >= n0:
+                continue
+            for o1 in range(-1, 2):
+                b = pts[p, 1] + o1
+                if b < 0 or b >= n1:
+                    continue
+                for o2 in range(-1, 2):
+                    c = pts[p, 2] + o2
+                    if c < 0 or c >= n2:
+                        continue
+                    cand = lookup[a, b, c]
+                    if cand < 0 or not valid[cand]:
+                        continue
+                    d0 = (pts[p, 0] - q[cand, 0]) * h[0]
+                    d1 = (pts[p, 1] - q[cand, 1]) * h[1]
+                    d2 = (pts[p, 2] - q[cand, 2]) * h[2]
+                    d = d0 * d0 + d1 * d1 + d2 * d2
+                    if d < best:
+                        best = d
+                        ch = cand
+        chosen[p] = ch if ch >= 0 else p
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def owner_distance(inside, fi, fj, fk, lookup, q, h, out):  # pragma: no cover - compiled
+    # out: the distance (mm) from each voxel centre to the closest point q of its nearest band
+    # voxel (the feature), negative inside
+    n0, n1, n2 = inside.shape
+    for i in nb.prange(n0):
+        for j in range(n1):
+            for k in range(n2):
+                o = lookup[fi[i, j, k], fj[i, j, k], fk[i, j, k]]
+                d0 = (i - q[o, 0]) * h[0]
+                d1 = (j - q[o, 1]) * h[1]
+                d2 = (k - q[o, 2]) * h[2]
+                d = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+                out[i, j, k] = -d if inside[i, j, k] else d
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
+def image_box(idx, shift, n, h):  # pragma: no cover - compiled
+    # the signed distance term of the image's box along one axis (see VolumePatient._image_box)
+    return (abs(idx + shift - (n - 1) / 2.0) - n / 2.0) * h
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
+def box_value(q0, q1, q2):  # pragma: no cover - compiled
+    a = max(q0, 0.0)
+    b = max(q1, 0.0)
+    c = max(q2, 0.0)
+    return np.sqrt(a * a + b * b + c * c) + min(max(max(q0, q1), q2), 0.0)
+
+
+#: the corners (t = 4 a + 2 b + c of a cell) at the two ends of columns along each axis, in the
+#: order (0, 0), (0, 1), (1, 0), (1, 1) of the other two axes
+BOT = np.array([[0, 1, 2, 3], [0, 1, 4, 5], [0, 2, 4, 6]], np.int64)
+TOP = np.array([[4, 5, 6, 7], [2, 3, 6, 7], [1, 3, 5, 7]], np.int64)
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def level_volume(field, level, shift, shape, h, sub):  # pragma: no cover - compiled
+    # Volume (index units) inside {max(field - level, image box) < 0} of the trilinear
+    # interpolant, and its derivative with the level. Each cell is cut into sub x sub
+    # columns along one axis, along which the trilinear field is linear: the length
+    # inside is exact, and the columns' midpoints sample the cell's cross-section.
+    n0, n1, n2 = field.shape
+    vol = np.zeros(n0)
+    der = np.zeros(n0)
+    for i in nb.prange(n0 - 1):
+        c = np.empty(8)
+        qa = np.empty(2)
+        qb = np.empty(n1)
+        qc = np.empty(n2)
+        for t in range(2):
+            qa[t] = image_box(i + t, shift[0], shape[0], h[0])
+        for j in range(n1):
+            qb[j] = image_box(j, shift[1], shape[1], h[1])
+        for k in range(n2):
+            qc[k] = image_box(k, shift[2], shape[2], h[2])
+        v_i = 0.0
+        d_i = 0.0
+        for j in range(n1 - 1):
+            for k in range(n2 - 1):
+                lo = inf
+                for t in range(8):
+                    x = field[i + (t >> 2), j + ((t >> 1) & 1), k + (t & 1)] - level
+                    c[t] = x
+                    lo = min(lo, x)
+                if lo >= 0.0:
+                    continue            # the image's box only raises the values
+                # inside the image the box's term is at most its largest per-axis term
+                bmax = max(max(max(qa[0], qa[1]), max(qb[j], qb[j + 1])), max(qc[k], qc[k + 1]))
+                if not (bmax < 0.0 and bmax <= lo):
+                    for t in range(8):
+                        bx = box_value(qa[t >> 2], qb[j + ((t >> 1) & 1)], qc[k + (t & 1)])
+                        if bx > c[t]:
+                            c[t] = bx
+                lo = inf
+                hi = -inf
+                for t in range(8):
+                    lo = min(lo, c[t])
+                    hi = max(hi, c[t])
+                if hi < 0.0:
+                    v_i += 1.0
+                    continue
+                if lo >= 0.0:
+                    continue
+                # columns along the axis nearest the surface's normal (the trilinear gradient at the
+                # cell's centre) cross the surface: their lengths vary smoothly over the cross-section,
+                # where columns along the surface would switch from all inside to all outside
+                g0 = abs(c[4] + c[5] + c[6] + c[7] - c[0] - c[1] - c[2] - c[3])
+                g1 = abs(c[2] + c[3] + c[6] + c[7] - c[0] - c[1] - c[4] - c[5])
+                g2 = abs(c[1] + c[3] + c[5] + c[7] - c[0] - c[2] - c[4] - c[6])
+                ax = 0 if (g0 >= g1 and g0 >= g2) else (1 if g1 >= g2 else 2)
+                b00 = c[BOT[ax, 0]]
+                b01 = c[BOT[ax, 1]]
+                b10 = c[BOT[ax, 2]]
+                b11 = c[BOT[ax, 3]]
+                t00 = c[TOP[ax, 0]]
+                t01 = c[TOP[ax, 1]]
+                t10 = c[TOP[ax, 2]]
+                t11 = c[TOP[ax, 3]]
+                s = 0.0
+                ds = 0.0
+                for u in range(sub):
+                    x = (u + 0.5) / sub
+                    for w in range(sub):
+                        y = (w + 0.5) / sub
+                        # the column's two ends, bilinear over the cross-section
+                        bot = (1 - x) * ((1 - y) * b00 + y * b01) + x * ((1 - y) * b10 + y * b11)
+                        top = (1 - x) * ((1 - y) * t00 + y * t01) + x * ((1 - y) * t10 + y * t11)
+                        if bot < 0.0 and top < 0.0:
+                            s += 1.0
+                        elif bot < 0.0:
+                            s += bot / (bot - top)
+                            ds += 1.0 / (top - bot)
+                        elif top < 0.0:
+                            s += top / (top - bot)
+                            ds += 1.0 / (bot - top)
+                v_i += s / (sub * sub)
+                d_i += ds / (sub * sub)
+        vol[i] = v_i
+        der[i] = d_i
+    return vol.sum(), der.sum()
+
+
+@nb.njit(cache=True, boundscheck=False, parallel=True)
+def near_bounds(field, shift, shape, h, depth, affine, lo, hi):  # pragma: no cover - compiled
+    # For the samples of the field refined twice (trilinear midpoints), cut by the image's
+    # box, that lie within `depth` below 0: the physical bounds of their inscribed balls,
+    # per plane i of cells (lo, hi: (n0, 3), +-inf where none)
+    n0, n1, n2 = field.shape
+    for i in nb.prange(n0 - 1):
+        c = np.empty(8)
+        for r in range(3):
+            lo[i, r] = inf
+            hi[i, r] = -inf
+        for j in range(n1 - 1):
+            for k in range(n2 - 1):
+                m = inf
+                for t in range(8):
+                    x = field[i + (t >> 2), j + ((t >> 1) & 1), k + (t & 1)]
+                    c[t] = x
+                    m = min(m, x)
+                if m >= 0.0:
+                    continue
+                for a in range(2):
+                    for b in range(2):
+                        for e in range(2):
+                            # the sample at (i + a/2, j + b/2, k + e/2): the mean of the corners it lies between
+                            s = 0.0
+                            cnt = 0
+                            for t in range(8):
+                                ta = t >> 2
+                                tb = (t >> 1) & 1
+                                te = t & 1
+                                if (ta <= a) and (tb <= b) and (te <= e):
+                                    s += c[t]
+                                    cnt += 1
+                            val = s / cnt
+                            x0 = i + a / 2.0
+                            x1 = j + b / 2.0
+                            x2 = k + e / 2.0
+                            bx = box_value(image_box(x0, shift[0], shape[0], h[0]),
+                                           image_box(x1, shift[1], shape[1], h[1]),
+                                           image_box(x2, shift[2], shape[2], h[2]))
+                            if bx > val:
+                                val = bx
+                            if not (val < 0.0 and val > -depth):
+                                continue
+                            d = -val
+                            y0 = x0 + shift[0]
+                            y1 = x1 + shift[1]
+                            y2 = x2 + shift[2]
+                            for r in range(3):
+                                p = affine[r, 0] * y0 + affine[r, 1] * y1 + affine[r, 2] * y2 + affine[r, 3]
+                                if p - d < lo[i, r]:
+                                    lo[i, r] = p - d
+                                if p + d > hi[i, r]:
+                                    hi[i, r] = p + d
+
+
+def kernels():
+    """This module: its kernels compile on first use (a few seconds once per machine: numba caches
+    them on disk beside the module)."""
+    import sys
+
+    return sys.modules[__name__]
+
+
+def feature_transform(features: np.ndarray, spacing) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The nearest feature voxel of every voxel (exact Euclidean, anisotropic `spacing`).
+
+    Parameters
+    ----------
+    features : (n0, n1, n2) bool ndarray
+    spacing : (3,) float, mm
+
+    Returns
+    -------
+    (fi, fj, fk) : three (n0, n1, n2) int32 ndarrays
+        The indices of the nearest feature voxel; -1 everywhere if there is no feature.
+    """
+    h = [float(v) for v in spacing]
+    return _feature_transform(np.ascontiguousarray(features, bool), h[0], h[1], h[2])
