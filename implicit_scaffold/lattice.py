@@ -46,33 +46,44 @@ class Primitives:
     hi: np.ndarray
 
 
+#: quads packed at once: the frames' float64 temporaries take about 1 KB per quad
+_PACK_CHUNK = 200_000
+
+
 def _pack_quads(skeleton: Skeleton, origin) -> Primitives:
     """Quads in their own frames, as the row kernels read them (see ``kernels/lattice.cl``).
 
     Frame of quad i: origin at vertex 0, ``U`` along the in-plane part of the
     diagonal v0 -> v2, ``W = n x U``, and the unit normal ``n``; the kernel gets each
     axis with its offset (``c = A . p + A.w``), the vertices and edges in (U, W)
-    coordinates, and the edges divided by their squared lengths.
+    coordinates, and the edges divided by their squared lengths. Packed
+    :data:`_PACK_CHUNK` quads at a time (each quad's words are its own).
     """
-    q = skeleton.quads - np.asarray(origin)
-    n = skeleton.quad_normals
-    d1 = q[:, 2] - q[:, 0]
-    u = d1 - np.einsum("ij,ij->i", d1, n)[:, None] * n
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
-    w = np.cross(n, u)
-    rel = q - q[:, :1]
-    xy = np.stack([np.einsum("ikj,ij->ik", rel, u), np.einsum("ikj,ij->ik", rel, w)], axis=-1)  # (m, 4, 2)
-    e = np.roll(xy, -1, axis=1) - xy
-    len2 = np.einsum("ikj,ikj->ik", e, e)
-    s = e / np.where(len2 > 0, len2, np.inf)[..., None]
-    data = np.zeros((len(q), QUAD_WORDS, 4), np.float32)
-    for row, axis in enumerate((u, w, n)):
-        data[:, row, :3] = axis
-        data[:, row, 3] = -np.einsum("ij,ij->i", axis, q[:, 0])
-    data[:, 3:5] = xy.reshape(-1, 2, 4)
-    data[:, 5:7] = e.reshape(-1, 2, 4)
-    data[:, 7:9] = s.reshape(-1, 2, 4)
-    return Primitives("quads", data, q.min(axis=1), q.max(axis=1))
+    m = len(skeleton.quads)
+    data = np.zeros((m, QUAD_WORDS, 4), np.float32)
+    lo, hi = np.empty((m, 3)), np.empty((m, 3))
+    origin = np.asarray(origin)
+    for a in range(0, m, _PACK_CHUNK):
+        b = min(a + _PACK_CHUNK, m)
+        q = skeleton.quads[a:b] - origin
+        n = skeleton.quad_normals[a:b]
+        d1 = q[:, 2] - q[:, 0]
+        u = d1 - np.einsum("ij,ij->i", d1, n)[:, None] * n
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        w = np.cross(n, u)
+        rel = q - q[:, :1]
+        xy = np.stack([np.einsum("ikj,ij->ik", rel, u), np.einsum("ikj,ij->ik", rel, w)], axis=-1)  # (m, 4, 2)
+        e = np.roll(xy, -1, axis=1) - xy
+        len2 = np.einsum("ikj,ikj->ik", e, e)
+        s = e / np.where(len2 > 0, len2, np.inf)[..., None]
+        for row, axis in enumerate((u, w, n)):
+            data[a:b, row, :3] = axis
+            data[a:b, row, 3] = -np.einsum("ij,ij->i", axis, q[:, 0])
+        data[a:b, 3:5] = xy.reshape(-1, 2, 4)
+        data[a:b, 5:7] = e.reshape(-1, 2, 4)
+        data[a:b, 7:9] = s.reshape(-1, 2, 4)
+        lo[a:b], hi[a:b] = q.min(axis=1), q.max(axis=1)
+    return Primitives("quads", data, lo, hi)
 
 
 def _pack_pieces(skeleton: Skeleton, origin):

@@ -78,9 +78,22 @@ def process_memory() -> int:
 
 def peak_memory(children: bool = False) -> int:
     """The most bytes this process has held (its peak resident set), or the largest of its
-    finished child processes' peaks."""
+    finished child processes' peaks.
+
+    On Linux the process's own peak is its address space's high-water mark (``VmHWM``):
+    ``ru_maxrss`` keeps, across ``exec``, the peak of the process it was forked from, so a
+    run started by a large parent would report the parent's size.
+    """
     import resource
 
+    if not children:
+        try:
+            with open("/proc/self/status") as fh:
+                for line in fh:
+                    if line.startswith("VmHWM:"):
+                        return int(line.split()[1]) * 1024
+        except OSError:
+            pass
     who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
     return int(resource.getrusage(who).ru_maxrss) * 1024
 

@@ -411,13 +411,18 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     if params.style == "paper":
         # planned from the cells: a whole grid holds the whole skeleton, a slab the skeleton of
-        # the cells that reach it (SkeletonSource), about its share of the whole
-        primitives = packed_bytes(cells=cells)
+        # the cells that reach it (SkeletonSource), which it counts slab by slab
+        from .tiled import _band
+
+        source = SkeletonSource(cells, params.sf, params.sv)
+        primitives = max(packed_bytes(cells=cells), source.bytes_near(-np.inf, np.inf))
+        # the cut-off is not known yet: a cell's span is wider than any the lattice reads
+        span = float(np.median(cells.volumes)) ** (1 / 3)
         slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25)),
-                               reserve=primitives, slab_share=primitives)
+                               reserve=primitives, slab_share=primitives,
+                               slab_bytes=lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span)))
         with prog.stage("skeleton", "whole" if slab_voxels is None else "slab by slab"):
-            skeleton = (scaled_skeleton(cells, params.sf, params.sv) if slab_voxels is None
-                        else SkeletonSource(cells, params.sf, params.sv))
+            skeleton = scaled_skeleton(cells, params.sf, params.sv) if slab_voxels is None else source
     else:
         with prog.stage("skeleton"):
             edges = voronoi_edges(cells)
@@ -798,7 +803,8 @@ class _RunPlan:
         """The voxels per slab asked for by ``tiled=<int>``, else None."""
         return None if isinstance(self.tiled, bool) or not self.tiled else int(self.tiled)
 
-    def plan(self, grid: Grid, halo: int = 0, reserve: int = 0, slab_share: int = 0) -> int | None:
+    def plan(self, grid: Grid, halo: int = 0, reserve: int = 0, slab_share: int = 0,
+             slab_bytes=None) -> int | None:
         """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits.
 
         `reserve` is what the stages hold beside the grid's voxels on the whole grid (the
@@ -807,6 +813,10 @@ class _RunPlan:
         primitives that reach a slab from beyond it). Every stage's thinnest slab must fit
         beside what the process holds and the reserve, from the lattice to the mesh: a
         budget too small for that is refused now, naming the smallest that would do.
+        `slab_bytes(h0, h1)`, when given, is what the lattice's primitives take for the
+        slab of planes ``[h0, h1)`` (halo included), known per slab
+        (:meth:`~.skeleton.SkeletonSource.bytes_near`): the slabs are then thinned until
+        the most crowded one fits.
         """
         from .memory import format_size, release
         from .tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, check_disk
@@ -843,9 +853,32 @@ class _RunPlan:
                 + (f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
                    " mm)" if self.max_memory > held else ""))
         voxels = self.forced_voxels or max(1, int((self.max_memory - held) // per_voxel))
+        if slab_bytes is not None and not self.forced_voxels:
+            voxels = self._thin_for(grid, halo, held, slab_bytes, voxels)
         plan_slabs(grid.shape, max_voxels=max(voxels, (1 + 2 * halo) * plane), halo=halo)
         check_disk(grid)
         return voxels
+
+    def _thin_for(self, grid: Grid, halo: int, held: int, slab_bytes, voxels: int) -> int:
+        """The largest slab (voxels, halo included) whose every slab fits with its primitives."""
+        from .memory import format_size
+        from .tiled import SLAB_BYTES_PER_VOXEL
+        from .tiles import plan_slabs
+
+        plane = grid.shape[1] * grid.shape[2]
+        planes = max(1, voxels // plane - 2 * halo)
+        while True:
+            slabs = plan_slabs(grid.shape, max_voxels=(planes + 2 * halo) * plane, halo=halo)
+            worst = max((s.h1 - s.h0) * plane * SLAB_BYTES_PER_VOXEL + slab_bytes(s.h0, s.h1) for s in slabs)
+            if held + worst <= self.max_memory:
+                return (planes + 2 * halo) * plane
+            if planes == 1:
+                raise ScaffoldError(
+                    f"the lattice of the most crowded slab of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels "
+                    f"needs about {format_size(held + worst)} with what the run holds, but --max-memory is "
+                    f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * (held + worst))}"
+                    " or more, or use a larger --pore-size (fewer cells)")
+            planes = max(1, int(planes * 0.7))
 
 
 def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:

@@ -281,11 +281,33 @@ class SkeletonSource:
     sf, sv : float
     """
 
+    #: a slab's skeleton peaks at about this many times what it holds once built (measured:
+    #: 2.86 for 40,000 cells), and the lattice then holds it with its packed quads beside
+    BUILD_FACTOR = 3.0
+
     def __init__(self, cells: Cells, sf: float, sv: float):
         self.cells = cells
         self.sf = check_scale("sf", sf)
         self.sv = check_scale("sv", sv)
         self.x_lo, self.x_hi = cells.x_extents()
+        # each cell's skeleton bytes, summed over cells sorted by either end of their x extent
+        counts = np.diff(cells.face_start)
+        m = np.bincount(cells.face_cell, weights=counts, minlength=cells.n)
+        nf = np.bincount(cells.face_cell, minlength=cells.n)
+        per_cell = (m * SKELETON_BYTES_PER_QUAD + (m + 3 * nf) * SKELETON_BYTES_PER_PLANE
+                    + (1 + nf) * SKELETON_BYTES_PER_PIECE)
+        self._lo_sorted = np.sort(self.x_lo)
+        self._hi_sorted = np.sort(self.x_hi)
+        self._lo_sum = np.concatenate([[0.0], np.cumsum(per_cell[np.argsort(self.x_lo)])])
+        self._hi_sum = np.concatenate([[0.0], np.cumsum(per_cell[np.argsort(self.x_hi)])])
+
+    def bytes_near(self, x_lo: float, x_hi: float) -> int:
+        """The peak bytes of :meth:`near` for this band and of the lattice that reads it
+        (:data:`BUILD_FACTOR` times the skeleton's own bytes)."""
+        # cells that start at or before x_hi, less those that end before x_lo (they start before too)
+        started = self._lo_sum[np.searchsorted(self._lo_sorted, x_hi, side="right")]
+        ended = self._hi_sum[np.searchsorted(self._hi_sorted, x_lo, side="left")]
+        return int(self.BUILD_FACTOR * max(0.0, started - ended))
 
     def near(self, x_lo: float, x_hi: float) -> Skeleton:
         """The skeleton of the cells whose x extent meets ``[x_lo, x_hi]`` (mm); every quad and

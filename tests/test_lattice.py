@@ -168,3 +168,20 @@ def test_a_slab_outside_the_grid_is_refused(small_cells):
     grid = _grid(small_cells, 0.05, shape=(20, 20, 20))
     with pytest.raises(ValueError):
         lattice_sdf(sk, grid, cutoff=0.2, x_range=(5, 21))
+
+
+def test_quads_packed_in_chunks_are_packed_the_same(monkeypatch, small_cells):
+    import implicit_scaffold.lattice as L
+    from implicit_scaffold.skeleton import scaled_skeleton
+
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    whole = L._pack_quads(sk, (0.1, -0.2, 0.3))
+    monkeypatch.setattr(L, "_PACK_CHUNK", 37)
+    chunked = L._pack_quads(sk, (0.1, -0.2, 0.3))
+    assert len(sk.quads) > 37
+    for a, b in ((whole.data, chunked.data), (whole.lo, chunked.lo), (whole.hi, chunked.hi)):
+        np.testing.assert_array_equal(a, b)
+    # the frame's normal row is the quad's unit normal, its offset puts vertex 0 on the plane
+    np.testing.assert_allclose(whole.data[:, 2, :3], sk.quad_normals, atol=1e-6)
+    q0 = sk.quads[:, 0] - np.array([0.1, -0.2, 0.3])
+    np.testing.assert_allclose(np.einsum("ij,ij->i", whole.data[:, 2, :3], q0) + whole.data[:, 2, 3], 0, atol=1e-5)
