@@ -1,8 +1,12 @@
 """Issue 2 benchmarks: B1 "paper cube", the paper's Fig. 9, B3 "peer" (PoreSpy's voronoi_edges);
 issue 11: B1's lattice kernel on every OpenCL device that works on this machine ("devices");
-issue 13's MC: VTK's flying edges (the mesher) against scikit-image's Lewiner marching cubes.
+issue 13's MC: VTK's flying edges (the mesher) against scikit-image's Lewiner marching cubes;
+issue 13's files ("simplify"): the default cube's mesh simplified by manifold3d at several
+tolerances: triangles, STL and 3MF sizes, printed porosity before and after, the distance between
+the surfaces (exact point-triangle distances, both ways), handles and bodies, times.
 
-    python benchmarks/bench_core.py [--runs 3] [--only devices,b1,fig9,b3,mc]
+    python benchmarks/bench_core.py [--runs 3] [--only devices,b1,fig9,b3,mc,simplify]
+        [--tolerances 0,0.001,0.005,0.0104]
 
 Each figure is the median of --runs runs after a warm-up, each run in a fresh process
 (so its peak memory is its own). 2-core machines are noisy: read the medians.
@@ -176,6 +180,82 @@ _out = {'grid': 'x'.join(map(str, work.shape)), 'flying_edges_s': t1 - t0, 'lewi
 """
 
 
+SIMPLIFY = """
+import os, tempfile, time, zipfile
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold.mesh import mesh_summary, write_mesh
+from implicit_scaffold.simplify import euler_characteristic, simplification_error, simplify_mesh
+r = implicit_scaffold.generate(morphometry=False)  # the default cube, every triangle kept
+mesh, h, patient = r.mesh, r.grid.spacing, r.report['patient_volume_mm3']
+base = mesh_summary(mesh)
+d = tempfile.mkdtemp()
+_out = {{'voxel_mm': h, 'grid': 'x'.join(map(str, r.grid.shape))}}
+for i, tol in enumerate([{tolerances}]):
+    times = []
+    simple = mesh
+    if tol > 0:
+        for _ in range({runs}):
+            t0 = time.perf_counter()
+            simple = simplify_mesh(mesh, tol)
+            times.append(time.perf_counter() - t0)
+    t0 = time.perf_counter()
+    err = simplification_error(mesh, simple, reach=h / 2) if tol > 0 else {{'max_mm': 0.0, 'to_simplified_mm': 0.0,
+                                                                          'to_original_mm': 0.0}}
+    measure_s = time.perf_counter() - t0
+    s = mesh_summary(simple)
+    t0 = time.perf_counter()
+    write_mesh(simple, os.path.join(d, 'm.stl'))
+    stl_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    write_mesh(simple, os.path.join(d, 'm.3mf'))
+    tmf_s = time.perf_counter() - t0
+    with zipfile.ZipFile(os.path.join(d, 'm.3mf')) as z:
+        ok = z.getinfo('3D/3dmodel.model').compress_type == zipfile.ZIP_DEFLATED
+    _out.update({{f't{{i}}_tol': tol, f't{{i}}_triangles': s['triangles'], f't{{i}}_bodies': s['bodies'],
+                 f't{{i}}_watertight': s['watertight'],
+                 f't{{i}}_stl_mb': os.path.getsize(os.path.join(d, 'm.stl')) / 1e6,
+                 f't{{i}}_3mf_mb': os.path.getsize(os.path.join(d, 'm.3mf')) / 1e6, f't{{i}}_deflated': ok,
+                 f't{{i}}_porosity': 1 - s['volume_mm3'] / patient,
+                 f't{{i}}_dporosity_points': 100 * (base['volume_mm3'] - s['volume_mm3']) / patient,
+                 f't{{i}}_max_mm': err['max_mm'], f't{{i}}_to_simplified_mm': err['to_simplified_mm'],
+                 f't{{i}}_to_original_mm': err['to_original_mm'],
+                 f't{{i}}_handles_removed': (euler_characteristic(simple) - euler_characteristic(mesh)) // 2,
+                 f't{{i}}_simplify_s': float(np.median(times)) if times else 0.0,
+                 f't{{i}}_measure_s': measure_s, f't{{i}}_stl_write_s': stl_s, f't{{i}}_3mf_write_s': tmf_s}})
+    del simple
+"""
+
+
+def simplify(runs, tolerances="0,0.001,0.005,0.0104"):
+    tols = [float(t) for t in tolerances.split(",")]
+    load = " ".join(f"{x:.2f}" for x in os.getloadavg())
+    med, _ = median_runs(SIMPLIFY.format(tolerances=", ".join(map(repr, tols)), runs=runs), 1, warmup=0)
+    h = med["voxel_mm"]
+    print(f"\nsimplify: the default cube (grid {med['grid']}, voxel {h:.4f} mm) simplified by manifold3d "
+          f"(Manifold.simplify); simplify time = median of {runs} calls in one process; the other figures are "
+          f"deterministic; load average at start {load}")
+    rows = []
+    for i, tol in enumerate(tols):
+        rows.append([f"{tol:g} ({tol / h:.3f})", med[f"t{i}_triangles"], f"{med[f't{i}_stl_mb']:.1f}",
+                     f"{med[f't{i}_3mf_mb']:.1f}", f"{med[f't{i}_porosity']:.5f}",
+                     f"{med[f't{i}_dporosity_points']:+.4f}",
+                     f"{med[f't{i}_max_mm']:.4f} ({med[f't{i}_max_mm'] / h:.2f})",
+                     f"{med[f't{i}_to_original_mm']:.4f}", med[f"t{i}_handles_removed"], med[f"t{i}_bodies"],
+                     med[f"t{i}_watertight"], f"{med[f't{i}_simplify_s']:.1f}", f"{med[f't{i}_measure_s']:.1f}",
+                     f"{med[f't{i}_stl_write_s']:.1f}", f"{med[f't{i}_3mf_write_s']:.1f}"])
+    print(table(rows, ["tolerance mm (voxels)", "triangles", "STL MB", "3MF MB", "printed porosity",
+                       "porosity moved (points)", "max distance mm (voxels)", "simplified -> original mm",
+                       "handles removed", "bodies", "watertight", "simplify s", "measure s", "STL write s",
+                       "3MF write s"]))
+    print(f"targets: porosity moved < 0.1 points and the surface <= a quarter voxel ({h / 4:.4f} mm): "
+          + "; ".join(f"{t:g}: {'met' if abs(med[f't{i}_dporosity_points']) < 0.1 and med[f't{i}_max_mm'] <= h / 4 else 'NOT met'}"
+                      for i, t in enumerate(tols))
+          + "; default cube under 60 MB: " + "; ".join(
+              f"{t:g}: STL {'met' if med[f't{i}_stl_mb'] < 60 else 'NOT met'}, 3MF "
+              f"{'met' if med[f't{i}_3mf_mb'] < 60 else 'NOT met'}" for i, t in enumerate(tols)))
+
+
 def mc(runs):
     med, _ = median_runs(MC, runs)
     print(f"\nMC: marching cubes of the B1 field (grid {med['grid']}, prepared and tie-broken), same process, "
@@ -251,6 +331,8 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--only", default="devices,b1,fig9,b3,mc")
+    ap.add_argument("--tolerances", default="0,0.001,0.005,0.0104",
+                    help="simplify: the tolerances (mm) to measure, 0 for the mesh as meshed")
     args = ap.parse_args()
     from implicit_scaffold import opencl
 
@@ -258,6 +340,9 @@ def main():
     print(f"load average at start (1, 5, 15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
           f"on {os.cpu_count()} CPUs")
     for name in args.only.split(","):
+        if name.strip() == "simplify":
+            simplify(args.runs, args.tolerances)
+            continue
         {"devices": devices, "b1": b1, "fig9": fig9, "b3": b3, "mc": mc}[name.strip()](args.runs)
 
 

@@ -56,6 +56,7 @@ __all__ = [
     "write_field",
     "write_json",
     "write_mesh",
+    "write_mesh_from_ply",
 ]
 
 #: Mesh file formats :func:`write_mesh` writes, by extension.
@@ -1110,11 +1111,18 @@ def _formatted(fmt: str, rows: np.ndarray, chunk: int = 1 << 16):
 
 
 def _write_obj(vertices, faces, fh) -> None:
+    _write_obj_blocks([vertices], [faces], fh)
+
+
+def _write_obj_blocks(vertex_blocks, face_blocks, fh) -> None:
+    """OBJ from blocks of vertex rows and of face rows (0-based), in order: the bytes do not depend on the blocks."""
     fh.write(b"# written by implicit_scaffold; units: mm\n")
-    for text in _formatted("v %.9g %.9g %.9g\n", vertices):
-        fh.write(text)
-    for text in _formatted("f %d %d %d\n", faces + 1):
-        fh.write(text)
+    for block in vertex_blocks:
+        for text in _formatted("v %.9g %.9g %.9g\n", block):
+            fh.write(text)
+    for block in face_blocks:
+        for text in _formatted("f %d %d %d\n", block + 1):
+            fh.write(text)
 
 
 _CONTENT_TYPES = (
@@ -1140,6 +1148,13 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
 
 
 def _write_3mf(vertices, faces, fh) -> None:
+    _write_3mf_blocks(len(vertices), len(faces), [vertices], [faces], fh)
+
+
+def _write_3mf_blocks(nverts: int, nfaces: int, vertex_blocks, face_blocks, fh) -> None:
+    """3MF from blocks of vertex rows and of face rows, in order: the model XML is deflated as it
+    is formatted, a block at a time, so no more than a block is held; the bytes do not depend
+    on the blocks (zlib is fed one stream, never flushed in between)."""
     head = ('<?xml version="1.0" encoding="UTF-8"?>\n'
             '<model unit="millimeter" xml:lang="en-US" '
             'xmlns="http://schemas.microsoft.com/3dmanufacturing/core/2015/02">\n'
@@ -1147,18 +1162,99 @@ def _write_3mf(vertices, faces, fh) -> None:
     middle = b"</vertices>\n<triangles>\n"
     tail = (b"</triangles>\n</mesh>\n</object>\n</resources>\n"
             b'<build>\n<item objectid="1"/>\n</build>\n</model>\n')
-    large = 64 * len(vertices) + 48 * len(faces) > 2 ** 31
+    large = 64 * nverts + 48 * nfaces > 2 ** 31
     with zipfile.ZipFile(fh, mode="w") as z:
         z.writestr(_zip_entry("[Content_Types].xml"), _CONTENT_TYPES)
         z.writestr(_zip_entry("_rels/.rels"), _RELS)
         with z.open(_zip_entry("3D/3dmodel.model"), mode="w", force_zip64=large) as f:
             f.write(head)
-            for text in _formatted('<vertex x="%.9g" y="%.9g" z="%.9g"/>\n', vertices):
-                f.write(text)
+            for block in vertex_blocks:
+                for text in _formatted('<vertex x="%.9g" y="%.9g" z="%.9g"/>\n', block):
+                    f.write(text)
             f.write(middle)
-            for text in _formatted('<triangle v1="%d" v2="%d" v3="%d"/>\n', faces):
-                f.write(text)
+            for block in face_blocks:
+                for text in _formatted('<triangle v1="%d" v2="%d" v3="%d"/>\n', block):
+                    f.write(text)
             f.write(tail)
+
+
+#: One record of a binary PLY face list as this package writes it: a count byte (3), three int32.
+_PLY_FACE = np.dtype([("n", "u1"), ("v", "<i4", (3,))])
+
+
+def _ply_layout(path) -> tuple[int, int, int]:
+    """``(header bytes, vertices, faces)`` of a binary PLY written by this package (float64
+    x y z, uchar/int face lists); a ScaffoldError for any other layout."""
+    with open(path, "rb") as fh:
+        head = fh.read(4096)
+    end = head.find(b"end_header\n")
+    if not head.startswith(b"ply\n") or end < 0:
+        raise ScaffoldError(f"{path} is not a binary PLY written by implicit_scaffold")
+    nverts = nfaces = None
+    lines = head[:end].decode("ascii", "replace").splitlines()
+    for line in lines:
+        words = line.split()
+        if words[:2] == ["element", "vertex"]:
+            nverts = int(words[2])
+        elif words[:2] == ["element", "face"]:
+            nfaces = int(words[2])
+    expected = ["format binary_little_endian 1.0", "property double x", "property double y", "property double z",
+                "property list uchar int vertex_indices"]
+    if nverts is None or nfaces is None or not all(e in lines for e in expected):
+        raise ScaffoldError(f"{path} is not a binary PLY written by implicit_scaffold")
+    return end + len(b"end_header\n"), nverts, nfaces
+
+
+def write_mesh_from_ply(ply, path, *, block: int = _FACE_CHUNK) -> Path:
+    """Rewrite a binary PLY (as :func:`write_mesh` or :func:`.mesh_stream.write_mesh_slabs`
+    write it) as the mesh format `path` names, a block of rows at a time.
+
+    The file is what :func:`write_mesh` writes for the PLY's vertices and faces, byte for
+    byte, while only one block of ``block`` rows is held (the PLY is memory-mapped), so a
+    mesh larger than the memory can be written as ``.3mf`` or ``.obj``.
+
+    Parameters
+    ----------
+    ply : str or os.PathLike
+    path : str or os.PathLike
+        ``.stl``, ``.ply``, ``.obj`` or ``.3mf``; written atomically.
+    block : int
+        Rows formatted at a time.
+
+    Returns
+    -------
+    pathlib.Path
+    """
+    final = Path(path)
+    ext = _check_format(final, MESH_FORMATS)
+    start, nverts, nfaces = _ply_layout(ply)
+    vertices = np.memmap(ply, dtype="<f8", mode="r", offset=start, shape=(nverts, 3)) if nverts else \
+        np.zeros((0, 3))
+    records = np.memmap(ply, dtype=_PLY_FACE, mode="r", offset=start + 24 * nverts, shape=(nfaces,)) if nfaces \
+        else np.zeros(0, _PLY_FACE)
+
+    def vertex_blocks():
+        for r0 in range(0, nverts, block):
+            yield np.asarray(vertices[r0:r0 + block], dtype=np.float64)
+
+    def face_blocks():
+        for r0 in range(0, nfaces, block):
+            part = records[r0:r0 + block]
+            if not np.all(part["n"] == 3):
+                raise ScaffoldError(f"{ply} holds faces that are not triangles")
+            yield np.asarray(part["v"], dtype=np.int64)
+
+    with atomic_path(final) as tmp, open(tmp, "wb") as fh:
+        if ext == ".3mf":
+            _write_3mf_blocks(nverts, nfaces, vertex_blocks(), face_blocks(), fh)
+        elif ext == ".obj":
+            _write_obj_blocks(vertex_blocks(), face_blocks(), fh)
+        else:  # STL and PLY index the vertices from anywhere: whole arrays (the memory map)
+            v = np.asarray(vertices, dtype=np.float64)
+            f = np.asarray(records["v"], dtype=np.int64)
+            {".stl": _write_stl, ".ply": _write_ply}[ext](v, f, fh)
+    del vertices, records
+    return final
 
 
 def write_field(field, path) -> Path:

@@ -69,6 +69,8 @@ class Params:
     calibration: Any = None
     relax: int = 0
     weighted: bool = False
+    #: mesh simplification tolerance (mm) given to manifold3d; 0 (the default) keeps every triangle
+    tolerance: float = 0.0
 
 
 @dataclass
@@ -163,7 +165,9 @@ def validate(**options) -> Params:
         if not (math.isfinite(widths[name]) and widths[name] >= 0):
             raise ScaffoldError(f"--{name.replace('_', '-')} must be a width >= 0 mm, got {getattr(p, name)!r}")
     graded = _validate_grade(p, seeds, widths)
-    return Params(shape=p.shape, size=p.size, seeds=seeds,
+    from .simplify import check_tolerance
+
+    return Params(tolerance=check_tolerance(p.tolerance), shape=p.shape, size=p.size, seeds=seeds,
                   pore_size=positive_mm("pore-size", p.pore_size, example="0.6"),
                   porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
                   blend=blend, seed=seed,
@@ -257,7 +261,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         lands in ``report["print_check"]``.
     **options
         shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted (see :class:`Params`).
+        remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted, tolerance
+        (see :class:`Params`). ``tolerance`` (mm, default 0: every triangle kept) simplifies
+        the mesh by manifold3d within that tolerance (:mod:`.simplify`); the report's
+        ``simplification`` gives the distance between the surfaces and the porosity it
+        moved, as measured, and a warning says when it moved the surface more than a
+        quarter voxel or the porosity more than 0.1 points.
 
     Returns
     -------
@@ -522,6 +531,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
+    simplify_warnings = []
     if mesh:
         from .mesh import mesh_field, mesh_summary, mesh_volume
 
@@ -546,6 +556,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = float(level + step)
                 report["porosity_voxel"] = 1.0 - int(np.count_nonzero(s < 0)) / n_inside
                 result.mesh = mesh_field(s, grid, check=False)
+        tolerance = _tolerance(params, h)
+        if tolerance > 0:
+            result.mesh, report["simplification"], simplify_warnings = _simplify(
+                result.mesh, tolerance, h, float(patient.volume), prog, int(max_memory))
+        with prog.stage("mesh summary"):
             summary = mesh_summary(result.mesh)
         report.update({
             "triangles": summary["triangles"],
@@ -575,10 +590,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if slices is not None:
         report["slices"] = _write_stack(s, grid, slices, prog)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces])
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
     if out_path is not None:
         with prog.stage("write"):
             write_outputs(result, out_path)
+        report["file_size_bytes"] = out_path.stat().st_size
     from .memory import peak_memory
 
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
@@ -670,6 +686,78 @@ def _mesh_correction(volume: float, patient, params: Params, calibration) -> flo
     if step is not None:
         calibration.update(corrected_by_mm=float(step), printed_before_correction=printed)
     return step
+
+
+#: the simplification may move the printed porosity by this much (a fraction) before a warning
+SIMPLIFY_POROSITY = 0.001
+#: and the surface by this many voxels
+SIMPLIFY_VOXELS = 0.25
+
+
+def _tolerance(params: Params, voxel: float) -> float:
+    """The simplification tolerance of this run, mm (0: none)."""
+    return float(params.tolerance)
+
+
+def _simplify(mesh, tolerance: float, voxel: float, patient_volume: float, prog, max_memory: int):
+    """Simplify `mesh` within `tolerance` (:mod:`.simplify`) and measure what moved.
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+        The simplified mesh, or `mesh` when it would not fit in `max_memory`.
+    info : dict
+        The report's ``simplification``.
+    warnings : list of str
+        Where the measured error exceeds what the default promises.
+    """
+    import manifold3d
+
+    from .mesh import mesh_volume
+    from .memory import process_memory
+    from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE, euler_characteristic, simplification_error, simplify_mesh
+
+    before = len(mesh.faces)
+    info = {"tolerance_mm": float(tolerance), "tolerance_voxels": float(tolerance / voxel),
+            "library": f"manifold3d {getattr(manifold3d, '__version__', '')}".strip(),
+            "triangles_before": int(before)}
+    need = before * SIMPLIFY_BYTES_PER_TRIANGLE + process_memory()
+    if need > max_memory:
+        why = (f"not simplified: {before:,} triangles need about {need / 2**30:.1f} GiB to simplify, over "
+               f"--max-memory {max_memory / 2**30:.1f} GiB; raise --max-memory, or pass --tolerance 0 to say so")
+        return mesh, {**info, "applied": False, "why": why}, [f"the mesh was {why}"]
+    volume_before = mesh_volume(mesh)
+    with prog.stage("simplify", f"tolerance {tolerance:.4g} mm"):
+        simple = simplify_mesh(mesh, tolerance)
+    with prog.stage("simplify check", "distances between the surfaces"):
+        # exact up to half a voxel (and 8 times that for the few points beyond)
+        error = simplification_error(mesh, simple, reach=voxel / 2)
+    volume = mesh_volume(simple)
+    change = (volume_before - volume) / patient_volume
+    info.update({
+        "applied": True,
+        "triangles": int(len(simple.faces)),
+        "porosity_before": 1.0 - volume_before / patient_volume,
+        "porosity_change": change,
+        "max_displacement_mm": error["max_mm"],
+        "max_displacement_voxels": error["max_mm"] / voxel,
+        "original_to_simplified_mm": error["to_simplified_mm"],
+        "simplified_to_original_mm": error["to_original_mm"],
+        # handles (tunnels or struts) the edge collapses removed: half the Euler characteristic's rise
+        "handles_removed": (euler_characteristic(simple) - euler_characteristic(mesh)) // 2,
+        "measured_by": "exact point-triangle distances: every vertex before to the surface after; the vertices, "
+                       "edge midpoints and centroids of the triangles after to the surface before",
+    })
+    found = []
+    if error["max_mm"] > SIMPLIFY_VOXELS * voxel:
+        found.append(f"the simplified surface lies up to {error['max_mm']:.4g} mm ({error['max_mm'] / voxel:.2f} "
+                     "voxels) from the unsimplified one, more than a quarter voxel"
+                     + (f" (manifold3d removed {info['handles_removed']} handles: thin struts or small tunnels)"
+                        if info["handles_removed"] else "") + "; --tolerance 0 keeps every triangle")
+    if abs(change) > SIMPLIFY_POROSITY:
+        found.append(f"the simplification moved the printed porosity by {100 * change:+.2f} points; pass a "
+                     f"smaller --tolerance (e.g. {tolerance / 2:.3g}) or --tolerance 0")
+    return simple, info, found
 
 
 def _printed_kind(params: Params, mesh: bool, slices, *, graded: bool) -> str | None:
@@ -946,17 +1034,21 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                                                                                      scheduler))}
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
+        simplify_warnings = []
         if morphometry:
             report.update(_slab_morphometry(tf, grid, cells, run, prog))
         ext = output_format(out_path) if out_path is not None else None
         if mesh and ext in MESH_FORMATS:
-            with prog.stage("mesh", "streamed to " + out_path.name):
-                summary = _stream_mesh(tf.field, out_path, run, slab_voxels, prog)
+            summary, simplified, simplify_warnings = _stream_mesh(
+                tf.field, out_path, run, slab_voxels, prog, tolerance=_tolerance(params, grid.spacing),
+                voxel=grid.spacing, patient_volume=float(patient.volume))
+            if simplified is not None:
+                report["simplification"] = simplified
             report.update({
                 "triangles": summary["triangles"],
                 "watertight": summary["watertight"],
                 "winding_consistent": summary["winding_consistent"],
-                "bodies": tf.pieces,
+                "bodies": summary.get("bodies", tf.pieces),
                 "mesh_volume_mm3": summary["volume_mm3"],
                 "surface_area_mm2": summary["surface_area_mm2"],
                 "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
@@ -979,9 +1071,11 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
             report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
             report.setdefault("porosity_printed",
                               1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-        report["warnings"] = _check_built(report, params)
+        report["warnings"] = _check_built(report, params, simplify_warnings)
     finally:
         tf.close()
+    if out_path is not None:
+        report["file_size_bytes"] = out_path.stat().st_size
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
     if report.get("mesh_workers", 1) > 1:
         # the mesh stage's worker processes: the largest one's peak (two run at once)
@@ -995,22 +1089,36 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                   field=None, patient_sdf=None, patient=patient, timings=prog.timings, tiled=tf.slabs)
 
 
-#: bytes per triangle of a whole mesh held to write it as .obj or .3mf (float64 vertices,
-#: int64 faces, about half as many vertices as triangles, and the reader's copies)
+#: bytes per triangle of a whole mesh read back from the streamed PLY to simplify it (float64
+#: vertices, int64 faces, about half as many vertices as triangles, and the reader's copies)
 WHOLE_MESH_BYTES_PER_TRIANGLE = 96
 
 
-def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -> dict:
-    """Mesh a tiled run's field into `out_path`: STL and PLY streamed; OBJ and 3MF, which are
-    written whole, through a streamed PLY when the whole mesh fits in --max-memory, else the
-    streamed STL beside it (with a warning)."""
-    import warnings
+def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *, tolerance: float, voxel: float,
+                 patient_volume: float):
+    """Mesh a tiled run's field into `out_path` slab by slab, in bounded memory.
 
-    from .errors import ScaffoldWarning
-    from .mesh import write_mesh
-    from .mesh_stream import write_mesh_slabs
+    Without simplification, STL and PLY are streamed straight to the file, and OBJ and 3MF
+    are formatted a block at a time from a streamed PLY (:func:`.mesh.write_mesh_from_ply`:
+    the 3MF's model XML is deflated into the zip as it is written). With a tolerance, the
+    streamed PLY is read back whole and simplified when that fits in --max-memory, else
+    written as it is, with a warning.
+
+    Returns
+    -------
+    summary : dict
+        As :func:`.mesh_stream.write_mesh_slabs` gives it, or :func:`.mesh.mesh_summary`'s
+        of the simplified mesh (with ``workers``).
+    simplification : dict or None
+        The report's ``simplification`` (None without a tolerance).
+    warnings : list of str
+    """
+    import os
+
+    from .mesh import mesh_summary, write_mesh, write_mesh_from_ply
     from .memory import process_memory, release
-    from .mesh_stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel
+    from .mesh_stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel, write_mesh_slabs
+    from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE
 
     # marching cubes holds more per voxel than the field passes did, the more the denser the
     # surface (and two slabs may be in flight); the plan kept room for its thinnest slab
@@ -1018,23 +1126,42 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog) -
     thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
     slab_voxels = run.forced_voxels or min(slab_voxels, max(thinnest, int((run.max_memory - release()) // per_voxel)))
     ext = output_format(out_path)
-    if ext in (".stl", ".ply"):
-        return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+    if tolerance <= 0 and ext in (".stl", ".ply"):
+        with prog.stage("mesh", "streamed to " + out_path.name):
+            return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh")), None, []
     staged = out_path.with_name(f".{out_path.name}.tmp-mesh.ply")
     try:
-        summary = write_mesh_slabs(field, staged, max_voxels=slab_voxels, progress=prog.bar("mesh"))
-        need = summary["triangles"] * WHOLE_MESH_BYTES_PER_TRIANGLE + process_memory()
-        if need > run.max_memory:
-            fallback = out_path.with_suffix(".stl")
-            warnings.warn(f"{ext} is written whole and {summary['triangles']:,} triangles need about "
-                          f"{need / 2**30:.1f} GiB, over --max-memory {run.max_memory / 2**30:.1f} GiB: wrote "
-                          f"the streamed {fallback.name} instead; raise --max-memory for {ext}",
-                          ScaffoldWarning, stacklevel=4)
-            return write_mesh_slabs(field, fallback, max_voxels=slab_voxels, progress=prog.bar("mesh"))
-        import trimesh
+        with prog.stage("mesh", "streamed to " + staged.name):
+            summary = write_mesh_slabs(field, staged, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+        info, found = None, []
+        if tolerance > 0:
+            import trimesh
 
-        write_mesh(trimesh.load(staged, file_type="ply", process=False), out_path)
-        return summary
+            need = summary["triangles"] * (WHOLE_MESH_BYTES_PER_TRIANGLE + SIMPLIFY_BYTES_PER_TRIANGLE) \
+                + process_memory()
+            if need <= run.max_memory:
+                whole = trimesh.load(staged, file_type="ply", process=False)
+                simple, info, found = _simplify(whole, tolerance, voxel, patient_volume, prog, run.max_memory)
+                del whole
+                if info["applied"]:
+                    with prog.stage("mesh summary"):
+                        summary = {**mesh_summary(simple), "workers": summary.get("workers", 1)}
+                    with prog.stage("write"):
+                        write_mesh(simple, out_path)
+                    return summary, info, found
+            else:
+                why = (f"not simplified: {summary['triangles']:,} triangles need about {need / 2**30:.1f} GiB to "
+                       f"read back and simplify, over --max-memory {run.max_memory / 2**30:.1f} GiB; raise "
+                       "--max-memory, or pass --tolerance 0 to say so")
+                info = {"tolerance_mm": float(tolerance), "tolerance_voxels": float(tolerance / voxel),
+                        "triangles_before": int(summary["triangles"]), "applied": False, "why": why}
+                found = [f"the mesh was {why}"]
+        with prog.stage("write"):
+            if ext == ".ply":
+                os.replace(staged, out_path)
+            else:
+                write_mesh_from_ply(staged, out_path)
+        return summary, info, found
     finally:
         staged.unlink(missing_ok=True)
 

@@ -382,6 +382,46 @@ def test_3mf_has_fixed_dates_and_no_uuid(small_mesh, tmp_path):
     assert b'unit="millimeter"' in model
 
 
+def test_3mf_round_trips_and_is_deflated(small_mesh, tmp_path):
+    import xml.etree.ElementTree as ET
+
+    p = write_mesh(small_mesh, tmp_path / "s.3mf")
+    with zipfile.ZipFile(p) as z:
+        info = z.getinfo("3D/3dmodel.model")
+        model = z.read("3D/3dmodel.model")
+    # deflated, and well: repetitive XML shrinks several times over
+    assert info.compress_type == zipfile.ZIP_DEFLATED and info.compress_size < info.file_size / 3
+    # read back with the standard library's XML parser, not trimesh's 3MF loader
+    ns = {"m": "http://schemas.microsoft.com/3dmanufacturing/core/2015/02"}
+    root = ET.fromstring(model)
+    v = np.array([[float(e.get(k)) for k in "xyz"] for e in root.iterfind(".//m:vertex", ns)])
+    f = np.array([[int(e.get(k)) for k in ("v1", "v2", "v3")] for e in root.iterfind(".//m:triangle", ns)])
+    assert np.array_equal(f, np.asarray(small_mesh.faces))
+    # 9 significant digits
+    np.testing.assert_allclose(v, np.asarray(small_mesh.vertices), rtol=1e-8, atol=1e-12)
+
+
+@pytest.mark.parametrize("ext", MESH_FORMATS)
+def test_formats_from_a_ply_a_block_at_a_time_are_write_mesh_bytes(small_mesh, tmp_path, ext):
+    from implicit_scaffold.mesh import write_mesh_from_ply
+
+    ply = write_mesh(small_mesh, tmp_path / "m.ply")
+    whole = write_mesh(small_mesh, tmp_path / f"whole{ext}")
+    # blocks of 7 rows: neither the vertices nor the faces divide into them
+    blocks = write_mesh_from_ply(ply, tmp_path / f"blocks{ext}", block=7)
+    assert blocks.read_bytes() == whole.read_bytes()
+
+
+def test_from_ply_refuses_another_layout(tmp_path):
+    from implicit_scaffold.mesh import write_mesh_from_ply
+
+    other = tmp_path / "o.ply"
+    trimesh.creation.box().export(other, encoding="ascii")
+    with pytest.raises(ScaffoldError, match="not a binary PLY written by implicit_scaffold"):
+        write_mesh_from_ply(other, tmp_path / "o.3mf")
+    assert not (tmp_path / "o.3mf").exists()
+
+
 def test_stl_header_is_fixed_binary_text(small_mesh, tmp_path):
     data = write_mesh(small_mesh, tmp_path / "s.stl").read_bytes()
     assert not data.startswith(b"solid")  # would make readers take it for ASCII STL

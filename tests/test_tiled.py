@@ -225,15 +225,42 @@ def test_tiled_mesh_is_streamed_closed_and_of_the_whole_grid_volume(tmp_path, ex
     assert rep["peak_memory_mb"] > 0
 
 
-def test_a_tiled_3mf_is_the_streamed_mesh_written_whole(tmp_path):
+@pytest.mark.parametrize("ext", [".3mf", ".obj"])
+def test_a_tiled_3mf_or_obj_is_streamed_with_no_fallback(tmp_path, ext, monkeypatch):
+    import zipfile
+
     import trimesh
 
-    rep = generate(output=tmp_path / "t.3mf", morphometry=False, tiled=20 * PLANE, **SMALL).report
+    from implicit_scaffold import pipeline
+
+    # were the mesh held whole anywhere, this would show it: no whole-mesh reader is called
+    monkeypatch.setattr(trimesh, "load", lambda *a, **k: pytest.fail("the tiled mesh was read back whole"))
+    rep = generate(output=tmp_path / f"t{ext}", morphometry=False, tiled=20 * PLANE, **SMALL).report
+    monkeypatch.undo()
+    assert rep["tiled"]["slabs"] >= 4 and not rep["warnings"]
     whole = generate(output=tmp_path / "w.stl", morphometry=False, tiled=False, **SMALL).report
-    loaded = trimesh.load(tmp_path / "t.3mf", force="mesh")
-    assert len(loaded.faces) == rep["triangles"] == whole["triangles"]
+    loaded = trimesh.load(tmp_path / f"t{ext}", force="mesh", process=True)
+    assert loaded.is_watertight and len(loaded.faces) == rep["triangles"] == whole["triangles"]
     assert loaded.volume == pytest.approx(whole["mesh_volume_mm3"], rel=1e-6)
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.3mf", "t.json", "w.json", "w.stl"]
+    assert rep["file_size_bytes"] == (tmp_path / f"t{ext}").stat().st_size
+    if ext == ".3mf":
+        with zipfile.ZipFile(tmp_path / "t.3mf") as z:
+            assert z.getinfo("3D/3dmodel.model").compress_type == zipfile.ZIP_DEFLATED
+    # nothing left beside the outputs (the streamed PLY is gone)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([f"t{ext}", "t.json", "w.json", "w.stl"])
+    assert pipeline.WHOLE_MESH_BYTES_PER_TRIANGLE > 0
+
+
+def test_a_tiled_run_simplifies_when_the_mesh_fits(tmp_path):
+    import trimesh
+
+    rep = generate(output=tmp_path / "t.3mf", morphometry=False, tiled=20 * PLANE, tolerance=0.008, **SMALL).report
+    s = rep["simplification"]
+    assert s["applied"] and s["triangles"] == rep["triangles"] < s["triangles_before"]
+    loaded = trimesh.load(tmp_path / "t.3mf", force="mesh", process=True)
+    assert loaded.is_watertight and len(loaded.faces) == rep["triangles"]
+    assert loaded.volume == pytest.approx(rep["mesh_volume_mm3"], rel=1e-6)
+    assert rep["porosity_mesh"] == pytest.approx(1 - loaded.volume / 27.0, abs=1e-6)
 
 
 def test_a_refused_budget_names_one_that_works_and_the_run_keeps_it(tmp_path):
