@@ -53,7 +53,7 @@ out = os.path.join(tempfile.mkdtemp(), 'femur_shaft.stl')
 """
 
 
-def run_isolated(code: str, timeout: float = 1800) -> dict:
+def run_isolated(code: str, timeout: float = 3600) -> dict:
     """Run `code` in a fresh interpreter; it must print one JSON line last. Adds ``peak_rss_mb``.
 
     A fresh process per run makes the peak memory (``ru_maxrss``) that run's own.

@@ -305,8 +305,9 @@ def _add_build_options(g) -> None:
                     help="exit with code 3 (after writing everything) when the certificate fails")
     rg = g.add_argument_group("memory and cluster")
     rg.add_argument("--max-memory", default=None, metavar="SIZE",
-                    help="memory the run may hold, e.g. 4G or 800M (default: 80%% of the free memory); a grid "
-                         "that does not fit whole is built in slabs and streamed to the output, same bytes")
+                    help="memory the run may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
+                         "less); a grid that does not fit whole is built in slabs and streamed to the output, same "
+                         "bytes; a budget too small is refused before the work, naming one that would do")
     rg.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the slabs on a dask.distributed scheduler (tcp://host:8786); same bytes out")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")

@@ -46,7 +46,7 @@ BAD = [
     (["--size", "0"], "--size must be one or three positive lengths"),
     (["--voxel", "0"], "--voxel must be a positive number"),
     (["--voxel", "-0.1"], "--voxel must be a positive number"),
-    (["--voxel", "0.0004"], "GiB but only"),
+    (["--voxel", "0.0004"], "or use a larger --voxel"),
     (["--porosity", "80"], "fraction, not a percentage"),
     (["--pore-size", "0"], "--pore-size must be a positive"),
     (["--style", "struts", "--porosity", "none"], "solves the strut radius"),
