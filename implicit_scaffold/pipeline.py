@@ -973,14 +973,16 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
     """The voxel measures of a tiled run, slab by slab (:func:`~.morphometry.morphometry_by_slabs`):
     the whole grid's keys, meanings and figures.
 
-    The local thickness's halo starts at the widest cell (its volume's sphere diameter),
-    which bounds the largest sphere in the void (a pore and its channels lie within its
-    cell and the windows' necks); the measure widens it where that falls short.
+    The local thickness's halo starts at the 99th percentile of the cells' sphere diameters
+    (the widest pores are about their cells' size); the measure widens it wherever a voxel
+    reads a thickness above it, so the figures are exact whatever the start.
     """
     from .memory import release
     from .morphometry import SLAB_MORPHOMETRY_BYTES_PER_VOXEL, morphometry_by_slabs
 
-    halo = int(math.ceil(float((6 * np.max(cells.volumes) / math.pi) ** (1 / 3)) / grid.spacing))
+    # the widest pore is about the widest cell's sphere; a patient's surface cells run to the box's
+    # walls, so the 99th percentile starts it, and the measure widens the halo where that falls short
+    halo = int(math.ceil(float((6 * np.percentile(cells.volumes, 99) / math.pi) ** (1 / 3)) / grid.spacing))
     if run.forced_voxels:
         # slabs of the size asked for, with room for the halo widened twice
         max_voxels = run.forced_voxels + 8 * halo * grid.shape[1] * grid.shape[2]
