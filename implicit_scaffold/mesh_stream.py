@@ -208,7 +208,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
                             f"by size; got {workers!r}")
     # slabs of cube layers (nx - 1 of them), each reading _AHEAD planes past its last
     # layer and none before: a two-sided halo of half that keeps it within max_voxels
-    slabs = plan_slabs((nx - 1, ny, nz), max_voxels=max_voxels, halo=MESH_HALO_PLANES)
+    slabs = plan_slabs((nx - 1, ny, nz), max_voxels=max_voxels, halo=(_AHEAD + 1) // 2)
     spec = _worker_source(source)
     if workers is None:
         # a second slab in flight only where it fits in the memory free now (a safety net:

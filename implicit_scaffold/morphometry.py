@@ -543,7 +543,7 @@ def morphometry(solid, voxel: float, *, region=None, surface_area_mm2: float | N
 SLAB_MORPHOMETRY_BYTES_PER_VOXEL = 28
 
 
-def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo: int,
+def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo: int, planes: int | None = None,
                          progress=None) -> dict:
     """:func:`morphometry`'s voxel measures of the solid ``source < 0`` within the region
     ``patient < 0``, read slab by slab: the same figures as on the whole grid.
@@ -571,6 +571,9 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         Voxels a slab may read, its halo included.
     halo : int
         Planes of halo to start with (e.g. from the largest cell); widened as needed.
+    planes : int, optional
+        Planes each slab owns, whatever its halo (by default as many as `max_voxels` leaves
+        beside the halo).
     progress : callable(done, total), optional
 
     Returns
@@ -586,13 +589,13 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
     plane = ny * nz
 
     def ranges(width):
-        owned = max(1, int(max_voxels) // plane - 2 * width)
+        owned = int(planes) if planes else max(1, int(max_voxels) // plane - 2 * width)
         return [(x0, min(x0 + owned, nx)) for x0 in range(0, nx, owned)]
 
     halo = max(1, int(halo))
     out: dict = {}
     while True:
-        if (1 + 2 * halo) * plane > max_voxels and nx > 1 + 2 * halo:
+        if not planes and (1 + 2 * halo) * plane > max_voxels and nx > 1 + 2 * halo:
             # the thinnest slab with its halo does not fit: the topology is still measured
             out["morphometry"] = (f"strut thickness and pore diameter not measured: a slab with its halo of {halo} "
                                   f"planes needs {(1 + 2 * halo) * plane * SLAB_MORPHOMETRY_BYTES_PER_VOXEL / 2**30:.2f}"

@@ -983,14 +983,12 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
     # the widest pore is about the widest cell's sphere; a patient's surface cells run to the box's
     # walls, so the 99th percentile starts it, and the measure widens the halo where that falls short
     halo = int(math.ceil(float((6 * np.percentile(cells.volumes, 99) / math.pi) ** (1 / 3)) / grid.spacing))
-    if run.forced_voxels:
-        # slabs of the size asked for, with room for the halo widened twice
-        max_voxels = run.forced_voxels + 8 * halo * grid.shape[1] * grid.shape[2]
-    else:
-        max_voxels = max(1, max(0, run.max_memory - release()) // SLAB_MORPHOMETRY_BYTES_PER_VOXEL)
+    max_voxels = max(1, max(0, run.max_memory - release()) // SLAB_MORPHOMETRY_BYTES_PER_VOXEL)
+    # slabs of the size asked for (tiled=<voxels>), whatever the halo
+    planes = max(1, run.forced_voxels // (grid.shape[1] * grid.shape[2])) if run.forced_voxels else None
     with prog.stage("metrics", "by slabs"):
         found = morphometry_by_slabs(tf.field, tf.patient, grid.spacing, max_voxels=max_voxels, halo=halo,
-                                     progress=prog.bar("metrics"))
+                                     planes=planes, progress=prog.bar("metrics"))
     found.pop("morphometry_halo_planes", None)
     return found
 

@@ -299,7 +299,7 @@ def test_morphometry_by_slabs_gives_the_whole_grid_figures(planes, halo):
     whole = M.morphometry(s < 0, grid.spacing, region=s_p < 0, surface=False)
     plane = grid.shape[1] * grid.shape[2]
     got = M.morphometry_by_slabs(ArraySlabs(s, grid), ArraySlabs(s_p, grid), grid.spacing,
-                                 max_voxels=planes * plane, halo=halo)
+                                 max_voxels=planes * plane, halo=halo, planes=planes)
     halo_used = got.pop("morphometry_halo_planes")
     whole.pop("porosity_voxel")
     # twice the widest sphere's radius, in planes, whatever the halo it started from

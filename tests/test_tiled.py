@@ -99,7 +99,7 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
     from implicit_scaffold.patient_mesh import MeshPatient
     import trimesh
 
-    with pytest.raises(ScaffoldError, match=r"pass --max-memory \d+M or more"):
+    with pytest.raises(ScaffoldError, match=r"pass --max-memory [\d.]+[MG] or more"):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
     with pytest.raises(ScaffoldError, match="instead of .zarr"):
         generate(output=tmp_path / "a.zarr", tiled=True, **SMALL)
