@@ -425,13 +425,18 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
         source = SkeletonSource(cells, params.sf, params.sv)
         primitives = max(packed_bytes(cells=cells), source.bytes_near(-np.inf, np.inf))
+        # a skeleton that takes little of the budget is built once, whole (the slabs then
+        # skip building their own); a larger one slab by slab
+        whole = primitives <= WHOLE_SKELETON_SHARE * run.max_memory
         # the cut-off is not known yet: a cell's span is wider than any the lattice reads
         span = float(np.median(cells.volumes)) ** (1 / 3)
         slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25)),
-                               reserve=primitives, slab_share=primitives,
-                               slab_bytes=lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span)))
-        with prog.stage("skeleton", "whole" if slab_voxels is None else "slab by slab"):
-            skeleton = scaled_skeleton(cells, params.sf, params.sv) if slab_voxels is None else source
+                               reserve=primitives, slab_share=0 if whole else primitives,
+                               slab_bytes=None if whole else
+                               (lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span))))
+        whole = whole or slab_voxels is None
+        with prog.stage("skeleton", "whole" if whole else "slab by slab"):
+            skeleton = scaled_skeleton(cells, params.sf, params.sv) if whole else source
     else:
         with prog.stage("skeleton"):
             edges = voronoi_edges(cells)
@@ -874,6 +879,9 @@ def _paper_count(params: Params, patient, box_volume: float) -> int:
                       params.pore_size)
 
 
+#: a tiled run builds the whole skeleton once when it (and its packed primitives) take at
+#: most this share of --max-memory, else slab by slab
+WHOLE_SKELETON_SHARE = 0.25
 #: a refusal names this much more than the estimate of the smallest budget: the estimate
 #: before the cells are built is short of the one after by what the process grows
 SMALLEST_MARGIN = 1.1
@@ -998,6 +1006,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                     morphometry: bool = True, seed_solve=None) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
     from .memory import peak_memory
+    from .patient import SHAPES
     from .tiled import runner_for, sample_slabs, tiled_scaffold
 
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
@@ -1019,6 +1028,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
+                            patient_pieces=not isinstance(patient, tuple(SHAPES.values())),
                             fill_sealed_voids=params.fill_sealed_voids, printed=search,
                             prog=prog, skin=params.skin, smooth_cut=params.smooth_cut)
     finally:

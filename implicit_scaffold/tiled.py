@@ -321,7 +321,8 @@ def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patien
 def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
                    max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
-                   printed=None, skin: float = 0.0, smooth_cut: float = 0.0) -> TiledField:
+                   printed=None, skin: float = 0.0, smooth_cut: float = 0.0,
+                   patient_pieces: bool = True) -> TiledField:
     """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
 
     Parameters
@@ -352,6 +353,9 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     skin, smooth_cut : float, mm
         As in :func:`~implicit_scaffold.field.scaffold_field`: voxel by voxel, from the
         patient's distance of the same voxel, so they need no halo.
+    patient_pieces : bool
+        Find the patient's pieces across slabs, each keeping its own main body; False for a
+        patient known to be in one piece (a primitive), which saves a labelling pass.
 
     Returns
     -------
@@ -388,7 +392,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         with prog.stage("scaffold"):
             solid, fragments, pieces, patient_pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
                                                       remove_fragments, prog.bar("scaffold"), skin=skin,
-                                                      smooth_cut=smooth_cut)
+                                                      smooth_cut=smooth_cut, patient_pieces=patient_pieces)
             sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
             if fill_sealed_voids:
                 solid += sealed[1]
@@ -405,8 +409,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
-                   remove: bool, progress, *, skin: float = 0.0,
-                   smooth_cut: float = 0.0) -> tuple[int, int | None, int, int]:
+                   remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
+                   patient_pieces: bool = True) -> tuple[int, int | None, int, int]:
     """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
 
     Each piece of the patient keeps its own main body, as
@@ -418,6 +422,7 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     -------
     solid, fragments (None when not removed), bodies, patient pieces
     """
+    by_piece = patient_pieces
     pieces, patient_pieces = SlabComponents(), SlabComponents()
     where = []  # per slab: the patient label (local) of each solid label (local)
     solid = 0
@@ -427,15 +432,17 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         field.write(slab.x0, s)
         inside = s < 0
         labels = pieces.add(inside)
-        patient_labels = patient_pieces.add(s_p < 0)
-        piece_of = np.zeros(int(labels.max(initial=0)) + 1, np.int64)
-        piece_of[labels[inside]] = patient_labels[inside]
-        where.append(piece_of)
+        if by_piece:
+            patient_labels = patient_pieces.add(s_p < 0)
+            piece_of = np.zeros(int(labels.max(initial=0)) + 1, np.int64)
+            piece_of[labels[inside]] = patient_labels[inside]
+            where.append(piece_of)
+            del patient_labels
         solid += int(np.count_nonzero(inside))
-        del s, s_p, labels, patient_labels, inside
+        del s, s_p, labels, inside
         if progress is not None:
             progress(done, 2 * len(slabs) if remove else len(slabs))
-    n_patient = patient_pieces.finish() + 1
+    n_patient = patient_pieces.finish() + 1 if by_piece else 1
     found = pieces.finish()
     if n_patient > 1 and found:
         group = np.full(pieces.labels, -1, np.int64)

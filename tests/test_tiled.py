@@ -38,6 +38,21 @@ def test_tiled_field_is_the_whole_grid_field_bit_for_bit(tmp_path, style):
             rep[("surface_offset_mm" if style == "paper" else "strut_radius_mm")]
 
 
+def test_a_skeleton_built_slab_by_slab_gives_the_whole_grid_bytes(tmp_path, monkeypatch):
+    """A skeleton too large for its share of the budget is built slab by slab from the cells that
+    reach each slab (SkeletonSource): the same bytes as the whole skeleton's."""
+    from implicit_scaffold import pipeline
+    from implicit_scaffold.skeleton import SkeletonSource
+
+    whole, _ = _run(tmp_path, "whole.npy", tiled=False)
+    monkeypatch.setattr(pipeline, "WHOLE_SKELETON_SHARE", 0.0)
+    for planes in (3, 17):
+        r = generate(output=tmp_path / f"t{planes}.npy", mesh=False, morphometry=False,
+                     tiled=(planes + 8) * PLANE, **SMALL)
+        assert isinstance(r.skeleton, SkeletonSource) and r.report["tiled"]["slabs"] > 2
+        assert (tmp_path / f"t{planes}.npy").read_bytes() == whole, f"slabs of {planes} planes"
+
+
 def test_kept_fragments_and_no_porosity_target(tmp_path):
     whole, rep = _run(tmp_path, "w.npy", porosity="none", remove_fragments=False, tiled=False)
     tiled, trep = _run(tmp_path, "t.npy", porosity="none", remove_fragments=False, tiled=12 * PLANE)
