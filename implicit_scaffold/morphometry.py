@@ -619,12 +619,15 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         halo = max(2 * halo, int(math.ceil(max(strut.max_voxels, pore.max_voxels))) + 2)
     out["strut_thickness_mm"] = None if strut is None else strut.stats()
     out["pore_diameter_mm"] = None if pore is None else pore.stats()
-    spans = ranges(0)
-    out["euler_characteristic"] = euler_characteristic_by_slabs(source, spans)
     solids, opens = SlabComponents(), SlabComponents()
-    n_region = 0
-    for x0, x1 in spans:
-        solid = source.read(x0, x1) < 0
+    n_region = chi = 0
+    for x0, x1 in ranges(0):
+        # one read serves the Euler characteristic (with the plane before the slab, as
+        # euler_characteristic_by_slabs counts it) and the pieces (the owned planes)
+        lo = max(x0 - 1, 0)
+        both = source.read(lo, x1) < 0
+        chi += euler_characteristic(both) - (euler_characteristic(both[:1]) if lo < x0 else 0)
+        solid = both[x0 - lo:]
         region = patient.read(x0, x1) < 0
         n_region += int(np.count_nonzero(region))
         solids.add(solid)
@@ -632,7 +635,8 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         opens.add(~solid, opens=~region & ~solid, tally=region & ~solid)
     if n_region == 0:
         raise ScaffoldError("the region holds no voxel; nothing to measure")
-    out["connectivity_density_per_mm3"] = (1 - out["euler_characteristic"]) / (n_region * h ** 3)
+    out["euler_characteristic"] = chi
+    out["connectivity_density_per_mm3"] = (1 - chi) / (n_region * h ** 3)
     opens.finish()
     reached, total = opens.open_tally()
     out["interconnected_porosity"] = reached / total if total else None
