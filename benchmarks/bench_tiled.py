@@ -1,6 +1,6 @@
 """Issue 5 benchmarks: fine and large grids in bounded memory (tiled runs).
 
-    python benchmarks/bench_tiled.py [--only b2,b5,scaling,femur,femur-fine,femur-fine-slices,ct] [--runs 3]
+    python benchmarks/bench_tiled.py [--only b2,b5,scaling,femur,femur-fine,femur-fine-slices,femur-graded,ct] [--runs 3]
                                      [--warmup 0] [--no-figure] [--write]
 
 - B2 "fine pores": the 10 mm cube, pore size 0.5 mm, porosity 0.8 (12,223 seeds), voxel
@@ -16,7 +16,8 @@
 
 - femur, femur-fine, ct (issue 12, need ../shared/data): the 20 mm femoral shaft of
   ``jigsaw_femur.stl`` at 0.05 mm with the defaults (the default budget, 4 GiB), at 0.02 mm
-  (about 1.7 G voxels) to STL (femur-fine) and to a PNG stack (femur-fine-slices), and the CT label of
+  (about 1.7 G voxels) to STL (femur-fine) and to a PNG stack (femur-fine-slices), graded
+  (``--grade 0:0.3,2:0.8``) with a 0.3 mm skin at 0.03 mm to STL (femur-graded), and the CT label of
   ``totalseg_example_seg.nii.gz`` (label 31, L1) at 0.1 mm with the voxel morphometry.
 
 Every run is a fresh process (its peak resident memory is its own), on this machine's
@@ -169,6 +170,11 @@ def main(argv=None) -> int:
         print(f"femur 0.02 {kind}: {m['seconds']:.1f} s, {m['seconds'] / (m['voxels'] / 1e9):.0f} s per 10^9 "
               f"voxels (target 160), peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4)",
               flush=True)
+    if "femur-graded" in only:
+        m = run("femoral shaft graded 0:0.3,2:0.8, skin 0.3 mm, at 0.03 mm -> STL",
+                dict(grade="0:0.3,2:0.8", skin=0.3, porosity=0.7, voxel=0.03), patient=femur)
+        print(f"femur graded: {m['seconds']:.1f} s, peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB "
+              f"(target 4), {m['slabs']} slabs; stages {m['stages']}", flush=True)
     if "ct" in only:
         label = (str(DATA / "totalseg_example_seg.nii.gz"), {"label": 31})
         for name, pore in (("L1 (CT label 31) at 0.1 mm, 0.8 mm pores, morphometry", 0.8),):

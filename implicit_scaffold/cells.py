@@ -131,7 +131,7 @@ CELLS_BYTES_PER_SEED = 4 * 1024
 
 
 def check_seed_memory(n: int, pore_size: float | None = None, available: int | None = None, *,
-                      chunked: bool = True) -> int:
+                      chunked: bool = True, seeds_given: bool = True) -> int:
     """Raise a :class:`ScaffoldError` before building cells for more seeds than memory holds.
 
     Parameters
@@ -145,6 +145,9 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     chunked : bool
         Whether the cells can be built in chunks (seeds that fill their box); seeds drawn
         in a patient are built at once (:func:`_voro_cells`).
+    seeds_given : bool
+        Whether the count came from ``--seeds`` (a refusal then suggests fewer); a graded
+        run's count comes from its pore-size field.
 
     Returns
     -------
@@ -163,10 +166,17 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
             raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.2f} GiB to build their cells, beyond what "
                                 f"this run holds already: pass --max-memory {format_size(process_memory() + need)} "
                                 "or more")
+        from .memory import format_size, process_memory
+
+        most = have // (BYTES_PER_SEED + CELLS_BYTES_PER_SEED)
+        if chunked and most > 2 * CHUNK_SEEDS:
+            most = (have - 2 * CHUNK_SEEDS * BYTES_PER_SEED) // CELLS_BYTES_PER_SEED
         fix = (f"use a larger --pore-size (e.g. {pore_size * (need / have) ** (1 / 3) * 1.1:.3g} mm)"
-               if pore_size else f"use fewer --seeds (at most {int(have / CELLS_BYTES_PER_SEED) // 2:,})")
+               if pore_size else f"use fewer --seeds (at most {max(2, int(most)):,})" if seeds_given
+               else "use larger pores")
         raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "
-                            f"{have / 2**30:.1f} GiB is free within --max-memory; {fix}")
+                            f"{have / 2**30:.1f} GiB is free within --max-memory; pass --max-memory "
+                            f"{format_size(process_memory() + need)} or more, or {fix}")
     return need
 
 

@@ -678,9 +678,14 @@ def _grade_line(g: dict) -> str:
     if filled:
         text += (f"; pore size (polyhedron-sphere) {prof['pore_size_mm'][filled[0]]:.3g} mm at the surface, "
                  f"{prof['pore_size_mm'][filled[-1]]:.3g} mm deepest")
-    miss = [abs(p - t) for p, t in zip(prof["porosity"], prof["porosity_target"]) if p is not None]
+    below = g.get("below_skin")
+    skin = below["depth_mm"] if below else 0.0
+    # a bin that reaches into the skin is solid there whatever the offset: it is left out
+    miss = [abs(p - t) for lo, p, t in zip(prof["edges_mm"], prof["porosity"], prof["porosity_target"])
+            if p is not None and lo >= skin]
     if miss and "offset" in g:
-        text += f"; porosity within {100 * max(miss):.2g} points of its target in every depth bin"
+        text += (f"; porosity within {100 * max(miss):.2g} points of its target in every depth bin"
+                 + (f" below the {skin:g} mm skin (there {below['porosity']:.4f})" if below else ""))
     return text
 
 

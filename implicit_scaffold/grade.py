@@ -14,10 +14,12 @@ an offset field and the profiles of the report:
   for the count, and honoured in expectation by rejection sampling against the field on
   a fine grid; optional Lloyd relaxation (:func:`lloyd_relax`) narrows the spread of
   the cells' sizes while keeping the density;
-- **offset** (:func:`level_plan`, :func:`solve_level_field`, :func:`apply_level`): the
+- **offset** (:func:`level_plan`, :func:`solve_level_field`, :func:`shift_planes`): the
   surface offset becomes a field, piecewise linear in a coordinate (the depth, or the
   target pore size or porosity), whose value at each bin centre is the per-bin quantile
-  of the lattice field that meets that bin's porosity;
+  of the lattice field that meets that bin's porosity; found by passes over chunks of
+  planes, so that the whole grid in memory and a tiled run's slabs on disk take the
+  same steps;
 - **profiles** (:func:`profiles`): porosity and mean pore size per depth bin and along
   the patient's longest axis, measured beside their targets.
 
@@ -605,36 +607,124 @@ def power_radii(density: SeedDensity, seeds) -> np.ndarray:
 
 
 # --- offset field -------------------------------------------------------------------
+#
+# One solver for every size: the offset is found from passes over the patient's and the
+# lattice's planes, a chunk of planes at a time, so the whole grid in memory and a tiled
+# run's fields on disk (:class:`~.tiles.FieldFile`) take the same steps and get the same
+# offsets bit for bit, whatever the slabs.
+
+#: planes are visited in chunks of about this many voxels when the fields are in memory
+CHUNK_VOXELS = 8_000_000
+
+
+def _chunks(grid: Grid, slabs=None) -> list:
+    """The slabs to visit: `slabs` as given (their owned planes), else chunks of the grid."""
+    from .tiles import Slab
+
+    if slabs is not None:
+        return list(slabs)
+    step = max(1, CHUNK_VOXELS // max(1, grid.shape[1] * grid.shape[2]))
+    return [Slab(x0, min(x0 + step, grid.shape[0]), x0, min(x0 + step, grid.shape[0]))
+            for x0 in range(0, grid.shape[0], step)]
+
+
+def _reader(source) -> Callable[[int, int], np.ndarray]:
+    """Planes ``[x0, x1)`` of an array (a view), an ArraySlabs (a view) or a FieldFile (read)."""
+    if isinstance(source, np.ndarray):
+        return lambda x0, x1: source[x0:x1]
+    held = getattr(source, "field", None)
+    if isinstance(held, np.ndarray):
+        return lambda x0, x1: held[x0:x1]
+    return source.read
+
 
 @dataclass(frozen=True)
-class LevelPlan:
-    """What the offset field needs from the patient, computed once per run.
+class BandPlanes:
+    """The band voxels of a chunk of planes and their targets (C order).
 
     Attributes
     ----------
-    coordinate : str
-        ``depth``, ``pore_size`` or ``porosity``.
-    band : (nx, ny, nz) bool ndarray
-        Voxels whose offset matters: the patient and one layer around it.
+    mask : (x1 - x0, ny, nz) bool ndarray
+        Voxels whose offset matters: the patient and two voxels around it.
     coord : (m,) float32 ndarray
-        The coordinate at the band's voxels (C order).
+        The offset's coordinate at the band's voxels (depth mm, pore size mm or porosity).
     inside : (m,) bool ndarray
-        Which band voxels lie in the patient.
+        Band voxels the bins count: in the patient, below any skin.
     porosity : (m,) float32 ndarray
-        Target porosity at the band's voxels.
     pore_size : (m,) float32 ndarray, mm
-        Target pore size at the band's voxels.
-    edges : (b + 1,) float64 ndarray
-        Bins of the coordinate, each holding at least :data:`MIN_BIN_VOXELS` patient voxels.
     """
 
-    coordinate: str
-    band: np.ndarray
+    mask: np.ndarray
     coord: np.ndarray
     inside: np.ndarray
     porosity: np.ndarray
     pore_size: np.ndarray
+
+
+def band_planes(field: GradeField, s_p: np.ndarray, grid: Grid, x0: int, skin: float = 0.0) -> BandPlanes:
+    """The band of the patient planes `s_p` (the grid's planes from `x0`) and its targets.
+
+    Parameters
+    ----------
+    field : GradeField
+    s_p : (x1 - x0, ny, nz) float32 ndarray, mm
+    grid : Grid
+    x0 : int
+    skin : float, mm
+        Voxels shallower than this are solid skin: the bins leave them out.
+    """
+    h = grid.spacing
+    mask = s_p < np.float32(2 * h)
+    s = s_p[mask]
+    inside = s < np.float32(-skin) if skin > 0 else s < 0
+    depth = -s
+    if field.kind == "depth":
+        # the depth alone decides: no need for the voxels' coordinates
+        size = field.profile(depth).astype(np.float32)
+        por = np.full(len(depth), field.porosity, np.float32)
+    else:
+        idx = np.argwhere(mask)
+        idx[:, 0] += x0
+        size, por = field.targets(np.asarray(grid.origin) + idx * h, depth)
+        size, por = size.astype(np.float32), por.astype(np.float32)
+    coord = {"depth": depth.astype(np.float32, copy=False), "pore_size": size, "porosity": por}[field.coordinate]
+    return BandPlanes(mask, coord, inside, por, size)
+
+
+@dataclass(frozen=True)
+class LevelPlan:
+    """The bins of the offset field: what it needs from the patient, found once per run.
+
+    Attributes
+    ----------
+    field : GradeField
+    grid : Grid
+    edges : (b + 1,) float64 ndarray
+        Bins of the coordinate, each holding at least :data:`MIN_BIN_VOXELS` patient voxels.
+    skin : float, mm
+        The bins count the patient's voxels deeper than this (the skin's are solid).
+    porosity_mean : float
+        The target porosity's mean over the voxels the bins count.
+    """
+
+    field: GradeField
+    grid: Grid
     edges: np.ndarray
+    skin: float = 0.0
+    porosity_mean: float = 0.0
+
+    @property
+    def coordinate(self) -> str:
+        return self.field.coordinate
+
+    def band(self, s_p: np.ndarray, x0: int) -> BandPlanes:
+        """:func:`band_planes` of a chunk of patient planes."""
+        return band_planes(self.field, s_p, self.grid, x0, self.skin)
+
+    def bin_of(self, coord: np.ndarray) -> np.ndarray:
+        """Each coordinate's bin (0-based, int32)."""
+        nb = len(self.edges) - 1
+        return np.clip(np.searchsorted(self.edges, coord, side="right") - 1, 0, nb - 1).astype(np.int32)
 
 
 @dataclass(frozen=True)
@@ -665,21 +755,20 @@ class LevelField:
         return float(np.max(np.abs(self.levels))) if style == "paper" else float(np.max(self.levels))
 
 
-def _band_points(grid: Grid, band: np.ndarray, x0: int, x1: int) -> np.ndarray:
-    idx = np.argwhere(band[x0:x1])
-    idx[:, 0] += x0
-    return np.asarray(grid.origin) + idx * grid.spacing
-
-
-def _bins(coord: np.ndarray, width: float, min_count: int) -> np.ndarray:
-    """Equal-width bins of `coord`, merged with their neighbours until each holds `min_count`."""
-    lo, hi = float(coord.min()), float(coord.max())
+def _equal_bins(lo: float, hi: float, width: float) -> np.ndarray:
+    """Equal-width edges over ``[lo, hi]``, the last just above `hi`; two for a single value."""
     if hi - lo <= 1e-9 * max(1.0, abs(hi)):
         return np.array([lo - 0.5, hi + 0.5])
     n = max(1, int(math.ceil((hi - lo) / width)))
     edges = np.linspace(lo, hi, n + 1)
     edges[-1] = np.nextafter(hi, np.inf)
-    counts = np.histogram(coord, edges)[0]
+    return edges
+
+
+def _merge_bins(edges: np.ndarray, counts: np.ndarray, min_count: int) -> np.ndarray:
+    """`edges` with each bin merged into the next until it holds `min_count`."""
+    if len(edges) == 2:
+        return np.asarray(edges, np.float64)
     keep = [edges[0]]
     acc = 0
     for e, c in zip(edges[1:], counts):
@@ -694,65 +783,83 @@ def _bins(coord: np.ndarray, width: float, min_count: int) -> np.ndarray:
     return np.asarray(keep, np.float64)
 
 
-def level_plan(field: GradeField, patient_sdf: np.ndarray, grid: Grid) -> LevelPlan:
-    """The coordinate, the targets and the bins of the offset field on the run's grid.
+def _bins(coord: np.ndarray, width: float, min_count: int) -> np.ndarray:
+    """Equal-width bins of `coord`, merged with their neighbours until each holds `min_count`."""
+    edges = _equal_bins(float(coord.min()), float(coord.max()), width)
+    return _merge_bins(edges, np.histogram(coord, edges)[0], min_count)
+
+
+def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: float = 0.0) -> LevelPlan:
+    """The bins of the offset field on the run's grid, from two passes over the patient.
 
     Parameters
     ----------
     field : GradeField
-    patient_sdf : (nx, ny, nz) float32 ndarray, mm
+    patient_sdf : (nx, ny, nz) float32 ndarray or FieldFile, mm
     grid : Grid
+    slabs : list of Slab, optional
+        Visit these planes (a tiled run's slabs); by default chunks of the grid.
+    skin : float, mm
+        The skin's (and the smooth cut's) depth: its voxels are solid or cut whatever the
+        offset, so the bins meet their porosity on the voxels below it.
 
     Returns
     -------
     LevelPlan
     """
-    h = grid.spacing
-    band = patient_sdf < np.float32(2 * h)
-    s = patient_sdf[band]
-    inside = s < 0
-    depth = -s
-    if field.kind == "depth":
-        # the depth alone decides: no need for the voxels' coordinates
-        size = field.profile(depth).astype(np.float32)
-        por = np.full(len(depth), field.porosity, np.float32)
-    else:
-        sizes, pors = [], []
-        rows = max(1, 2_000_000 // (grid.shape[1] * grid.shape[2]))
-        start = 0
-        for x0 in range(0, grid.shape[0], rows):
-            x1 = min(x0 + rows, grid.shape[0])
-            pts = _band_points(grid, band, x0, x1)
-            size, por = field.targets(pts, depth[start:start + len(pts)])
-            start += len(pts)
-            sizes.append(size.astype(np.float32))
-            pors.append(por.astype(np.float32))
-        size = np.concatenate(sizes)
-        por = np.concatenate(pors)
-    coord = {"depth": depth.astype(np.float32), "pore_size": size, "porosity": por}[field.coordinate]
+    read, chunks = _reader(patient_sdf), _chunks(grid, slabs)
+    lo, hi, count, por_sum = np.inf, -np.inf, 0, 0.0
+    for sl in chunks:
+        b = band_planes(field, read(sl.x0, sl.x1), grid, sl.x0, skin)
+        c = b.coord[b.inside]
+        if c.size:
+            lo, hi = min(lo, float(c.min())), max(hi, float(c.max()))
+            count += c.size
+            por_sum += float(np.sum(b.porosity[b.inside], dtype=np.float64))
+    if count == 0:
+        return LevelPlan(field, grid, np.array([0.0, 1.0]), float(skin), float(field.porosity))
     if field.coordinate == "depth":
-        width = max(2 * h, 0.5 * float(min(field.profile.sizes)))
+        width = max(2 * grid.spacing, 0.5 * float(min(field.profile.sizes)))
     else:
-        c = coord[inside]
-        width = (float(c.max()) - float(c.min())) / 24 if c.size else 1.0
-    edges = _bins(coord[inside], width, MIN_BIN_VOXELS) if inside.any() else np.array([0.0, 1.0])
-    return LevelPlan(field.coordinate, band, coord, inside, por, size, edges)
+        width = (hi - lo) / 24
+    edges = _equal_bins(lo, hi, width)
+    counts = np.zeros(len(edges) - 1, np.int64)
+    if len(edges) > 2:
+        for sl in chunks:
+            b = band_planes(field, read(sl.x0, sl.x1), grid, sl.x0, skin)
+            counts += np.histogram(b.coord[b.inside], edges)[0]
+    return LevelPlan(field, grid, _merge_bins(edges, counts, MIN_BIN_VOXELS), float(skin), por_sum / count)
 
 
-def solve_level_field(base: np.ndarray, plan: LevelPlan, iterations: int = 6,
-                      tolerance: float = LEVEL_TOLERANCE_MM) -> LevelField:
+def _sampled(index: np.ndarray, fraction: float) -> np.ndarray:
+    """Which of the voxels of global flat `index` fall in a deterministic sample of about
+    `fraction` of them: a multiplicative hash of the index, so the sample is the same
+    whichever slabs the voxels come in."""
+    if fraction >= 1:
+        return np.ones(index.shape, bool)
+    hashed = (index.astype(np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(32)
+    return hashed < np.uint64(int(fraction * 2**32))
+
+
+def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterations: int = 6,
+                      tolerance: float = LEVEL_TOLERANCE_MM, progress=None) -> LevelField:
     """The offset field whose solid ``base < L(x)`` meets each bin's porosity.
 
-    Each bin's offset starts as the quantile of the lattice field over the bin's patient
-    voxels (as :func:`~implicit_scaffold.field.solve_level` for the whole patient); the
-    offset between bin centres is linear in the coordinate, so a few passes correct each
-    bin by the quantile of ``base - L(x)`` until the nodes stop moving.
+    The offset is linear in the coordinate between the bins' centres. Its nodes start at
+    zero and settle by passes that move each node by the quantile of ``base - L(x)`` that
+    meets its bin's solid count: first on a deterministic sample of about
+    :data:`LEVEL_SAMPLE_VOXELS` of the bins' voxels (the same whatever the slabs), then by
+    one or two exact passes over all of them, each an exact order statistic per bin
+    (:class:`~.tiles.GroupQuantile`) over the slabs.
 
     Parameters
     ----------
-    base : (nx, ny, nz) float32 ndarray, mm
+    base : (nx, ny, nz) float32 ndarray or FieldFile, mm
         The (blended) lattice field.
+    patient_sdf : (nx, ny, nz) float32 ndarray or FieldFile, mm
     plan : LevelPlan
+    slabs : list of Slab, optional
+        As for :func:`level_plan`.
     iterations : int
         At most this many passes.
     tolerance : float, mm
@@ -762,30 +869,80 @@ def solve_level_field(base: np.ndarray, plan: LevelPlan, iterations: int = 6,
     -------
     LevelField
     """
+    from .tiles import GroupQuantile
+
+    grid = plan.grid
+    read_base, read_patient, chunks = _reader(base), _reader(patient_sdf), _chunks(grid, slabs)
     nb = len(plan.edges) - 1
-    # the patient's voxels sorted by bin (a radix sort of 16-bit bin numbers): each bin is then
-    # one segment; float32 keeps this at about 20 bytes per patient voxel
-    which = np.clip(np.searchsorted(plan.edges, plan.coord[plan.inside], side="right") - 1, 0, nb - 1)
-    which = which.astype(np.int16 if nb < 32000 else np.int32)
-    order = np.argsort(which, kind="stable")
-    which = which[order]
-    vals = base[plan.band][plan.inside][order]
-    coord = plan.coord[plan.inside][order]
-    share = 1.0 - plan.porosity[plan.inside][order]
-    del order
+    nodes = (plan.edges[:-1] + plan.edges[1:]) / 2
+    plane = grid.shape[1] * grid.shape[2]
+
+    def visit():
+        # each chunk's bin voxels: their lattice values, coordinates, bins, shares and flat indices
+        for sl in chunks:
+            s_p = read_patient(sl.x0, sl.x1)
+            b = plan.band(s_p, sl.x0)
+            keep = b.inside
+            vals = read_base(sl.x0, sl.x1)[b.mask][keep]
+            yield sl, b, keep, vals, b.coord[keep]
+
+    counts = np.zeros(nb, np.int64)
+    shares = np.zeros(nb)
+    for _, b, keep, _, coord in visit():
+        which = plan.bin_of(coord)
+        counts += np.bincount(which, minlength=nb)
+        shares += np.bincount(which, weights=1.0 - b.porosity[keep].astype(np.float64), minlength=nb)
+    total = int(counts.sum())
+    if total == 0:
+        return LevelField(plan.coordinate, nodes, np.zeros(nb), 0.0)
+    fraction = LEVEL_SAMPLE_VOXELS / total
+    parts = []
+    for sl, b, keep, vals, coord in visit():
+        index = (np.flatnonzero(b.mask)[keep] + sl.x0 * plane).astype(np.int64)
+        pick = _sampled(index, fraction)
+        parts.append((vals[pick], coord[pick], plan.bin_of(coord[pick]),
+                      1.0 - b.porosity[keep][pick].astype(np.float64), index[pick]))
+    vals, coord, which, share, index = (np.concatenate([p[i] for p in parts]) for i in range(5))
+    del parts
+    order = np.lexsort((index, which))
+    vals, coord, which, share = vals[order], coord[order], which[order], share[order]
+    del order, index
+    # each node at its bin's mean coordinate, over the sample (in the sample's order, which no
+    # slab decides): the bins' voxels are not spread evenly (fewer deeper in), so the midpoint
+    # would set the offset off the voxels it serves
     bounds = np.concatenate([[0], np.cumsum(np.bincount(which, minlength=nb))])
     nodes = np.array([coord[bounds[b]:bounds[b + 1]].mean(dtype=np.float64) if bounds[b + 1] > bounds[b]
-                      else (plan.edges[b] + plan.edges[b + 1]) / 2 for b in range(nb)])
-    levels = np.zeros(nb)
-    # the nodes settle on every few-th voxel of each bin (a systematic sample, deterministic),
-    # then one or two passes over all of them make each bin's count exact again
-    stride = max(1, int(math.ceil(len(vals) / LEVEL_SAMPLE_VOXELS)))
-    if stride > 1:
-        levels = _settle(vals[::stride], coord[::stride], which[::stride], share[::stride], nb, nodes, levels,
-                         iterations, tolerance)
-    levels = _settle(vals, coord, which, share, nb, nodes, levels, iterations if stride == 1 else 2, tolerance)
-    mean = float(np.mean(np.interp(coord, nodes, levels)))
-    return LevelField(plan.coordinate, nodes, levels, mean)
+                      else nodes[b] for b in range(nb)])
+    levels = _settle(vals, coord, which, share, nb, nodes, np.zeros(nb), iterations, tolerance)
+    del vals, coord, which, share
+    if fraction < 1:
+        # the exact passes: each bin's solid count over all its voxels
+        solid = np.rint(shares).astype(np.int64)
+        for _ in range(2):
+            quantile = GroupQuantile(nb)
+
+            def shifted(coord, vals):
+                return vals - np.interp(coord, nodes, levels).astype(np.float32)
+
+            for _, _, _, vals, coord in visit():
+                quantile.count(shifted(coord, vals), plan.bin_of(coord))
+            full = solid >= counts
+            ranks = np.where(solid <= 0, 0, np.where(full, counts - 1, solid - 1))
+            ranks = np.stack([ranks, np.where((solid <= 0) | full, ranks, solid)], axis=1)
+            quantile.select(np.maximum(ranks, 0))
+            for _, _, _, vals, coord in visit():
+                quantile.refine(shifted(coord, vals), plan.bin_of(coord))
+            below, above = quantile.values().T
+            step = np.where(counts == 0, 0.0, np.where(solid <= 0, below - 1e-6, np.where(
+                full, above + 1e-6, below + (above - below) / 2)))
+            levels = levels + step
+            if np.max(np.abs(step)) < tolerance:
+                break
+    total_level = 0.0
+    for sl in chunks:
+        b = plan.band(read_patient(sl.x0, sl.x1), sl.x0)
+        total_level += float(np.sum(np.interp(b.coord[b.inside], nodes, levels)))
+    return LevelField(plan.coordinate, nodes, levels, total_level / total)
 
 
 def _settle(vals, coord, which, share, nb: int, nodes, levels, iterations: int, tolerance: float) -> np.ndarray:
@@ -815,21 +972,36 @@ def _settle(vals, coord, which, share, nb: int, nodes, levels, iterations: int, 
     return levels
 
 
-def apply_level(base: np.ndarray, plan: LevelPlan, level: LevelField) -> np.ndarray:
-    """``base - L(x)`` in place over the band (beyond it the patient cut decides alone)."""
-    base[plan.band] -= level(plan.coord)
+def shift_planes(base: np.ndarray, s_p: np.ndarray, x0: int, plan: LevelPlan, level: LevelField) -> np.ndarray:
+    """``base - L(x)`` in place over the band of a chunk of planes (beyond it the patient cut
+    decides alone); `base` and `s_p` are the grid's planes from `x0`."""
+    b = plan.band(s_p, x0)
+    base[b.mask] -= level(b.coord)
+    return base
+
+
+def apply_level(base: np.ndarray, patient_sdf: np.ndarray, plan: LevelPlan, level: LevelField) -> np.ndarray:
+    """:func:`shift_planes` over the whole grid in memory, a chunk of planes at a time."""
+    for sl in _chunks(plan.grid):
+        shift_planes(base[sl.x0:sl.x1], patient_sdf[sl.x0:sl.x1], sl.x0, plan, level)
     return base
 
 
 # --- profiles for the report ----------------------------------------------------------
 
-def _profile(coord_vox, solid_vox, target_por, target_size, coord_seeds, sizes, expected, edges) -> dict:
+def _profile_sums(coord_vox, solid_vox, target_por, target_size, edges) -> np.ndarray:
+    """``(4, b)`` per bin: voxels, solid voxels, target porosity and target pore size sums."""
     nb = len(edges) - 1
     which = np.clip(np.searchsorted(edges, coord_vox, side="right") - 1, 0, nb - 1)
-    nvox = np.bincount(which, minlength=nb).astype(np.float64)
-    nsolid = np.bincount(which, weights=solid_vox.astype(np.float64), minlength=nb)
-    tpor = np.bincount(which, weights=target_por, minlength=nb)
-    tsize = np.bincount(which, weights=target_size, minlength=nb)
+    return np.stack([np.bincount(which, minlength=nb).astype(np.float64),
+                     np.bincount(which, weights=solid_vox.astype(np.float64), minlength=nb),
+                     np.bincount(which, weights=target_por, minlength=nb),
+                     np.bincount(which, weights=target_size, minlength=nb)])
+
+
+def _profile(sums, coord_seeds, sizes, expected, edges) -> dict:
+    nb = len(edges) - 1
+    nvox, nsolid, tpor, tsize = sums
     cw = np.clip(np.searchsorted(edges, coord_seeds, side="right") - 1, 0, nb - 1)
     inb = (coord_seeds >= edges[0]) & (coord_seeds <= edges[-1])
     ncell = np.bincount(cw[inb], minlength=nb).astype(np.float64)
@@ -851,64 +1023,99 @@ def _profile(coord_vox, solid_vox, target_por, target_size, coord_seeds, sizes, 
     }
 
 
-def profiles(s: np.ndarray, plan: LevelPlan, grid: Grid, cells, sv: float, field: GradeField,
-             patient_sdf: np.ndarray, *, axis: int | None = None, bins: int = 24) -> dict:
+def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *, axis: int | None = None,
+             bins: int = 24, slabs=None, below: float = 0.0) -> dict:
     """Porosity and mean pore size against depth and along an axis, beside their targets.
 
-    Porosity is measured on the voxels (``1 - solid / patient`` per bin); pore size is the
-    mean polyhedron-sphere diameter of the cells whose seed lies in the bin, beside the
-    mean target ``Dp`` of the bin's voxels and the polyhedron-sphere size expected for
-    the targets at the seeds (:func:`polyhedron_sphere_expected`).
+    Porosity is measured on the voxels (``1 - solid / patient`` per bin, the skin
+    included); pore size is the mean polyhedron-sphere diameter of the cells whose seed
+    lies in the bin, beside the mean target ``Dp`` of the bin's voxels and the
+    polyhedron-sphere size expected for the targets at the seeds
+    (:func:`polyhedron_sphere_expected`). Three passes over the planes (the range, the
+    depth bins' counts, the sums), so a tiled run's fields on disk give the figures
+    of the whole grid.
 
     Parameters
     ----------
-    s : (nx, ny, nz) float32 ndarray, mm
+    s : (nx, ny, nz) float32 ndarray or FieldFile, mm
         The scaffold field (negative in the solid).
-    plan : LevelPlan
     grid : Grid
     cells : Cells
     sv : float
     field : GradeField
-    patient_sdf : (nx, ny, nz) float32 ndarray, mm
+    patient_sdf : (nx, ny, nz) float32 ndarray or FieldFile, mm
     axis : int, optional
         Default: the grid's longest axis.
     bins : int
         Bins along the axis (and at most this many times two in depth).
+    slabs : list of Slab, optional
+        As for :func:`level_plan`.
+    below : float, mm
+        A skin's depth: the porosity of the voxels deeper than it is measured too.
 
     Returns
     -------
     dict
-        ``{"depth": {...}, "axis": {...}, "axis_name": "z"}``, each profile with
+        ``{"depth": {...}, "axis": {...}, "axis_name": "z", "below": {...}}``, each profile with
         ``edges_mm``, ``porosity``, ``porosity_target``, ``pore_size_mm``,
-        ``pore_size_target_mm``, ``pore_size_expected_mm``, ``voxels``, ``cells``.
+        ``pore_size_target_mm``, ``pore_size_expected_mm``, ``voxels``, ``cells``; with
+        `below`, ``below`` is ``{"depth_mm", "voxels", "porosity", "porosity_target"}``.
     """
-    from .field import sample
     from .metrics import pore_sizes
+    from .tiled import sample_slabs
+    from .tiles import ArraySlabs
 
-    inside = plan.inside
-    solid = (s[plan.band] < 0)[inside]
-    tpor = plan.porosity[inside].astype(np.float64)
-    tsize = plan.pore_size[inside].astype(np.float64)
-    seed_sdf = sample(patient_sdf, grid, cells.seeds).astype(np.float64)
+    read_s, read_patient, chunks = _reader(s), _reader(patient_sdf), _chunks(grid, slabs)
+    axis = int(np.argmax(grid.shape)) if axis is None else int(axis)
+
+    def visit():
+        for sl in chunks:
+            s_p = read_patient(sl.x0, sl.x1)
+            b = band_planes(field, s_p, grid, sl.x0)
+            if axis != 0:
+                idx = np.nonzero(b.mask)[axis][b.inside]
+            else:
+                idx = np.nonzero(b.mask)[0][b.inside] + sl.x0
+            yield sl, b, -s_p[b.mask][b.inside].astype(np.float64), grid.origin[axis] + idx * grid.spacing
+
+    seeds_from = patient_sdf if not isinstance(patient_sdf, np.ndarray) else ArraySlabs(patient_sdf, grid)
+    seed_sdf = sample_slabs(seeds_from, grid, cells.seeds).astype(np.float64)
     seed_in = seed_sdf < 0
     d_cells = pore_sizes(cells, sv)[seed_in]
     sp, sporo = field.targets(cells.seeds[seed_in], -seed_sdf[seed_in])
     expected = polyhedron_sphere_expected(sp, sporo, sv)
-    depth_vox = -patient_sdf[plan.band][inside].astype(np.float64)
-    dmax = float(depth_vox.max())
-    width = max(2 * grid.spacing, dmax / (2 * bins))
+    dlo, dhi, alo, ahi = np.inf, -np.inf, np.inf, -np.inf
+    for _, _, depth, along in visit():
+        if depth.size:
+            dlo, dhi = min(dlo, float(depth.min())), max(dhi, float(depth.max()))
+            alo, ahi = min(alo, float(along.min())), max(ahi, float(along.max()))
+    if not np.isfinite(dlo):
+        dlo = dhi = alo = ahi = 0.0
+    width = max(2 * grid.spacing, dhi / (2 * bins))
     if field.kind == "depth":
         width = max(width, 0.5 * float(min(field.profile.sizes)))
+    depth_edges = _equal_bins(dlo, dhi, width)
+    counts = np.zeros(len(depth_edges) - 1, np.int64)
+    for _, _, depth, _ in visit():
+        counts += np.histogram(depth, depth_edges)[0]
     # bins too thin to count reliably (the deepest, near the core's axis) join their neighbours
-    edges = _bins(depth_vox, width, MIN_BIN_VOXELS)
-    out = {"depth": _profile(depth_vox, solid, tpor, tsize, -seed_sdf[seed_in], d_cells, expected, edges)}
-    axis = int(np.argmax(grid.shape)) if axis is None else int(axis)
-    shape = [1, 1, 1]
-    shape[axis] = grid.shape[axis]
-    index = np.broadcast_to(np.arange(grid.shape[axis], dtype=np.int32).reshape(shape), grid.shape)
-    along = grid.origin[axis] + index[plan.band][inside] * grid.spacing
-    lo, hi = float(along.min()) - grid.spacing / 2, float(along.max()) + grid.spacing / 2
-    edges = np.linspace(lo, hi, bins + 1)
-    out["axis"] = _profile(along, solid, tpor, tsize, cells.seeds[seed_in, axis], d_cells, expected, edges)
-    out["axis_name"] = "xyz"[axis]
+    depth_edges = _merge_bins(depth_edges, counts, MIN_BIN_VOXELS)
+    axis_edges = np.linspace(alo - grid.spacing / 2, ahi + grid.spacing / 2, bins + 1)
+    depth_sums, axis_sums, deep = 0.0, 0.0, np.zeros(3)
+    for sl, b, depth, along in visit():
+        solid = (read_s(sl.x0, sl.x1)[b.mask] < 0)[b.inside]
+        tpor, tsize = b.porosity[b.inside].astype(np.float64), b.pore_size[b.inside].astype(np.float64)
+        depth_sums = depth_sums + _profile_sums(depth, solid, tpor, tsize, depth_edges)
+        axis_sums = axis_sums + _profile_sums(along, solid, tpor, tsize, axis_edges)
+        if below > 0:
+            # as the offset's bins count them (band_planes): the patient's distance below -skin
+            under = (-depth).astype(np.float32) < np.float32(-below)
+            deep += [np.count_nonzero(under), np.count_nonzero(solid[under]), float(np.sum(tpor[under]))]
+    out = {"depth": _profile(depth_sums, -seed_sdf[seed_in], d_cells, expected, depth_edges),
+           "axis": _profile(axis_sums, cells.seeds[seed_in, axis], d_cells, expected, axis_edges),
+           "axis_name": "xyz"[axis]}
+    if below > 0:
+        out["below"] = {"depth_mm": float(below), "voxels": int(deep[0]),
+                        "porosity": float(1 - deep[1] / deep[0]) if deep[0] else None,
+                        "porosity_target": float(deep[2] / deep[0]) if deep[0] else None}
     return out

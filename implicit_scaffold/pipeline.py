@@ -203,9 +203,6 @@ def _validate_grade(p: Params, seeds, widths: dict) -> dict:
         return {"grade": None, "calibration": None, "relax": 0, "weighted": False}
     if seeds is not None:
         raise ScaffoldError("a graded scaffold takes its seed count from the pore-size field; drop --seeds")
-    if widths["skin"] > 0 or widths["smooth_cut"] > 0:
-        raise ScaffoldError("--skin and --smooth-cut are not available with a graded scaffold yet; drop them "
-                            "or drop --grade/--calibration")
     return {"grade": grade, "calibration": calibration, "relax": relax, "weighted": weighted}
 
 
@@ -313,10 +310,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     max_memory = budget(max_memory)
     graded = params.grade is not None or params.calibration is not None
-    # the patient as the fine grid reads it: beyond the skin and smooth-cut widths only its sign
-    # matters, so a mesh's far field is clamped there and computed slab by slab; a graded run
-    # reads the depth below the surface far inside, so it keeps the whole-grid far field
-    fine_patient = patient if graded else clamp_far_field(patient, params.skin + params.smooth_cut)
+    # the patient as the fine grid reads it: beyond the skin and smooth-cut widths (and a
+    # depth grade's deepest node) only its sign matters, so a mesh's far field is clamped there
+    # and computed slab by slab, the same on the whole grid as in slabs
+    fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
     run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
     prog = Progress(verbose)
     if getattr(patient, "load_seconds", None) is not None:
@@ -353,13 +350,13 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         span = (seed_volume / n) ** (1 / 3)
         halo = blend_halo(params.voxel, params.blend if params.blend is not None else (1 - params.sv) * span)
         run.plan(Grid.covering(lo, hi, params.voxel), halo=halo if params.style == "paper" else 0,
-                 reserve=n * HELD_BYTES_PER_SEED,
+                 reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
                  slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
     from .memory import process_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
                       available=min(max_memory - process_memory(), available_memory()),
-                      chunked=params.seeds_in == "box" and not graded)
+                      chunked=params.seeds_in == "box" and not graded, seeds_given=params.seeds is not None)
     # solve the seed count for the measured pore size: the Poisson-Voronoi estimate above, then
     # corrected for what the cells measure (cells cut by the box walls are smaller)
     solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
@@ -431,7 +428,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         # the cut-off is not known yet: a cell's span is wider than any the lattice reads
         span = float(np.median(cells.volumes)) ** (1 / 3)
         slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25)),
-                               reserve=primitives, slab_share=0 if whole else primitives,
+                               reserve=primitives + (GRADE_RESERVE if graded else 0),
+                               slab_share=0 if whole else primitives,
                                slab_bytes=None if whole else
                                (lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span))))
         whole = whole or slab_voxels is None
@@ -441,17 +439,15 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         with prog.stage("skeleton"):
             edges = voronoi_edges(cells)
         # planned once the edges are held, so that the memory they take is not also given to the slabs
-        slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges))
-    if slab_voxels is not None and graded:
-        raise ScaffoldError("a graded scaffold is built on the whole grid, which does not fit in --max-memory "
-                            "here; use a larger --voxel or raise --max-memory")
+        slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + (GRADE_RESERVE if graded else 0))
     if slab_voxels is not None and printer is not None:
         raise ScaffoldError("the print certificate (--printer) is measured on the whole grid, which does not fit "
                             "in --max-memory here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
                                window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
-                               seed_solve=tried or None)
+                               seed_solve=tried or None,
+                               grade=(gfield, density, empty_power_cells if weighted else None) if graded else None)
     with prog.stage("patient"):
         s_p = eval_patient(fine_patient, grid)
         inside = s_p < 0
@@ -461,7 +457,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     plan = level_field = None
     if graded and (params.porosity is not None or gfield.kind == "ct"):
         with prog.stage("grade", "offset bins"):
-            plan = grading.level_plan(gfield, s_p, grid)
+            plan = grading.level_plan(gfield, s_p, grid, skin=params.skin + params.smooth_cut)
     h = grid.spacing
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
     calibration = None
@@ -476,7 +472,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 base = blend_field(base, h, k)
         with prog.stage("offset"):
             if plan is not None:
-                level_field = grading.solve_level_field(base, plan)
+                level_field = grading.solve_level_field(base, s_p, plan)
                 level = level_field.reach(params.style)
             else:
                 level = 0.0 if params.porosity is None else solve_level_cut(
@@ -500,7 +496,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     cells_in = sample(s_p, grid, cells.seeds) < 0
     with prog.stage("scaffold"):
         if level_field is not None:
-            base = grading.apply_level(base, plan, level_field)
+            base = grading.apply_level(base, s_p, plan, level_field)
         s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin,
                            smooth_cut=params.smooth_cut, out=base)
         del base
@@ -611,8 +607,22 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     return result
 
 
-def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, grid: Grid, cells) -> dict:
-    """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`)."""
+def _grade_reach(grade) -> float:
+    """How deep (mm) a grade reads the patient's distance: a depth profile's deepest node plus
+    its widest pore (the depth bins beyond are one); 0 for the others (they read positions)."""
+    from .grade import GradeProfile
+
+    if isinstance(grade, GradeProfile):
+        return float(max(grade.depths)) + float(max(grade.sizes))
+    return 0.0
+
+
+def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, grid: Grid, cells,
+                  slabs=None) -> dict:
+    """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`).
+
+    `s` and `s_p` are arrays, or a tiled run's fields on disk with its `slabs`.
+    """
     from .grade import profiles
 
     out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)",
@@ -631,12 +641,13 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
         key = "surface_offset_mm" if params.style == "paper" else "strut_radius_mm"
         out[key] = level_field.mean_inside
         if gfield.kind == "ct":
-            out["porosity_target"] = float(np.mean(plan.porosity[plan.inside], dtype=np.float64))
-    if plan is None:
-        from .grade import level_plan
-
-        plan = level_plan(gfield, s_p, grid)
-    info["profiles"] = profiles(s, plan, grid, cells, params.sv, gfield, s_p)
+            out["porosity_target"] = plan.porosity_mean
+    below = params.skin + params.smooth_cut
+    info["profiles"] = profiles(s, grid, cells, params.sv, gfield, s_p, slabs=slabs, below=below)
+    if below > 0:
+        # the skin is solid and the smooth cut takes what it takes: the grade's porosity is
+        # met by the voxels below them, which the offset's bins count
+        info["below_skin"] = info["profiles"].pop("below")
     out["grade"] = info
     return out
 
@@ -879,6 +890,10 @@ def _paper_count(params: Params, patient, box_volume: float) -> int:
                       params.pore_size)
 
 
+#: bytes a graded run holds beside the slabs: the seeding grid, the offset's sample of
+#: :data:`~.grade.LEVEL_SAMPLE_VOXELS` voxels with its sort, and the per-bin histograms of
+#: :class:`~.tiles.GroupQuantile` (1.5 MiB a bin)
+GRADE_RESERVE = 320 * 2**20
 #: a tiled run builds the whole skeleton once when it (and its packed primitives) take at
 #: most this share of --max-memory, else slab by slab
 WHOLE_SKELETON_SHARE = 0.25
@@ -1003,16 +1018,20 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
 
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
                     wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
-                    morphometry: bool = True, seed_solve=None) -> Result:
-    """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs."""
+                    morphometry: bool = True, seed_solve=None, grade=None) -> Result:
+    """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs.
+
+    `grade` is a graded run's ``(GradeField, SeedDensity, empty power cells or None)``.
+    """
     from .memory import peak_memory
     from .patient import SHAPES
     from .tiled import runner_for, sample_slabs, tiled_scaffold
+    from .tiles import Slab
 
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
     runner = runner_for(scheduler)
-    printed, calibration = _printed_kind(params, mesh, run.slices, graded=False), {}
+    printed, calibration = _printed_kind(params, mesh, run.slices, graded=grade is not None), {}
     search = None
     if printed is not None:
         bands = _prism(grid)
@@ -1030,7 +1049,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
                             patient_pieces=not isinstance(patient, tuple(SHAPES.values())),
                             fill_sealed_voids=params.fill_sealed_voids, printed=search,
-                            prog=prog, skin=params.skin, smooth_cut=params.smooth_cut)
+                            prog=prog, skin=params.skin, smooth_cut=params.smooth_cut,
+                            grade=None if grade is None or (params.porosity is None and grade[0].kind != "ct")
+                            else grade[0])
     finally:
         runner.close()
     try:
@@ -1038,6 +1059,16 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
                               tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, tf.sealed, seed_solve=seed_solve)
         report["printed_level"] = calibration or None
+        if grade is not None:
+            gfield, density, empty = grade
+            if report["printed_level"] is None and params.porosity is not None:
+                report["printed_level"] = {"by": None, "why": "graded: the level is solved per depth bin in voxels"}
+            with prog.stage("profiles"):
+                report.update(_grade_report(params, gfield, density, tf.level_plan, tf.level_field, tf.field,
+                                            tf.patient, grid, cells, slabs=[Slab(s.x0, s.x1, s.x0, s.x1)
+                                                                            for s in tf.slabs]))
+            if empty is not None:
+                report["grade"]["empty_power_cells"] = empty
         report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
                            "max_memory_mb": round(run.max_memory / 2**20, 1),
                            "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
@@ -1205,6 +1236,15 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     found = []
     h = report["voxel_mm"]
     target, voxel = report["porosity_target"], report["porosity_voxel"]
+    below = (report.get("grade") or {}).get("below_skin")
+    if below is not None and below["porosity"] is not None and target is not None:
+        # a graded skin is solid whatever the offset: the target holds below it
+        if abs(below["porosity"] - below["porosity_target"]) > 0.005:
+            why = _fragments_why(report, report.get("fragments_removed") or 0, "the bins' voxels leave no level closer")
+            found_before = [f"the porosity below the {below['depth_mm']:g} mm skin, {below['porosity']:.4f}, misses "
+                            f"its target {below['porosity_target']:.4g}: {why}; a finer --voxel (e.g. "
+                            f"{report['voxel_mm'] / 2:.3g}) resolves the struts", *found_before]
+        target = None
     removed = report.get("fragments_removed") or 0
     printed = report.get("porosity_printed")
     if target is not None and printed is not None and (report.get("printed_level") or {}).get("by"):

@@ -212,6 +212,8 @@ class TiledField:
         Sealed void pieces and their voxels, counted before any filling.
     patient_pieces : int
         The patient's 6-connected pieces on the grid.
+    level_plan, level_field : LevelPlan, LevelField or None
+        A graded run's offset bins and offset field (:mod:`.grade`).
     """
 
     field: FieldFile
@@ -225,6 +227,8 @@ class TiledField:
     slabs: list
     sealed: tuple = (0, 0)
     patient_pieces: int = 1
+    level_plan: Any = None
+    level_field: Any = None
 
     def close(self) -> None:
         """Remove the files."""
@@ -322,7 +326,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
                    max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
                    printed=None, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True) -> TiledField:
+                   patient_pieces: bool = True, grade=None) -> TiledField:
     """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
 
     Parameters
@@ -356,6 +360,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     patient_pieces : bool
         Find the patient's pieces across slabs, each keeping its own main body; False for a
         patient known to be in one piece (a primitive), which saves a labelling pass.
+    grade : GradeField, optional
+        A graded run's targets: the offset is then a field solved bin by bin over the slabs
+        (:func:`~implicit_scaffold.grade.solve_level_field`, the whole grid's solver), and
+        `porosity` is not read.
 
     Returns
     -------
@@ -368,6 +376,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     runner = runner or LocalRunner()
     check_disk(grid)
     field, patient_file = FieldFile(grid), FieldFile(grid)
+    plan = level_field = None
     try:
         for _ in range(6):
             work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k))
@@ -378,9 +387,20 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                                                            prog.bar("lattice"))
             if n_inside == 0:
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
-            with prog.stage("offset"):
-                level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
-                                     prog.bar("offset"), skin=skin, smooth_cut=smooth_cut)
+            if grade is not None:
+                from .grade import level_plan, solve_level_field
+
+                owned = [Slab(s.x0, s.x1, s.x0, s.x1) for s in slabs]
+                if plan is None:
+                    with prog.stage("grade", "offset bins"):
+                        plan = level_plan(grade, patient_file, grid, slabs=owned, skin=skin + smooth_cut)
+                with prog.stage("offset", f"{len(plan.edges) - 1} bins"):
+                    level_field = solve_level_field(field, patient_file, plan, slabs=owned)
+                level = level_field.reach(style)
+            else:
+                with prog.stage("offset"):
+                    level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
+                                         prog.bar("offset"), skin=skin, smooth_cut=smooth_cut)
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
@@ -390,9 +410,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                 break
             cutoff = wider
         with prog.stage("scaffold"):
-            solid, fragments, pieces, patient_pieces = _pass_scaffold(slabs, field, patient_file, level, grid.spacing,
-                                                      remove_fragments, prog.bar("scaffold"), skin=skin,
-                                                      smooth_cut=smooth_cut, patient_pieces=patient_pieces)
+            shift = None if level_field is None else (plan, level_field)
+            solid, fragments, pieces, patient_pieces = _pass_scaffold(
+                slabs, field, patient_file, 0.0 if shift else level, grid.spacing, remove_fragments,
+                prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=patient_pieces, shift=shift)
             sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
             if fill_sealed_voids:
                 solid += sealed[1]
@@ -405,18 +426,19 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed, patient_pieces)
+                      pieces, slabs, sealed, patient_pieces, plan, level_field)
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True) -> tuple[int, int | None, int, int]:
+                   patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int]:
     """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
 
     Each piece of the patient keeps its own main body, as
     :func:`~implicit_scaffold.pieces.remove_fragments_by_piece` does on the whole grid:
     the patient's pieces are joined across slabs like the solid's, and each solid piece
-    lies in one of them.
+    lies in one of them. `shift`, a graded run's ``(LevelPlan, LevelField)``, takes the
+    offset field from the lattice first (:func:`~implicit_scaffold.grade.shift_planes`).
 
     Returns
     -------
@@ -428,7 +450,13 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     solid = 0
     for done, slab in enumerate(slabs, 1):
         s_p = patient.read(slab.x0, slab.x1)
-        s = scaffold_field(field.read(slab.x0, slab.x1), s_p, level=level, skin=skin, smooth_cut=smooth_cut)
+        base = field.read(slab.x0, slab.x1)
+        if shift is not None:
+            from .grade import shift_planes
+
+            shift_planes(base, s_p, slab.x0, *shift)
+        s = scaffold_field(base, s_p, level=level, skin=skin, smooth_cut=smooth_cut, out=base)
+        del base
         field.write(slab.x0, s)
         inside = s < 0
         labels = pieces.add(inside)

@@ -128,7 +128,22 @@ def _key_kernels():
                     if tops[j] == t:
                         lows[j, k & np.uint32(0xFFFF)] += 1
 
-    _KEY_KERNELS = count_high, count_low
+    @nb.njit(cache=True, boundscheck=False)
+    def count_high_groups(bits, group, high):  # pragma: no cover - compiled
+        for i in range(bits.size):
+            high[group[i], key(bits[i]) >> np.uint32(16)] += 1
+
+    @nb.njit(cache=True, boundscheck=False)
+    def count_low_groups(bits, group, tops, lows):  # pragma: no cover - compiled
+        for i in range(bits.size):
+            g = group[i]
+            k = key(bits[i])
+            t = k >> np.uint32(16)
+            for j in range(tops.shape[1]):
+                if tops[g, j] == t:
+                    lows[g, j, k & np.uint32(0xFFFF)] += 1
+
+    _KEY_KERNELS = count_high, count_low, count_high_groups, count_low_groups
     return _KEY_KERNELS
 
 
@@ -188,6 +203,70 @@ class StreamQuantile:
             before = int(self._cum[t - 1]) if t > 0 else 0
             low = int(np.searchsorted(np.cumsum(self._low[t]), r - before, side="right"))
             out.append(float(_keys_to_values(np.array([(t << 16) | low], np.uint32))[0]))
+        return out
+
+
+class GroupQuantile:
+    """Exact order statistics of float32 values in groups (the bins of a graded offset),
+    seen slab by slab in two passes, as :class:`StreamQuantile` finds them for one group.
+
+    Memory: a 65,536-bin histogram per group for pass 1 and one per selected rank for pass 2.
+
+    Parameters
+    ----------
+    groups : int
+    """
+
+    def __init__(self, groups: int):
+        self.high = np.zeros((int(groups), 1 << 16), np.int64)
+
+    @property
+    def n(self) -> np.ndarray:
+        """Values seen per group."""
+        return self.high.sum(axis=1)
+
+    @staticmethod
+    def _flat(values, group):
+        bits = np.ascontiguousarray(values, np.float32).reshape(-1).view(np.uint32)
+        group = np.ascontiguousarray(group, np.int32).reshape(-1)
+        if group.size != bits.size:
+            raise ValueError(f"{group.size} group numbers for {bits.size} values")
+        return bits, group
+
+    def count(self, values, group) -> None:
+        """Pass 1: add `values` (1-d), each in its group ``group[i]`` (0-based)."""
+        bits, group = self._flat(values, group)
+        if group.size and not 0 <= int(group.min()) <= int(group.max()) < len(self.high):
+            raise ValueError(f"group numbers outside 0..{len(self.high) - 1}")
+        _key_kernels()[2](bits, group, self.high)
+
+    def select(self, ranks) -> None:
+        """Fix the 0-based ranks wanted, ``(groups, r)``; a group with no values takes ranks 0."""
+        ranks = np.asarray(ranks, np.int64).reshape(len(self.high), -1)
+        n = self.n
+        if np.any((ranks < 0) | ((ranks >= n[:, None]) & (n[:, None] > 0))):
+            raise ValueError("a rank outside its group's values")
+        self._ranks = ranks
+        self._cum = np.cumsum(self.high, axis=1)
+        self._top = np.array([np.searchsorted(c, r, side="right") for c, r in zip(self._cum, ranks)],
+                             np.uint32).reshape(ranks.shape)
+        self._low = np.zeros((*ranks.shape, 1 << 16), np.int64)
+
+    def refine(self, values, group) -> None:
+        """Pass 2: the same values and groups again (any order, any slabs)."""
+        bits, group = self._flat(values, group)
+        _key_kernels()[3](bits, group, self._top, self._low)
+
+    def values(self) -> np.ndarray:
+        """``(groups, r)`` float64: the values at the selected ranks (NaN for an empty group)."""
+        out = np.full(self._ranks.shape, np.nan)
+        for g, (row, tops) in enumerate(zip(self._ranks, self._top)):
+            if self._cum[g, -1] == 0:
+                continue
+            for j, (r, t) in enumerate(zip(row, tops)):
+                before = int(self._cum[g, t - 1]) if t > 0 else 0
+                low = int(np.searchsorted(np.cumsum(self._low[g, j]), r - before, side="right"))
+                out[g, j] = float(_keys_to_values(np.array([(int(t) << 16) | low], np.uint32))[0])
         return out
 
 

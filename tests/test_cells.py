@@ -1,3 +1,4 @@
+import re
 import numpy as np
 import pytest
 
@@ -58,6 +59,17 @@ def test_too_many_seeds_for_memory_fail_before_the_work():
         check_seed_memory(2_000_000, pore_size=0.6, available=8 * 2**30)
     with pytest.raises(ScaffoldError, match="fewer --seeds"):
         check_seed_memory(2_000_000, available=8 * 2**30)
+    # the count it suggests fits, chunked (seeds in a box) or not (seeds in a patient)
+    for chunked in (True, False):
+        with pytest.raises(ScaffoldError, match=r"at most ([\d,]+)\)") as exc:
+            check_seed_memory(2_000_000, available=2**30, chunked=chunked)
+        most = int(re.search(r"at most ([\d,]+)\)", str(exc.value)).group(1).replace(",", ""))
+        assert check_seed_memory(most, available=2**30, chunked=chunked) <= 2**30
+        with pytest.raises(ScaffoldError):
+            check_seed_memory(most + 1, available=2**30, chunked=chunked)
+    # a graded run's count is not the user's: it is told what budget would do
+    with pytest.raises(ScaffoldError, match=r"pass --max-memory \S+ or more, or use larger pores"):
+        check_seed_memory(100_000, available=2**30, chunked=False, seeds_given=False)
     assert check_seed_memory(1000, available=8 * 2**30) == 1000 * (BYTES_PER_SEED + CELLS_BYTES_PER_SEED)
     # beyond a chunk, voro++'s peak stays that of two chunks: 10 M seeds fit in 64 GiB
     assert check_seed_memory(10**7, available=64 * 2**30) < 10**7 * CELLS_BYTES_PER_SEED + 2 * CHUNK_SEEDS * BYTES_PER_SEED + 1

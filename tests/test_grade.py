@@ -82,7 +82,6 @@ def test_calibration_rules_are_monotone():
     ({"relax": 2}, "--relax relaxes graded seeds"),
     ({"grade": "0:0.3", "relax": -1}, "--relax must be >= 0"),
     ({"grade": "0:0.3", "relax": "x"}, "--relax must be a whole number"),
-    ({"grade": "0:0.3", "skin": 0.2}, "--skin and --smooth-cut"),
     ({"grade": "0;0.3"}, "--grade"),
     ({"weighted": True}, "--weighted weights the cells"),
     ({"grade": "0:0.3", "weighted": "yes"}, "weighted must be True or False"),
@@ -288,9 +287,58 @@ def test_report_profiles_match_recount(graded_run):
         assert prof["voxels"][b] == m.sum()
 
 
-def test_graded_run_refuses_tiles():
-    with pytest.raises(ScaffoldError, match="graded scaffold is built on the whole grid"):
-        implicit_scaffold.generate(size=3.0, grade="0:0.5", voxel=0.1, mesh=False, tiled=True)
+@pytest.mark.parametrize("extra", [{}, {"skin": 0.15}, {"smooth_cut": 0.1, "style": "struts"}])
+def test_a_graded_run_in_slabs_gives_the_whole_grid_bytes(tmp_path, monkeypatch, extra):
+    # the offset field is solved by the same passes over chunks of planes on the whole grid and
+    # over slabs on disk; a sample smaller than the bins' voxels forces the exact passes too
+    monkeypatch.setattr(grade, "LEVEL_SAMPLE_VOXELS", 30_000)
+    kw = dict(size=(3.0, 3.0, 3.5), grade="0:0.3,1:0.6", porosity=0.7, voxel=0.05, mesh=False,
+              morphometry=False, seed=4, **extra)
+    whole = implicit_scaffold.generate(output=tmp_path / "whole.npy", tiled=False, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    for planes in (5, 23):
+        rep = implicit_scaffold.generate(output=tmp_path / "t.npy", tiled=(planes + 12) * plane, **kw).report
+        assert rep["tiled"]["slabs"] > 1
+        assert (tmp_path / "t.npy").read_bytes() == (tmp_path / "whole.npy").read_bytes(), planes
+        assert rep["grade"]["offset"] == whole.report["grade"]["offset"]
+        assert rep["grade"]["profiles"] == whole.report["grade"]["profiles"]
+        assert rep["porosity_voxel"] == whole.report["porosity_voxel"]
+    # recounted from the field: each depth bin below the skin meets the target
+    field = np.load(tmp_path / "whole.npy")
+    below = whole.patient_sdf < -np.float32(extra.get("skin", 0) + extra.get("smooth_cut", 0))
+    depth = -whole.patient_sdf[below]
+    solid = field[below] < 0
+    for lo in np.arange(0, depth.max() - 0.3, 0.3):
+        m = (depth >= lo) & (depth < lo + 0.3)
+        assert abs(1 - solid[m].mean() - 0.7) < 0.02, (lo, 1 - solid[m].mean())
+    if "skin" in extra:
+        # the skin is solid, and the report's porosity below it is the recount's
+        skin = (whole.patient_sdf < 0) & ~below
+        assert np.all(field[skin] < 0)
+        assert whole.report["grade"]["below_skin"]["porosity"] == pytest.approx(1 - solid.mean(), abs=1e-12)
+        assert whole.report["warnings"] == []
+
+
+def test_a_graded_mesh_patient_runs_in_slabs_with_the_whole_grid_bytes(tmp_path):
+    import trimesh
+
+    from implicit_scaffold.patient_mesh import MeshPatient
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.6)
+    patient = MeshPatient(np.asarray(ball.vertices) + 1.7, np.asarray(ball.faces), name="ball")
+    kw = dict(patient=patient, grade="0:0.3,0.6:0.6", porosity=0.7, voxel=0.05, mesh=False, morphometry=False,
+              seed=1)
+    whole = implicit_scaffold.generate(output=tmp_path / "whole.npy", tiled=False, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    rep = implicit_scaffold.generate(output=tmp_path / "t.npy", tiled=20 * plane, **kw).report
+    assert rep["tiled"]["slabs"] > 2
+    assert (tmp_path / "t.npy").read_bytes() == (tmp_path / "whole.npy").read_bytes()
+    # the far field is clamped past the grade's deepest node plus its widest pore: the depth is
+    # exact up to there, as a closed-form ball's
+    x, y, z = np.meshgrid(*whole.grid.axes(), indexing="ij")
+    r = np.sqrt((x - 1.7) ** 2 + (y - 1.7) ** 2 + (z - 1.7) ** 2)
+    near = np.abs(r - 1.6) < 1.1
+    assert np.max(np.abs(whole.patient_sdf[near] - (r[near] - 1.6))) < 0.02  # the icosphere's facets
 
 
 def test_graded_report_page(graded_run, tmp_path):
@@ -424,8 +472,8 @@ def test_level_field_meets_each_bin_from_a_sample(monkeypatch):
     plan = grade.level_plan(fld, sdf, g)
     for sample in (10 ** 9, 20_000):
         monkeypatch.setattr(grade, "LEVEL_SAMPLE_VOXELS", sample)
-        level = grade.solve_level_field(base, plan)
-        s = grade.apply_level(base.copy(), plan, level)
+        level = grade.solve_level_field(base, sdf, plan)
+        s = grade.apply_level(base.copy(), sdf, plan, level)
         inside = sdf < 0
         depth = -sdf[inside].astype(np.float64)
         solid = s[inside] < 0

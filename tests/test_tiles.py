@@ -117,3 +117,39 @@ def test_field_file_holds_planes_and_vanishes(tmp_path):
         assert np.array_equal(ArraySlabs(field, grid).read(2, 9), f.read(2, 9))
         assert len(list(tmp_path.iterdir())) == 1
     assert not list(tmp_path.iterdir())
+
+
+def test_group_quantile_gives_each_groups_order_statistics():
+    # against a sort of each group's values, fed in three uneven slabs, ties and signs mixed
+    from implicit_scaffold.tiles import GroupQuantile
+
+    rng = np.random.default_rng(5)
+    values = np.concatenate([rng.normal(size=30_000), np.zeros(500), -np.zeros(500),
+                             rng.integers(-3, 3, 4000).astype(float)]).astype(np.float32)
+    group = rng.integers(0, 4, len(values))
+    q = GroupQuantile(5)  # group 4 stays empty
+    cuts = [0, 7000, 7001, len(values)]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        q.count(values[a:b], group[a:b])
+    ranks = np.array([[0, 1], [17, 0], [5000, 5001], [0, 123], [0, 0]])
+    ranks[1, 1] = np.count_nonzero(group == 1) - 2
+    ranks[3, 0] = np.count_nonzero(group == 3) - 1
+    q.select(ranks)
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        q.refine(values[a:b], group[a:b])
+    got = q.values()
+    for g in range(4):
+        ordered = np.sort(values[group == g])
+        assert got[g].tolist() == ordered[ranks[g]].astype(float).tolist()
+    assert np.isnan(got[4]).all()
+
+
+def test_group_quantile_refuses_ranks_beyond_a_group():
+    from implicit_scaffold.tiles import GroupQuantile
+
+    q = GroupQuantile(2)
+    q.count(np.arange(5, dtype=np.float32), np.array([0, 0, 1, 1, 1]))
+    with pytest.raises(ValueError, match="rank outside"):
+        q.select([[0, 2], [0, 1]])
+    with pytest.raises(ValueError, match="group numbers outside"):
+        q.count(np.ones(2, np.float32), np.array([0, 2]))
