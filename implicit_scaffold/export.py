@@ -13,10 +13,11 @@ the same field.
 | ``.tif``, ``.tiff`` | multi-page TIFF, one page per z, uint8 solid 255 / void 0 | ImageJ / BoneJ |
 | ``.zarr`` | Zarr array ``sdf`` or ``solid`` with the geometry in its attributes | Dask, napari (extra ``zarr``) |
 
-Every format but Zarr is written as a stream, z block by z block (x fastest, as these
-formats store a volume), from an array or from a field on disk read plane range by plane
-range (a tiled run's :class:`~implicit_scaffold.tiles.FieldFile`): the whole grid is one
-source among others, and a field of any size is written in bounded memory. The headers
+Every format is written as a stream, z block by z block (x fastest, as these formats
+store a volume; Zarr x block by x block, a row of whole chunks at a time), from an array
+or from a field on disk read plane range by plane range (a tiled run's
+:class:`~implicit_scaffold.tiles.FieldFile`): the whole grid is one source among others,
+and a field of any size is written in bounded memory. The headers
 are the ones SimpleITK writes for the same image (taken from it on a 2x2x2 image of the
 same geometry, its sizes set); the data follows raw (``.nii``, ``.vti`` appended raw),
 gzip-compressed (``.nii.gz``, ``.nrrd``) or zlib-compressed (``.mha``), and TIFF pages
@@ -66,7 +67,7 @@ def write_volume(field, grid: Grid, path, *, binary: bool = False, max_bytes: in
         Write the solid as uint8 (1 solid, 0 void; 255 / 0 in TIFF) instead of the
         float32 distance. TIFF is always binary.
     max_bytes : int, optional
-        Memory the writer may hold (:func:`z_blocks`); Zarr is written whole.
+        Memory the writer may hold (:func:`z_blocks`; Zarr: its chunks' x thickness).
 
     Returns
     -------
@@ -94,8 +95,8 @@ def write_volume(field, grid: Grid, path, *, binary: bool = False, max_bytes: in
     if ext in (".tif", ".tiff"):
         binary = True
     if ext == ".zarr":
-        values = (np.asarray(field) < 0).astype(np.uint8) if binary else np.asarray(field, np.float32)
-        return _write_zarr(values, grid, final, "solid" if binary else "sdf")
+        return _write_zarr(field, grid, final, "solid" if binary else "sdf", np.dtype(np.uint8 if binary else "<f4"),
+                           max_bytes=max_bytes)
     dtype = np.dtype(np.uint8 if binary else "<f4")
     # TIFF pages hold 255 for the solid (ImageJ's binary), the other formats 1
     solid = 255 if ext in (".tif", ".tiff") else 1
@@ -288,7 +289,13 @@ def _stream_vti(blocks, grid: Grid, tmp: Path, name: str, dtype) -> None:
         fh.write(b"\n  </AppendedData>\n</VTKFile>\n")
 
 
-def _write_zarr(values: np.ndarray, grid: Grid, final: Path, name: str) -> Path:
+#: a Zarr chunk's side at most (voxels)
+ZARR_CHUNK = 128
+
+
+def _write_zarr(field, grid: Grid, final: Path, name: str, dtype, *, max_bytes: int | None = None) -> Path:
+    """Zarr, a row of chunks along x at a time: chunks of up to :data:`ZARR_CHUNK` voxels a
+    side, thinner in x when a row of them would pass `max_bytes` (:data:`STREAM_BYTES`)."""
     try:
         import zarr
     except ImportError:
@@ -302,10 +309,19 @@ def _write_zarr(values: np.ndarray, grid: Grid, final: Path, name: str) -> Path:
         raise ScaffoldError(f"{final} already exists; give a new name with -o or remove it")
     tmp = final.parent / f".{final.name}.tmp-{secrets.token_hex(4)}"
     try:
+        nx, ny, nz = (int(n) for n in grid.shape)
+        # the row of chunks, the planes read for it and their solid mask
+        per_plane = ny * nz * (4 + 2 * dtype.itemsize)
+        cx = int(max(1, min(ZARR_CHUNK, nx, int(max_bytes or STREAM_BYTES) // per_plane)))
         root = zarr.open_group(str(tmp), mode="w")
-        arr = root.create_array(name, shape=values.shape, dtype=values.dtype,
-                                chunks=tuple(min(128, n) for n in values.shape))
-        arr[...] = values
+        arr = root.create_array(name, shape=(nx, ny, nz), dtype=dtype,
+                                chunks=(cx, min(ZARR_CHUNK, ny), min(ZARR_CHUNK, nz)))
+        read = field.read if hasattr(field, "read") else (lambda a, b: field[a:b])
+        for x0 in range(0, nx, cx):
+            planes = read(x0, min(x0 + cx, nx))
+            arr[x0:x0 + len(planes)] = (planes < 0).astype(dtype) if dtype == np.uint8 \
+                else np.asarray(planes, dtype)
+            del planes
         root.attrs.update({"origin_mm": list(grid.origin), "spacing_mm": grid.spacing, "units": "mm",
                            "axes": "x, y, z (voxel centres)"})
         tmp.rename(final)

@@ -940,12 +940,7 @@ class _RunPlan:
         if self.tiled is False or (self.tiled is None and whole <= self.max_memory):
             check_memory(grid, self.run_bytes)
             return None
-        why = (f"the whole grid ({grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels, about "
-               f"{whole / 2**30:.1f} GiB) exceeds --max-memory {self.max_memory / 2**30:.1f} GiB")
         ext = output_format(self.out_path) if self.out_path is not None else None
-        if ext == ".zarr":
-            raise ScaffoldError(f"{why}, so the run is tiled and streams its output: write the field as .nii.gz, "
-                                ".nrrd, .mha, .vti or .npy instead of .zarr, or raise --max-memory")
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 

@@ -116,8 +116,6 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
 
     with pytest.raises(ScaffoldError, match=r"pass --max-memory [\d.]+[MG] or more"):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
-    with pytest.raises(ScaffoldError, match="instead of .zarr"):
-        generate(output=tmp_path / "a.zarr", tiled=True, **SMALL)
     assert not list(tmp_path.iterdir())
 
 
@@ -167,6 +165,26 @@ def test_a_mesh_patient_runs_in_slabs_with_the_whole_grid_bytes(tmp_path):
         assert out.read_bytes() == (tmp_path / "whole.npy").read_bytes(), f"slabs of {planes} planes"
         for key in ("porosity_voxel", "fragments_removed", "cells_in_scaffold", "surface_offset_mm"):
             assert rep[key] == whole.report[key], key
+
+
+def test_zarr_streams_from_slabs_with_the_whole_grid_values(tmp_path, monkeypatch):
+    zarr = pytest.importorskip("zarr")
+    import implicit_scaffold.export as export
+
+    whole = generate(output=tmp_path / "whole.zarr", mesh=False, morphometry=False, tiled=False, **SMALL)
+    generate(output=tmp_path / "whole.npy", mesh=False, morphometry=False, tiled=False, **SMALL)
+    # chunks of 3 voxels a side: the rows of chunks do not line up with the slabs
+    monkeypatch.setattr(export, "ZARR_CHUNK", 3)
+    rep = generate(output=tmp_path / "t.zarr", mesh=False, morphometry=False, tiled=13 * PLANE, **SMALL).report
+    assert rep["tiled"]["slabs"] > 2
+    field = np.load(tmp_path / "whole.npy")
+    for name in ("whole.zarr", "t.zarr"):
+        group = zarr.open_group(str(tmp_path / name), mode="r")
+        assert np.array_equal(group["sdf"][...], field), name
+        assert group.attrs["spacing_mm"] == whole.grid.spacing
+    assert zarr.open_group(str(tmp_path / "t.zarr"), mode="r")["sdf"].chunks[0] == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["t.json", "t.zarr", "whole.json", "whole.npy",
+                                                        "whole.zarr"]
 
 
 @pytest.mark.parametrize("ext", [".nii", ".nii.gz", ".nrrd", ".mha", ".tif", ".vti"])
