@@ -210,7 +210,7 @@ def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
     """Measure what generate built; the report's ``mechanics`` section."""
     from .mechanics import crop, measure
 
-    if result.field is None:
+    if result.tiled is not None:
         raise ScaffoldError("--mechanics needs the whole field in memory, and this run was tiled; "
                             "raise --max-memory or use a larger --voxel")
     h = float(result.grid.spacing)

@@ -90,12 +90,16 @@ class Result:
         The struts' axes; None for the paper style.
     grid : Grid
     field : (nx, ny, nz) float32 ndarray, mm
-        The scaffold's signed distance, negative in the solid.
+        The scaffold's signed distance, negative in the solid. A tiled run's is a read-only
+        ``numpy.memmap`` of its slab store on disk: it reads like an array, pages in only
+        what is read, and its (already unlinked) file goes when the last reference does.
     patient_sdf : (nx, ny, nz) float32 ndarray, mm
         The patient's signed distance as the run read it: a mesh patient's is clamped
-        beyond the skin and smooth-cut widths plus 3 voxels, where only its sign matters
-        (:meth:`.patient_mesh.MeshPatient.clamp_far_field`), except in a graded run.
+        beyond the skin and smooth-cut widths (and a depth grade's deepest node) plus 3
+        voxels, where only its sign matters (:meth:`.patient_mesh.MeshPatient.clamp_far_field`).
+        A memmap in a tiled run, as `field`.
     mesh : trimesh.Trimesh or None
+        None without the mesh stage, and in a tiled run (its mesh is streamed to the output).
     """
 
     params: Params
@@ -109,8 +113,7 @@ class Result:
     patient: Any
     mesh: Any = None
     timings: dict = dc_field(default_factory=dict)
-    #: a tiled run's layout (None for a whole-grid run, whose field and patient_sdf are arrays;
-    #: a tiled run's are None, its field having been streamed to the outputs)
+    #: a tiled run's slabs (None for a whole-grid run)
     tiled: Any = None
 
 
@@ -1108,6 +1111,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
             report.setdefault("porosity_printed",
                               1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
         report["warnings"] = _check_built(report, params, simplify_warnings)
+        # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
+        field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
+                                  for f in (tf.field, tf.patient))
     finally:
         tf.close()
     if out_path is not None:
@@ -1122,7 +1128,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
 
         write_json(report, report_path(out_path))
     return Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
-                  field=None, patient_sdf=None, patient=patient, timings=prog.timings, tiled=tf.slabs)
+                  field=field_map, patient_sdf=patient_map, patient=patient, timings=prog.timings, tiled=tf.slabs)
 
 
 #: bytes per triangle of a whole mesh read back from the streamed PLY to simplify it (float64

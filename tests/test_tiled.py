@@ -167,6 +167,26 @@ def test_a_mesh_patient_runs_in_slabs_with_the_whole_grid_bytes(tmp_path):
             assert rep[key] == whole.report[key], key
 
 
+def test_a_tiled_result_maps_its_fields_and_leaves_no_file(tmp_path):
+    import gc
+
+    whole = generate(mesh=False, morphometry=False, tiled=False, **SMALL)
+    folder = tmp_path / "tmp"
+    folder.mkdir()
+    old = tempfile.tempdir
+    tempfile.tempdir = str(folder)  # where the slab store goes
+    try:
+        tiled = generate(mesh=False, morphometry=False, tiled=13 * PLANE, **SMALL)
+    finally:
+        tempfile.tempdir = old
+    assert tiled.tiled is not None and isinstance(tiled.field, np.memmap)
+    assert np.array_equal(tiled.field, whole.field) and np.array_equal(tiled.patient_sdf, whole.patient_sdf)
+    assert not tiled.field.flags.writeable
+    assert list(folder.iterdir()) == []  # unlinked already: the maps hold the data until they go
+    del tiled
+    gc.collect()
+
+
 def test_zarr_streams_from_slabs_with_the_whole_grid_values(tmp_path, monkeypatch):
     zarr = pytest.importorskip("zarr")
     import implicit_scaffold.export as export
