@@ -14,6 +14,12 @@ from pathlib import Path
 
 from . import __version__
 from .errors import ScaffoldError
+from .formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS
+
+
+def _listed(formats) -> str:
+    """Extensions as the help text lists them."""
+    return " ".join(formats)
 
 
 def _size(text: str):
@@ -49,8 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     g = sub.add_parser("generate", help="build a scaffold and write its mesh (or field) and JSON report")
     g.add_argument("-o", "--output", required=True,
-                   help="output file: .stl .ply .obj .3mf (mesh); .npy .vti .nii.gz .nii .nrrd .mha .zarr "
-                        "(signed distance, float32 mm) or .tif (binary solid, for ImageJ/BoneJ); "
+                   help=f"output file: {_listed(MESH_WRITERS)} (mesh); "
+                        f"{_listed(f for f in FIELD_WRITERS if f not in IMAGE_STACKS)} "
+                        f"(signed distance, float32 mm) or {_listed(IMAGE_STACKS)} (binary solid, for ImageJ/BoneJ); "
                         "the JSON report is written beside it")
     g.add_argument("--report", metavar="HTML", default=None,
                    help="also write a visual report: pictures, histograms, targets against measured values")
@@ -86,8 +93,8 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Measure a scaffold (from this tool or any other) or bone as bone "
                                    "morphometry does: strut thickness and pore diameter by maximal spheres, "
                                    "connectivity density, interconnected porosity, fragments, BS/BV.")
-    _add_scaffold_file(a, "a closed mesh (.stl .ply .obj .3mf .off) or a binary volume (.nrrd .nii .nii.gz .mha "
-                          ".mhd .tif, or a folder of .tif slices; solid = non-zero)")
+    _add_scaffold_file(a, f"a closed mesh ({_listed(MESH_READERS)}) or a binary volume "
+                          f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, or a folder of .tif slices; solid = non-zero)")
     a.add_argument("--region", metavar="FILE", default=None,
                    help="count porosity inside this patient, as generate does: a patient mesh or volume, or the "
                         "run's .json report (its patient, on its grid; then --voxel may be left out); default: "
@@ -101,7 +108,7 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Check a scaffold (mesh, .npy field, or binary volume) against a printer "
                                    "profile: thinnest solid, narrowest throat, drainage, cell infiltration, "
                                    "sealed voids, floating solid, overhangs, and the same as built.")
-    _add_scaffold_file(c, "a closed mesh (.stl .ply .obj .3mf .off), a .npy signed distance written by generate "
+    _add_scaffold_file(c, f"a closed mesh ({_listed(MESH_READERS)}), a .npy signed distance written by generate "
                           "(its .json beside it gives the voxel), or a binary volume")
     c.add_argument("--printer", required=True, metavar="NAME",
                    help=", ".join(_printer_names()) + ", or custom:min_strut=MM,min_throat=MM,...")
@@ -112,8 +119,9 @@ def build_parser() -> argparse.ArgumentParser:
     me = sub.add_parser("mechanics", help="stiffness tensor, moduli and a platen compression test (voxel FE)",
                         description="The effective stiffness of a scaffold or a bone from its voxels: 6x6 tensor "
                                     "(Voigt, GPa), moduli, a compression between rigid platens, beside bone's.")
-    _add_scaffold_file(me, "a closed mesh (.stl .ply .obj .3mf .off), a binary volume (.nrrd .nii .nii.gz .mha "
-                           ".mhd .tif, or a folder of .tif slices) or a .npy field (negative = solid)")
+    _add_scaffold_file(me, f"a closed mesh ({_listed(MESH_READERS)}), a binary volume "
+                           f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, or a folder of .tif slices) or a .npy field "
+                           "(negative = solid)")
     _add_mechanics_options(me)
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
@@ -231,8 +239,8 @@ def _add_build_options(g) -> None:
                    help="shape size in mm: one length or three (x y z in quotes); default 10")
     pg = g.add_argument_group("patient geometry (instead of --shape)")
     pg.add_argument("--patient", metavar="FILE", default=None,
-                    help="bone geometry: a mesh (.stl .obj .ply .off .3mf) or a volume (.nii .nii.gz .nrrd "
-                         ".mha .mhd, or a folder holding a DICOM series)")
+                    help=f"bone geometry: a mesh ({_listed(MESH_READERS)}) or a volume ({_listed(VOLUME_READERS)}, "
+                         "or a folder holding a DICOM series)")
     pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
     pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
     pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,

@@ -38,7 +38,7 @@ from .errors import ScaffoldError
 from .grid import Grid
 
 #: extensions :func:`write_volume` writes (``.nii.gz`` is matched as a whole)
-VOLUME_FORMATS = (".npy", ".vti", ".nii.gz", ".nii", ".nrrd", ".mha", ".tif", ".tiff", ".zarr")
+from .formats import FIELD_WRITERS as VOLUME_FORMATS, match  # noqa: E402
 
 _ITK_IO = {".nii.gz": "NiftiImageIO", ".nii": "NiftiImageIO", ".nrrd": "NrrdImageIO",
            ".mha": "MetaImageIO", ".tif": "TIFFImageIO", ".tiff": "TIFFImageIO"}
@@ -46,11 +46,7 @@ _ITK_IO = {".nii.gz": "NiftiImageIO", ".nii": "NiftiImageIO", ".nrrd": "NrrdImag
 
 def volume_format(path) -> str | None:
     """The :data:`VOLUME_FORMATS` entry that `path` ends with (lower case), or None."""
-    name = Path(path).name.lower()
-    for ext in sorted(VOLUME_FORMATS, key=len, reverse=True):
-        if name.endswith(ext):
-            return ext
-    return None
+    return match(path, VOLUME_FORMATS)
 
 
 def write_volume(field, grid: Grid, path, *, binary: bool = False, max_bytes: int | None = None) -> Path:

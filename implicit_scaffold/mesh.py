@@ -60,7 +60,7 @@ __all__ = [
 ]
 
 #: Mesh file formats :func:`write_mesh` writes, by extension.
-MESH_FORMATS = (".stl", ".ply", ".obj", ".3mf")
+from .formats import MESH_WRITERS as MESH_FORMATS  # noqa: E402
 
 #: Values closer than this to the level (in voxels of distance) are pushed to it.
 _NUDGE = 1e-2
@@ -1016,7 +1016,9 @@ def atomic_path(path):
 
 
 def _check_format(final: Path, formats) -> str:
-    ext = final.suffix.lower()
+    from .formats import suffix
+
+    ext = suffix(final)
     if ext not in formats:
         raise ScaffoldError(f"cannot write {final}: unknown file type {ext or '(no extension)'!r}; "
                             f"use one of {', '.join(formats)}")

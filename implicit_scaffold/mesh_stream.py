@@ -66,7 +66,7 @@ __all__ = ["MESH_BYTES_PER_TRIANGLE", "MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMA
            "write_mesh_slabs"]
 
 #: Mesh file formats :func:`write_mesh_slabs` writes, by extension.
-STREAM_FORMATS = (".stl", ".ply")
+from .formats import MESH_STREAMED as STREAM_FORMATS  # noqa: E402
 
 #: Peak bytes the mesh stage adds (all its processes, two slabs in flight) per voxel of
 #: ``max_voxels``: ``max_voxels = room // MESH_SLAB_BYTES_PER_VOXEL`` keeps it within

@@ -21,7 +21,6 @@ outside the region, and beyond the array, is "outside".
 from __future__ import annotations
 
 import math
-import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -760,8 +759,10 @@ def _crossings(q, tf, x, y):
 
 # --------------------------------------------------------------------------- analysing a file
 
-MESH_SUFFIXES = (".stl", ".ply", ".obj", ".3mf", ".off")
-VOLUME_SUFFIXES = (".nrrd", ".nhdr", ".nii", ".nii.gz", ".mha", ".mhd", ".tif", ".tiff")
+from .formats import IMAGE_STACKS, MESH_READERS as MESH_SUFFIXES, VOLUME_READERS  # noqa: E402
+from .formats import suffix as _suffix  # noqa: E402
+
+VOLUME_SUFFIXES = VOLUME_READERS + IMAGE_STACKS
 #: bytes per voxel the measures hold at their peak (distance transform, sphere pointers,
 #: thickness map, labels, masks)
 ANALYSIS_BYTES_PER_VOXEL = 24
@@ -774,11 +775,6 @@ class Analysis:
 
     def __init__(self, report, solid, grid, mesh=None):
         self.report, self.solid, self.grid, self.mesh = report, solid, grid, mesh
-
-
-def _suffix(path) -> str:
-    name = str(path).lower()
-    return ".nii.gz" if name.endswith(".nii.gz") else os.path.splitext(name)[1]
 
 
 
@@ -1050,7 +1046,7 @@ def _read_volume(path, spacing, voxel):
     suffix = _suffix(path)
     try:
         if path.is_dir():
-            files = sorted(str(f) for f in path.iterdir() if _suffix(f) in (".tif", ".tiff"))
+            files = sorted(str(f) for f in path.iterdir() if _suffix(f) in IMAGE_STACKS)
             if not files:
                 raise ScaffoldError(f"folder {path} holds no .tif slices; give a folder of TIFF slices or a "
                                     "volume file")

@@ -19,8 +19,7 @@ import numpy as np
 
 from .errors import ScaffoldError, ScaffoldWarning
 
-MESH_EXTENSIONS = (".stl", ".obj", ".ply", ".off", ".3mf")
-VOLUME_EXTENSIONS = (".nii", ".nii.gz", ".nrrd", ".mha", ".mhd")
+from .formats import MESH_READERS as MESH_EXTENSIONS, VOLUME_READERS as VOLUME_EXTENSIONS  # noqa: E402
 #: mm per unit of a mesh file
 UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3}
 #: a bone (or a defect in one) spans between these sizes in mm; outside them the file's

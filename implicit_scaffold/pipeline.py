@@ -22,9 +22,7 @@ from .seeds import SEED_RULES
 from .skeleton import check_scale, closed_form_porosity, quad_areas
 
 STYLES = ("paper", "struts")
-MESH_FORMATS = (".stl", ".ply", ".obj", ".3mf")
-#: the scaffold's field (float32 signed distance, mm) or, for .tif, its binary solid
-FIELD_FORMATS = (".npy", ".vti", ".nii.gz", ".nii", ".nrrd", ".mha", ".tif", ".tiff", ".zarr")
+from .formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS, match  # noqa: E402
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
@@ -1168,7 +1166,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
     slab_voxels = run.forced_voxels or min(slab_voxels, max(thinnest, int((run.max_memory - release()) // per_voxel)))
     ext = output_format(out_path)
-    if tolerance <= 0 and ext in (".stl", ".ply"):
+    if tolerance <= 0 and ext in MESH_STREAMED:
         with prog.stage("mesh", "streamed to " + out_path.name):
             return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh")), None, []
     staged = out_path.with_name(f".{out_path.name}.tmp-mesh.ply")
@@ -1305,11 +1303,7 @@ def _faces_near_patient(cells, patient) -> np.ndarray:
 
 def output_format(path) -> str | None:
     """The mesh or field format that `path`'s name ends with (``.nii.gz`` as a whole), or None."""
-    name = Path(path).name.lower()
-    for ext in sorted(MESH_FORMATS + FIELD_FORMATS, key=len, reverse=True):
-        if name.endswith(ext):
-            return ext
-    return None
+    return match(path, MESH_FORMATS + FIELD_FORMATS)
 
 
 def report_path(path) -> Path:
