@@ -1072,13 +1072,33 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
         simplify_warnings = []
-        if morphometry:
-            report.update(_slab_morphometry(tf, grid, cells, run, prog))
         ext = output_format(out_path) if out_path is not None else None
         if mesh and ext in MESH_FORMATS:
-            summary, simplified, simplify_warnings = _stream_mesh(
-                tf.field, out_path, run, slab_voxels, prog, tolerance=_tolerance(params, grid.spacing),
-                voxel=grid.spacing, patient_volume=float(patient.volume))
+            def stream():
+                return _stream_mesh(tf.field, out_path, run, slab_voxels, prog,
+                                    tolerance=_tolerance(params, grid.spacing), voxel=grid.spacing,
+                                    patient_volume=float(patient.volume))
+
+            summary, simplified, simplify_warnings = stream()
+            step = _mesh_correction(summary["volume_mm3"], patient, params, calibration)
+            if step is not None:
+                # as the whole grid does: the mesh measured, the level moved by one step, the
+                # fragments and sealed voids cleaned again, and the mesh streamed once more
+                from .tiled import shift_level
+
+                with prog.stage("correct", f"level {step:+.3g} mm for the mesh's porosity"):
+                    more = shift_level(tf, step, remove_fragments=params.remove_fragments,
+                                       fill_sealed_voids=params.fill_sealed_voids, keep_interior=params.skin > 0,
+                                       patient_pieces=not isinstance(patient, tuple(SHAPES.values())),
+                                       progress=prog.bar("correct"))
+                report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = tf.level
+                report["porosity_voxel"] = 1.0 - tf.solid / tf.n_inside
+                if report.get("fragments_removed") is not None:
+                    report["fragments_removed"] += more[0]
+                report["sealed_voids"]["count"] += more[1]
+                report["sealed_voids"]["volume_mm3"] += more[2] * grid.voxel_volume
+                report["bodies_voxels"] = tf.pieces
+                summary, simplified, simplify_warnings = stream()
             if simplified is not None:
                 report["simplification"] = simplified
             report.update({
@@ -1092,11 +1112,14 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 "mesh_workers": summary.get("workers", 1),
             })
             report["porosity_printed"] = report["porosity_mesh"]
-            if morphometry:
+        if morphometry:
+            # measured on what was built, after any correction of the level
+            report.update(_slab_morphometry(tf, grid, cells, run, prog))
+            if "mesh_volume_mm3" in report:
                 # as the whole-grid morphometry takes them: the mesh's area over its volume
-                report["bs_bv_per_mm"] = (summary["surface_area_mm2"] / summary["volume_mm3"]
-                                          if summary["volume_mm3"] > 0 else None)
-        elif ext in FIELD_FORMATS:
+                report["bs_bv_per_mm"] = (report["surface_area_mm2"] / report["mesh_volume_mm3"]
+                                          if report["mesh_volume_mm3"] > 0 else None)
+        if ext in FIELD_FORMATS:
             from .export import write_volume
             from .memory import process_memory
 

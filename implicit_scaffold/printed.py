@@ -229,8 +229,9 @@ def correction(printed: float, target: float, info: dict) -> float | None:
     The prism samples a few thousand cells; how much marching cubes shaves varies from
     cell to cell, so the whole mesh can land a few tenths of a point off. One Newton step
     with the prism's slope then fixes it (the porosity is close to linear over such a
-    step). None when the mesh is within :data:`CORRECT_ABOVE` already. Whole-grid runs
-    only: a tiled run's mesh is streamed to its file, and its level stays the prism's.
+    step). None when the mesh is within :data:`CORRECT_ABOVE` already. A tiled run takes
+    the step on its field on disk and streams its mesh once more
+    (:func:`~implicit_scaffold.tiled.shift_level`), as the whole grid meshes twice.
     """
     slope = (info or {}).get("slope_per_mm")
     if not slope or abs(printed - target) <= CORRECT_ABOVE:

@@ -429,6 +429,29 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                       pieces, slabs, sealed, patient_pieces, plan, level_field)
 
 
+def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sealed_voids: bool,
+                keep_interior: bool = False, patient_pieces: bool = True, progress=None) -> tuple[int, int, int]:
+    """Move a finished field's surface by `step` mm, slab by slab, as the whole-grid run does
+    after measuring its mesh: ``s = max(s - step, s_P)`` (the new level's field, exactly, for
+    a step far below a voxel), then the fragments and sealed voids again.
+
+    Returns
+    -------
+    (fragments, sealed void pieces, sealed voxels) found by this pass; `tf`'s counts are updated.
+    """
+    solid, fragments, pieces, _ = _pass_scaffold(tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing,
+                                                 remove_fragments, progress, patient_pieces=patient_pieces)
+    sealed = _pass_sealed(tf.slabs, tf.field, tf.field.grid.spacing, fill_sealed_voids, keep_interior=keep_interior)
+    if fill_sealed_voids:
+        solid += sealed[1]
+    tf.solid, tf.pieces = solid, pieces
+    tf.level = float(tf.level + step)
+    if tf.fragments is not None:
+        tf.fragments += fragments or 0
+    tf.sealed = (tf.sealed[0] + sealed[0], tf.sealed[1] + sealed[1])
+    return fragments or 0, sealed[0], sealed[1]
+
+
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
                    patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int]:
