@@ -1,4 +1,4 @@
-"""The pipeline end to end: ``generate(**options)`` builds a scaffold and its report.
+"""The pipeline end to end: ``generate(...)`` builds a scaffold and its report.
 
 Every stage is a function of its own module; this one only validates options,
 chooses defaults, calls the stages in order and gathers the report.
@@ -14,7 +14,8 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import blend_field, check_porosity, fill_sealed_voids, sample, scaffold_field, solve_level_cut
+from .field import blend_field, check_porosity, sample, scaffold_field, solve_level_cut
+from .field import fill_sealed_voids as fill_sealed_void_pieces
 from .grid import Grid, run_bytes_per_voxel
 from .memory import available_memory, check_memory
 from .progress import Progress
@@ -219,8 +220,17 @@ def _report_stats(values) -> dict:
 
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
-             morphometry: bool = True, max_memory=None, tiled: bool | None = None, scheduler=None,
-             slices: dict | None = None, ct=None, printer=None, **options) -> Result:
+             morphometry: bool = True, max_memory=None, tiled: bool | int | None = None, scheduler=None,
+             slices: dict | None = None, ct=None, printer=None,
+             shape: str = Params.shape, size=Params.size, seeds: int | None = Params.seeds,
+             pore_size: float = Params.pore_size, porosity: float | None = Params.porosity,
+             sf: float = Params.sf, sv: float = Params.sv, style: str = Params.style,
+             blend: float | None = Params.blend, voxel: float | None = Params.voxel, seed: int = Params.seed,
+             remove_fragments: bool = Params.remove_fragments, fill_sealed_voids: bool = Params.fill_sealed_voids,
+             seeds_in: str | None = Params.seeds_in, seed_rule: str = Params.seed_rule, skin: float = Params.skin,
+             smooth_cut: float = Params.smooth_cut, grade=Params.grade, calibration=Params.calibration,
+             relax: int = Params.relax, weighted: bool = Params.weighted,
+             tolerance: float | None = Params.tolerance) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
 
     Parameters
@@ -257,10 +267,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     printer : str or PrinterProfile, optional
         Certify what was built for this printer (:mod:`.printability`): the certificate
         lands in ``report["print_check"]``.
-    **options
-        shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed,
-        remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted, tolerance
-        (see :class:`Params`). ``tolerance`` (mm, default 0: every triangle kept) simplifies
+    shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed, remove_fragments, \
+    fill_sealed_voids, seeds_in, seed_rule, skin, smooth_cut, grade, calibration, relax, weighted, tolerance
+        What to build (see :class:`Params`, whose defaults these are; mm).
+        ``tolerance`` (mm, default 0: every triangle kept) simplifies
         the mesh by manifold3d within that tolerance (:mod:`.simplify`); the report's
         ``simplification`` gives the distance between the surfaces and the porosity it
         moved, as measured, and a warning says when it moved the surface more than a
@@ -280,7 +290,14 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                         seed_count, seeds_in_patient, uniform_seeds)
     from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
 
-    params = validate(**options)
+    params = validate(shape=shape, size=size, seeds=seeds, pore_size=pore_size, porosity=porosity, sf=sf, sv=sv,
+                      style=style, blend=blend, voxel=voxel, seed=seed, remove_fragments=remove_fragments,
+                      fill_sealed_voids=fill_sealed_voids, seeds_in=seeds_in, seed_rule=seed_rule, skin=skin,
+                      smooth_cut=smooth_cut, grade=grade, calibration=calibration, relax=relax, weighted=weighted,
+                      tolerance=tolerance)
+    # from here on the run reads `params` alone
+    del shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed, skin, smooth_cut, grade
+    del remove_fragments, fill_sealed_voids, seeds_in, seed_rule, relax, tolerance
     if printer is not None and not hasattr(printer, "min_strut_mm"):
         from .printability import printer_profile
 
@@ -506,7 +523,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         pieces, n_pieces = label_pieces(inside)
         removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
         fragments = None if removal is None else removal["removed"]
-        sealed = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids, keep_interior=params.skin > 0)
+        sealed = fill_sealed_void_pieces(s, inside=h, fill=params.fill_sealed_voids, keep_interior=params.skin > 0)
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
         piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
@@ -551,7 +568,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 if params.remove_fragments:
                     report["fragments_removed"] += remove_fragments_by_piece(
                         s, label_pieces(s_p < 0)[0], outside=h)["removed"]
-                more = fill_sealed_voids(s, inside=h, fill=params.fill_sealed_voids,
+                more = fill_sealed_void_pieces(s, inside=h, fill=params.fill_sealed_voids,
                                          keep_interior=params.skin > 0)
                 report["sealed_voids"]["count"] += more[0]
                 report["sealed_voids"]["volume_mm3"] += more[1] * h ** 3
