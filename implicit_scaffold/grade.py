@@ -613,17 +613,18 @@ def power_radii(density: SeedDensity, seeds) -> np.ndarray:
 # run's fields on disk (:class:`~.tiles.FieldFile`) take the same steps and get the same
 # offsets bit for bit, whatever the slabs.
 
-#: planes are visited in chunks of about this many voxels when the fields are in memory
-CHUNK_VOXELS = 8_000_000
+#: planes are visited in chunks of about this many voxels (each pass holds one chunk's
+#: band arrays, about 70 bytes per voxel at most); the figures do not depend on it
+CHUNK_VOXELS = 4_000_000
 
 
-def _chunks(grid: Grid, slabs=None) -> list:
-    """The slabs to visit: `slabs` as given (their owned planes), else chunks of the grid."""
+def _chunks(grid: Grid, max_voxels: int | None = None) -> list:
+    """Chunks of whole planes of `grid`, each of at most :data:`CHUNK_VOXELS` voxels (and
+    `max_voxels`), one plane at least."""
     from .tiles import Slab
 
-    if slabs is not None:
-        return list(slabs)
-    step = max(1, CHUNK_VOXELS // max(1, grid.shape[1] * grid.shape[2]))
+    most = CHUNK_VOXELS if max_voxels is None else min(CHUNK_VOXELS, int(max_voxels))
+    step = max(1, most // max(1, grid.shape[1] * grid.shape[2]))
     return [Slab(x0, min(x0 + step, grid.shape[0]), x0, min(x0 + step, grid.shape[0]))
             for x0 in range(0, grid.shape[0], step)]
 
@@ -789,7 +790,8 @@ def _bins(coord: np.ndarray, width: float, min_count: int) -> np.ndarray:
     return _merge_bins(edges, np.histogram(coord, edges)[0], min_count)
 
 
-def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: float = 0.0) -> LevelPlan:
+def level_plan(field: GradeField, patient_sdf, grid: Grid, *, max_voxels: int | None = None,
+               skin: float = 0.0) -> LevelPlan:
     """The bins of the offset field on the run's grid, from two passes over the patient.
 
     Parameters
@@ -797,8 +799,9 @@ def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: 
     field : GradeField
     patient_sdf : (nx, ny, nz) float32 ndarray or FieldFile, mm
     grid : Grid
-    slabs : list of Slab, optional
-        Visit these planes (a tiled run's slabs); by default chunks of the grid.
+    max_voxels : int, optional
+        Visit chunks of planes of at most this many voxels (a tiled run's slab size), and
+        at most :data:`CHUNK_VOXELS`.
     skin : float, mm
         The skin's (and the smooth cut's) depth: its voxels are solid or cut whatever the
         offset, so the bins meet their porosity on the voxels below it.
@@ -807,7 +810,7 @@ def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: 
     -------
     LevelPlan
     """
-    read, chunks = _reader(patient_sdf), _chunks(grid, slabs)
+    read, chunks = _reader(patient_sdf), _chunks(grid, max_voxels)
     lo, hi, count, por_sum = np.inf, -np.inf, 0, 0.0
     for sl in chunks:
         b = band_planes(field, read(sl.x0, sl.x1), grid, sl.x0, skin)
@@ -816,6 +819,7 @@ def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: 
             lo, hi = min(lo, float(c.min())), max(hi, float(c.max()))
             count += c.size
             por_sum += float(np.sum(b.porosity[b.inside], dtype=np.float64))
+        del b, c  # before the next chunk's: one chunk's arrays at a time
     if count == 0:
         return LevelPlan(field, grid, np.array([0.0, 1.0]), float(skin), float(field.porosity))
     if field.coordinate == "depth":
@@ -828,6 +832,7 @@ def level_plan(field: GradeField, patient_sdf, grid: Grid, *, slabs=None, skin: 
         for sl in chunks:
             b = band_planes(field, read(sl.x0, sl.x1), grid, sl.x0, skin)
             counts += np.histogram(b.coord[b.inside], edges)[0]
+            del b
     return LevelPlan(field, grid, _merge_bins(edges, counts, MIN_BIN_VOXELS), float(skin), por_sum / count)
 
 
@@ -841,7 +846,7 @@ def _sampled(index: np.ndarray, fraction: float) -> np.ndarray:
     return hashed < np.uint64(int(fraction * 2**32))
 
 
-def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterations: int = 6,
+def solve_level_field(base, patient_sdf, plan: LevelPlan, *, max_voxels: int | None = None, iterations: int = 6,
                       tolerance: float = LEVEL_TOLERANCE_MM, progress=None) -> LevelField:
     """The offset field whose solid ``base < L(x)`` meets each bin's porosity.
 
@@ -858,7 +863,7 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
         The (blended) lattice field.
     patient_sdf : (nx, ny, nz) float32 ndarray or FieldFile, mm
     plan : LevelPlan
-    slabs : list of Slab, optional
+    max_voxels : int, optional
         As for :func:`level_plan`.
     iterations : int
         At most this many passes.
@@ -872,19 +877,21 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
     from .tiles import GroupQuantile
 
     grid = plan.grid
-    read_base, read_patient, chunks = _reader(base), _reader(patient_sdf), _chunks(grid, slabs)
+    read_base, read_patient, chunks = _reader(base), _reader(patient_sdf), _chunks(grid, max_voxels)
     nb = len(plan.edges) - 1
     nodes = (plan.edges[:-1] + plan.edges[1:]) / 2
     plane = grid.shape[1] * grid.shape[2]
 
     def visit():
-        # each chunk's bin voxels: their lattice values, coordinates, bins, shares and flat indices
+        # each chunk's bin voxels: their lattice values, coordinates, bins, shares and flat
+        # indices; every array is let go before the next chunk's (the callers del theirs too)
         for sl in chunks:
-            s_p = read_patient(sl.x0, sl.x1)
-            b = plan.band(s_p, sl.x0)
+            b = plan.band(read_patient(sl.x0, sl.x1), sl.x0)
             keep = b.inside
             vals = read_base(sl.x0, sl.x1)[b.mask][keep]
-            yield sl, b, keep, vals, b.coord[keep]
+            coord = b.coord[keep]
+            yield sl, b, keep, vals, coord
+            del b, keep, vals, coord
 
     counts = np.zeros(nb, np.int64)
     shares = np.zeros(nb)
@@ -892,6 +899,7 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
         which = plan.bin_of(coord)
         counts += np.bincount(which, minlength=nb)
         shares += np.bincount(which, weights=1.0 - b.porosity[keep].astype(np.float64), minlength=nb)
+        del b, keep, coord, which
     total = int(counts.sum())
     if total == 0:
         return LevelField(plan.coordinate, nodes, np.zeros(nb), 0.0)
@@ -902,6 +910,7 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
         pick = _sampled(index, fraction)
         parts.append((vals[pick], coord[pick], plan.bin_of(coord[pick]),
                       1.0 - b.porosity[keep][pick].astype(np.float64), index[pick]))
+        del b, keep, vals, coord, index, pick
     vals, coord, which, share, index = (np.concatenate([p[i] for p in parts]) for i in range(5))
     del parts
     order = np.lexsort((index, which))
@@ -926,12 +935,14 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
 
             for _, _, _, vals, coord in visit():
                 quantile.count(shifted(coord, vals), plan.bin_of(coord))
+                del vals, coord
             full = solid >= counts
             ranks = np.where(solid <= 0, 0, np.where(full, counts - 1, solid - 1))
             ranks = np.stack([ranks, np.where((solid <= 0) | full, ranks, solid)], axis=1)
             quantile.select(np.maximum(ranks, 0))
             for _, _, _, vals, coord in visit():
                 quantile.refine(shifted(coord, vals), plan.bin_of(coord))
+                del vals, coord
             below, above = quantile.values().T
             step = np.where(counts == 0, 0.0, np.where(solid <= 0, below - 1e-6, np.where(
                 full, above + 1e-6, below + (above - below) / 2)))
@@ -942,6 +953,7 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, slabs=None, iterati
     for sl in chunks:
         b = plan.band(read_patient(sl.x0, sl.x1), sl.x0)
         total_level += float(np.sum(np.interp(b.coord[b.inside], nodes, levels)))
+        del b
     return LevelField(plan.coordinate, nodes, levels, total_level / total)
 
 
@@ -1024,7 +1036,7 @@ def _profile(sums, coord_seeds, sizes, expected, edges) -> dict:
 
 
 def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *, axis: int | None = None,
-             bins: int = 24, slabs=None, below: float = 0.0) -> dict:
+             bins: int = 24, max_voxels: int | None = None, below: float = 0.0) -> dict:
     """Porosity and mean pore size against depth and along an axis, beside their targets.
 
     Porosity is measured on the voxels (``1 - solid / patient`` per bin, the skin
@@ -1048,7 +1060,7 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
         Default: the grid's longest axis.
     bins : int
         Bins along the axis (and at most this many times two in depth).
-    slabs : list of Slab, optional
+    max_voxels : int, optional
         As for :func:`level_plan`.
     below : float, mm
         A skin's depth: the porosity of the voxels deeper than it is measured too.
@@ -1065,18 +1077,25 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
     from .tiled import sample_slabs
     from .tiles import ArraySlabs
 
-    read_s, read_patient, chunks = _reader(s), _reader(patient_sdf), _chunks(grid, slabs)
+    read_s, read_patient, chunks = _reader(s), _reader(patient_sdf), _chunks(grid, max_voxels)
     axis = int(np.argmax(grid.shape)) if axis is None else int(axis)
 
     def visit():
+        # one chunk's arrays at a time: each is let go before the next (the callers del theirs)
         for sl in chunks:
             s_p = read_patient(sl.x0, sl.x1)
             b = band_planes(field, s_p, grid, sl.x0)
-            if axis != 0:
-                idx = np.nonzero(b.mask)[axis][b.inside]
-            else:
-                idx = np.nonzero(b.mask)[0][b.inside] + sl.x0
-            yield sl, b, -s_p[b.mask][b.inside].astype(np.float64), grid.origin[axis] + idx * grid.spacing
+            shape = [1, 1, 1]
+            shape[axis] = s_p.shape[axis]
+            start = sl.x0 if axis == 0 else 0
+            index = np.arange(start, start + s_p.shape[axis], dtype=np.int32).reshape(shape)
+            idx = np.broadcast_to(index, s_p.shape)[b.mask][b.inside]
+            depth = -s_p[b.mask][b.inside].astype(np.float64)
+            del s_p
+            along = grid.origin[axis] + idx * grid.spacing
+            del idx
+            yield sl, b, depth, along
+            del b, depth, along
 
     seeds_from = patient_sdf if not isinstance(patient_sdf, np.ndarray) else ArraySlabs(patient_sdf, grid)
     seed_sdf = sample_slabs(seeds_from, grid, cells.seeds).astype(np.float64)
@@ -1089,6 +1108,7 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
         if depth.size:
             dlo, dhi = min(dlo, float(depth.min())), max(dhi, float(depth.max()))
             alo, ahi = min(alo, float(along.min())), max(ahi, float(along.max()))
+        del depth, along
     if not np.isfinite(dlo):
         dlo = dhi = alo = ahi = 0.0
     width = max(2 * grid.spacing, dhi / (2 * bins))
@@ -1098,6 +1118,7 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
     counts = np.zeros(len(depth_edges) - 1, np.int64)
     for _, _, depth, _ in visit():
         counts += np.histogram(depth, depth_edges)[0]
+        del depth
     # bins too thin to count reliably (the deepest, near the core's axis) join their neighbours
     depth_edges = _merge_bins(depth_edges, counts, MIN_BIN_VOXELS)
     axis_edges = np.linspace(alo - grid.spacing / 2, ahi + grid.spacing / 2, bins + 1)
@@ -1111,6 +1132,8 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
             # as the offset's bins count them (band_planes): the patient's distance below -skin
             under = (-depth).astype(np.float32) < np.float32(-below)
             deep += [np.count_nonzero(under), np.count_nonzero(solid[under]), float(np.sum(tpor[under]))]
+            del under
+        del b, depth, along, solid, tpor, tsize
     out = {"depth": _profile(depth_sums, -seed_sdf[seed_in], d_cells, expected, depth_edges),
            "axis": _profile(axis_sums, cells.seeds[seed_in, axis], d_cells, expected, axis_edges),
            "axis_name": "xyz"[axis]}

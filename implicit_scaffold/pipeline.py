@@ -618,6 +618,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
+    report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
     if out_path is not None:
         from .mesh import write_json
 
@@ -636,10 +637,10 @@ def _grade_reach(grade) -> float:
 
 
 def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, grid: Grid, cells,
-                  slabs=None) -> dict:
+                  max_voxels: int | None = None) -> dict:
     """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`).
 
-    `s` and `s_p` are arrays, or a tiled run's fields on disk with its `slabs`.
+    `s` and `s_p` are arrays, or a tiled run's fields on disk (read in chunks of at most `max_voxels`).
     """
     from .grade import profiles
 
@@ -661,7 +662,7 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
         if gfield.kind == "ct":
             out["porosity_target"] = plan.porosity_mean
     below = params.skin + params.smooth_cut
-    info["profiles"] = profiles(s, grid, cells, params.sv, gfield, s_p, slabs=slabs, below=below)
+    info["profiles"] = profiles(s, grid, cells, params.sv, gfield, s_p, max_voxels=max_voxels, below=below)
     if below > 0:
         # the skin is solid and the smooth cut takes what it takes: the grade's porosity is
         # met by the voxels below them, which the offset's bins count
@@ -1039,7 +1040,6 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     from .memory import peak_memory
     from .patient import SHAPES
     from .tiled import runner_for, sample_slabs, tiled_scaffold
-    from .tiles import Slab
 
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
@@ -1078,8 +1078,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 report["printed_level"] = {"by": None, "why": "graded: the level is solved per depth bin in voxels"}
             with prog.stage("profiles"):
                 report.update(_grade_report(params, gfield, density, tf.level_plan, tf.level_field, tf.field,
-                                            tf.patient, grid, cells, slabs=[Slab(s.x0, s.x1, s.x0, s.x1)
-                                                                            for s in tf.slabs]))
+                                            tf.patient, grid, cells, max_voxels=slab_voxels))
             if empty is not None:
                 report["grade"]["empty_power_cells"] = empty
         report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
@@ -1161,6 +1160,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         # the mesh stage's worker processes: the largest one's peak (two run at once)
         report["peak_memory_workers_mb"] = round(peak_memory(children=True) / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
+    report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
     if out_path is not None:
         from .mesh import write_json
 

@@ -29,6 +29,9 @@ class Progress:
     def __init__(self, enabled: bool = False):
         self.enabled = enabled
         self.timings: dict[str, float] = {}
+        #: the process's peak resident bytes as each stage ended (its high-water mark, which
+        #: only grows): the stage where it jumps is the one that needed the memory
+        self.high_water: dict[str, int] = {}
         self._bar_enabled = enabled and sys.stderr.isatty()
 
     @contextmanager
@@ -39,6 +42,9 @@ class Progress:
         t0 = time.perf_counter()
         yield
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
+        from .memory import peak_memory
+
+        self.high_water[name] = peak_memory()
         check_interrupted()
 
     def note(self, text: str) -> None:

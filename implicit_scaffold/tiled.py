@@ -390,12 +390,11 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if grade is not None:
                 from .grade import level_plan, solve_level_field
 
-                owned = [Slab(s.x0, s.x1, s.x0, s.x1) for s in slabs]
                 if plan is None:
                     with prog.stage("grade", "offset bins"):
-                        plan = level_plan(grade, patient_file, grid, slabs=owned, skin=skin + smooth_cut)
+                        plan = level_plan(grade, patient_file, grid, max_voxels=max_voxels, skin=skin + smooth_cut)
                 with prog.stage("offset", f"{len(plan.edges) - 1} bins"):
-                    level_field = solve_level_field(field, patient_file, plan, slabs=owned)
+                    level_field = solve_level_field(field, patient_file, plan, max_voxels=max_voxels)
                 level = level_field.reach(style)
             else:
                 with prog.stage("offset"):
