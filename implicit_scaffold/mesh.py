@@ -1,11 +1,15 @@
-"""Meshing and output (stage 7): marching cubes of a field, mesh checks, atomic writers.
+"""Meshing (stage 7): marching cubes of a field, the mesh checks, and the mesh writers.
 
 The solid is where the field is below the level (a signed distance is negative
 inside solid). :func:`mesh_field` gives a closed, consistently oriented triangle
 mesh in mm whose normals point out of the solid; :func:`mesh_summary` measures it;
-the writers (:func:`write_mesh`, :func:`write_field`, :func:`write_json`) produce
-byte-identical files for identical input and never leave a half-written file: they
-write to a hidden temporary file in the target folder and rename it into place.
+:func:`write_mesh` writes it in the format its extension names (:mod:`.formats`),
+byte-identical for identical input, through :func:`.files.atomic_path` (never a
+half-written file). The field's ``.npy`` and the JSON report are written by
+:mod:`.files` (their names are kept here too, for the callers that import them from
+this module). The public names below the writers (``prepare_planes``,
+``marching_cubes_surface``, ``stl_chunk`` ...) are the pieces :mod:`.mesh_stream`
+builds its slab-by-slab mesh from.
 
 How the mesh is kept closed
 ---------------------------
@@ -34,11 +38,7 @@ directions) unless ``check=False``.
 """
 from __future__ import annotations
 
-import contextlib
 import functools
-import json
-import os
-import secrets
 import zipfile
 from pathlib import Path
 
@@ -46,6 +46,8 @@ import numpy as np
 
 from .errors import ScaffoldError
 from .grid import Grid
+from .files import (atomic_path, check_format, check_writable, folder_of, new_temp,  # noqa: F401
+                    remove_quietly, write_field, write_json)
 
 __all__ = [
     "MESH_FORMATS",
@@ -70,16 +72,16 @@ _CLAMP = 4.0
 _TIE = 1e-6
 #: Rounds of face-tie breaking at most. A round changes a voxel of plane i from the
 #: values of planes i and i + 1 only, so a slab meshed up to plane x is exact when it
-#: breaks the ties on the planes up to x + _TIE_ROUNDS (see :mod:`.mesh_stream`).
-_TIE_ROUNDS = 16
+#: breaks the ties on the planes up to x + TIE_ROUNDS (see :mod:`.mesh_stream`).
+TIE_ROUNDS = 16
 #: Voxels per slab when a field is processed slab by slab (bounds temporaries).
 _SLAB_VOXELS = 1 << 18
 #: Triangles per chunk when faces are processed chunk by chunk.
-_FACE_CHUNK = 1 << 20
+FACE_CHUNK = 1 << 20
 #: Bits of an int64 the edge sort may pack (vertex, span to the other end, edge number) into.
 _PACKED_BITS = 63
 
-_STL_HEADER = b"binary STL written by implicit_scaffold; units: mm".ljust(80, b" ")
+STL_HEADER = b"binary STL written by implicit_scaffold; units: mm".ljust(80, b" ")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
 
 
@@ -131,8 +133,8 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
     import trimesh
 
     work = _prepare_field(field, grid, level)
-    _break_face_ties(work)
-    verts, faces = _surface(work)
+    break_face_ties(work)
+    verts, faces = marching_cubes_surface(work)
     del work
     if check:
         bad = _bad_edge_count(faces, len(verts))
@@ -141,7 +143,7 @@ def mesh_field(field, grid: Grid, *, level: float = 0.0, check: bool = True):
                 "marching cubes gave a surface with open or inconsistently oriented edges "
                 f"(about {bad}); this is a bug in implicit_scaffold.mesh, please report the field")
 
-    return trimesh.Trimesh(vertices=_index_to_mm(verts, grid), faces=faces, process=False, validate=False)
+    return trimesh.Trimesh(vertices=index_to_mm(verts, grid), faces=faces, process=False, validate=False)
 
 
 def prism_volume(field, spacing: float, *, y_faces: bool = False, z_faces: bool = False) -> tuple[float, float]:
@@ -167,15 +169,15 @@ def prism_volume(field, spacing: float, *, y_faces: bool = False, z_faces: bool 
         Solid volume in the prism, mm^3, and the surface area in it, mm^2.
     """
     work = np.empty(field.shape, dtype=np.float32)
-    _prepare_planes(field, work, 0.0, float(spacing))
+    prepare_planes(field, work, 0.0, float(spacing))
     faces = [work[0], work[-1]] + ([work[:, 0], work[:, -1]] if y_faces else []) \
         + ([work[:, :, 0], work[:, :, -1]] if z_faces else [])
     for face in faces:
         np.maximum(face, np.float32(1.0), out=face)
     if not work.min() < 0:
         return 0.0, 0.0
-    _break_face_ties(work)
-    verts, tris = _surface(work)
+    break_face_ties(work)
+    verts, tris = marching_cubes_surface(work)
     a, b, c = (verts[tris[:, i]].astype(np.float64) for i in range(3))
     n = np.cross(b - a, c - a)  # twice the area, along the outward normal
     h = float(spacing)
@@ -184,7 +186,7 @@ def prism_volume(field, spacing: float, *, y_faces: bool = False, z_faces: bool 
     return volume, area
 
 
-def _surface(work: np.ndarray, index=np.int64):
+def marching_cubes_surface(work: np.ndarray, index=np.int64):
     """Marching cubes at 0 of a prepared, tie-broken copy: ``(verts, faces)``.
 
     ``verts`` ``(V, 3)`` float32, voxel index coordinates of `work`; ``faces`` ``(F, 3)``
@@ -239,7 +241,7 @@ def _flying_edges(work: np.ndarray):
     return verts, faces
 
 
-def _index_to_mm(verts: np.ndarray, grid: Grid, x0: int = 0) -> np.ndarray:
+def index_to_mm(verts: np.ndarray, grid: Grid, x0: int = 0) -> np.ndarray:
     """Voxel index coordinates (float32, x counted from plane `x0`) as ``(V, 3)`` float64 mm.
 
     The plane offset is added in float64, where it is exact, so a vertex on a grid plane
@@ -253,13 +255,13 @@ def _index_to_mm(verts: np.ndarray, grid: Grid, x0: int = 0) -> np.ndarray:
     return vertices
 
 
-def _check_meshable(shape) -> None:
+def check_meshable(shape) -> None:
     if min(shape) < 3:
         raise ScaffoldError(f"a grid of {shape[0]}x{shape[1]}x{shape[2]} voxels is too small to mesh: "
                             "it needs at least 3 voxels along every axis (the outer layer is outside)")
 
 
-def _check_level(level) -> float:
+def check_level(level) -> float:
     """The iso-level as a finite float, mm."""
     try:
         level = float(level)
@@ -270,7 +272,7 @@ def _check_level(level) -> float:
     return level
 
 
-def _nothing_to_mesh(level: float) -> ScaffoldError:
+def nothing_to_mesh(level: float) -> ScaffoldError:
     return ScaffoldError(
         f"nothing to mesh: no voxel of the field is below the level {level:g} mm away from the "
         "grid's outer layer of voxels; check the field, the level and that the part lies inside the grid")
@@ -285,17 +287,17 @@ def _prepare_field(field, grid: Grid, level: float) -> np.ndarray:
                             "evaluate the field on the same grid")
     if not (np.issubdtype(field.dtype, np.floating) or np.issubdtype(field.dtype, np.integer)):
         raise ScaffoldError(f"the field must hold real numbers (float32 or float64), got {field.dtype}")
-    _check_meshable(shape)
-    level = _check_level(level)
+    check_meshable(shape)
+    level = check_level(level)
     work = np.empty(shape, dtype=np.float32)
-    _prepare_planes(field, work, level, float(grid.spacing))
-    _force_outside(work, first_x=True, last_x=True)
+    prepare_planes(field, work, level, float(grid.spacing))
+    force_outside(work, first_x=True, last_x=True)
     if not work.min() < 0:
-        raise _nothing_to_mesh(level)
+        raise nothing_to_mesh(level)
     return work
 
 
-def _prepare_planes(field, out: np.ndarray, level: float, h: float, x0: int = 0) -> None:
+def prepare_planes(field, out: np.ndarray, level: float, h: float, x0: int = 0) -> None:
     """``out[i]`` = the prepared values of plane ``field[i]``, chunk by chunk (`out` may be `field`).
 
     Clamped and nudged voxels of distance from the level (see module notes); the value
@@ -318,7 +320,7 @@ def _prepare_planes(field, out: np.ndarray, level: float, h: float, x0: int = 0)
         out[i0:i0 + step] = x
 
 
-def _force_outside(work: np.ndarray, *, first_x: bool, last_x: bool) -> None:
+def force_outside(work: np.ndarray, *, first_x: bool, last_x: bool) -> None:
     """Force the grid's outer layer of voxels outside (at least one voxel), in place.
 
     `work` holds planes of x; its y and z faces lie on the grid's faces, its first and
@@ -367,7 +369,7 @@ def _ambiguous_faces(work: np.ndarray) -> np.ndarray:
     return np.concatenate(found).astype(np.int64)
 
 
-def _break_face_ties(work: np.ndarray, max_rounds: int = _TIE_ROUNDS, offset: int = 0) -> None:
+def break_face_ties(work: np.ndarray, max_rounds: int = TIE_ROUNDS, offset: int = 0) -> None:
     """Make ``A·C != B·D`` on every ambiguous face, in place (signs never change).
 
     `offset` is the flat index, in the whole grid, of ``work``'s first voxel: the
@@ -399,7 +401,7 @@ def _break_face_ties(work: np.ndarray, max_rounds: int = _TIE_ROUNDS, offset: in
 def _merge_duplicate_vertices(verts: np.ndarray, faces: np.ndarray):
     """Merge vertices at bit-identical positions and drop triangles that collapse."""
     # an exact look for equal bits (a hash table; the usual answer is none) before the sort
-    if not _jit()["has_duplicates"](np.ascontiguousarray(verts, np.float32).view(np.uint32)):
+    if not compiled_kernels()["has_duplicates"](np.ascontiguousarray(verts, np.float32).view(np.uint32)):
         return verts, faces
     uniq, inverse = np.unique(verts, axis=0, return_inverse=True)
     if len(uniq) == len(verts):
@@ -446,7 +448,7 @@ def _edge_keys(faces: np.ndarray, nverts: int) -> np.ndarray:
 def _bad_edge_count(faces: np.ndarray, nverts: int) -> int:
     """Directed edges that do not pair with exactly one opposite edge (0 for a closed,
     consistently oriented, edge-manifold surface)."""
-    watertight, winding, _, _ = _jit()["edge_check"](faces, nverts, np.zeros(nverts, np.int8))
+    watertight, winding, _, _ = compiled_kernels()["edge_check"](faces, nverts, np.zeros(nverts, np.int8))
     if watertight and winding:  # the usual answer, in linear time; else count by sorting
         return 0
     # each undirected edge must appear exactly twice: once as lo->hi (key even) and once
@@ -511,7 +513,7 @@ def _edge_groups(faces: np.ndarray, nverts: int, index):
     return order, new
 
 
-def _face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
+def face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
     """Per-triangle area and signed volume (of the tetrahedron to `ref`), chunked.
 
     `ref` ``(3,)`` float, mm, defaults to the vertices' mean; parts of one surface
@@ -523,7 +525,7 @@ def _face_measures(vertices: np.ndarray, faces: np.ndarray, ref=None):
     vol = np.empty(len(faces))
     # per triangle, in float64: corners less ref, c = (b - a) x (c - a), area |c| / 2,
     # volume a . c / 6 (a compiled loop: the same bits without a dozen (F,) temporaries)
-    _jit()["triangles"](vertices, faces, 0, len(faces), False, 0.0, 1.0, np.zeros(3),
+    compiled_kernels()["triangles"](vertices, faces, 0, len(faces), False, 0.0, 1.0, np.zeros(3),
                         np.asarray(ref, np.float64), _NO_RECORDS, area, vol)
     return area, vol
 
@@ -537,13 +539,13 @@ def _descent_points_out() -> bool:
     probe = np.ones((3, 3, 3), dtype=np.float32)
     probe[1, 1, 1] = -1.0
     verts, faces = _flying_edges(probe)
-    return bool(_face_measures(verts.astype(np.float64), faces)[1].sum() > 0)
+    return bool(face_measures(verts.astype(np.float64), faces)[1].sum() > 0)
 
 
 # --------------------------------------------------------------------------- compiled kernels
 
 
-def _jit():
+def compiled_kernels():
     """The compiled per-triangle kernels (numba), built on first use and cached on disk.
 
     Each gives the bits its NumPy formula gives (the same float64 operations in the same
@@ -559,7 +561,7 @@ def _jit():
         # Triangles f0 <= f < f1: the 50-byte STL record of _write_stl_records (when `out`
         # is not empty: the record buffer as uint16, record r at out[25 r:]; each float32
         # goes in as its two halves, as a float32 view at an odd multiple of 2 bytes would
-        # be unaligned, which is slow), and _face_measures' area and volume (when `area`
+        # be unaligned, which is slow), and face_measures' area and volume (when `area`
         # is not empty; indexed by f).
         records = out.size > 0
         measures = area.size > 0
@@ -570,7 +572,7 @@ def _jit():
             for c in range(3):
                 v = faces[f, c]
                 for a in range(3):
-                    # _index_to_mm when `affine`, else the coordinate as float64 (a helper
+                    # index_to_mm when `affine`, else the coordinate as float64 (a helper
                     # function here ran 6 times slower)
                     x = np.float64(verts[v, a])
                     if affine:
@@ -750,7 +752,7 @@ def _jit():
 _KERNELS = None
 
 
-def _stl_buffer(n: int) -> np.ndarray:
+def stl_buffer(n: int) -> np.ndarray:
     """Room for `n` binary STL records, as ``(25 n,)`` uint16 (zeros: the attribute bytes stay 0)."""
     return np.zeros(25 * n, np.uint16)
 
@@ -761,15 +763,15 @@ _NO_MEASURES = np.zeros(0, np.float64)
 _NO_NUMBERS = np.zeros(0, np.int64)
 
 
-def _stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, ref=None,
+def stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, ref=None,
                area=_NO_MEASURES, vol=_NO_MEASURES) -> np.ndarray:
-    """The binary STL records of faces ``[f0, f1)``, as a view of `buf` (from :func:`_stl_buffer`).
+    """The binary STL records of faces ``[f0, f1)``, as a view of `buf` (from :func:`stl_buffer`).
 
     `verts` ``(V, 3)`` are float64 mm, or, with `grid`, float32 index coordinates with x
-    counted from plane `x0` (turned into mm as :func:`_index_to_mm` does). Each record
+    counted from plane `x0` (turned into mm as :func:`index_to_mm` does). Each record
     is a unit normal from the winding (float64, cast to float32; zero for a collapsed
     triangle), the three corners (float32) and a zero attribute. With `ref` ``(3,)`` mm,
-    `area` and `vol` (``(F,)`` float64) get entries ``[f0, f1)`` of :func:`_face_measures`.
+    `area` and `vol` (``(F,)`` float64) get entries ``[f0, f1)`` of :func:`face_measures`.
     """
     if grid is not None:
         origin = np.asarray(grid.origin, np.float64)
@@ -778,7 +780,7 @@ def _stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, r
         origin = np.zeros(3)
         h = 1.0
     ref = np.zeros(3) if ref is None else np.asarray(ref, np.float64)
-    _jit()["triangles"](verts, faces, f0, f1, grid is not None, float(x0), h, origin, ref, buf, area, vol)
+    compiled_kernels()["triangles"](verts, faces, f0, f1, grid is not None, float(x0), h, origin, ref, buf, area, vol)
     return buf[:25 * (f1 - f0)]
 
 
@@ -795,7 +797,7 @@ def mesh_volume(mesh) -> float:
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     if not len(faces):
         return 0.0
-    return float(_face_measures(np.asarray(mesh.vertices, dtype=np.float64), faces)[1].sum())
+    return float(face_measures(np.asarray(mesh.vertices, dtype=np.float64), faces)[1].sum())
 
 
 def mesh_summary(mesh) -> dict:
@@ -888,7 +890,7 @@ def mesh_summary(mesh) -> dict:
     is_open[label[open_edges // 3]] = True  # a group's edges all lie in one component
     del open_edges
 
-    area, vol = _face_measures(vertices, faces)
+    area, vol = face_measures(vertices, faces)
     comp_vol = np.bincount(label, weights=vol, minlength=ncomp)
     bodies = int(np.count_nonzero(~is_open & (comp_vol > 0)))
     return {
@@ -899,130 +901,6 @@ def mesh_summary(mesh) -> dict:
         "surface_area_mm2": float(area.sum()),
         "bodies": bodies,
     }
-
-
-# --------------------------------------------------------------------------- files
-
-
-def _folder_of(path) -> Path:
-    return Path(os.path.abspath(os.fspath(path))).parent
-
-
-def _os_reason(exc: OSError) -> str:
-    if isinstance(exc, FileNotFoundError):
-        return "folder does not exist; pick an existing folder with -o"
-    if isinstance(exc, NotADirectoryError):
-        return "not a folder; pick an existing folder with -o"
-    if isinstance(exc, PermissionError):
-        return "permission denied; pick a folder you can write to with -o"
-    reason = (exc.strerror or type(exc).__name__).lower()
-    return f"{reason}; pick another folder or file name with -o"
-
-
-def _new_temp(final: Path) -> Path:
-    """Create an empty hidden temporary file beside `final` (same extension); raise OSError."""
-    folder = _folder_of(final)
-    for _ in range(100):
-        tmp = folder / f".{final.name}.tmp-{secrets.token_hex(4)}{final.suffix}"
-        try:
-            fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
-        except FileExistsError:
-            continue
-        os.close(fd)
-        return tmp
-    raise FileExistsError(f"no free temporary name beside {final}")
-
-
-def _remove_quietly(path: Path) -> None:
-    with contextlib.suppress(FileNotFoundError):
-        os.remove(path)
-
-
-def check_writable(path, *, formats=None) -> Path:
-    """Fail early, with a one-line fix, if `path` cannot be written.
-
-    Call it before any long computation. It creates and removes a temporary file in
-    the target folder, and leaves nothing behind.
-
-    Parameters
-    ----------
-    path : str or os.PathLike
-        File to be written.
-    formats : sequence of str, optional
-        Allowed extensions (e.g. :data:`MESH_FORMATS`), lower case with the dot.
-
-    Returns
-    -------
-    pathlib.Path
-        `path`, as given.
-
-    Raises
-    ------
-    ScaffoldError
-        The extension is not allowed, the folder does not exist, is not a folder or
-        cannot be written to, or `path` is a folder.
-    """
-    final = Path(path)
-    if formats is not None:
-        _check_format(final, formats)
-    folder = _folder_of(final)
-    if not folder.exists():
-        raise ScaffoldError(
-            f"cannot write to {folder}: folder does not exist; pick an existing folder with -o")
-    if not folder.is_dir():
-        raise ScaffoldError(f"cannot write to {folder}: not a folder; pick an existing folder with -o")
-    if final.is_dir():
-        raise ScaffoldError(f"cannot write to {final}: it is a folder; give a file name with -o")
-    try:
-        tmp = _new_temp(final)
-    except OSError as exc:
-        raise ScaffoldError(f"cannot write to {folder}: {_os_reason(exc)}") from None
-    _remove_quietly(tmp)
-    return final
-
-
-@contextlib.contextmanager
-def atomic_path(path):
-    """Context manager: a temporary path that becomes `path` only if the block succeeds.
-
-    Yields a hidden file name in the same folder, ``.NAME.tmp-XXXXXXXX.EXT`` (the
-    extension is kept for exporters that look at it; the file exists, empty). When
-    the block exits normally the file is renamed onto `path` with :func:`os.replace`
-    (atomic on one file system); when it raises, the temporary file is removed and
-    `path` is left as it was.
-
-    Raises
-    ------
-    ScaffoldError
-        The folder does not exist or cannot be written to.
-    """
-    final = Path(path)
-    if final.is_dir():
-        raise ScaffoldError(f"cannot write to {final}: it is a folder; give a file name with -o")
-    try:
-        tmp = _new_temp(final)
-    except OSError as exc:
-        raise ScaffoldError(f"cannot write to {_folder_of(final)}: {_os_reason(exc)}") from None
-    try:
-        yield tmp
-    except BaseException:
-        _remove_quietly(tmp)
-        raise
-    try:
-        os.replace(tmp, final)
-    except OSError as exc:
-        _remove_quietly(tmp)
-        raise ScaffoldError(f"cannot write to {final}: {_os_reason(exc)}") from None
-
-
-def _check_format(final: Path, formats) -> str:
-    from .formats import suffix
-
-    ext = suffix(final)
-    if ext not in formats:
-        raise ScaffoldError(f"cannot write {final}: unknown file type {ext or '(no extension)'!r}; "
-                            f"use one of {', '.join(formats)}")
-    return ext
 
 
 def write_mesh(mesh, path) -> Path:
@@ -1050,7 +928,7 @@ def write_mesh(mesh, path) -> Path:
         be written to.
     """
     final = Path(path)
-    ext = _check_format(final, MESH_FORMATS)
+    ext = check_format(final, MESH_FORMATS)
     vertices = np.asarray(mesh.vertices, dtype=np.float64).reshape(-1, 3)
     faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     writer = {".stl": _write_stl, ".ply": _write_ply, ".obj": _write_obj, ".3mf": _write_3mf}[ext]
@@ -1062,7 +940,7 @@ def write_mesh(mesh, path) -> Path:
 def _write_stl(vertices, faces, fh) -> None:
     if len(faces) >= 2 ** 32:
         raise ScaffoldError(f"{len(faces)} triangles do not fit in an STL file; write .ply or .3mf")
-    fh.write(_STL_HEADER)
+    fh.write(STL_HEADER)
     fh.write(np.array([len(faces)], dtype="<u4").tobytes())
     _write_stl_records(vertices, faces, fh)
 
@@ -1070,12 +948,12 @@ def _write_stl(vertices, faces, fh) -> None:
 def _write_stl_records(vertices, faces, fh) -> None:
     """The 50-byte triangle records of binary STL (normal from the winding, float32)."""
     vertices = np.asarray(vertices, np.float64)
-    buf = _stl_buffer(min(len(faces), _FACE_CHUNK))
-    for f0 in range(0, len(faces), _FACE_CHUNK):
-        fh.write(_stl_chunk(vertices, faces, f0, min(f0 + _FACE_CHUNK, len(faces)), buf))
+    buf = stl_buffer(min(len(faces), FACE_CHUNK))
+    for f0 in range(0, len(faces), FACE_CHUNK):
+        fh.write(stl_chunk(vertices, faces, f0, min(f0 + FACE_CHUNK, len(faces)), buf))
 
 
-def _ply_header(nverts: int, nfaces: int, size: int = 0) -> bytes:
+def ply_header(nverts: int, nfaces: int, size: int = 0) -> bytes:
     """The binary PLY header; its comment is padded with spaces to `size` bytes when shorter."""
     def text(comment):
         return ("ply\nformat binary_little_endian 1.0\n"
@@ -1091,17 +969,17 @@ def _ply_header(nverts: int, nfaces: int, size: int = 0) -> bytes:
 
 
 def _write_ply(vertices, faces, fh) -> None:
-    fh.write(_ply_header(len(vertices), len(faces)))
+    fh.write(ply_header(len(vertices), len(faces)))
     fh.write(np.ascontiguousarray(vertices, dtype="<f8").tobytes())
     _write_ply_faces(faces, fh)
 
 
 def _write_ply_faces(faces, fh) -> None:
     """The face records of binary PLY: a count byte (3) and three int32 vertex indices."""
-    buf = np.empty(13 * min(len(faces), _FACE_CHUNK), np.uint8)
-    for f0 in range(0, len(faces), _FACE_CHUNK):
-        f1 = min(f0 + _FACE_CHUNK, len(faces))
-        _jit()["ply_faces"](faces, _NO_NUMBERS, f0, f1, buf)
+    buf = np.empty(13 * min(len(faces), FACE_CHUNK), np.uint8)
+    for f0 in range(0, len(faces), FACE_CHUNK):
+        f1 = min(f0 + FACE_CHUNK, len(faces))
+        compiled_kernels()["ply_faces"](faces, _NO_NUMBERS, f0, f1, buf)
         fh.write(buf[:13 * (f1 - f0)])
 
 
@@ -1207,7 +1085,7 @@ def _ply_layout(path) -> tuple[int, int, int]:
     return end + len(b"end_header\n"), nverts, nfaces
 
 
-def write_mesh_from_ply(ply, path, *, block: int = _FACE_CHUNK) -> Path:
+def write_mesh_from_ply(ply, path, *, block: int = FACE_CHUNK) -> Path:
     """Rewrite a binary PLY (as :func:`write_mesh` or :func:`.mesh_stream.write_mesh_slabs`
     write it) as the mesh format `path` names, a block of rows at a time.
 
@@ -1228,7 +1106,7 @@ def write_mesh_from_ply(ply, path, *, block: int = _FACE_CHUNK) -> Path:
     pathlib.Path
     """
     final = Path(path)
-    ext = _check_format(final, MESH_FORMATS)
+    ext = check_format(final, MESH_FORMATS)
     start, nverts, nfaces = _ply_layout(ply)
     vertices = np.memmap(ply, dtype="<f8", mode="r", offset=start, shape=(nverts, 3)) if nverts else \
         np.zeros((0, 3))
@@ -1256,83 +1134,4 @@ def write_mesh_from_ply(ply, path, *, block: int = _FACE_CHUNK) -> Path:
             f = np.asarray(records["v"], dtype=np.int64)
             {".stl": _write_stl, ".ply": _write_ply}[ext](v, f, fh)
     del vertices, records
-    return final
-
-
-def write_field(field, path) -> Path:
-    """Write a field as a float32 ``.npy`` file, atomically.
-
-    The array is converted slab by slab, so a float64 field is never copied whole.
-    The bytes equal ``np.save(path, field.astype(np.float32))``.
-
-    Parameters
-    ----------
-    field : ndarray, mm, or a field on disk (``.grid`` and ``.read(x0, x1)``, e.g. a
-        :class:`~implicit_scaffold.tiles.FieldFile`)
-    path : str or os.PathLike
-        Must end in ``.npy``.
-
-    Returns
-    -------
-    pathlib.Path
-
-    Raises
-    ------
-    ScaffoldError
-        The extension is not ``.npy``, or the folder cannot be written to.
-    """
-    final = Path(path)
-    _check_format(final, (".npy",))
-    if hasattr(field, "read"):  # a field on disk (tiles.FieldFile): read plane range by plane range
-        shape, planes = tuple(field.grid.shape), field.read
-    else:
-        field = np.asarray(field)
-        shape = tuple(field.shape)
-        planes = lambda i0, i1: field[i0:i1]  # noqa: E731
-    header = {"descr": np.lib.format.dtype_to_descr(np.dtype("<f4")), "fortran_order": False, "shape": shape}
-    with atomic_path(final) as tmp, open(tmp, "wb") as fh:
-        np.lib.format.write_array_header_1_0(fh, header)
-        if not shape:
-            fh.write(field.astype("<f4").tobytes())
-        else:
-            per = int(np.prod(shape[1:], dtype=np.int64)) or 1
-            step = max(1, _SLAB_VOXELS // per)
-            for i0 in range(0, shape[0], step):
-                fh.write(np.ascontiguousarray(planes(i0, min(i0 + step, shape[0])), dtype="<f4").tobytes())
-    return final
-
-
-def _json_default(obj):
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, np.floating):
-        return float(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, os.PathLike):
-        return os.fspath(obj)
-    raise TypeError(f"cannot write a {type(obj).__name__} to JSON")
-
-
-def write_json(obj, path) -> Path:
-    """Write `obj` as pretty JSON (2-space indent, sorted keys, final newline), atomically.
-
-    NumPy scalars and arrays are written as numbers and lists, paths as strings.
-    Non-finite floats are written as ``NaN``/``Infinity``, as :mod:`json` does.
-
-    Returns
-    -------
-    pathlib.Path
-
-    Raises
-    ------
-    ScaffoldError
-        The folder cannot be written to.
-    """
-    final = Path(path)
-    text = json.dumps(obj, indent=2, sort_keys=True, ensure_ascii=False, default=_json_default) + "\n"
-    with atomic_path(final) as tmp, open(tmp, "w", encoding="utf-8", newline="\n") as fh:
-        fh.write(text)
     return final

@@ -16,9 +16,9 @@ must be the same bits. They are, because every value of the prepared copy (see
   outside (planes ``0`` and ``nx - 1`` only in the slabs that hold them);
 - a round of face-tie breaking changes a voxel of plane ``i`` from the values of
   planes ``i`` and ``i + 1`` only, with a factor hashed from the voxel's index in the
-  whole grid; after the ``_TIE_ROUNDS`` rounds at most, plane ``i`` depends on planes
-  ``i .. i + _TIE_ROUNDS``. A slab therefore reads and breaks ties on
-  ``1 + _TIE_ROUNDS`` planes beyond ``x1`` (fewer at the grid's end) and none before ``x0``;
+  whole grid; after the ``TIE_ROUNDS`` rounds at most, plane ``i`` depends on planes
+  ``i .. i + TIE_ROUNDS``. A slab therefore reads and breaks ties on
+  ``1 + TIE_ROUNDS`` planes beyond ``x1`` (fewer at the grid's end) and none before ``x0``;
 - a vertex on a grid plane has an exact integer x index, to which the slab's offset is
   added in float64 before scaling by the spacing and adding the origin.
 
@@ -56,10 +56,10 @@ import numpy as np
 
 from .errors import ScaffoldError
 from .memory import available_memory
-from .mesh import (_FACE_CHUNK, _TIE_ROUNDS, _break_face_ties, _check_level, _check_meshable, _face_measures,
-                   _folder_of, _force_outside, _index_to_mm, _jit, _new_temp, _nothing_to_mesh, _ply_header,
-                   _prepare_planes, _remove_quietly, _STL_HEADER, _stl_buffer, _stl_chunk, _surface,
-                   atomic_path, check_writable)
+from .files import atomic_path, check_writable, folder_of, new_temp, remove_quietly
+from .mesh import (FACE_CHUNK, STL_HEADER, TIE_ROUNDS, break_face_ties, check_level, check_meshable, compiled_kernels,
+                   face_measures, force_outside, index_to_mm, marching_cubes_surface, nothing_to_mesh, ply_header,
+                   prepare_planes, stl_buffer, stl_chunk)
 from .tiles import ArraySlabs, FieldFile, plan_slabs
 
 __all__ = ["MESH_BYTES_PER_TRIANGLE", "MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMATS", "mesh_slab_bytes_per_voxel",
@@ -118,13 +118,13 @@ def mesh_slab_bytes_per_voxel(source, *, level: float = 0.0, samples: int = 8) -
 
 #: Planes a slab reads beyond its last cube layer: that layer's far plane, and the
 #: planes tie breaking looks ahead (module notes).
-_AHEAD = 1 + _TIE_ROUNDS
+_AHEAD = 1 + TIE_ROUNDS
 #: the two-sided halo that the slabs are planned with: a slab reads at least 1 + 2 * this planes
 MESH_HALO_PLANES = (_AHEAD + 1) // 2
 #: Global vertex numbers are PLY's int32.
 _KEY_BASE = 2 ** 31
 #: Bytes kept for the PLY header, written last: room for counts of 20 digits.
-_PLY_HEADER_SIZE = len(_ply_header(10 ** 19, 10 ** 19))
+_PLY_HEADER_SIZE = len(ply_header(10 ** 19, 10 ** 19))
 #: Slabs in flight at most (worker processes); the memory constant above counts on it.
 _MAX_WORKERS = 2
 #: Grids below this many voxels are meshed in this process: there, starting workers
@@ -200,8 +200,8 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
     final = check_writable(path, formats=STREAM_FORMATS)
     grid = source.grid
     nx, ny, nz = (int(n) for n in grid.shape)
-    _check_meshable((nx, ny, nz))
-    level = _check_level(level)
+    check_meshable((nx, ny, nz))
+    level = check_level(level)
     if workers is not None and (isinstance(workers, bool) or not isinstance(workers, (int, np.integer))
                                 or not 1 <= workers <= _MAX_WORKERS):
         raise ScaffoldError(f"workers must be 1 or {_MAX_WORKERS} (slabs meshed at once), or None to choose "
@@ -228,16 +228,16 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         # PLY's faces wait in a file beside the output and follow the vertices at the end
         faces_path = None
         if ply and workers > 1:
-            faces_path = _new_temp(final)  # named, for the workers; removed however the run ends
-            stack.callback(_remove_quietly, faces_path)
+            faces_path = new_temp(final)  # named, for the workers; removed however the run ends
+            stack.callback(remove_quietly, faces_path)
             faces = os.open(faces_path, os.O_RDWR)
         elif ply:
-            faces = os.dup(stack.enter_context(tempfile.TemporaryFile(dir=_folder_of(final))).fileno())
+            faces = os.dup(stack.enter_context(tempfile.TemporaryFile(dir=folder_of(final))).fileno())
         if ply:
             stack.callback(os.close, faces)
         # STL: the count is patched at the end; PLY: the header is written last, over
         # the room kept for it
-        _write_at(out, b"\0" * _PLY_HEADER_SIZE if ply else _STL_HEADER + b"\0" * 4, 0)
+        _write_at(out, b"\0" * _PLY_HEADER_SIZE if ply else STL_HEADER + b"\0" * 4, 0)
         target = _Target(out_path=str(tmp), faces_path=faces_path, out=out, faces=faces if ply else None, ply=ply)
         if workers > 1:
             pool = stack.enter_context(_Pool(workers, spec, level, target))
@@ -257,12 +257,12 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
                     progress(done, len(slabs))
         stitch.finish()
         if not stitch.solid:
-            raise _nothing_to_mesh(level)
+            raise nothing_to_mesh(level)
         if ply:
             _copy_at(faces, out, _PLY_HEADER_SIZE + 24 * stitch.nverts, 13 * stitch.triangles)
-            _write_at(out, _ply_header(stitch.nverts, stitch.triangles, size=_PLY_HEADER_SIZE), 0)
+            _write_at(out, ply_header(stitch.nverts, stitch.triangles, size=_PLY_HEADER_SIZE), 0)
         else:
-            _write_at(out, np.array([stitch.triangles], dtype="<u4").tobytes(), len(_STL_HEADER))
+            _write_at(out, np.array([stitch.triangles], dtype="<u4").tobytes(), len(STL_HEADER))
     return {
         "triangles": int(stitch.triangles),
         "vertices": int(stitch.nverts),
@@ -337,14 +337,14 @@ def _slab_surface(source, x0: int, x1: int, level: float):
     # prepared in place: the slab's own float32 copy
     work = np.require(planes, np.float32, ["C", "O", "W"])
     del planes
-    _prepare_planes(work, work, level, float(grid.spacing), x0)
-    _force_outside(work, first_x=x0 == 0, last_x=end == nx)
-    _break_face_ties(work, offset=x0 * ny * nz)
+    prepare_planes(work, work, level, float(grid.spacing), x0)
+    force_outside(work, first_x=x0 == 0, last_x=end == nx)
+    break_face_ties(work, offset=x0 * ny * nz)
     cubes = work[:x1 - x0 + 1]
     if not cubes.min() < 0:
         return None
     # int32 corner numbers (scikit-image's own): half the bytes of the slab's largest array
-    return _surface(cubes, index=np.int32)
+    return marching_cubes_surface(cubes, index=np.int32)
 
 
 def _mesh_slab(source, x0: int, x1: int, level: float):
@@ -362,7 +362,7 @@ def _mesh_slab(source, x0: int, x1: int, level: float):
     plane[last] = 2
     # edges in the first or last plane may have uses in the next or previous slab:
     # the stitching checks them with those; the slab checks all its others
-    watertight, winding, first_edges, last_edges = _jit()["edge_check"](faces, len(verts), plane)
+    watertight, winding, first_edges, last_edges = compiled_kernels()["edge_check"](faces, len(verts), plane)
     del plane
     first_keys = _plane_keys(verts[first])
     last_keys = _plane_keys(verts[last])
@@ -386,24 +386,24 @@ def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target) -> 
         numbers = np.empty(len(verts), np.int64)
         numbers[new] = np.arange(place.base, place.base + len(verts) - len(place.matched_local))
         numbers[place.matched_local] = place.matched_numbers
-        vertices = _index_to_mm(verts, grid, x0)
+        vertices = index_to_mm(verts, grid, x0)
         _write_at(target.out, np.ascontiguousarray(vertices[new], dtype="<f8"), _PLY_HEADER_SIZE + 24 * place.base)
         del new
-        a, v = _face_measures(vertices, faces, ref=centre)
+        a, v = face_measures(vertices, faces, ref=centre)
         del vertices
-        buf = np.empty(13 * min(nf, _FACE_CHUNK), np.uint8)
-        for f0 in range(0, nf, _FACE_CHUNK):
-            f1 = min(f0 + _FACE_CHUNK, nf)
-            _jit()["ply_faces"](faces, numbers, f0, f1, buf)
+        buf = np.empty(13 * min(nf, FACE_CHUNK), np.uint8)
+        for f0 in range(0, nf, FACE_CHUNK):
+            f1 = min(f0 + FACE_CHUNK, nf)
+            compiled_kernels()["ply_faces"](faces, numbers, f0, f1, buf)
             _write_at(target.faces, buf[:13 * (f1 - f0)], 13 * (place.triangles + f0))
     else:
         a = np.empty(nf)
         v = np.empty(nf)
-        buf = _stl_buffer(min(nf, _FACE_CHUNK))
-        offset = len(_STL_HEADER) + 4 + 50 * place.triangles
-        for f0 in range(0, nf, _FACE_CHUNK):
-            f1 = min(f0 + _FACE_CHUNK, nf)
-            records = _stl_chunk(verts, faces, f0, f1, buf, grid=grid, x0=x0, ref=centre, area=a, vol=v)
+        buf = stl_buffer(min(nf, FACE_CHUNK))
+        offset = len(STL_HEADER) + 4 + 50 * place.triangles
+        for f0 in range(0, nf, FACE_CHUNK):
+            f1 = min(f0 + FACE_CHUNK, nf)
+            records = stl_chunk(verts, faces, f0, f1, buf, grid=grid, x0=x0, ref=centre, area=a, vol=v)
             _write_at(target.out, records, offset + 50 * f0)
     # summed over the whole slab (NumPy's pairwise sum), as the summary always has
     return float(a.sum()), float(v.sum())
@@ -638,7 +638,7 @@ class _Pool:
             # loaded once here, the workers share scikit-image's and the kernels' code
             # pages with this process instead of loading (or compiling) their own
             from skimage.measure import marching_cubes  # noqa: F401
-            _jit()
+            compiled_kernels()
         self.procs = []
         self.conns = []
         self._ok = False

@@ -55,7 +55,7 @@ def _check_volume(solid, voxel, region=None) -> tuple[np.ndarray, float, np.ndar
 # --------------------------------------------------------------------------- local thickness
 
 
-def _jit():
+def compiled_kernels():
     """The compiled kernels (numba), built on first use and cached on disk."""
     global _KERNELS
     if _KERNELS is not None:
@@ -221,7 +221,7 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     del padded
     vmax = int(d2.max())
     need, isq = _maximal_sphere_tables(vmax)
-    ridge, paint = _jit()
+    ridge, paint = compiled_kernels()
     keep = ridge(d2, need)
     ci, cj, ck = np.nonzero(keep)
     del keep

@@ -484,7 +484,9 @@ def test_unwritable_folder_is_reported(tmp_path, monkeypatch):
     def denied(*args, **kwargs):
         raise PermissionError(13, "Permission denied")
 
-    monkeypatch.setattr(mesh_mod.os, "open", denied)
+    import implicit_scaffold.files as files_mod
+
+    monkeypatch.setattr(files_mod.os, "open", denied)
     with pytest.raises(ScaffoldError, match="permission denied"):
         check_writable(tmp_path / "s.stl")
     with pytest.raises(ScaffoldError, match="permission denied"):

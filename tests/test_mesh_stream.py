@@ -494,12 +494,12 @@ def test_stl_records_match_numpy(tmp_path):
 
 
 def test_face_measures_match_numpy():
-    from implicit_scaffold.mesh import _face_measures
+    from implicit_scaffold.mesh import face_measures
 
     for seed in range(3):
         vertices, faces = random_soup(seed)
         ref = np.array([0.3, -0.2, 0.1])
-        area, vol = _face_measures(vertices, faces, ref=ref)
+        area, vol = face_measures(vertices, faces, ref=ref)
         a, b, c = (vertices[faces[:, k]] - ref for k in range(3))
         cross = np.cross(b - a, c - a)
         assert np.allclose(area, 0.5 * np.linalg.norm(cross, axis=1), rtol=1e-12, atol=0)
@@ -518,9 +518,9 @@ def brute_force_flags(faces):
 
 
 def test_edge_check_matches_brute_force():
-    from implicit_scaffold.mesh import _jit
+    from implicit_scaffold.mesh import compiled_kernels
 
-    edge_check = _jit()["edge_check"]
+    edge_check = compiled_kernels()["edge_check"]
     sphere = trimesh.creation.icosphere(2)
     faces = np.asarray(sphere.faces, np.int64)
     nv = len(sphere.vertices)
@@ -552,9 +552,9 @@ def test_edge_check_matches_brute_force():
 
 
 def test_duplicate_positions_are_found_exactly():
-    from implicit_scaffold.mesh import _jit
+    from implicit_scaffold.mesh import compiled_kernels
 
-    has_duplicates = _jit()["has_duplicates"]
+    has_duplicates = compiled_kernels()["has_duplicates"]
     rng = np.random.default_rng(1)
     for trial in range(20):
         verts = rng.integers(0, 4, (int(rng.integers(0, 60)), 3)).astype(np.float32)
