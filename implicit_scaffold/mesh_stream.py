@@ -248,11 +248,11 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
                 if held is None:
                     stitch.skip()
                 else:
-                    verts, faces_, meshed = held
+                    verts, faces_, meshed, labels = held
                     del held
                     place = stitch.add(meshed)
-                    stitch.measured(*_write_slab(verts, faces_, slab.x0, grid, place, target))
-                    del verts, faces_
+                    stitch.measured(*_write_slab(verts, faces_, slab.x0, grid, place, target, labels))
+                    del verts, faces_, labels
                 if progress is not None:
                     progress(done, len(slabs))
         stitch.finish()
@@ -270,6 +270,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         "surface_area_mm2": float(stitch.area),
         "watertight": stitch.watertight,
         "winding_consistent": stitch.winding_consistent,
+        "bodies": stitch.bodies(),
         "slabs": len(slabs),
         "workers": int(workers),
     }
@@ -284,7 +285,8 @@ class _Meshed:
 
     ``first_*``: the vertices on the slab's first plane, in local order (keys: their
     (y, z) bits, :func:`_plane_keys`); ``last_*``: those on its last plane, sorted by key;
-    ``*_edges``: the directed edges lying in that plane, ``(m, 2)`` keys of their ends.
+    ``*_edges``: the directed edges lying in that plane, ``(m, 2)`` keys of their ends;
+    ``*pieces``: the slab's surface pieces (vertices joined by the triangles' edges).
     """
 
     triangles: int
@@ -297,6 +299,11 @@ class _Meshed:
     last_keys: np.ndarray
     last_local: np.ndarray
     last_edges: np.ndarray
+    #: the slab's connected pieces of surface, and the piece of each first- and last-plane
+    #: vertex (in first_local's and last_local's order)
+    pieces: int = 0
+    first_pieces: np.ndarray | None = None
+    last_pieces: np.ndarray | None = None
 
 
 @dataclass
@@ -348,7 +355,8 @@ def _slab_surface(source, x0: int, x1: int, level: float):
 
 
 def _mesh_slab(source, x0: int, x1: int, level: float):
-    """Mesh slab ``[x0, x1)`` and check its own edges: ``(verts, faces, _Meshed)`` or None."""
+    """Mesh slab ``[x0, x1)``, check its own edges and find its surface pieces:
+    ``(verts, faces, _Meshed, piece of each vertex)`` or None."""
     surface = _slab_surface(source, x0, x1, level)
     if surface is None:
         return None
@@ -373,11 +381,35 @@ def _mesh_slab(source, x0: int, x1: int, level: float):
         first_edges=first_keys[np.searchsorted(first, first_edges)].reshape(-1, 2),
         last_keys=last_keys[order], last_local=last[order],
         last_edges=last_keys[np.searchsorted(last, last_edges)].reshape(-1, 2))
-    return verts, faces, meshed
+    pieces, labels = _surface_pieces(faces, len(verts))
+    meshed.pieces, meshed.first_pieces, meshed.last_pieces = pieces, labels[first], labels[meshed.last_local]
+    return verts, faces, meshed, labels
 
 
-def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target) -> tuple[float, float]:
-    """Write a slab's records where `place` says; its ``(area, volume)`` sums, mm² and mm³."""
+def _surface_pieces(faces: np.ndarray, nverts: int) -> tuple[int, np.ndarray]:
+    """The pieces of a slab's surface: vertices joined by the triangles' edges (marching
+    cubes' surface is a manifold, so pieces that share a vertex share an edge).
+
+    Returns
+    -------
+    (int, (nverts,) int64 ndarray)
+        How many, and each vertex's.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    a = np.concatenate([faces[:, 0], faces[:, 1]])
+    b = np.concatenate([faces[:, 1], faces[:, 2]])
+    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(nverts, nverts)).tocsr()
+    del a, b
+    count, labels = connected_components(graph, directed=False)
+    return int(count), labels.astype(np.int64, copy=False)
+
+
+def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target,
+                labels: np.ndarray | None = None) -> tuple:
+    """Write a slab's records where `place` says; its ``(area, volume)`` sums, mm² and mm³, and
+    the volume of each of its surface pieces (`labels`: each vertex's piece)."""
     centre = (grid.lo + grid.hi) / 2  # one reference point for every slab's volume
     nf = len(faces)
     if target.ply:
@@ -406,7 +438,9 @@ def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target) -> 
             records = stl_chunk(verts, faces, f0, f1, buf, grid=grid, x0=x0, ref=centre, area=a, vol=v)
             _write_at(target.out, records, offset + 50 * f0)
     # summed over the whole slab (NumPy's pairwise sum), as the summary always has
-    return float(a.sum()), float(v.sum())
+    pieces = None if labels is None else np.bincount(labels[faces[:, 0]], weights=v,
+                                                     minlength=int(labels.max(initial=-1)) + 1)
+    return float(a.sum()), float(v.sum()), pieces
 
 
 def _write_at(fd: int, data, offset: int) -> None:
@@ -463,6 +497,12 @@ class _Stitch:
         self._keys = np.zeros(0, np.uint64)
         self._numbers = np.zeros(0, np.int64)
         self._edges = np.zeros((0, 2), np.uint64)
+        # surface pieces numbered across slabs: the previous slab's last-plane vertices' pieces,
+        # the pairs of pieces that share a vertex on a plane, and each piece's volume
+        self._pieces = 0
+        self._last_pieces = np.zeros(0, np.int64)
+        self._joins: list[np.ndarray] = []
+        self._piece_volumes: list[np.ndarray] = []
 
     def add(self, m: _Meshed) -> _Place:
         """Number a slab's vertices, check the plane it shares with the previous one; where it goes."""
@@ -473,6 +513,8 @@ class _Stitch:
             hit = self._keys[at] == m.first_keys
             matched_local = m.first_local[hit]  # ascending, as first_local is
             matched_numbers = self._numbers[at[hit]]
+            if m.first_pieces is not None and len(self._last_pieces):
+                self._joins.append(np.stack([self._last_pieces[at[hit]], self._pieces + m.first_pieces[hit]], 1))
         count = m.vertices - len(matched_local)
         if self.nverts + count > _KEY_BASE - 1:
             raise ScaffoldError(f"the mesh has more than {_KEY_BASE - 1} vertices, more than PLY can number; "
@@ -490,13 +532,35 @@ class _Stitch:
         self._numbers = self.nverts + m.last_local - np.searchsorted(matched_local, m.last_local)
         self._keys = m.last_keys
         self._edges = m.last_edges
+        self._last_pieces = (self._pieces + m.last_pieces if m.last_pieces is not None
+                             else np.zeros(0, np.int64))
+        self._pieces += m.pieces
         self.nverts += count
         return place
 
-    def measured(self, area: float, volume: float) -> None:
-        """Add a slab's sums (in slab order, so that the totals do not depend on the workers)."""
+    def measured(self, area: float, volume: float, pieces=None) -> None:
+        """Add a slab's sums (in slab order, so that the totals do not depend on the workers),
+        and its pieces' volumes."""
         self.area += area
         self.volume += volume
+        if pieces is not None:
+            self._piece_volumes.append(np.asarray(pieces, np.float64))
+
+    def bodies(self) -> int:
+        """Closed pieces of surface of positive volume, joined across the slabs (as
+        :func:`~implicit_scaffold.mesh.mesh_summary` counts them on a whole mesh); a void
+        sealed in the solid is a piece of negative volume and does not count."""
+        from scipy.sparse import coo_matrix
+        from scipy.sparse.csgraph import connected_components
+
+        n = self._pieces
+        if n == 0:
+            return 0
+        joins = np.concatenate(self._joins) if self._joins else np.zeros((0, 2), np.int64)
+        graph = coo_matrix((np.ones(len(joins)), (joins[:, 0], joins[:, 1])), shape=(n, n))
+        _, label = connected_components(graph, directed=False)
+        volumes = np.concatenate(self._piece_volumes) if self._piece_volumes else np.zeros(n)
+        return int(np.count_nonzero(np.bincount(label, weights=volumes[:n], minlength=label.max() + 1) > 0))
 
     def skip(self) -> None:
         """A slab without surface: whatever the previous slab left on its last plane stays open."""
@@ -504,6 +568,7 @@ class _Stitch:
         self._edges = np.zeros((0, 2), np.uint64)
         self._keys = np.zeros(0, np.uint64)
         self._numbers = np.zeros(0, np.int64)
+        self._last_pieces = np.zeros(0, np.int64)
 
     def finish(self) -> None:
         """Check the edges left on the last slab's last plane (none on a closed surface)."""
@@ -573,13 +638,13 @@ def _worker(conn, spec, level: float, target: _Target) -> None:  # pragma: no co
                 conn.send(("meshed", None if held is None else held[2]))
                 if held is None:
                     continue
-                verts, faces_, _ = held
+                verts, faces_, _, labels = held
                 del held
                 place = conn.recv()
                 if place is None:
                     return
-                conn.send(("written", _write_slab(verts, faces_, x0, source.grid, place, mine)))
-                del verts, faces_
+                conn.send(("written", _write_slab(verts, faces_, x0, source.grid, place, mine, labels)))
+                del verts, faces_, labels
             except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it in slab order
                 conn.send(("error", _portable(exc)))
     except (EOFError, BrokenPipeError):

@@ -563,3 +563,26 @@ def test_duplicate_positions_are_found_exactly():
     distinct = rng.permutation(np.arange(3000, dtype=np.float32)).reshape(-1, 3)
     assert not has_duplicates(distinct.view(np.uint32))
     assert has_duplicates(np.concatenate([distinct, distinct[17:18]]).view(np.uint32))
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_bodies_are_counted_across_slabs_as_on_the_whole_mesh(tmp_path, workers):
+    # two solid balls, one of them hollow (a sealed void: a shell of negative volume), and a
+    # U-shaped body whose two arms meet only beyond the slabs that cut them apart
+    grid = Grid.covering((-4.0, -2.5, -2.5), (4.0, 2.5, 2.5), 0.1)
+    x, y, z = coords(grid)
+    first = ball(grid, (-2.5, 0.0, 0.0), 1.2)
+    hollow = np.maximum(ball(grid, (1.0, -1.2, 0.0), 1.0), -ball(grid, (1.0, -1.2, 0.0), 0.5))
+    arm = lambda yc: np.maximum(np.maximum(np.abs(y - yc) - 0.3, np.abs(z) - 0.3), np.abs(x - 2.2) - 1.4)  # noqa: E731
+    base = np.maximum(np.maximum(np.abs(x - 3.4) - 0.3, np.abs(y - 1.0) - 0.9), np.abs(z) - 0.3)
+    u = np.minimum(np.minimum(arm(0.4), arm(1.6)), base)
+    field = np.minimum(np.minimum(first, hollow), u).astype(np.float32)
+    whole = mesh_field(field, grid)
+    pieces = [m for m in whole.split(only_watertight=True)]
+    assert sum(m.volume > 0 for m in pieces) == 3 and sum(m.volume < 0 for m in pieces) == 1  # trimesh's count
+    s = write_mesh_slabs(ArraySlabs(field, grid), tmp_path / "m.ply", max_voxels=4 * grid.shape[1] * grid.shape[2]
+                         + 20 * grid.shape[1] * grid.shape[2], workers=workers)
+    assert s["slabs"] > 3 and s["watertight"]
+    assert s["bodies"] == 3
+    streamed = trimesh.load(tmp_path / "m.ply", process=False)
+    assert sum(m.volume > 0 for m in streamed.split(only_watertight=True)) == 3
