@@ -237,10 +237,10 @@ def load_ct(path) -> CTImage:
 
     import SimpleITK as sitk
 
-    from .patient_volume import _read_image
+    from .images import read_image
 
     path = Path(path)
-    image = _read_image(path)
+    image = read_image(path, folder="dicom", what="a CT volume (NIfTI, NRRD, MHA/MHD or a DICOM folder)")
     if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
         raise ScaffoldError(f"--calibration reads intensities from a 3-D scalar CT; {path.name} is not one")
     spacing = np.asarray(image.GetSpacing(), np.float64)

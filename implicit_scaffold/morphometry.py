@@ -1043,19 +1043,10 @@ def _header_has_spacing(path, suffix: str) -> bool:
 def _read_volume(path, spacing, voxel):
     import SimpleITK as sitk
 
+    from .images import read_image
+
     suffix = _suffix(path)
-    try:
-        if path.is_dir():
-            files = sorted(str(f) for f in path.iterdir() if _suffix(f) in IMAGE_STACKS)
-            if not files:
-                raise ScaffoldError(f"folder {path} holds no .tif slices; give a folder of TIFF slices or a "
-                                    "volume file")
-            image = sitk.ReadImage(files)
-        else:
-            image = sitk.ReadImage(str(path))
-    except RuntimeError as exc:
-        reason = " ".join(str(exc).split()).split("itk::ERROR:")[-1].strip()[:160]
-        raise ScaffoldError(f"cannot read {path.name} as a volume: {reason}") from None
+    image = read_image(path, folder="tiff")
     if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
         raise ScaffoldError(f"{path.name} is not a 3-D single-channel volume; give a binary volume")
     if spacing is not None:

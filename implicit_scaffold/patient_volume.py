@@ -66,44 +66,10 @@ def _name(path: Path) -> str:
 
 
 def _read_image(path: Path):
-    """The image at `path` (a file, or a folder holding a DICOM series), as a SimpleITK image."""
-    import SimpleITK as sitk
+    """The image at `path` (a file, or a folder holding a DICOM series) (:func:`.images.read_image`)."""
+    from .images import read_image
 
-    if not path.exists():
-        raise ScaffoldError(f"volume {path} does not exist; check the path")
-    # ITK prints its warnings (e.g. "No Series were found") on stderr: they become our errors
-    shown = sitk.ProcessObject.GetGlobalWarningDisplay()
-    sitk.ProcessObject.SetGlobalWarningDisplay(False)
-    try:
-        if path.is_dir():
-            reader = sitk.ImageSeriesReader()
-            series = reader.GetGDCMSeriesIDs(str(path))
-            if not series:
-                raise ScaffoldError(f"folder {path} holds no DICOM series; give a folder of .dcm slices "
-                                    "or a volume file (.nii, .nii.gz, .nrrd, .mha, .mhd)")
-            # several series in one folder: take the one with the most slices, and say so
-            files = [reader.GetGDCMSeriesFileNames(str(path), s) for s in series]
-            best = max(range(len(series)), key=lambda i: len(files[i]))
-            if len(series) > 1:
-                import warnings
-
-                warnings.warn(f"folder {path} holds {len(series)} DICOM series; using {series[best]} "
-                              f"({len(files[best])} slices)", stacklevel=3)
-            reader.SetFileNames(files[best])
-            return reader.Execute()
-        return sitk.ReadImage(str(path))
-    except RuntimeError as exc:
-        text = str(exc)
-        if "spacing" in text.lower():
-            raise ScaffoldError(f"{_name(path)} has a zero or non-finite voxel spacing in its header; "
-                                "spacings must be positive finite mm (fix the header)") from None
-        # ITK's messages carry a source path and an object address before the reason
-        reason = text.split("ERROR:")[-1]
-        reason = " ".join(reason.split("): ", 1)[-1].split())[:160]
-        raise ScaffoldError(f"cannot read {_name(path)} as a volume (NIfTI, NRRD, MHA/MHD or a DICOM "
-                            f"folder): {reason}") from None
-    finally:
-        sitk.ProcessObject.SetGlobalWarningDisplay(shown)
+    return read_image(path, folder="dicom", what="a volume (NIfTI, NRRD, MHA/MHD or a DICOM folder)")
 
 
 def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
