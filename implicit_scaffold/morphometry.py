@@ -651,8 +651,11 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
 _RAY_SHIFT = (math.sqrt(2) * 1e-6, math.sqrt(3) * 1e-6)
 
 
-def voxelize(vertices, faces, grid, *, chunk: int = 2_000_000) -> np.ndarray:
+def voxelize(vertices, faces, grid) -> np.ndarray:
     """Which voxel centres of `grid` lie inside a closed triangle mesh (ray parity along z).
+
+    The crossings are the patient's (:func:`~implicit_scaffold.patient_mesh.crossings`,
+    whose shared-edge test counts a ray through an edge once): one voxelizer for both.
 
     Parameters
     ----------
@@ -660,8 +663,6 @@ def voxelize(vertices, faces, grid, *, chunk: int = 2_000_000) -> np.ndarray:
     faces : (nf, 3) int ndarray
         A closed mesh whose shared vertices are shared indices (as trimesh merges them).
     grid : Grid
-    chunk : int
-        Ray-triangle candidates handled at once (bounds the work arrays).
 
     Returns
     -------
@@ -671,90 +672,29 @@ def voxelize(vertices, faces, grid, *, chunk: int = 2_000_000) -> np.ndarray:
     ------
     ScaffoldError
         Some ray crosses the surface an odd number of times: the mesh is not closed.
-
-    Notes
-    -----
-    A vertical ray through each column of voxel centres is crossed by the triangles
-    whose shadow holds it; a centre is inside when an odd number of crossings lie below
-    it. The edge test of a shared edge is computed once, from its lower-numbered vertex,
-    so two triangles sharing it never both count (nor both miss) a ray that touches it.
     """
+    from .patient_mesh import crossings
+
     v = np.asarray(vertices, np.float64)
     f = np.asarray(faces, np.int64).reshape(-1, 3)
-    nx, ny, nz = grid.shape
-    h = float(grid.spacing)
-    o = np.asarray(grid.origin, np.float64)
-    # index coordinates: column (i, j) has its ray at (i, j) - shift
-    q = (v - o) / h
-    q[:, 0] += _RAY_SHIFT[0]
-    q[:, 1] += _RAY_SHIFT[1]
-    tri = q[f]  # (nf, 3, 3)
-    i0 = np.maximum(np.ceil(tri[:, :, 0].min(axis=1)), 0).astype(np.int64)
-    i1 = np.minimum(np.floor(tri[:, :, 0].max(axis=1)), nx - 1).astype(np.int64)
-    j0 = np.maximum(np.ceil(tri[:, :, 1].min(axis=1)), 0).astype(np.int64)
-    j1 = np.minimum(np.floor(tri[:, :, 1].max(axis=1)), ny - 1).astype(np.int64)
-    wi = np.maximum(i1 - i0 + 1, 0)
-    wj = np.maximum(j1 - j0 + 1, 0)
-    counts = wi * wj
-    live = np.nonzero(counts)[0]
-    keys = []
-    columns = []
-    start = 0
-    csum = np.cumsum(counts[live])
-    while start < len(live):
-        stop = int(np.searchsorted(csum, (csum[start - 1] if start else 0) + chunk, side="right"))
-        stop = max(stop, start + 1)
-        t = live[start:stop]
-        c = counts[t]
-        tt = np.repeat(t, c)
-        local = np.arange(len(tt)) - np.repeat(np.cumsum(c) - c, c)
-        ci = i0[tt] + local // wj[tt]
-        cj = j0[tt] + local % wj[tt]
-        z, hit = _crossings(q, f[tt], ci.astype(np.float64), cj.astype(np.float64))
-        col = (ci * ny + cj)[hit]
-        columns.append(col)
-        k = np.ceil(z[hit]).astype(np.int64)  # first centre above the crossing
-        k = np.clip(k, 0, nz)
-        keys.append(col * (nz + 1) + k)
-        start = stop
-    if not keys:
+    nx, ny, nz = (int(n) for n in grid.shape)
+    h, o = float(grid.spacing), np.asarray(grid.origin, np.float64)
+    # the rays pass a hair beside the voxel centres: a mesh marched on this very grid has its
+    # vertices on the lines through the centres, where a ray would meet them exactly
+    col, z = crossings(v, f, 2, o[0] - _RAY_SHIFT[0] * h, h, nx, o[1] - _RAY_SHIFT[1] * h, h, ny)
+    if not len(col):
         return np.zeros(grid.shape, bool)
-    columns = np.concatenate(columns)
-    keys = np.concatenate(keys)
-    odd_cols = np.nonzero(np.bincount(columns, minlength=nx * ny) % 2)[0]
-    if len(odd_cols):
-        raise ScaffoldError(f"the mesh is not closed: {len(odd_cols)} of {nx * ny} rays cross its surface an odd "
+    odd_cols = np.count_nonzero(np.bincount(col, minlength=nx * ny) % 2)
+    if odd_cols:
+        raise ScaffoldError(f"the mesh is not closed: {odd_cols} of {nx * ny} rays cross its surface an odd "
                             "number of times; repair it (fill its holes) and try again")
-    uniq, mult = np.unique(keys, return_counts=True)
-    flips = uniq[mult % 2 == 1]
+    # the first centre above each crossing flips the parity from there up
+    k = np.clip(np.ceil((z - o[2]) / h).astype(np.int64), 0, nz)
+    uniq, mult = np.unique(col * (nz + 1) + k, return_counts=True)
     toggle = np.zeros((nx * ny, nz + 1), np.uint8)
-    toggle.reshape(-1)[flips] = 1
+    toggle.reshape(-1)[uniq[mult % 2 == 1]] = 1
     inside = np.bitwise_xor.accumulate(toggle[:, :nz], axis=1).astype(bool)
     return inside.reshape(nx, ny, nz)
-
-
-def _crossings(q, tf, x, y):
-    """Height (index units) at which the ray (x, y) crosses each triangle, and whether it does."""
-    a, b, c = tf[:, 0], tf[:, 1], tf[:, 2]
-
-    def edge(u, w):
-        # the signed area of (u, w, ray), from the lower-numbered end: exact opposites for shared edges
-        lo = np.minimum(u, w)
-        hi = np.maximum(u, w)
-        plo, phi = q[lo], q[hi]
-        e = (phi[:, 0] - plo[:, 0]) * (y - plo[:, 1]) - (phi[:, 1] - plo[:, 1]) * (x - plo[:, 0])
-        return np.where(u == lo, e, -e)
-
-    wa = edge(b, c)  # weight of a
-    wb = edge(c, a)
-    wc = edge(a, b)
-    area = wa + wb + wc
-    pos = (wa >= 0) & (wb >= 0) & (wc >= 0) & (area > 0)
-    neg = (wa <= 0) & (wb <= 0) & (wc <= 0) & (area < 0)
-    hit = pos | neg
-    with np.errstate(invalid="ignore", divide="ignore"):
-        z = (wa * q[a, 2] + wb * q[b, 2] + wc * q[c, 2]) / area
-    return z, hit
 
 
 # --------------------------------------------------------------------------- analysing a file
