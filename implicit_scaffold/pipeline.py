@@ -824,11 +824,13 @@ def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Pa
 
     slices = slices or {}
     measure = printed_measure(printed, grid, ys, zs, pixel=slices.get("pixel"), layer=slices.get("layer"))
+    cut_y, cut_z = (ys.stop - ys.start) < grid.shape[1], (zs.stop - zs.start) < grid.shape[2]
     clean = partial(clean_prism, spacing=grid.spacing, remove_fragments=params.remove_fragments,
                     fill_sealed_voids=params.fill_sealed_voids, pieces=pieces, keep_interior=params.skin > 0,
-                    cut_y=(ys.stop - ys.start) < grid.shape[1], cut_z=(zs.stop - zs.start) < grid.shape[2])
+                    cut_y=cut_y, cut_z=cut_z)
     found, info = printed_level(np.ascontiguousarray(base, np.float32), np.ascontiguousarray(s_p, np.float32),
-                                level, measure, spacing=grid.spacing, skin=params.skin, smooth_cut=params.smooth_cut, clean=clean)
+                                level, measure, spacing=grid.spacing, skin=params.skin, smooth_cut=params.smooth_cut,
+                                clean=clean, open_faces=(cut_y, cut_z) if printed == "mesh" else (False, False))
     return found, {"by": printed, **info}
 
 

@@ -144,8 +144,8 @@ def clean_prism(s: np.ndarray, spacing: float, *, remove_fragments: bool, fill_s
 
 
 def printed_level(base: np.ndarray, patient: np.ndarray, level: float, measure, *, spacing: float,
-                  skin: float = 0.0,
-                  smooth_cut: float = 0.0, iterations: int = 8, clean=None) -> tuple[float, dict]:
+                  skin: float = 0.0, smooth_cut: float = 0.0, iterations: int = 8, clean=None,
+                  open_faces: tuple[bool, bool] = (False, False)) -> tuple[float, dict]:
     """The level at which the prism's printed porosity equals its voxel porosity at `level`.
 
     Parameters
@@ -166,6 +166,10 @@ def printed_level(base: np.ndarray, patient: np.ndarray, level: float, measure, 
         Most measures taken.
     clean : callable(s) -> s, optional
         What follows the level in the scaffold stage (:func:`clean_prism`).
+    open_faces : (bool, bool)
+        Whether the prism's y (z) faces are open cuts of the grid, where the marching
+        cubes' volume (:func:`~.mesh.prism_volume`) stops at the outer rows' centres: the
+        patient's volume it is divided by then counts those rows by half.
 
     Returns
     -------
@@ -182,7 +186,16 @@ def printed_level(base: np.ndarray, patient: np.ndarray, level: float, measure, 
     # the patient's volume in the prism (exact for flat faces): the report divides by the
     # patient's true volume, so a mesh that the grid's outer layer clips counts as printed
     h = float(spacing)
-    whole = float(np.clip(0.5 - patient / np.float32(h), 0.0, 1.0).sum(dtype=np.float64)) * h ** 3
+    cover = np.clip(0.5 - patient / np.float32(h), 0.0, 1.0).astype(np.float64)
+    # the measured volume spans from the first to the last row's centre across an open face
+    for axis, is_open in ((1, open_faces[0]), (2, open_faces[1])):
+        if is_open and cover.shape[axis] > 1:
+            ends = [slice(None)] * 3
+            for end in (0, -1):
+                ends[axis] = end
+                cover[tuple(ends)] *= 0.5
+    whole = float(cover.sum()) * h ** 3
+    del cover
 
     def porosity(t):
         s = scaffold_field(base, patient, level=t, skin=skin, smooth_cut=smooth_cut)
