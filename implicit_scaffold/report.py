@@ -330,8 +330,11 @@ def write_run_report(result, path, *, extra_images: dict[str, bytes] | None = No
     if result.mesh is not None:
         images["the scaffold"] = render_mesh(result.mesh)
         images["cut-away: the trabecular inside"] = render_mesh(result.mesh, cut=True)
-    if result.field is not None:  # a tiled run streamed its field to the outputs
-        images["section through the middle (solid dark)"] = section_image(result.field, result.grid)
+    if result.field is not None:
+        # a tiled run's field is a map of its file on disk: an x section is one contiguous plane of
+        # it, where a z section would page in the whole file
+        axis = 0 if isinstance(result.field, np.memmap) else 2
+        images["section through the middle (solid dark)"] = section_image(result.field, result.grid, axis=axis)
     images["pore size, polyhedron-sphere method"] = histogram(
         pore_sizes(result.cells, result.params.sv), title="pore size (polyhedron-sphere)", xlabel="diameter (mm)",
         marks={"target": r.get("pore_size_target_mm"), "150 µm": 0.15, "600 µm": 0.6})

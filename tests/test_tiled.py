@@ -183,6 +183,11 @@ def test_a_tiled_result_maps_its_fields_and_leaves_no_file(tmp_path):
     assert np.array_equal(tiled.field, whole.field) and np.array_equal(tiled.patient_sdf, whole.patient_sdf)
     assert not tiled.field.flags.writeable
     assert list(folder.iterdir()) == []  # unlinked already: the maps hold the data until they go
+    # the run's page shows a section of the mapped field (one x plane of it)
+    from implicit_scaffold.report import write_run_report
+
+    write_run_report(tiled, tmp_path / "run.html")
+    assert "section through the middle" in (tmp_path / "run.html").read_text()
     del tiled
     gc.collect()
 
