@@ -784,12 +784,6 @@ def _merge_bins(edges: np.ndarray, counts: np.ndarray, min_count: int) -> np.nda
     return np.asarray(keep, np.float64)
 
 
-def _bins(coord: np.ndarray, width: float, min_count: int) -> np.ndarray:
-    """Equal-width bins of `coord`, merged with their neighbours until each holds `min_count`."""
-    edges = _equal_bins(float(coord.min()), float(coord.max()), width)
-    return _merge_bins(edges, np.histogram(coord, edges)[0], min_count)
-
-
 def level_plan(field: GradeField, patient_sdf, grid: Grid, *, max_voxels: int | None = None,
                skin: float = 0.0) -> LevelPlan:
     """The bins of the offset field on the run's grid, from two passes over the patient.
@@ -927,12 +921,11 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, max_voxels: int | N
     if fraction < 1:
         # the exact passes: each bin's solid count over all its voxels
         solid = np.rint(shares).astype(np.int64)
+        def shifted(coord, vals):
+            return vals - np.interp(coord, nodes, levels).astype(np.float32)
+
         for _ in range(2):
             quantile = GroupQuantile(nb)
-
-            def shifted(coord, vals):
-                return vals - np.interp(coord, nodes, levels).astype(np.float32)
-
             for _, _, _, vals, coord in visit():
                 quantile.count(shifted(coord, vals), plan.bin_of(coord))
                 del vals, coord
