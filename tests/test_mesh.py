@@ -182,6 +182,30 @@ def test_hollow_ball_is_one_body_with_the_shell_volume():
     assert mesh_summary(mesh_field(inner, grid))["bodies"] == 2
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_bodies_of_a_closed_surface_match_trimesh_components(seed):
+    # a smoothed noise field: dozens of closed pieces, cavities (negative volume) among them
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(seed)
+    grid = Grid((0.0, 0.0, 0.0), 0.1, (40, 36, 32))
+    f = gaussian_filter(rng.standard_normal(grid.shape), 1.5).astype(np.float32)
+    # the level rises along x: separate pieces of solid at one end, sealed cavities at the other
+    f -= np.linspace(np.quantile(f, 0.3), np.quantile(f, 0.7), grid.shape[0], dtype=np.float32)[:, None, None]
+    m = mesh_field(f, grid)
+    assert_clean_closed(m)
+    comps = trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(m.faces)))
+    tri = m.vertices[m.faces]
+    signed = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])) / 6.0
+    positive = sum(signed[c].sum() > 0 for c in comps)
+    negative = len(comps) - positive
+    assert positive > 3 and negative > 0  # the fixture holds pieces and cavities
+    s = mesh_summary(m)
+    assert s["bodies"] == positive
+    assert s["watertight"] and s["winding_consistent"]
+    assert s["volume_mm3"] == pytest.approx(signed.sum(), rel=1e-9)
+
+
 def test_summary_of_open_and_inverted_meshes(sphere):
     m = sphere[0]
     opened = trimesh.Trimesh(m.vertices, m.faces[5:], process=False)
