@@ -531,10 +531,16 @@ def morphometry(solid, voxel: float, *, region=None, surface_area_mm2: float | N
     if surface_area_mm2 is None and surface:
         surface_area_mm2, solid_volume_mm3 = surface_from_volume(solid, h)
     if surface_area_mm2 is not None:
-        bv = solid_volume_mm3 if solid_volume_mm3 is not None else n_solid * h ** 3
-        out["surface_area_mm2"] = float(surface_area_mm2)
-        out["bs_bv_per_mm"] = float(surface_area_mm2) / bv if bv > 0 else None
+        out.update(surface_measures(surface_area_mm2,
+                                    solid_volume_mm3 if solid_volume_mm3 is not None else n_solid * h ** 3))
     return out
+
+
+def surface_measures(surface_area_mm2: float, solid_volume_mm3: float) -> dict:
+    """``surface_area_mm2`` and ``bs_bv_per_mm`` (area over solid volume, 1/mm; None for no solid)."""
+    bv = float(solid_volume_mm3)
+    return {"surface_area_mm2": float(surface_area_mm2),
+            "bs_bv_per_mm": float(surface_area_mm2) / bv if bv > 0 else None}
 
 
 #: bytes per voxel of a slab (its halo included) while :func:`morphometry_by_slabs` takes its

@@ -334,6 +334,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
     run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
     prog = Progress(verbose)
+    if mesh:
+        # the mesh stages' libraries load while the cells and the lattice are computed (about
+        # a second of a short run's time, most of it trimesh's imports)
+        _Beside(_import_mesh_libraries)
     if getattr(patient, "load_seconds", None) is not None:
         # a patient read from a file (patient_io.load_patient) was loaded before this call
         prog.timings["load"] = float(patient.load_seconds)
@@ -501,8 +505,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                 ys, zs = _prism(grid)
                 # the patient's pieces on the prism: each keeps its main body, as in the scaffold stage
                 prism_pieces = label_pieces(s_p < 0)[0][:, ys, zs] if params.remove_fragments else None
-                level, calibration = _printed_level(printed, base[:, ys, zs], s_p[:, ys, zs], level, grid, params,
-                                                    slices, ys, zs, pieces=prism_pieces)
+                level, calibration = _printed_level(printed, lambda y, z: (base[:, y, z], s_p[:, y, z]), level,
+                                                    grid, params, slices, ys, zs, pieces=prism_pieces,
+                                                    whole_volume=float(patient.volume))
                 del prism_pieces
         # every value that the level and the blend read must be unclamped
         wider = next_cutoff(level, cutoff)
@@ -551,6 +556,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
     simplify_warnings = []
+    metrics_job, written = None, False
     if mesh:
         from .mesh import mesh_field, mesh_summary, mesh_volume
 
@@ -579,6 +585,13 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         if tolerance > 0:
             result.mesh, report["simplification"], simplify_warnings = _simplify(
                 result.mesh, tolerance, h, float(patient.volume), prog, int(max_memory))
+        if morphometry and _metrics_fit_beside(result, tolerance, int(max_memory)):
+            from .morphometry import morphometry as measure
+
+            # the voxel measures run in a second thread while the mesh is summed up and
+            # written (the two overlap well on 2 cores: compiled loops and file writes that
+            # release the interpreter); the field is final from here on
+            metrics_job = _Beside(measure, s < 0, h, region=inside, surface=False)
         with prog.stage("mesh summary"):
             summary = mesh_summary(result.mesh)
         report.update({
@@ -591,14 +604,21 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
         })
         report["porosity_printed"] = report["porosity_mesh"]
+    if metrics_job is not None and printer is None and slices is None and out_path is not None:
+        with prog.stage("write"):
+            write_outputs(result, out_path)
+        written = True
     if morphometry:
-        from .morphometry import morphometry as measure
+        from .morphometry import morphometry as measure, surface_measures
 
-        with prog.stage("metrics"):
+        with prog.stage("metrics", "" if metrics_job is None else "beside the mesh summary and write"):
             # measured on what was built: fragments counts pieces left after any removal
-            found = measure(s < 0, h, region=inside, surface=False,
-                            surface_area_mm2=report.get("surface_area_mm2"),
-                            solid_volume_mm3=report.get("mesh_volume_mm3"))
+            if metrics_job is None:
+                found = measure(s < 0, h, region=inside, surface=False)
+            else:
+                found = metrics_job.result()
+            if "surface_area_mm2" in report:
+                found.update(surface_measures(report["surface_area_mm2"], report["mesh_volume_mm3"]))
         found.pop("porosity_voxel", None)  # the stage above counted it already
         report.update(found)
     if printer is not None:
@@ -611,8 +631,9 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
     report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
     if out_path is not None:
-        with prog.stage("write"):
-            write_outputs(result, out_path)
+        if not written:
+            with prog.stage("write"):
+                write_outputs(result, out_path)
         report["file_size_bytes"] = out_path.stat().st_size
     from .memory import peak_memory
 
@@ -624,6 +645,52 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
         write_json(report, report_path(out_path))
     return result
+
+
+class _Beside:
+    """``fn(*args, **kw)`` in a daemon thread (a run interrupted meanwhile does not wait for
+    it); :meth:`result` waits and returns its value, or raises its exception."""
+
+    def __init__(self, fn, *args, **kw):
+        import threading
+
+        self._out = None
+        self._error = None
+
+        def run():
+            try:
+                self._out = fn(*args, **kw)
+            except BaseException as exc:  # noqa: BLE001 - raised again in the caller's thread
+                self._error = exc
+
+        self._thread = threading.Thread(target=run, name="implicit_scaffold-metrics", daemon=True)
+        self._thread.start()
+
+    def result(self):
+        self._thread.join()
+        if self._error is not None:
+            raise self._error
+        return self._out
+
+
+def _import_mesh_libraries() -> None:
+    import trimesh  # noqa: F401
+    from vtkmodules import vtkFiltersCore  # noqa: F401
+
+
+def _metrics_fit_beside(result: Result, tolerance: float, max_memory: int) -> bool:
+    """Whether the voxel measures may run beside the mesh summary and write: their arrays
+    and the summary's together within `max_memory`, and nothing else compiled and parallel
+    (the simplification) in between."""
+    from .grid import MORPHOMETRY_BYTES_PER_VOXEL
+    from .memory import process_memory
+    from .mesh_stream import MESH_BYTES_PER_TRIANGLE
+
+    if tolerance > 0:
+        return False
+    need = (process_memory() + MORPHOMETRY_BYTES_PER_VOXEL * result.grid.size
+            + MESH_BYTES_PER_TRIANGLE * len(result.mesh.faces))
+    return need <= max_memory
 
 
 def _grade_reach(grade) -> float:
@@ -814,15 +881,24 @@ def _prism(grid: Grid):
     return prism_bands(grid.shape)
 
 
-def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Params, slices, ys, zs,
-                   pieces=None):
+def _printed_level(printed: str, read, level: float, grid: Grid, params: Params, slices, ys, zs,
+                   pieces=None, whole_volume: float | None = None):
     """The level that meets the target on what is printed (:func:`.printed.printed_level`),
-    from the lattice and patient fields on the calibration prism; and the report's record."""
+    from the lattice and patient fields on the calibration prism (and, for a mesh, the grid's
+    y-face bands); and the report's record. ``read(ys, zs)`` gives the two fields on a band."""
     from functools import partial
 
-    from .printed import clean_prism, printed_level, printed_measure
+    from .printed import clean_prism, face_bands, face_shave, printed_level, printed_measure
 
     slices = slices or {}
+    base, s_p = read(ys, zs)
+    bands, shave = [], None
+    if printed == "mesh" and whole_volume:
+        # each band with the grid's face row first
+        flip = (slice(None), slice(None, None, -1))
+        bands = [tuple(np.ascontiguousarray(a[flip] if band.start else a, np.float32) for a in read(band, zs))
+                 for band in face_bands(grid.shape, ys)]
+        shave = partial(face_shave, spacing=grid.spacing, z_faces=zs.stop - zs.start == grid.shape[2])
     measure = printed_measure(printed, grid, ys, zs, pixel=slices.get("pixel"), layer=slices.get("layer"))
     cut_y, cut_z = (ys.stop - ys.start) < grid.shape[1], (zs.stop - zs.start) < grid.shape[2]
     clean = partial(clean_prism, spacing=grid.spacing, remove_fragments=params.remove_fragments,
@@ -830,7 +906,8 @@ def _printed_level(printed: str, base, s_p, level: float, grid: Grid, params: Pa
                     cut_y=cut_y, cut_z=cut_z)
     found, info = printed_level(np.ascontiguousarray(base, np.float32), np.ascontiguousarray(s_p, np.float32),
                                 level, measure, spacing=grid.spacing, skin=params.skin, smooth_cut=params.smooth_cut,
-                                clean=clean, open_faces=(cut_y, cut_z) if printed == "mesh" else (False, False))
+                                clean=clean, open_faces=(cut_y, cut_z) if printed == "mesh" else (False, False),
+                                bands=bands, shave=shave, whole_volume=whole_volume)
     return found, {"by": printed, **info}
 
 
@@ -1051,8 +1128,9 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     if printed is not None:
         bands = _prism(grid)
 
-        def level_for(base, s_p, level):
-            found, info = _printed_level(printed, base, s_p, level, grid, params, run.slices, *bands)
+        def level_for(read, level):
+            found, info = _printed_level(printed, read, level, grid, params, run.slices, *bands,
+                                         whole_volume=float(patient.volume))
             calibration.clear()
             calibration.update(info)
             return found

@@ -351,9 +351,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     prog : Progress, optional
     fill_sealed_voids : bool
         Fill the void pieces that do not reach the outside (always counted).
-    printed : (bands, callable(base, patient, level) -> level), optional
+    printed : (bands, callable(read, level) -> level), optional
         The calibration prism's y and z bands and the search for the level of what is
-        printed (:mod:`.printed`), given the prism's lattice and patient fields.
+        printed (:mod:`.printed`); ``read(ys, zs)`` gives the lattice and patient fields
+        on a band.
     skin, smooth_cut : float, mm
         As in :func:`~implicit_scaffold.field.scaffold_field`: voxel by voxel, from the
         patient's distance of the same voxel, so they need no halo.
@@ -403,7 +404,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
-                    level = search(read_prism(field, slabs, ys, zs), read_prism(patient_file, slabs, ys, zs), level)
+                    level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
+                                   level)
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
