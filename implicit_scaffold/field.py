@@ -266,11 +266,12 @@ def solve_level_cut(field: np.ndarray, patient_sdf: np.ndarray, porosity: float,
         The level, mm.
     """
     inside = patient_sdf < 0
-    target = int(round((1.0 - porosity) * np.count_nonzero(inside)))
-    values = np.sort(field[inside])
     level = solve_level(field, inside, porosity)
     if skin <= 0 and smooth_cut <= 0:
         return level
+    target = int(round((1.0 - porosity) * np.count_nonzero(inside)))
+    # the sort only where the corrections read it (a third of a second on 8 M voxels)
+    values = np.sort(field[inside])
     for _ in range(iterations):
         s = scaffold_field(field, patient_sdf, level=level, skin=skin, smooth_cut=smooth_cut)
         error = int(np.count_nonzero(s < 0)) - target

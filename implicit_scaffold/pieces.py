@@ -111,7 +111,8 @@ def remove_fragments_by_piece(field: np.ndarray, piece_labels: np.ndarray, *, ou
     return {"removed": int(np.count_nonzero(drop_label)), "removed_voxels": int(sizes[drop_label].sum())}
 
 
-def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, seeds: np.ndarray) -> list[dict]:
+def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, seeds: np.ndarray, *,
+                main_bodies_only: bool = False) -> list[dict]:
     """Each patient piece's volume, cells, porosity and bodies, the largest piece first.
 
     Parameters
@@ -124,6 +125,10 @@ def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, s
     grid : Grid
     seeds : (n, 3) float ndarray, mm
         The seeds of the cells in the scaffold (``cells_in_scaffold``: their seed lies in the patient).
+    main_bodies_only : bool
+        The patient is one piece and the solid holds only its main body
+        (:func:`remove_fragments_by_piece` ran; filling sealed voids next to that body keeps it
+        one): one body wherever there is solid, known without labelling the solid again.
 
     Returns
     -------
@@ -136,8 +141,12 @@ def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, s
     voxels = np.bincount(piece_labels.ravel(), minlength=count + 1)
     solid_voxels = np.bincount(piece_labels[solid], minlength=count + 1)
     cells = np.bincount(seed_pieces(piece_labels, grid, seeds), minlength=count + 1)
-    labels, n_solid = ndimage.label(solid)
-    bodies = np.bincount(solid_piece(labels, piece_labels, n_solid)[1:], minlength=count + 1)
+    if main_bodies_only:
+        bodies = (solid_voxels > 0).astype(np.int64)
+    else:
+        labels, n_solid = ndimage.label(solid)
+        bodies = np.bincount(solid_piece(labels, piece_labels, n_solid)[1:], minlength=count + 1)
+        del labels
     bounds = ndimage.find_objects(piece_labels)
     rows = []
     for i in range(1, count + 1):

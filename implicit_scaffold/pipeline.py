@@ -531,7 +531,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         sealed = fill_sealed_void_pieces(s, inside=h, fill=params.fill_sealed_voids, keep_interior=params.skin > 0)
         solid = int(np.count_nonzero(s < 0))
         porosity_voxel = 1.0 - solid / n_inside
-        piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in])
+        piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
+                                 main_bodies_only=removal is not None and n_pieces == 1)
         del pieces
 
     report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
