@@ -38,6 +38,7 @@ from typing import Callable
 import numpy as np
 
 from .errors import ScaffoldError
+from .field import level_between
 from .grid import Grid
 
 #: apparent density of fully dense cortical bone, g/cm³: the density at which the
@@ -938,7 +939,7 @@ def solve_level_field(base, patient_sdf, plan: LevelPlan, *, max_voxels: int | N
                 del vals, coord
             below, above = quantile.values().T
             step = np.where(counts == 0, 0.0, np.where(solid <= 0, below - 1e-6, np.where(
-                full, above + 1e-6, below + (above - below) / 2)))
+                full, above + 1e-6, level_between(below, above))))
             levels = levels + step
             if np.max(np.abs(step)) < tolerance:
                 break
@@ -970,7 +971,7 @@ def _settle(vals, coord, which, share, nb: int, nodes, levels, iterations: int, 
             else:
                 part = np.partition(seg, (k - 1, k))
                 below, above = float(part[k - 1]), float(part[k])
-                step[b] = below + (above - below) / 2
+                step[b] = level_between(below, above)
         levels = levels + step
         if np.max(np.abs(step)) < tolerance:
             break

@@ -28,10 +28,10 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ScaffoldError
-from .field import blend_field, scaffold_field, void_mask
+from .field import blend_field, level_between, scaffold_field, solid_voxels, void_mask
 from .grid import Grid
 from .memory import release
-from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_from_ranks, level_ranks, \
+from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_ranks, \
     plan_slabs
 
 #: bytes per voxel of a slab at the peak of pass 1 (lattice and blended planes, the
@@ -265,11 +265,10 @@ def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: Fie
         return 0.0
     ranks = level_ranks(n_inside, porosity)
     if ranks is None:
-        solid = int(round((1.0 - porosity) * n_inside))
-        level = lo - 1e-6 if solid <= 0 else hi + 1e-6
+        level = lo - 1e-6 if solid_voxels(n_inside, porosity) <= 0 else hi + 1e-6
     else:
         _refine(quantile, ranks, slabs, field, patient, progress)
-        level = level_from_ranks(*quantile.values())
+        level = level_between(*quantile.values())
     if skin <= 0 and smooth_cut <= 0:
         return level
     return _correct_level_cut(quantile, slabs, field, patient, n_inside, porosity, level, skin, smooth_cut)
@@ -297,7 +296,7 @@ def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patien
     """
     from .field import scaffold_field
 
-    target = int(round((1.0 - porosity) * n_inside))
+    target = solid_voxels(n_inside, porosity)
     for _ in range(iterations):
         solid = below = 0
         for slab in slabs:
@@ -315,7 +314,7 @@ def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patien
                                 "lower --skin or raise the porosity target")
         _refine(quantile, (rank - 1, rank), slabs, field, patient)
         a, b = (np.float32(v) for v in quantile.values())
-        new = float(a + (b - a) / 2)
+        new = float(level_between(a, b))
         if new == level:
             break
         level = new

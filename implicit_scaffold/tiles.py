@@ -271,19 +271,17 @@ class GroupQuantile:
 
 
 def level_ranks(n_inside: int, porosity: float) -> tuple[int, int] | None:
-    """The two ranks whose midpoint is the level of :func:`~implicit_scaffold.field.solve_level`.
+    """The two ranks whose midpoint (:func:`~implicit_scaffold.field.level_between`) is the level of
+    :func:`~implicit_scaffold.field.solve_level`.
 
     Returns None when the level lies beyond the values (no solid or all solid).
     """
-    solid = int(round((1.0 - porosity) * n_inside))
+    from .field import solid_voxels
+
+    solid = solid_voxels(n_inside, porosity)
     if solid <= 0 or solid >= n_inside:
         return None
     return solid - 1, solid
-
-
-def level_from_ranks(below: float, above: float) -> float:
-    """The level between two consecutive order statistics, as :func:`solve_level` places it."""
-    return below + (above - below) / 2 if above > below else below
 
 
 class SlabComponents:

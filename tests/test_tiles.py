@@ -4,8 +4,8 @@ import pytest
 from scipy import ndimage
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.field import remove_fragments, solve_level
-from implicit_scaffold.tiles import (SlabComponents, StreamQuantile, level_from_ranks, level_ranks,
+from implicit_scaffold.field import level_between, remove_fragments, solve_level
+from implicit_scaffold.tiles import (SlabComponents, StreamQuantile, level_ranks,
                                      plan_slabs)
 
 
@@ -61,7 +61,7 @@ def test_level_equals_solve_level_bit_for_bit():
         q.select(*ranks)
         for s in slabs:
             q.refine(field[s.x0:s.x1][inside[s.x0:s.x1]])
-        assert level_from_ranks(*q.values()) == solve_level(field, inside, porosity)
+        assert level_between(*q.values()) == solve_level(field, inside, porosity)
 
 
 @pytest.mark.parametrize("thickness", [1, 3, 8, 40])
