@@ -207,28 +207,18 @@ def _default_tile_blocks(grid: Grid) -> int:
 
 def _launch_rows(kernel, grid: Grid, buffers, scalars, *, tile_blocks, progress, x_range=None):
     """Run a row kernel (kernels/lattice.cl, ROW_ARGS) over the planes `x_range` of `grid`, tile by tile."""
-    import pyopencl as cl
-
-    ctx, queue = opencl.context()
     cy, cz = block_counts(grid, BLOCK)[1:]
     lo, hi = _check_range(grid, x_range)
     b0 = _block_range(grid, x_range)[0]
-    out = np.empty((hi - lo,) + tuple(grid.shape[1:]), np.float32)
-    tiles = _tiles(grid, tile_blocks if tile_blocks is not None else _default_tile_blocks(grid), x_range)
     ny, nz = grid.shape[1:]
     pad = lambda n: -(-n // BLOCK) * BLOCK  # noqa: E731
-    dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY,
-                        size=4 * max(x1 - x0 for x0, x1 in tiles) * ny * nz)
-    for i, (x0, x1) in enumerate(tiles):
-        nx = x1 - x0
-        # a work-item computes 8 voxels along z in 2 rows along y; a work-group, one block
-        kernel(queue, (cz, pad(ny) // 2, pad(nx)), (1, BLOCK // 2, BLOCK),
-               dev_out, np.int32(x0), np.int32(nx), np.int32(ny), np.int32(nz),
-               np.int32(b0), np.int32(cy), np.int32(cz), np.float32(grid.spacing), *buffers, *scalars)
-        cl.enqueue_copy(queue, out[x0 - lo:x1 - lo], dev_out, is_blocking=True)
-        if progress is not None:
-            progress(i + 1, len(tiles))
-    return out
+    # a work-item computes 8 voxels along z in 2 rows along y; a work-group, one block
+    return opencl.launch_tiles(
+        kernel, _tiles(grid, tile_blocks if tile_blocks is not None else _default_tile_blocks(grid), x_range),
+        np.empty((hi - lo,) + tuple(grid.shape[1:]), np.float32), first=lo, progress=progress,
+        sizes=lambda nx: ((cz, pad(ny) // 2, pad(nx)), (1, BLOCK // 2, BLOCK)),
+        args=lambda x0, nx: (np.int32(x0), np.int32(nx), np.int32(ny), np.int32(nz), np.int32(b0),
+                             np.int32(cy), np.int32(cz), np.float32(grid.spacing), *buffers, *scalars))
 
 
 def _slack(grid: Grid, *boxes) -> float:

@@ -547,6 +547,42 @@ def to_device(array, dtype=np.float32):
     return cl.Buffer(ctx, cl.mem_flags.READ_ONLY | cl.mem_flags.COPY_HOST_PTR, hostbuf=a)
 
 
+def launch_tiles(kernel, tiles, out: np.ndarray, *, sizes, args, first: int = 0, progress=None) -> np.ndarray:
+    """Run a grid kernel once per tile of x planes, each tile's result copied into `out`.
+
+    Every field kernel (the lattice's rows, the patient's triangles) is launched this way: one
+    device buffer, sized for the largest tile, serves every tile, and the host waits for each
+    copy, so a tile's planes are final when `progress` hears of them.
+
+    Parameters
+    ----------
+    kernel : pyopencl.Kernel
+        Its first argument is the output buffer, one value per voxel of the tile, in C order.
+    tiles : list of (x0, x1)
+        Plane ranges, in the whole grid's frame.
+    out : (planes, ny, nz) C-contiguous ndarray
+        The host array; its plane 0 is the grid's plane `first`.
+    sizes : callable(nx) -> (global_size, local_size)
+        The work sizes for a tile of `nx` planes.
+    args : callable(x0, nx) -> sequence
+        The kernel's arguments after the output buffer.
+    progress : callable(done, total), optional
+    """
+    import pyopencl as cl
+
+    ctx, queue = context()
+    plane = int(np.prod(out.shape[1:]))
+    dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY,
+                        size=max(1, out.itemsize * plane * max((x1 - x0 for x0, x1 in tiles), default=0)))
+    for i, (x0, x1) in enumerate(tiles):
+        global_size, local_size = sizes(x1 - x0)
+        kernel(queue, global_size, local_size, dev_out, *args(x0, x1 - x0))
+        cl.enqueue_copy(queue, out[x0 - first:x1 - first], dev_out, is_blocking=True)
+        if progress is not None:
+            progress(i + 1, len(tiles))
+    return out
+
+
 # ----------------------------------------------------------------------------- the probe
 
 

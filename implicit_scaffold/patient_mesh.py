@@ -229,23 +229,17 @@ def _tiles(grid: Grid, tile_blocks: int = 8, x_range=None):
 def _run(kernel, grid, out, tile_inputs, buffers, scalars, x_range=None):
     """Launch `kernel` over the planes `x_range` of `grid` (all by default) tile by tile into
     `out` (host array over those planes), in the whole grid's frame."""
-    import pyopencl as cl
-
-    ctx, queue = opencl.context()
     cy, cz = block_counts(grid, BLOCK)[1:]
     ny, nz = grid.shape[1:]
-    first = 0 if x_range is None else int(x_range[0])
     pad = lambda n: -(-n // BLOCK) * BLOCK  # noqa: E731
-    for x0, x1 in _tiles(grid, x_range=x_range):
-        nx = x1 - x0
-        dev_out = cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, size=out.itemsize * nx * ny * nz)
-        extra = [opencl.to_device(f(x0, x1), np.int32) for f in tile_inputs]
-        kernel(queue, (pad(nz), pad(ny), pad(nx)), (BLOCK, BLOCK, BLOCK),
-               dev_out, np.int32(x0), np.int32(0), np.int32(0), np.int32(nx), np.int32(ny), np.int32(nz),
-               np.int32(cy), np.int32(cz), np.float32(grid.spacing), *extra, *buffers, *scalars)
-        host = np.empty((nx, ny, nz), out.dtype)
-        cl.enqueue_copy(queue, host, dev_out, is_blocking=True)
-        out[x0 - first:x1 - first] = host
+
+    def args(x0, nx):
+        extra = [opencl.to_device(f(x0, x0 + nx), np.int32) for f in tile_inputs]
+        return (np.int32(x0), np.int32(0), np.int32(0), np.int32(nx), np.int32(ny), np.int32(nz),
+                np.int32(cy), np.int32(cz), np.float32(grid.spacing), *extra, *buffers, *scalars)
+
+    opencl.launch_tiles(kernel, _tiles(grid, x_range=x_range), out, first=0 if x_range is None else int(x_range[0]),
+                        sizes=lambda nx: ((pad(nz), pad(ny), pad(nx)), (BLOCK, BLOCK, BLOCK)), args=args)
 
 
 def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndarray:
