@@ -118,22 +118,27 @@ def printer_profile(text: str) -> PrinterProfile:
 
 
 @functools.lru_cache(maxsize=None)
-def _flood_kernel():
-    """The compiled max-min flood (numba), built on first use and cached on disk."""
+def _flood_kernels():
+    """The compiled max-min floods (numba), built on first use and cached on disk:
+    ``flood(d2, r2)`` from all six faces, ``flood_faces(d2, r2, low_x, high_x)`` from the
+    y and z faces and only the x faces asked for (a slab's x faces inside the grid are not
+    the grid's: their planes come from the neighbours, as part of the marker ``r2``)."""
     import numba as nb
 
     @nb.njit(cache=True, boundscheck=False)
-    def flood(d2, r2):  # pragma: no cover - compiled
-        # grey reconstruction by dilation of r2 (d2 on the grid's faces) under d2, by Vincent's
-        # hybrid method: a raster scan and an anti-raster scan carry most values, then a FIFO
-        # carries the rest (paths that turn back against both scans). 5x faster than a bucket
-        # queue on a scaffold: the scans read memory in order.
+    def flood_faces(d2, r2, low_x, high_x):  # pragma: no cover - compiled
+        # grey reconstruction by dilation of the marker r2 (raised to d2 on the seeded faces)
+        # under d2, by Vincent's hybrid method: a raster scan and an anti-raster scan carry most
+        # values, then a FIFO carries the rest (paths that turn back against both scans). 5x
+        # faster than a bucket queue on a scaffold: the scans read memory in order. The marker
+        # must lie at or under d2; any such marker works (the scans start from its values).
         nx, ny, nz = d2.shape
         n = nx * ny * nz
         for i in range(nx):
             for j in range(ny):
                 for k in range(nz):
-                    if i == 0 or j == 0 or k == 0 or i == nx - 1 or j == ny - 1 or k == nz - 1:
+                    if ((i == 0 and low_x) or (i == nx - 1 and high_x)
+                            or j == 0 or k == 0 or j == ny - 1 or k == nz - 1):
                         r2[i, j, k] = d2[i, j, k]
         for i in range(nx):
             for j in range(ny):
@@ -216,7 +221,16 @@ def _flood_kernel():
                         return False
         return True
 
-    return flood
+    @nb.njit(cache=True, boundscheck=False)
+    def flood(d2, r2):  # pragma: no cover - compiled
+        return flood_faces(d2, r2, True, True)
+
+    return flood, flood_faces
+
+
+def _flood_kernel():
+    """The compiled max-min flood from the grid's six faces (:func:`_flood_kernels`)."""
+    return _flood_kernels()[0]
 
 
 def throat_radius(solid, voxel: float):
@@ -278,10 +292,16 @@ def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]
     can travel to it from outside, to the voxels' boundaries); its weight is that inscribed sphere's volume (``d2^1.5``), so that
     the crevices between struts, which are local maxima too, count for little.
     """
+    centres = _pore_centres(d2, void_in)
+    return voxel * (2.0 * np.sqrt(r2[centres].astype(np.float64)) + 1.0), d2[centres].astype(np.float64) ** 1.5
+
+
+def _pore_centres(d2, void_in) -> np.ndarray:
+    """Pore centres: void voxels of `void_in` where `d2` is a local maximum (3x3x3, the grid's
+    faces repeated outward)."""
     from scipy import ndimage
 
-    centres = (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
-    return voxel * (2.0 * np.sqrt(r2[centres].astype(np.float64)) + 1.0), d2[centres].astype(np.float64) ** 1.5
+    return (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
 
 
 def weighted_quantile(values, weights, q: float) -> float:
@@ -342,6 +362,91 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
         total = w[down > 1e-6].sum()
         out[name] = float(w[down > cos_limit].sum() / total) if total > 0 else 0.0
     return out
+
+
+class ThroatTally:
+    """Pores counted by the squared throat radius and the squared inscribed radius at their centres.
+
+    A pore's throat is ``h (2 sqrt(r2) + 1)`` and its weight ``d2^1.5``, both functions of
+    integers (voxels²), so integer counts per ``(r2, d2)`` hold everything the weighted
+    quantiles read: tallies of slabs add up to the whole grid's exactly, and the quantiles
+    are summed in one order (by throat, then weight) whatever the slabs.
+
+    Parameters
+    ----------
+    voxel : float, mm
+    """
+
+    def __init__(self, voxel: float):
+        self.voxel = float(voxel)
+        self.keys = np.zeros(0, np.int64)    # r2 << 32 | d2, sorted
+        self.counts = np.zeros(0, np.int64)
+
+    def add(self, r2, d2) -> "ThroatTally":
+        """Count pores with squared throat radii `r2` and squared inscribed radii `d2` (voxels², ints)."""
+        r2 = np.asarray(r2, np.int64).ravel()
+        if r2.size:
+            keys = np.concatenate([self.keys, (r2 << 32) | np.asarray(d2, np.int64).ravel()])
+            counts = np.concatenate([self.counts, np.ones(r2.size, np.int64)])
+            self.keys, inverse = np.unique(keys, return_inverse=True)
+            self.counts = np.zeros(len(self.keys), np.int64)
+            np.add.at(self.counts, inverse.ravel(), counts)
+        return self
+
+    @property
+    def pores(self) -> int:
+        return int(self.counts.sum())
+
+    def _table(self):
+        throat = self.voxel * (2.0 * np.sqrt((self.keys >> 32).astype(np.float64)) + 1.0)
+        weight = self.counts * (self.keys & 0xFFFFFFFF).astype(np.float64) ** 1.5
+        return throat, weight
+
+    def minimum(self) -> float | None:
+        """The narrowest pore throat, mm (None without pores)."""
+        return float(self._table()[0][0]) if self.keys.size else None
+
+    def quantile(self, q: float) -> float | None:
+        """The weighted `q` quantile of the throats, mm, as :func:`weighted_quantile` (None without pores)."""
+        if not self.keys.size:
+            return None
+        throat, weight = self._table()
+        cum = np.cumsum(weight)
+        return float(throat[min(len(cum) - 1, int(np.searchsorted(cum, q * cum[-1])))])
+
+
+def _thinnest(tally, min_strut: float) -> tuple[dict, float]:
+    """Minimum and 1st percentile of the certificate's thickness map, and the share below `min_strut`,
+    from a :class:`~.morphometry.ThicknessTally` of :func:`~.morphometry.local_thickness`'s map.
+
+    The map's values are float32 ``2 h sqrt(v) + h`` (the voxel added in float32, as the
+    certificate does), so the order statistics come from the counts per ``v``; the percentile
+    interpolates as ``np.percentile`` does (linear, in float32).
+    """
+    v = np.nonzero(tally.counts)[0]
+    counts = tally.counts[v]
+    h = tally.voxel
+    values = np.float32(2.0 * h * np.sqrt(v.astype(np.float64))) + np.float32(h)
+    n = int(counts.sum())
+    cum = np.cumsum(counts)
+
+    def order(k: int):
+        return values[int(np.searchsorted(cum, k, side="right"))]
+
+    q = np.float64(1) / 100
+    at = n * q + (1 + q * (1 - 1 - 1)) - 1  # numpy's virtual index for the linear method
+    if at >= n - 1:
+        p1 = order(n - 1)
+    elif at < 0:
+        p1 = order(0)
+    else:
+        lo = math.floor(at)
+        g = at - lo
+        a, b = order(lo), order(lo + 1)
+        d = np.float32(b - a)
+        p1 = np.float32(b - d * np.float32(1 - g)) if g >= 0.5 else np.float32(a + d * np.float32(g))
+    below = int(counts[values < min_strut].sum()) / n
+    return {"min": float(values[0]), "p1": float(p1)}, below
 
 
 #: the labels of the certificate's section maps
@@ -419,7 +524,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     from scipy import ndimage
 
     from .grid import Grid
-    from .morphometry import _check_volume, local_thickness
+    from .morphometry import ThicknessTally, _check_volume, local_thickness
 
     solid, h, region = _check_volume(solid, voxel, region)
     if not solid.any():
@@ -442,18 +547,20 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     maps = [np.where(np.take(solid, i, axis=a), SECTION_SOLID, SECTION_VOID).astype(np.uint8) for a, i in planes]
 
     thick = local_thickness(solid, h)
+    # counted per sphere radius, as certificate_by_slabs counts its slabs: the same figures by construction
+    thinnest, below = _thinnest(ThicknessTally(h).add(thick, solid), profile.min_strut_mm)
     thick[solid] += np.float32(h)
     for m, (a, i) in zip(maps, planes):
         m[(np.take(thick, i, axis=a) < profile.min_strut_mm) & (m == SECTION_SOLID)] = SECTION_THIN
-    thick = thick[solid]
-    thinnest = {"min": float(thick.min()), "p1": float(np.percentile(thick, 1))}
-    below = float(np.mean(thick < profile.min_strut_mm))
     del thick
 
     clock.mark("thickness")
     d2, r2 = throat_radius(solid, h)
-    throats, weights = pore_throats(d2, r2, void_in, h)
-    throat = weighted_quantile(throats, weights, 1 - THROAT_PORE_SHARE) if throats.size else 0.0
+    pores = ThroatTally(h)
+    centres = _pore_centres(d2, void_in)
+    pores.add(r2[centres], d2[centres])
+    del centres
+    throat = pores.quantile(1 - THROAT_PORE_SHARE) if pores.pores else 0.0
     n_void = np.count_nonzero(void_in)
     drain = None
     if profile.drain_mm > 0:
@@ -507,8 +614,9 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
                 "throat_mm": 0.0, "void_reached_by_drain_share": None}
     if void_b.any():
         d2b, r2b = throat_radius(grown, h)
-        tb, wb = pore_throats(d2b, r2b, void_b, h)
-        as_built["throat_mm"] = weighted_quantile(tb, wb, 1 - THROAT_PORE_SHARE) if tb.size else 0.0
+        centres = _pore_centres(d2b, void_b)
+        tb = ThroatTally(h).add(r2b[centres], d2b[centres])
+        as_built["throat_mm"] = tb.quantile(1 - THROAT_PORE_SHARE) if tb.pores else 0.0
         if profile.drain_mm > 0:
             reached = reached_by(r2b, profile.drain_mm, h) & void_b
             as_built["void_reached_by_drain_share"] = float(np.count_nonzero(reached) / np.count_nonzero(void_b))
@@ -536,8 +644,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "thinnest_mm": thinnest,
         "below_min_strut_share": below,
         "throat_mm": throat,
-        "pore_throats_mm": {"pores": int(throats.size), "min": float(throats.min()) if throats.size else None,
-                            "median": weighted_quantile(throats, weights, 0.5) if throats.size else None},
+        "pore_throats_mm": {"pores": pores.pores, "min": pores.minimum(), "median": pores.quantile(0.5)},
         "void_reached_by_drain_share": drain,
         "void_reached_by_100um_share": cells,
         "sealed_voids": {"count": sealed_n, "volume_mm3": float(sealed_sizes.sum()) * v3},
