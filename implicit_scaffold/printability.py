@@ -542,8 +542,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     clock = _Clock()
     # sections through the middle, across (index 0) and along (index 1) the build axis: the
     # report's maps of where each problem lies
-    build = "xyz".index(profile.build_axis[1])
-    planes = [(build, solid.shape[build] // 2), ((build + 1) % 3, solid.shape[(build + 1) % 3] // 2)]
+    planes = _section_planes(solid.shape, profile)
     maps = [np.where(np.take(solid, i, axis=a), SECTION_SOLID, SECTION_VOID).astype(np.uint8) for a, i in planes]
 
     thick = local_thickness(solid, h)
@@ -622,6 +621,14 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
             as_built["void_reached_by_drain_share"] = float(np.count_nonzero(reached) / np.count_nonzero(void_b))
 
     clock.mark("as built")
+    return _assemble(profile, h, solid.shape, n_region, int(n_void), thinnest, below, throat, pores, drain, cells,
+                     (sealed_n, int(sealed_sizes.sum())), (int(len(floating)), int(floating.sum())), shares,
+                     best_axis, as_built, clock, {(a, i): m for m, (a, i) in zip(maps, planes)})
+
+
+def _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells, sealed, floating,
+              shares, best_axis, as_built, clock, sections) -> Certificate:
+    """The certificate's verdicts and keys from its measures (`sealed`, `floating`: pieces and voxels)."""
     limit_iso = 1.0 - math.cos(math.radians(90.0 - profile.overhang_deg))
     verdict = {
         "thinnest": "fail" if below > 0.05 else "warn" if below > 0.01 or thinnest["p1"] < profile.min_strut_mm
@@ -629,8 +636,8 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "throat": "fail" if throat < profile.min_throat_mm - h else "warn" if throat < profile.min_throat_mm else "pass",
         "drain": _verdict(drain, 0.99, 0.9, higher_is_worse=False),
         "cell_infiltration": _verdict(cells, 0.99, 0.9, higher_is_worse=False),
-        "sealed_voids": "fail" if sealed_n else "pass",
-        "floating_solid": "fail" if len(floating) else "pass",
+        "sealed_voids": "fail" if sealed[0] else "pass",
+        "floating_solid": "fail" if floating[0] else "pass",
         "overhang": _verdict(shares[profile.build_axis], 0.05, max(0.05, limit_iso)),
         "as_built": _verdict(as_built["void_reached_by_drain_share"], 0.99, 0.9, higher_is_worse=False),
     }
@@ -639,16 +646,16 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     return Certificate({
         "printer": asdict(profile),
         "voxel_mm": h,
-        "grid_shape": list(solid.shape),
-        "porosity": float(np.count_nonzero(void_in)) / n_region,
+        "grid_shape": [int(n) for n in shape],
+        "porosity": float(n_void) / n_region,
         "thinnest_mm": thinnest,
         "below_min_strut_share": below,
         "throat_mm": throat,
         "pore_throats_mm": {"pores": pores.pores, "min": pores.minimum(), "median": pores.quantile(0.5)},
         "void_reached_by_drain_share": drain,
         "void_reached_by_100um_share": cells,
-        "sealed_voids": {"count": sealed_n, "volume_mm3": float(sealed_sizes.sum()) * v3},
-        "floating_solid": {"count": int(len(floating)), "volume_mm3": float(floating.sum()) * v3},
+        "sealed_voids": {"count": int(sealed[0]), "volume_mm3": float(sealed[1]) * v3},
+        "floating_solid": {"count": int(floating[0]), "volume_mm3": float(floating[1]) * v3},
         "overhang_share": shares[profile.build_axis],
         "overhang_share_by_axis": shares,
         "build_axis": profile.build_axis,
@@ -656,5 +663,384 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "as_built": as_built,
         "verdict": verdict,
         "seconds": clock.seconds,
-    }, sections={(a, i): m for m, (a, i) in zip(maps, planes)})
+    }, sections=sections)
 
+
+
+# ----------------------------------------------------------------------------- in slabs
+
+#: bytes per voxel of a slab (its halo included) while :func:`certificate_by_slabs` works on it:
+#: the largest pass is the flood (squared distances, radii, its queue) or the local thickness
+SLAB_CERTIFICATE_BYTES_PER_VOXEL = 28
+
+
+class _IntPlanes:
+    """int32 planes over a grid on disk: a :class:`~.tiles.FieldFile` holding their bits
+    (written and read as float32 without arithmetic, so every bit comes back)."""
+
+    def __init__(self, grid, folder=None):
+        from .tiles import FieldFile
+
+        self._file = FieldFile(grid, folder)
+
+    def write(self, x0: int, planes: np.ndarray) -> None:
+        self._file.write(x0, np.ascontiguousarray(planes, np.int32).view(np.float32))
+
+    def read(self, x0: int, x1: int) -> np.ndarray:
+        return self._file.read(x0, x1).view(np.int32)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _section_planes(shape, profile: PrinterProfile) -> list[tuple[int, int]]:
+    # through the middle, across (first) and along (second) the build axis
+    build = "xyz".index(profile.build_axis[1])
+    return [(build, int(shape[build]) // 2), ((build + 1) % 3, int(shape[(build + 1) % 3]) // 2)]
+
+
+def _paint(maps, planes, x0: int, mask: np.ndarray, label: int, only: int | None = None) -> None:
+    """Label the voxels of `mask` (planes from `x0` of the grid) on the section maps they cross."""
+    x1 = x0 + mask.shape[0]
+    for m, (a, i) in zip(maps, planes):
+        if a == 0:
+            if not x0 <= i < x1:
+                continue
+            view, sec = m, mask[i - x0]
+        else:
+            view, sec = m[x0:x1], np.take(mask, i, axis=a)
+        view[sec & (view == only) if only is not None else sec] = label
+
+
+def _spans(nx: int, plane: int, max_voxels: int, halo: int) -> list[tuple[int, int]]:
+    # as many owned planes as the budget leaves beside the halo; at least one
+    owned = max(1, int(max_voxels) // plane - 2 * halo)
+    return [(x0, min(x0 + owned, nx)) for x0 in range(0, nx, owned)]
+
+
+def _distances_by_slabs(solid_of, grid, max_voxels: int, halo: int, folder, progress=None) -> tuple[_IntPlanes, int]:
+    """The void's squared distance (:func:`throat_radius`'s ``d2``), exact, written plane by plane.
+
+    Each slab's distance transform reads `halo` planes on either side, the planes beyond
+    standing for void as the grid's outside does: the solid it misses is at least as far as
+    the first unread plane, so an owned voxel whose distance is within that is exact. A slab
+    where some voxel's is not is taken again with a halo as wide as its widest distance (more
+    solid only brings distances down, so that halo suffices), and the slabs after it keep the
+    wider halo. Returns the planes and the halo used last.
+    """
+    from .morphometry import _squared_edt
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    store = _IntPlanes(grid, folder)
+    try:
+        x0 = 0
+        while x0 < nx:
+            x1 = min(nx, x0 + max(1, int(max_voxels) // plane - 2 * halo))
+            lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+            d2 = _squared_edt(~solid_of(lo, hi))[x0 - lo:x1 - lo]
+            widest = d2.reshape(x1 - x0, -1).max(axis=1).astype(np.int64)
+            xs = np.arange(x0, x1, dtype=np.int64)
+            exact = (lo == 0 or bool(np.all(widest <= (xs - lo + 1) ** 2))) and \
+                    (hi == nx or bool(np.all(widest <= (hi - xs) ** 2)))
+            if not exact:
+                halo = max(halo + 1, math.isqrt(int(widest.max()) - 1) + 1)
+                continue
+            store.write(x0, d2)
+            x0 = x1
+            if progress is not None:
+                progress(x0, nx)
+    except BaseException:
+        store.close()
+        raise
+    return store, halo
+
+
+def _flood_by_slabs(d2s: _IntPlanes, grid, max_voxels: int, folder) -> tuple[_IntPlanes, int]:
+    """:func:`throat_radius`'s ``r2`` over the whole grid, by slabs: returns the planes and the slab floods run.
+
+    The flood of a slab reads one plane of each neighbour as part of its marker and seeds the
+    grid's faces only. Values only rise, and each is the narrowest ``d2`` of a real path from
+    the grid's faces, so they never pass the whole grid's. A slab is flooded again while a
+    neighbour's plane beside it has changed since its last flood (forward then backward sweeps);
+    when none has, every pair of face neighbours (each within some slab with its halo) satisfies
+    ``r2(p) >= min(r2(q), d2(p))`` and the faces hold ``d2``: the least such field is the max-min
+    path value, the whole grid's ``r2``.
+    """
+    _, flood_faces = _flood_kernels()
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    spans = _spans(nx, plane, max_voxels, 1)
+    r2s = _IntPlanes(grid, folder)  # a new file reads as zeros
+    try:
+        dirty = [True] * len(spans)
+        runs = 0
+        while any(dirty):
+            for order in (range(len(spans)), range(len(spans) - 1, -1, -1)):
+                for s in order:
+                    if not dirty[s]:
+                        continue
+                    dirty[s] = False
+                    x0, x1 = spans[s]
+                    lo, hi = max(0, x0 - 1), min(nx, x1 + 1)
+                    d2 = d2s.read(lo, hi)
+                    r2 = r2s.read(lo, hi)
+                    own = slice(x0 - lo, x1 - lo)
+                    first, last = r2[own][0].copy(), r2[own][-1].copy()
+                    if not flood_faces(d2, r2, lo == 0, hi == nx):
+                        raise RuntimeError("the throat flood's queue overflowed")  # pragma: no cover
+                    runs += 1
+                    r2s.write(x0, r2[own])
+                    if s > 0 and not np.array_equal(r2[own][0], first):
+                        dirty[s - 1] = True
+                    if s + 1 < len(spans) and not np.array_equal(r2[own][-1], last):
+                        dirty[s + 1] = True
+    except BaseException:
+        r2s.close()
+        raise
+    return r2s, runs
+
+
+def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameters, visit=None):
+    """Pore throats and the void that spheres of each of `diameters` reach, slab by slab.
+
+    The pore centres' 3x3x3 maximum reads one plane of halo; :func:`reached_by`'s distance
+    to the allowed centres matters only below ``rho``, so a halo of ``ceil(rho)`` planes
+    holds every centre that counts. `visit(x0, void, r2, reached)` sees each slab's owned
+    planes. Returns the :class:`ThroatTally` and, per diameter, the reached voxels of the void.
+    """
+    import edt
+    from scipy import ndimage
+
+    from .morphometry import _threads
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    rhos = [0.5 * (float(d) / h - 1.0) for d in diameters]
+    halo = max([1] + [math.ceil(r) for r in rhos if r > 0])
+    pores = ThroatTally(h)
+    counts = [0] * len(rhos)
+    for x0, x1 in _spans(nx, plane, max_voxels, halo):
+        lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+        d2w, r2w = d2s.read(lo, hi), r2s.read(lo, hi)
+        own = slice(x0 - lo, x1 - lo)
+        void = void_of(x0, x1)
+        # the maximum filter on the owned planes and one beside: at the grid's faces the
+        # window ends there too, and "nearest" repeats the same plane as on the whole grid
+        a, b = max(x0 - 1, lo) - lo, min(x1 + 1, hi) - lo
+        peak = ndimage.maximum_filter(d2w[a:b], size=3, mode="nearest")[x0 - lo - a:x1 - lo - a]
+        d2, r2 = d2w[own], r2w[own]
+        centres = (d2 > 0) & void & (peak == d2)
+        del peak
+        pores.add(r2[centres], d2[centres])
+        reached = []
+        for t, rho in enumerate(rhos):
+            inside = r2 > 0
+            if rho > 0:
+                allowed = r2w >= rho * rho
+                if allowed.any():
+                    far2 = edt.edtsq(np.ascontiguousarray(~allowed, dtype=np.uint8), black_border=False,
+                                     parallel=_threads())[own]
+                    inside = inside & (far2 < rho * rho)
+                    del far2
+                else:
+                    inside = np.zeros(r2.shape, bool)
+            counts[t] += int(np.count_nonzero(inside & void))
+            reached.append(inside)
+        if visit is not None:
+            visit(x0, void, r2, reached)
+    return pores, counts
+
+
+def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile, *, max_voxels: int,
+                         origin=(0.0, 0.0, 0.0), halo: int | None = None, folder=None, progress=None) -> Certificate:
+    """:func:`certificate` of the solid ``source < 0`` within the region ``patient < 0``, read slab by slab.
+
+    Gives the certificate that ``certificate(s < 0, voxel, profile, field=s, region=p < 0,
+    origin=origin)`` gives on the whole fields ``s`` and ``p``, every figure and both section maps
+    identical, holding about `max_voxels` voxels (halo included) of each working array:
+
+    - thinnest solid: local thickness with a halo widened until it is exact (as
+      :func:`~.morphometry.morphometry_by_slabs`), counted per sphere radius;
+    - throats: the void's squared distance, exact by halo widening, and the max-min flood,
+      both kept on disk (int32 planes in `folder`, removed at the end); the flood is iterated
+      over the slabs to its fixpoint, the whole grid's (:func:`_flood_by_slabs`); pores counted
+      per integer radii (:class:`ThroatTally`);
+    - reached void: the allowed centres with a halo of the sphere's radius;
+    - sealed voids and floating solid: pieces joined across slab faces (:class:`~.tiles.SlabComponents`);
+    - overhangs: the subsampled field assembled from its planes; as built: the same passes on
+      ``source < deviation``.
+
+    Parameters
+    ----------
+    source, patient : objects with ``read(x0, x1)`` giving planes ``(x1 - x0, ny, nz)`` and ``grid``
+        The scaffold's and the patient's signed distances, mm (a FieldFile or ArraySlabs).
+    voxel : float, mm
+    profile : PrinterProfile
+    max_voxels : int
+        Voxels a slab may read, its halo included (a slab of one plane and its halo when
+        even that is more).
+    origin : 3 floats, mm
+    halo : int, optional
+        Planes of halo the thickness and the distances start with (e.g. from the cells' size);
+        widened as needed, so the figures do not depend on it.
+    folder : str or Path, optional
+        Where the distances and radii are kept (the system's temporary folder by default).
+    progress : callable(done, total), optional
+        Called after each slab of each pass.
+
+    Returns
+    -------
+    Certificate
+    """
+    from .grid import Grid
+    from .morphometry import ThicknessTally, local_thickness
+    from .tiles import SlabComponents
+
+    try:
+        h = float(voxel)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}") from None
+    if not (math.isfinite(h) and h > 0):
+        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}")
+    grid = source.grid
+    shape = tuple(int(n) for n in grid.shape)
+    if tuple(int(n) for n in patient.grid.shape) != shape:
+        raise ScaffoldError(f"the region's shape {tuple(patient.grid.shape)} differs from the solid's {shape}")
+    nx, ny, nz = shape
+    plane = ny * nz
+    max_voxels = max(1, int(max_voxels))
+    report = progress or (lambda done, total: None)
+    clock = _Clock()
+    planes = _section_planes(shape, profile)
+    maps = [np.zeros([n for a2, n in enumerate(shape) if a2 != a], np.uint8) for a, _ in planes]
+
+    # thinnest solid: local thickness, the halo widened until the thickest owned voxel is within it
+    halo = max(1, int(halo) if halo else math.ceil(2 * profile.min_strut_mm / h) + 2)
+    while True:
+        tally = ThicknessTally(h)
+        n_solid = n_region = n_void = 0
+        spans = _spans(nx, plane, max_voxels, halo)
+        for done, (x0, x1) in enumerate(spans, 1):
+            lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+            solid_w = source.read(lo, hi) < 0
+            own = slice(x0 - lo, x1 - lo)
+            thick = local_thickness(solid_w, h)[own]
+            solid = solid_w[own]
+            del solid_w
+            region = patient.read(x0, x1) < 0
+            tally.add(thick, solid)
+            thick[solid] += np.float32(h)
+            n_solid += int(np.count_nonzero(solid))
+            n_region += int(np.count_nonzero(region))
+            n_void += int(np.count_nonzero(region & ~solid))
+            _paint(maps, planes, x0, solid, SECTION_SOLID)
+            _paint(maps, planes, x0, thick < profile.min_strut_mm, SECTION_THIN, only=SECTION_SOLID)
+            del thick
+            report(done, len(spans))
+        if tally.max_voxels <= halo or len(spans) == 1:
+            break
+        halo = max(2 * halo, int(math.ceil(tally.max_voxels)) + 2)
+        for m in maps:
+            m[...] = SECTION_VOID
+    if n_solid == 0:
+        raise ScaffoldError("the scaffold holds no solid voxel; nothing to certify")
+    if n_void == 0:
+        raise ScaffoldError("the scaffold holds no void voxel; a solid block has no pores to certify")
+    thinnest, below = _thinnest(tally, profile.min_strut_mm)
+    clock.mark("thickness")
+
+    def solid_of(lo, hi):
+        return source.read(lo, hi) < 0
+
+    d2s, halo = _distances_by_slabs(solid_of, grid, max_voxels, halo, folder, report)
+    r2s = None
+    try:
+        r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
+        diameters = [INFILTRATION_MM] + ([profile.drain_mm] if profile.drain_mm > 0 else [])
+        sealed_parts, solid_parts = SlabComponents(), SlabComponents()
+        f = max(1, math.ceil(max(shape) / OVERHANG_CELLS))
+        coarse = np.empty(tuple(-(-n // f) for n in shape), np.float32)
+        solid_sections = []  # each slab's solid labels where it crosses the section planes
+        tallies = {"sealed": 0, "void_b": 0}
+
+        def void_of(x0, x1):
+            return (patient.read(x0, x1) < 0) & ~(source.read(x0, x1) < 0)
+
+        def visit(x0, void, r2, reached):
+            x1 = x0 + len(void)
+            field = source.read(x0, x1)
+            if profile.drain_mm > 0:
+                _paint(maps, planes, x0, ~reached[1] & void, SECTION_UNDRAINED)
+            sealed = void & (r2 == 0)
+            sealed_parts.add(sealed)
+            tallies["sealed"] += int(np.count_nonzero(sealed))
+            _paint(maps, planes, x0, sealed, SECTION_SEALED)
+            labels = solid_parts.add(field < 0)
+            solid_sections.append((x0, [_section_of(labels, a, i, x0) for a, i in planes]))
+            first = x0 + (-x0) % f
+            if first < x1:
+                coarse[first // f:first // f + len(range(first, x1, f))] = field[first - x0::f, ::f, ::f]
+            tallies["void_b"] += int(np.count_nonzero((patient.read(x0, x1) < 0) & ~(field < profile.deviation_mm)))
+
+        pores, reached = _pores_by_slabs(d2s, r2s, void_of, grid, h, max_voxels, diameters, visit)
+    finally:
+        d2s.close()
+        if r2s is not None:
+            r2s.close()
+    throat = pores.quantile(1 - THROAT_PORE_SHARE) if pores.pores else 0.0
+    cells = float(reached[0] / n_void)
+    drain = float(reached[1] / n_void) if profile.drain_mm > 0 else None
+    clock.mark("throats")
+
+    sealed_parts.finish()
+    sealed_n = sealed_parts.piece_count
+    floating_n = solid_parts.finish()
+    floating_voxels = n_solid - int(solid_parts.sizes[solid_parts.main])
+    if floating_n:
+        for index, (x0, parts) in enumerate(solid_sections):
+            for m, (a, _), sec in zip(maps, planes, parts):
+                if sec is not None:
+                    view = m if a == 0 else m[x0:x0 + sec.shape[0]]
+                    view[(sec > 0) & (solid_parts.roots_of(index, sec) != solid_parts.main)] = SECTION_FLOATING
+    del solid_sections
+    shares = overhang_shares(coarse, Grid(tuple(float(o) for o in origin), h * f, coarse.shape), profile.overhang_deg)
+    del coarse
+    best_axis = min(shares, key=lambda k: (shares[k], k))
+    clock.mark("pieces and overhangs")
+
+    # as built: the solid grown by the process's deviation (a signed distance offsets by less than a voxel)
+    n_void_b = tallies["void_b"]
+    as_built = {"deviation_mm": profile.deviation_mm, "porosity": float(n_void_b) / n_region,
+                "throat_mm": 0.0, "void_reached_by_drain_share": None}
+    if n_void_b:
+        def grown_of(lo, hi):
+            return source.read(lo, hi) < profile.deviation_mm
+
+        def void_b_of(x0, x1):
+            return (patient.read(x0, x1) < 0) & ~grown_of(x0, x1)
+
+        d2s, _ = _distances_by_slabs(grown_of, grid, max_voxels, halo, folder, report)
+        r2s = None
+        try:
+            r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
+            pores_b, reached_b = _pores_by_slabs(d2s, r2s, void_b_of, grid, h, max_voxels,
+                                                 [profile.drain_mm] if profile.drain_mm > 0 else [])
+        finally:
+            d2s.close()
+            if r2s is not None:
+                r2s.close()
+        as_built["throat_mm"] = pores_b.quantile(1 - THROAT_PORE_SHARE) if pores_b.pores else 0.0
+        if profile.drain_mm > 0:
+            as_built["void_reached_by_drain_share"] = float(reached_b[0] / n_void_b)
+    clock.mark("as built")
+    return _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells,
+                     (sealed_n, tallies["sealed"]), (floating_n, floating_voxels), shares, best_axis, as_built,
+                     clock, {(a, i): m for m, (a, i) in zip(maps, planes)})
+
+
+def _section_of(arr: np.ndarray, axis: int, index: int, x0: int):
+    """The part of the section plane ``(axis, index)`` held by `arr` (planes from `x0`), or None."""
+    if axis == 0:
+        return arr[index - x0] if x0 <= index < x0 + arr.shape[0] else None
+    return np.take(arr, index, axis=axis)

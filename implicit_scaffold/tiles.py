@@ -412,6 +412,11 @@ class SlabComponents:
         """After :meth:`finish`: the pieces (of any size) joined across the slabs."""
         return int(np.count_nonzero(self._piece_sizes > 0)) if len(self._parent) else 0
 
+    @property
+    def sizes(self) -> np.ndarray:
+        """After :meth:`finish`: voxels of each piece, by root (0 for the labels that are not roots)."""
+        return self._piece_sizes if len(self._parent) else np.zeros(0)
+
     def roots_of(self, index: int, local: np.ndarray) -> np.ndarray:
         """After :meth:`finish`: the pieces (roots) of labels `local` (1-based) of slab `index`; -1 for 0."""
         local = np.asarray(local, np.int64)
