@@ -342,8 +342,16 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
         ``{"+z": share, ...}``; a surface whose outward normal points down at an angle ``a``
         from straight down makes an angle ``a`` with the plate and needs support when ``a < limit``.
     """
-    f = np.asarray(field, np.float32) - np.float32(level)
-    h = float(grid.spacing)
+    w, n = _surface_elements(np.asarray(field, np.float32) - np.float32(level), float(grid.spacing))
+    return _overhang_sums(w, n, limit_deg)
+
+
+def _surface_elements(f: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`overhang_shares`'s surface elements of ``f[1:-1, 1:-1, 1:-1]``: weights and unit normals.
+
+    Every value is elementwise (central differences inside), so blocks of planes with one
+    plane of halo on either side give the whole array's elements, in the same order.
+    """
     gx, gy, gz = np.gradient(f, h)
     core = (slice(1, -1),) * 3
     f, gx, gy, gz = f[core], gx[core], gy[core], gz[core]
@@ -355,6 +363,11 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
     # t is a distance (|∇t| = 1 at the surface), so a delta in t integrates to the area
     w = (1.0 + np.cos(np.pi * t[near] / eps)) / (2.0 * eps)
     n = np.stack([gx[near], gy[near], gz[near]], 1) / norm[near][:, None]
+    return w, n
+
+
+def _overhang_sums(w: np.ndarray, n: np.ndarray, limit_deg: float) -> dict:
+    """The shares of :func:`overhang_shares` from its surface elements (all of them, in C order)."""
     cos_limit = math.cos(math.radians(limit_deg))
     out = {}
     for name, axis in AXES.items():
@@ -670,8 +683,9 @@ def _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pore
 # ----------------------------------------------------------------------------- in slabs
 
 #: bytes per voxel of a slab (its halo included) while :func:`certificate_by_slabs` works on it:
-#: the largest pass is the flood (squared distances, radii, its queue) or the local thickness
-SLAB_CERTIFICATE_BYTES_PER_VOXEL = 28
+#: the local thickness, the flood (squared distances, radii, its queue) and the reads beside them; measured
+#: at 33-40 bytes on the default 10 mm cube in slabs of 60 and 120 planes
+SLAB_CERTIFICATE_BYTES_PER_VOXEL = 40
 
 
 class _IntPlanes:
@@ -893,7 +907,6 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     -------
     Certificate
     """
-    from .grid import Grid
     from .morphometry import ThicknessTally, local_thickness
     from .tiles import SlabComponents
 
@@ -916,7 +929,9 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     maps = [np.zeros([n for a2, n in enumerate(shape) if a2 != a], np.uint8) for a, _ in planes]
 
     # thinnest solid: local thickness, the halo widened until the thickest owned voxel is within it
-    halo = max(1, int(halo) if halo else math.ceil(2 * profile.min_strut_mm / h) + 2)
+    # a start about the thinnest strut the profile allows: struts a few times thicker widen it once,
+    # and a narrow start keeps thin slabs from reading many times their planes
+    halo = max(1, int(halo) if halo else math.ceil(profile.min_strut_mm / h) + 1)
     while True:
         tally = ThicknessTally(h)
         n_solid = n_region = n_void = 0
@@ -1004,8 +1019,16 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
                     view = m if a == 0 else m[x0:x0 + sec.shape[0]]
                     view[(sec > 0) & (solid_parts.roots_of(index, sec) != solid_parts.main)] = SECTION_FLOATING
     del solid_sections
-    shares = overhang_shares(coarse, Grid(tuple(float(o) for o in origin), h * f, coarse.shape), profile.overhang_deg)
+    # the surface elements by blocks of coarse planes, each with a plane of halo: the whole
+    # coarse grid's elements in the same order, without its gradients held at once
+    cx = coarse.shape[0]
+    step = max(1, max_voxels // (coarse.shape[1] * coarse.shape[2]) - 2)
+    elements = [_surface_elements(coarse[c0 - 1:min(c0 + step, cx - 1) + 1], h * f) for c0 in range(1, cx - 1, step)]
     del coarse
+    shares = _overhang_sums(np.concatenate([w for w, _ in elements] or [np.zeros(0, np.float32)]),
+                            np.concatenate([n for _, n in elements] or [np.zeros((0, 3), np.float32)]),
+                            profile.overhang_deg)
+    del elements
     best_axis = min(shares, key=lambda k: (shares[k], k))
     clock.mark("pieces and overhangs")
 
