@@ -18,6 +18,8 @@ Checks a scaffold's voxels against a printer profile (``printers.json``, or inli
   as an offset of the solid.
 
 Every check gives pass, warn or fail; the certificate's verdict is the worst of them.
+:func:`certificate` measures a whole grid; :func:`certificate_by_slabs` the same figures
+from fields read plane range by plane range (a tiled run's files), in bounded memory.
 """
 from __future__ import annotations
 
@@ -815,7 +817,7 @@ def _flood_by_slabs(d2s: _IntPlanes, grid, max_voxels: int, folder) -> tuple[_In
     return r2s, runs
 
 
-def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameters, visit=None):
+def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameters, visit=None, progress=None):
     """Pore throats and the void that spheres of each of `diameters` reach, slab by slab.
 
     The pore centres' 3x3x3 maximum reads one plane of halo; :func:`reached_by`'s distance
@@ -834,7 +836,8 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
     halo = max([1] + [math.ceil(r) for r in rhos if r > 0])
     pores = ThroatTally(h)
     counts = [0] * len(rhos)
-    for x0, x1 in _spans(nx, plane, max_voxels, halo):
+    spans = _spans(nx, plane, max_voxels, halo)
+    for done, (x0, x1) in enumerate(spans, 1):
         lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
         d2w, r2w = d2s.read(lo, hi), r2s.read(lo, hi)
         own = slice(x0 - lo, x1 - lo)
@@ -863,6 +866,8 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
             reached.append(inside)
         if visit is not None:
             visit(x0, void, r2, reached)
+        if progress is not None:
+            progress(done, len(spans))
     return pores, counts
 
 
@@ -872,7 +877,11 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
 
     Gives the certificate that ``certificate(s < 0, voxel, profile, field=s, region=p < 0,
     origin=origin)`` gives on the whole fields ``s`` and ``p``, every figure and both section maps
-    identical, holding about `max_voxels` voxels (halo included) of each working array:
+    identical, holding about `max_voxels` voxels (halo included) of each working array, beside
+    the overhang check's coarse grid (at most :data:`OVERHANG_CELLS` a side, float32) and its
+    near-surface elements. A slab whose distances need a wider halo than `max_voxels` leaves
+    room for takes it (exactness first); `max_voxels` below one plane and its halo reads one
+    plane and its halo:
 
     - thinnest solid: local thickness with a halo widened until it is exact (as
       :func:`~.morphometry.morphometry_by_slabs`), counted per sphere radius;
@@ -923,7 +932,15 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     nx, ny, nz = shape
     plane = ny * nz
     max_voxels = max(1, int(max_voxels))
-    report = progress or (lambda done, total: None)
+
+    def stage(step: int):
+        # one bar for the whole certificate: five passes (thickness, distances, pores; distances
+        # and pores as built) of 1000 steps each; the flood's sweeps count with the pores
+        def report(done, total):
+            if progress is not None:
+                progress(min(4999, 1000 * step + (1000 * done) // max(total, 1)), 5000)
+        return report
+
     clock = _Clock()
     planes = _section_planes(shape, profile)
     maps = [np.zeros([n for a2, n in enumerate(shape) if a2 != a], np.uint8) for a, _ in planes]
@@ -952,7 +969,7 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
             _paint(maps, planes, x0, solid, SECTION_SOLID)
             _paint(maps, planes, x0, thick < profile.min_strut_mm, SECTION_THIN, only=SECTION_SOLID)
             del thick
-            report(done, len(spans))
+            stage(0)(done, len(spans))
         if tally.max_voxels <= halo or len(spans) == 1:
             break
         halo = max(2 * halo, int(math.ceil(tally.max_voxels)) + 2)
@@ -968,7 +985,7 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     def solid_of(lo, hi):
         return source.read(lo, hi) < 0
 
-    d2s, halo = _distances_by_slabs(solid_of, grid, max_voxels, halo, folder, report)
+    d2s, halo = _distances_by_slabs(solid_of, grid, max_voxels, halo, folder, stage(1))
     r2s = None
     try:
         r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
@@ -998,7 +1015,7 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
                 coarse[first // f:first // f + len(range(first, x1, f))] = field[first - x0::f, ::f, ::f]
             tallies["void_b"] += int(np.count_nonzero((patient.read(x0, x1) < 0) & ~(field < profile.deviation_mm)))
 
-        pores, reached = _pores_by_slabs(d2s, r2s, void_of, grid, h, max_voxels, diameters, visit)
+        pores, reached = _pores_by_slabs(d2s, r2s, void_of, grid, h, max_voxels, diameters, visit, stage(2))
     finally:
         d2s.close()
         if r2s is not None:
@@ -1043,12 +1060,13 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
         def void_b_of(x0, x1):
             return (patient.read(x0, x1) < 0) & ~grown_of(x0, x1)
 
-        d2s, _ = _distances_by_slabs(grown_of, grid, max_voxels, halo, folder, report)
+        d2s, _ = _distances_by_slabs(grown_of, grid, max_voxels, halo, folder, stage(3))
         r2s = None
         try:
             r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
             pores_b, reached_b = _pores_by_slabs(d2s, r2s, void_b_of, grid, h, max_voxels,
-                                                 [profile.drain_mm] if profile.drain_mm > 0 else [])
+                                                 [profile.drain_mm] if profile.drain_mm > 0 else [],
+                                                 progress=stage(4))
         finally:
             d2s.close()
             if r2s is not None:
@@ -1057,6 +1075,8 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
         if profile.drain_mm > 0:
             as_built["void_reached_by_drain_share"] = float(reached_b[0] / n_void_b)
     clock.mark("as built")
+    if progress is not None:
+        progress(5000, 5000)
     return _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells,
                      (sealed_n, tallies["sealed"]), (floating_n, floating_voxels), shares, best_axis, as_built,
                      clock, {(a, i): m for m, (a, i) in zip(maps, planes)})
