@@ -462,13 +462,10 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             edges = voronoi_edges(cells)
         # planned once the edges are held, so that the memory they take is not also given to the slabs
         slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + (GRADE_RESERVE if graded else 0))
-    if slab_voxels is not None and printer is not None:
-        raise ScaffoldError("the print certificate (--printer) is measured on the whole grid, which does not fit "
-                            "in --max-memory here; use a larger --voxel or raise --max-memory")
     if slab_voxels is not None:
         return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
                                window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
-                               seed_solve=tried or None,
+                               seed_solve=tried or None, printer=printer,
                                grade=(gfield, density, empty_power_cells if weighted else None) if graded else None)
     with prog.stage("patient"):
         s_p = eval_patient(fine_patient, grid)
@@ -1110,12 +1107,26 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
     return found
 
 
+def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
+    """The print certificate of a tiled run, slab by slab (:func:`~.printability.certificate_by_slabs`):
+    the whole grid's figures and section maps, in slabs that fit what --max-memory leaves."""
+    from .memory import release
+    from .printability import SLAB_CERTIFICATE_BYTES_PER_VOXEL, certificate_by_slabs
+
+    # slabs of the size asked for (tiled=<voxels>), else as large as the budget allows
+    max_voxels = run.forced_voxels or max(1, max(0, run.max_memory - release()) // SLAB_CERTIFICATE_BYTES_PER_VOXEL)
+    with prog.stage("print check", printer.name):
+        return certificate_by_slabs(tf.field, tf.patient, grid.spacing, printer, max_voxels=max_voxels,
+                                    origin=grid.origin, progress=prog.bar("print check"))
+
+
 def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
                     wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
-                    morphometry: bool = True, seed_solve=None, grade=None) -> Result:
+                    morphometry: bool = True, seed_solve=None, grade=None, printer=None) -> Result:
     """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs.
 
-    `grade` is a graded run's ``(GradeField, SeedDensity, empty power cells or None)``.
+    `grade` is a graded run's ``(GradeField, SeedDensity, empty power cells or None)``; `printer`
+    a PrinterProfile to certify what was built for (slab by slab, the whole grid's certificate).
     """
     from .memory import peak_memory
     from .patient import SHAPES
@@ -1216,6 +1227,8 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
                 # as the whole-grid morphometry takes them: the mesh's area over its volume
                 report["bs_bv_per_mm"] = (report["surface_area_mm2"] / report["mesh_volume_mm3"]
                                           if report["mesh_volume_mm3"] > 0 else None)
+        if printer is not None:
+            report["print_check"] = _slab_certificate(tf, grid, printer, run, prog)
         if ext in FIELD_FORMATS:
             from .export import write_volume
             from .memory import process_memory

@@ -18,6 +18,8 @@ Checks a scaffold's voxels against a printer profile (``printers.json``, or inli
   as an offset of the solid.
 
 Every check gives pass, warn or fail; the certificate's verdict is the worst of them.
+:func:`certificate` measures a whole grid; :func:`certificate_by_slabs` the same figures
+from fields read plane range by plane range (a tiled run's files), in bounded memory.
 """
 from __future__ import annotations
 
@@ -118,22 +120,27 @@ def printer_profile(text: str) -> PrinterProfile:
 
 
 @functools.lru_cache(maxsize=None)
-def _flood_kernel():
-    """The compiled max-min flood (numba), built on first use and cached on disk."""
+def _flood_kernels():
+    """The compiled max-min floods (numba), built on first use and cached on disk:
+    ``flood(d2, r2)`` from all six faces, ``flood_faces(d2, r2, low_x, high_x)`` from the
+    y and z faces and only the x faces asked for (a slab's x faces inside the grid are not
+    the grid's: their planes come from the neighbours, as part of the marker ``r2``)."""
     import numba as nb
 
     @nb.njit(cache=True, boundscheck=False)
-    def flood(d2, r2):  # pragma: no cover - compiled
-        # grey reconstruction by dilation of r2 (d2 on the grid's faces) under d2, by Vincent's
-        # hybrid method: a raster scan and an anti-raster scan carry most values, then a FIFO
-        # carries the rest (paths that turn back against both scans). 5x faster than a bucket
-        # queue on a scaffold: the scans read memory in order.
+    def flood_faces(d2, r2, low_x, high_x):  # pragma: no cover - compiled
+        # grey reconstruction by dilation of the marker r2 (raised to d2 on the seeded faces)
+        # under d2, by Vincent's hybrid method: a raster scan and an anti-raster scan carry most
+        # values, then a FIFO carries the rest (paths that turn back against both scans). 5x
+        # faster than a bucket queue on a scaffold: the scans read memory in order. The marker
+        # must lie at or under d2; any such marker works (the scans start from its values).
         nx, ny, nz = d2.shape
         n = nx * ny * nz
         for i in range(nx):
             for j in range(ny):
                 for k in range(nz):
-                    if i == 0 or j == 0 or k == 0 or i == nx - 1 or j == ny - 1 or k == nz - 1:
+                    if ((i == 0 and low_x) or (i == nx - 1 and high_x)
+                            or j == 0 or k == 0 or j == ny - 1 or k == nz - 1):
                         r2[i, j, k] = d2[i, j, k]
         for i in range(nx):
             for j in range(ny):
@@ -216,7 +223,16 @@ def _flood_kernel():
                         return False
         return True
 
-    return flood
+    @nb.njit(cache=True, boundscheck=False)
+    def flood(d2, r2):  # pragma: no cover - compiled
+        return flood_faces(d2, r2, True, True)
+
+    return flood, flood_faces
+
+
+def _flood_kernel():
+    """The compiled max-min flood from the grid's six faces (:func:`_flood_kernels`)."""
+    return _flood_kernels()[0]
 
 
 def throat_radius(solid, voxel: float):
@@ -278,10 +294,16 @@ def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]
     can travel to it from outside, to the voxels' boundaries); its weight is that inscribed sphere's volume (``d2^1.5``), so that
     the crevices between struts, which are local maxima too, count for little.
     """
+    centres = _pore_centres(d2, void_in)
+    return voxel * (2.0 * np.sqrt(r2[centres].astype(np.float64)) + 1.0), d2[centres].astype(np.float64) ** 1.5
+
+
+def _pore_centres(d2, void_in) -> np.ndarray:
+    """Pore centres: void voxels of `void_in` where `d2` is a local maximum (3x3x3, the grid's
+    faces repeated outward)."""
     from scipy import ndimage
 
-    centres = (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
-    return voxel * (2.0 * np.sqrt(r2[centres].astype(np.float64)) + 1.0), d2[centres].astype(np.float64) ** 1.5
+    return (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
 
 
 def weighted_quantile(values, weights, q: float) -> float:
@@ -322,8 +344,16 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
         ``{"+z": share, ...}``; a surface whose outward normal points down at an angle ``a``
         from straight down makes an angle ``a`` with the plate and needs support when ``a < limit``.
     """
-    f = np.asarray(field, np.float32) - np.float32(level)
-    h = float(grid.spacing)
+    w, n = _surface_elements(np.asarray(field, np.float32) - np.float32(level), float(grid.spacing))
+    return _overhang_sums(w, n, limit_deg)
+
+
+def _surface_elements(f: np.ndarray, h: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`overhang_shares`'s surface elements of ``f[1:-1, 1:-1, 1:-1]``: weights and unit normals.
+
+    Every value is elementwise (central differences inside), so blocks of planes with one
+    plane of halo on either side give the whole array's elements, in the same order.
+    """
     gx, gy, gz = np.gradient(f, h)
     core = (slice(1, -1),) * 3
     f, gx, gy, gz = f[core], gx[core], gy[core], gz[core]
@@ -335,6 +365,11 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
     # t is a distance (|∇t| = 1 at the surface), so a delta in t integrates to the area
     w = (1.0 + np.cos(np.pi * t[near] / eps)) / (2.0 * eps)
     n = np.stack([gx[near], gy[near], gz[near]], 1) / norm[near][:, None]
+    return w, n
+
+
+def _overhang_sums(w: np.ndarray, n: np.ndarray, limit_deg: float) -> dict:
+    """The shares of :func:`overhang_shares` from its surface elements (all of them, in C order)."""
     cos_limit = math.cos(math.radians(limit_deg))
     out = {}
     for name, axis in AXES.items():
@@ -342,6 +377,91 @@ def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dic
         total = w[down > 1e-6].sum()
         out[name] = float(w[down > cos_limit].sum() / total) if total > 0 else 0.0
     return out
+
+
+class ThroatTally:
+    """Pores counted by the squared throat radius and the squared inscribed radius at their centres.
+
+    A pore's throat is ``h (2 sqrt(r2) + 1)`` and its weight ``d2^1.5``, both functions of
+    integers (voxels²), so integer counts per ``(r2, d2)`` hold everything the weighted
+    quantiles read: tallies of slabs add up to the whole grid's exactly, and the quantiles
+    are summed in one order (by throat, then weight) whatever the slabs.
+
+    Parameters
+    ----------
+    voxel : float, mm
+    """
+
+    def __init__(self, voxel: float):
+        self.voxel = float(voxel)
+        self.keys = np.zeros(0, np.int64)    # r2 << 32 | d2, sorted
+        self.counts = np.zeros(0, np.int64)
+
+    def add(self, r2, d2) -> "ThroatTally":
+        """Count pores with squared throat radii `r2` and squared inscribed radii `d2` (voxels², ints)."""
+        r2 = np.asarray(r2, np.int64).ravel()
+        if r2.size:
+            keys = np.concatenate([self.keys, (r2 << 32) | np.asarray(d2, np.int64).ravel()])
+            counts = np.concatenate([self.counts, np.ones(r2.size, np.int64)])
+            self.keys, inverse = np.unique(keys, return_inverse=True)
+            self.counts = np.zeros(len(self.keys), np.int64)
+            np.add.at(self.counts, inverse.ravel(), counts)
+        return self
+
+    @property
+    def pores(self) -> int:
+        return int(self.counts.sum())
+
+    def _table(self):
+        throat = self.voxel * (2.0 * np.sqrt((self.keys >> 32).astype(np.float64)) + 1.0)
+        weight = self.counts * (self.keys & 0xFFFFFFFF).astype(np.float64) ** 1.5
+        return throat, weight
+
+    def minimum(self) -> float | None:
+        """The narrowest pore throat, mm (None without pores)."""
+        return float(self._table()[0][0]) if self.keys.size else None
+
+    def quantile(self, q: float) -> float | None:
+        """The weighted `q` quantile of the throats, mm, as :func:`weighted_quantile` (None without pores)."""
+        if not self.keys.size:
+            return None
+        throat, weight = self._table()
+        cum = np.cumsum(weight)
+        return float(throat[min(len(cum) - 1, int(np.searchsorted(cum, q * cum[-1])))])
+
+
+def _thinnest(tally, min_strut: float) -> tuple[dict, float]:
+    """Minimum and 1st percentile of the certificate's thickness map, and the share below `min_strut`,
+    from a :class:`~.morphometry.ThicknessTally` of :func:`~.morphometry.local_thickness`'s map.
+
+    The map's values are float32 ``2 h sqrt(v) + h`` (the voxel added in float32, as the
+    certificate does), so the order statistics come from the counts per ``v``; the percentile
+    interpolates as ``np.percentile`` does (linear, in float32).
+    """
+    v = np.nonzero(tally.counts)[0]
+    counts = tally.counts[v]
+    h = tally.voxel
+    values = np.float32(2.0 * h * np.sqrt(v.astype(np.float64))) + np.float32(h)
+    n = int(counts.sum())
+    cum = np.cumsum(counts)
+
+    def order(k: int):
+        return values[int(np.searchsorted(cum, k, side="right"))]
+
+    q = np.float64(1) / 100
+    at = n * q + (1 + q * (1 - 1 - 1)) - 1  # numpy's virtual index for the linear method
+    if at >= n - 1:
+        p1 = order(n - 1)
+    elif at < 0:
+        p1 = order(0)
+    else:
+        lo = math.floor(at)
+        g = at - lo
+        a, b = order(lo), order(lo + 1)
+        d = np.float32(b - a)
+        p1 = np.float32(b - d * np.float32(1 - g)) if g >= 0.5 else np.float32(a + d * np.float32(g))
+    below = int(counts[values < min_strut].sum()) / n
+    return {"min": float(values[0]), "p1": float(p1)}, below
 
 
 #: the labels of the certificate's section maps
@@ -419,7 +539,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     from scipy import ndimage
 
     from .grid import Grid
-    from .morphometry import _check_volume, local_thickness
+    from .morphometry import ThicknessTally, _check_volume, local_thickness
 
     solid, h, region = _check_volume(solid, voxel, region)
     if not solid.any():
@@ -437,23 +557,24 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     clock = _Clock()
     # sections through the middle, across (index 0) and along (index 1) the build axis: the
     # report's maps of where each problem lies
-    build = "xyz".index(profile.build_axis[1])
-    planes = [(build, solid.shape[build] // 2), ((build + 1) % 3, solid.shape[(build + 1) % 3] // 2)]
+    planes = _section_planes(solid.shape, profile)
     maps = [np.where(np.take(solid, i, axis=a), SECTION_SOLID, SECTION_VOID).astype(np.uint8) for a, i in planes]
 
     thick = local_thickness(solid, h)
+    # counted per sphere radius, as certificate_by_slabs counts its slabs: the same figures by construction
+    thinnest, below = _thinnest(ThicknessTally(h).add(thick, solid), profile.min_strut_mm)
     thick[solid] += np.float32(h)
     for m, (a, i) in zip(maps, planes):
         m[(np.take(thick, i, axis=a) < profile.min_strut_mm) & (m == SECTION_SOLID)] = SECTION_THIN
-    thick = thick[solid]
-    thinnest = {"min": float(thick.min()), "p1": float(np.percentile(thick, 1))}
-    below = float(np.mean(thick < profile.min_strut_mm))
     del thick
 
     clock.mark("thickness")
     d2, r2 = throat_radius(solid, h)
-    throats, weights = pore_throats(d2, r2, void_in, h)
-    throat = weighted_quantile(throats, weights, 1 - THROAT_PORE_SHARE) if throats.size else 0.0
+    pores = ThroatTally(h)
+    centres = _pore_centres(d2, void_in)
+    pores.add(r2[centres], d2[centres])
+    del centres
+    throat = pores.quantile(1 - THROAT_PORE_SHARE) if pores.pores else 0.0
     n_void = np.count_nonzero(void_in)
     drain = None
     if profile.drain_mm > 0:
@@ -507,13 +628,22 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
                 "throat_mm": 0.0, "void_reached_by_drain_share": None}
     if void_b.any():
         d2b, r2b = throat_radius(grown, h)
-        tb, wb = pore_throats(d2b, r2b, void_b, h)
-        as_built["throat_mm"] = weighted_quantile(tb, wb, 1 - THROAT_PORE_SHARE) if tb.size else 0.0
+        centres = _pore_centres(d2b, void_b)
+        tb = ThroatTally(h).add(r2b[centres], d2b[centres])
+        as_built["throat_mm"] = tb.quantile(1 - THROAT_PORE_SHARE) if tb.pores else 0.0
         if profile.drain_mm > 0:
             reached = reached_by(r2b, profile.drain_mm, h) & void_b
             as_built["void_reached_by_drain_share"] = float(np.count_nonzero(reached) / np.count_nonzero(void_b))
 
     clock.mark("as built")
+    return _assemble(profile, h, solid.shape, n_region, int(n_void), thinnest, below, throat, pores, drain, cells,
+                     (sealed_n, int(sealed_sizes.sum())), (int(len(floating)), int(floating.sum())), shares,
+                     best_axis, as_built, clock, {(a, i): m for m, (a, i) in zip(maps, planes)})
+
+
+def _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells, sealed, floating,
+              shares, best_axis, as_built, clock, sections) -> Certificate:
+    """The certificate's verdicts and keys from its measures (`sealed`, `floating`: pieces and voxels)."""
     limit_iso = 1.0 - math.cos(math.radians(90.0 - profile.overhang_deg))
     verdict = {
         "thinnest": "fail" if below > 0.05 else "warn" if below > 0.01 or thinnest["p1"] < profile.min_strut_mm
@@ -521,8 +651,8 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "throat": "fail" if throat < profile.min_throat_mm - h else "warn" if throat < profile.min_throat_mm else "pass",
         "drain": _verdict(drain, 0.99, 0.9, higher_is_worse=False),
         "cell_infiltration": _verdict(cells, 0.99, 0.9, higher_is_worse=False),
-        "sealed_voids": "fail" if sealed_n else "pass",
-        "floating_solid": "fail" if len(floating) else "pass",
+        "sealed_voids": "fail" if sealed[0] else "pass",
+        "floating_solid": "fail" if floating[0] else "pass",
         "overhang": _verdict(shares[profile.build_axis], 0.05, max(0.05, limit_iso)),
         "as_built": _verdict(as_built["void_reached_by_drain_share"], 0.99, 0.9, higher_is_worse=False),
     }
@@ -531,17 +661,16 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     return Certificate({
         "printer": asdict(profile),
         "voxel_mm": h,
-        "grid_shape": list(solid.shape),
-        "porosity": float(np.count_nonzero(void_in)) / n_region,
+        "grid_shape": [int(n) for n in shape],
+        "porosity": float(n_void) / n_region,
         "thinnest_mm": thinnest,
         "below_min_strut_share": below,
         "throat_mm": throat,
-        "pore_throats_mm": {"pores": int(throats.size), "min": float(throats.min()) if throats.size else None,
-                            "median": weighted_quantile(throats, weights, 0.5) if throats.size else None},
+        "pore_throats_mm": {"pores": pores.pores, "min": pores.minimum(), "median": pores.quantile(0.5)},
         "void_reached_by_drain_share": drain,
         "void_reached_by_100um_share": cells,
-        "sealed_voids": {"count": sealed_n, "volume_mm3": float(sealed_sizes.sum()) * v3},
-        "floating_solid": {"count": int(len(floating)), "volume_mm3": float(floating.sum()) * v3},
+        "sealed_voids": {"count": int(sealed[0]), "volume_mm3": float(sealed[1]) * v3},
+        "floating_solid": {"count": int(floating[0]), "volume_mm3": float(floating[1]) * v3},
         "overhang_share": shares[profile.build_axis],
         "overhang_share_by_axis": shares,
         "build_axis": profile.build_axis,
@@ -549,5 +678,412 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         "as_built": as_built,
         "verdict": verdict,
         "seconds": clock.seconds,
-    }, sections={(a, i): m for m, (a, i) in zip(maps, planes)})
+    }, sections=sections)
 
+
+
+# ----------------------------------------------------------------------------- in slabs
+
+#: bytes per voxel of a slab (its halo included) while :func:`certificate_by_slabs` works on it:
+#: the local thickness, the flood (squared distances, radii, its queue) and the reads beside them; measured
+#: at 33-40 bytes on the default 10 mm cube in slabs of 60 and 120 planes
+SLAB_CERTIFICATE_BYTES_PER_VOXEL = 40
+
+
+class _IntPlanes:
+    """int32 planes over a grid on disk: a :class:`~.tiles.FieldFile` holding their bits
+    (written and read as float32 without arithmetic, so every bit comes back)."""
+
+    def __init__(self, grid, folder=None):
+        from .tiles import FieldFile
+
+        self._file = FieldFile(grid, folder)
+
+    def write(self, x0: int, planes: np.ndarray) -> None:
+        self._file.write(x0, np.ascontiguousarray(planes, np.int32).view(np.float32))
+
+    def read(self, x0: int, x1: int) -> np.ndarray:
+        return self._file.read(x0, x1).view(np.int32)
+
+    def close(self) -> None:
+        self._file.close()
+
+
+def _section_planes(shape, profile: PrinterProfile) -> list[tuple[int, int]]:
+    # through the middle, across (first) and along (second) the build axis
+    build = "xyz".index(profile.build_axis[1])
+    return [(build, int(shape[build]) // 2), ((build + 1) % 3, int(shape[(build + 1) % 3]) // 2)]
+
+
+def _paint(maps, planes, x0: int, mask: np.ndarray, label: int, only: int | None = None) -> None:
+    """Label the voxels of `mask` (planes from `x0` of the grid) on the section maps they cross."""
+    x1 = x0 + mask.shape[0]
+    for m, (a, i) in zip(maps, planes):
+        if a == 0:
+            if not x0 <= i < x1:
+                continue
+            view, sec = m, mask[i - x0]
+        else:
+            view, sec = m[x0:x1], np.take(mask, i, axis=a)
+        view[sec & (view == only) if only is not None else sec] = label
+
+
+def _spans(nx: int, plane: int, max_voxels: int, halo: int) -> list[tuple[int, int]]:
+    # as many owned planes as the budget leaves beside the halo; at least one
+    owned = max(1, int(max_voxels) // plane - 2 * halo)
+    return [(x0, min(x0 + owned, nx)) for x0 in range(0, nx, owned)]
+
+
+def _distances_by_slabs(solid_of, grid, max_voxels: int, halo: int, folder, progress=None) -> tuple[_IntPlanes, int]:
+    """The void's squared distance (:func:`throat_radius`'s ``d2``), exact, written plane by plane.
+
+    Each slab's distance transform reads `halo` planes on either side, the planes beyond
+    standing for void as the grid's outside does: the solid it misses is at least as far as
+    the first unread plane, so an owned voxel whose distance is within that is exact. A slab
+    where some voxel's is not is taken again with a halo as wide as its widest distance (more
+    solid only brings distances down, so that halo suffices), and the slabs after it keep the
+    wider halo. Returns the planes and the halo used last.
+    """
+    from .morphometry import _squared_edt
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    store = _IntPlanes(grid, folder)
+    try:
+        x0 = 0
+        while x0 < nx:
+            x1 = min(nx, x0 + max(1, int(max_voxels) // plane - 2 * halo))
+            lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+            d2 = _squared_edt(~solid_of(lo, hi))[x0 - lo:x1 - lo]
+            widest = d2.reshape(x1 - x0, -1).max(axis=1).astype(np.int64)
+            xs = np.arange(x0, x1, dtype=np.int64)
+            exact = (lo == 0 or bool(np.all(widest <= (xs - lo + 1) ** 2))) and \
+                    (hi == nx or bool(np.all(widest <= (hi - xs) ** 2)))
+            if not exact:
+                halo = max(halo + 1, math.isqrt(int(widest.max()) - 1) + 1)
+                continue
+            store.write(x0, d2)
+            x0 = x1
+            if progress is not None:
+                progress(x0, nx)
+    except BaseException:
+        store.close()
+        raise
+    return store, halo
+
+
+def _flood_by_slabs(d2s: _IntPlanes, grid, max_voxels: int, folder) -> tuple[_IntPlanes, int]:
+    """:func:`throat_radius`'s ``r2`` over the whole grid, by slabs: returns the planes and the slab floods run.
+
+    The flood of a slab reads one plane of each neighbour as part of its marker and seeds the
+    grid's faces only. Values only rise, and each is the narrowest ``d2`` of a real path from
+    the grid's faces, so they never pass the whole grid's. A slab is flooded again while a
+    neighbour's plane beside it has changed since its last flood (forward then backward sweeps);
+    when none has, every pair of face neighbours (each within some slab with its halo) satisfies
+    ``r2(p) >= min(r2(q), d2(p))`` and the faces hold ``d2``: the least such field is the max-min
+    path value, the whole grid's ``r2``.
+    """
+    _, flood_faces = _flood_kernels()
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    spans = _spans(nx, plane, max_voxels, 1)
+    r2s = _IntPlanes(grid, folder)  # a new file reads as zeros
+    try:
+        dirty = [True] * len(spans)
+        runs = 0
+        while any(dirty):
+            for order in (range(len(spans)), range(len(spans) - 1, -1, -1)):
+                for s in order:
+                    if not dirty[s]:
+                        continue
+                    dirty[s] = False
+                    x0, x1 = spans[s]
+                    lo, hi = max(0, x0 - 1), min(nx, x1 + 1)
+                    d2 = d2s.read(lo, hi)
+                    r2 = r2s.read(lo, hi)
+                    own = slice(x0 - lo, x1 - lo)
+                    first, last = r2[own][0].copy(), r2[own][-1].copy()
+                    if not flood_faces(d2, r2, lo == 0, hi == nx):
+                        raise RuntimeError("the throat flood's queue overflowed")  # pragma: no cover
+                    runs += 1
+                    r2s.write(x0, r2[own])
+                    if s > 0 and not np.array_equal(r2[own][0], first):
+                        dirty[s - 1] = True
+                    if s + 1 < len(spans) and not np.array_equal(r2[own][-1], last):
+                        dirty[s + 1] = True
+    except BaseException:
+        r2s.close()
+        raise
+    return r2s, runs
+
+
+def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameters, visit=None, progress=None):
+    """Pore throats and the void that spheres of each of `diameters` reach, slab by slab.
+
+    The pore centres' 3x3x3 maximum reads one plane of halo; :func:`reached_by`'s distance
+    to the allowed centres matters only below ``rho``, so a halo of ``ceil(rho)`` planes
+    holds every centre that counts. `visit(x0, void, r2, reached)` sees each slab's owned
+    planes. Returns the :class:`ThroatTally` and, per diameter, the reached voxels of the void.
+    """
+    import edt
+    from scipy import ndimage
+
+    from .morphometry import _threads
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    rhos = [0.5 * (float(d) / h - 1.0) for d in diameters]
+    halo = max([1] + [math.ceil(r) for r in rhos if r > 0])
+    pores = ThroatTally(h)
+    counts = [0] * len(rhos)
+    spans = _spans(nx, plane, max_voxels, halo)
+    for done, (x0, x1) in enumerate(spans, 1):
+        lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+        d2w, r2w = d2s.read(lo, hi), r2s.read(lo, hi)
+        own = slice(x0 - lo, x1 - lo)
+        void = void_of(x0, x1)
+        # the maximum filter on the owned planes and one beside: at the grid's faces the
+        # window ends there too, and "nearest" repeats the same plane as on the whole grid
+        a, b = max(x0 - 1, lo) - lo, min(x1 + 1, hi) - lo
+        peak = ndimage.maximum_filter(d2w[a:b], size=3, mode="nearest")[x0 - lo - a:x1 - lo - a]
+        d2, r2 = d2w[own], r2w[own]
+        centres = (d2 > 0) & void & (peak == d2)
+        del peak
+        pores.add(r2[centres], d2[centres])
+        reached = []
+        for t, rho in enumerate(rhos):
+            inside = r2 > 0
+            if rho > 0:
+                allowed = r2w >= rho * rho
+                if allowed.any():
+                    far2 = edt.edtsq(np.ascontiguousarray(~allowed, dtype=np.uint8), black_border=False,
+                                     parallel=_threads())[own]
+                    inside = inside & (far2 < rho * rho)
+                    del far2
+                else:
+                    inside = np.zeros(r2.shape, bool)
+            counts[t] += int(np.count_nonzero(inside & void))
+            reached.append(inside)
+        if visit is not None:
+            visit(x0, void, r2, reached)
+        if progress is not None:
+            progress(done, len(spans))
+    return pores, counts
+
+
+def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile, *, max_voxels: int,
+                         origin=(0.0, 0.0, 0.0), halo: int | None = None, folder=None, progress=None) -> Certificate:
+    """:func:`certificate` of the solid ``source < 0`` within the region ``patient < 0``, read slab by slab.
+
+    Gives the certificate that ``certificate(s < 0, voxel, profile, field=s, region=p < 0,
+    origin=origin)`` gives on the whole fields ``s`` and ``p``, every figure and both section maps
+    identical, holding about `max_voxels` voxels (halo included) of each working array, beside
+    the overhang check's coarse grid (at most :data:`OVERHANG_CELLS` a side, float32) and its
+    near-surface elements. A slab whose distances need a wider halo than `max_voxels` leaves
+    room for takes it (exactness first); `max_voxels` below one plane and its halo reads one
+    plane and its halo:
+
+    - thinnest solid: local thickness with a halo widened until it is exact (as
+      :func:`~.morphometry.morphometry_by_slabs`), counted per sphere radius;
+    - throats: the void's squared distance, exact by halo widening, and the max-min flood,
+      both kept on disk (int32 planes in `folder`, removed at the end); the flood is iterated
+      over the slabs to its fixpoint, the whole grid's (:func:`_flood_by_slabs`); pores counted
+      per integer radii (:class:`ThroatTally`);
+    - reached void: the allowed centres with a halo of the sphere's radius;
+    - sealed voids and floating solid: pieces joined across slab faces (:class:`~.tiles.SlabComponents`);
+    - overhangs: the subsampled field assembled from its planes; as built: the same passes on
+      ``source < deviation``.
+
+    Parameters
+    ----------
+    source, patient : objects with ``read(x0, x1)`` giving planes ``(x1 - x0, ny, nz)`` and ``grid``
+        The scaffold's and the patient's signed distances, mm (a FieldFile or ArraySlabs).
+    voxel : float, mm
+    profile : PrinterProfile
+    max_voxels : int
+        Voxels a slab may read, its halo included (a slab of one plane and its halo when
+        even that is more).
+    origin : 3 floats, mm
+    halo : int, optional
+        Planes of halo the thickness and the distances start with (e.g. from the cells' size);
+        widened as needed, so the figures do not depend on it.
+    folder : str or Path, optional
+        Where the distances and radii are kept (the system's temporary folder by default).
+    progress : callable(done, total), optional
+        Called after each slab of each pass.
+
+    Returns
+    -------
+    Certificate
+    """
+    from .morphometry import ThicknessTally, local_thickness
+    from .tiles import SlabComponents
+
+    try:
+        h = float(voxel)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}") from None
+    if not (math.isfinite(h) and h > 0):
+        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}")
+    grid = source.grid
+    shape = tuple(int(n) for n in grid.shape)
+    if tuple(int(n) for n in patient.grid.shape) != shape:
+        raise ScaffoldError(f"the region's shape {tuple(patient.grid.shape)} differs from the solid's {shape}")
+    nx, ny, nz = shape
+    plane = ny * nz
+    max_voxels = max(1, int(max_voxels))
+
+    def stage(step: int):
+        # one bar for the whole certificate: five passes (thickness, distances, pores; distances
+        # and pores as built) of 1000 steps each; the flood's sweeps count with the pores
+        def report(done, total):
+            if progress is not None:
+                progress(min(4999, 1000 * step + (1000 * done) // max(total, 1)), 5000)
+        return report
+
+    clock = _Clock()
+    planes = _section_planes(shape, profile)
+    maps = [np.zeros([n for a2, n in enumerate(shape) if a2 != a], np.uint8) for a, _ in planes]
+
+    # thinnest solid: local thickness, the halo widened until the thickest owned voxel is within it
+    # a start about the thinnest strut the profile allows: struts a few times thicker widen it once,
+    # and a narrow start keeps thin slabs from reading many times their planes
+    halo = max(1, int(halo) if halo else math.ceil(profile.min_strut_mm / h) + 1)
+    while True:
+        tally = ThicknessTally(h)
+        n_solid = n_region = n_void = 0
+        spans = _spans(nx, plane, max_voxels, halo)
+        for done, (x0, x1) in enumerate(spans, 1):
+            lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+            solid_w = source.read(lo, hi) < 0
+            own = slice(x0 - lo, x1 - lo)
+            thick = local_thickness(solid_w, h)[own]
+            solid = solid_w[own]
+            del solid_w
+            region = patient.read(x0, x1) < 0
+            tally.add(thick, solid)
+            thick[solid] += np.float32(h)
+            n_solid += int(np.count_nonzero(solid))
+            n_region += int(np.count_nonzero(region))
+            n_void += int(np.count_nonzero(region & ~solid))
+            _paint(maps, planes, x0, solid, SECTION_SOLID)
+            _paint(maps, planes, x0, thick < profile.min_strut_mm, SECTION_THIN, only=SECTION_SOLID)
+            del thick
+            stage(0)(done, len(spans))
+        if tally.max_voxels <= halo or len(spans) == 1:
+            break
+        halo = max(2 * halo, int(math.ceil(tally.max_voxels)) + 2)
+        for m in maps:
+            m[...] = SECTION_VOID
+    if n_solid == 0:
+        raise ScaffoldError("the scaffold holds no solid voxel; nothing to certify")
+    if n_void == 0:
+        raise ScaffoldError("the scaffold holds no void voxel; a solid block has no pores to certify")
+    thinnest, below = _thinnest(tally, profile.min_strut_mm)
+    clock.mark("thickness")
+
+    def solid_of(lo, hi):
+        return source.read(lo, hi) < 0
+
+    d2s, halo = _distances_by_slabs(solid_of, grid, max_voxels, halo, folder, stage(1))
+    r2s = None
+    try:
+        r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
+        diameters = [INFILTRATION_MM] + ([profile.drain_mm] if profile.drain_mm > 0 else [])
+        sealed_parts, solid_parts = SlabComponents(), SlabComponents()
+        f = max(1, math.ceil(max(shape) / OVERHANG_CELLS))
+        coarse = np.empty(tuple(-(-n // f) for n in shape), np.float32)
+        solid_sections = []  # each slab's solid labels where it crosses the section planes
+        tallies = {"sealed": 0, "void_b": 0}
+
+        def void_of(x0, x1):
+            return (patient.read(x0, x1) < 0) & ~(source.read(x0, x1) < 0)
+
+        def visit(x0, void, r2, reached):
+            x1 = x0 + len(void)
+            field = source.read(x0, x1)
+            if profile.drain_mm > 0:
+                _paint(maps, planes, x0, ~reached[1] & void, SECTION_UNDRAINED)
+            sealed = void & (r2 == 0)
+            sealed_parts.add(sealed)
+            tallies["sealed"] += int(np.count_nonzero(sealed))
+            _paint(maps, planes, x0, sealed, SECTION_SEALED)
+            labels = solid_parts.add(field < 0)
+            solid_sections.append((x0, [_section_of(labels, a, i, x0) for a, i in planes]))
+            first = x0 + (-x0) % f
+            if first < x1:
+                coarse[first // f:first // f + len(range(first, x1, f))] = field[first - x0::f, ::f, ::f]
+            tallies["void_b"] += int(np.count_nonzero((patient.read(x0, x1) < 0) & ~(field < profile.deviation_mm)))
+
+        pores, reached = _pores_by_slabs(d2s, r2s, void_of, grid, h, max_voxels, diameters, visit, stage(2))
+    finally:
+        d2s.close()
+        if r2s is not None:
+            r2s.close()
+    throat = pores.quantile(1 - THROAT_PORE_SHARE) if pores.pores else 0.0
+    cells = float(reached[0] / n_void)
+    drain = float(reached[1] / n_void) if profile.drain_mm > 0 else None
+    clock.mark("throats")
+
+    sealed_parts.finish()
+    sealed_n = sealed_parts.piece_count
+    floating_n = solid_parts.finish()
+    floating_voxels = n_solid - int(solid_parts.sizes[solid_parts.main])
+    if floating_n:
+        for index, (x0, parts) in enumerate(solid_sections):
+            for m, (a, _), sec in zip(maps, planes, parts):
+                if sec is not None:
+                    view = m if a == 0 else m[x0:x0 + sec.shape[0]]
+                    view[(sec > 0) & (solid_parts.roots_of(index, sec) != solid_parts.main)] = SECTION_FLOATING
+    del solid_sections
+    # the surface elements by blocks of coarse planes, each with a plane of halo: the whole
+    # coarse grid's elements in the same order, without its gradients held at once
+    cx = coarse.shape[0]
+    step = max(1, max_voxels // (coarse.shape[1] * coarse.shape[2]) - 2)
+    elements = [_surface_elements(coarse[c0 - 1:min(c0 + step, cx - 1) + 1], h * f) for c0 in range(1, cx - 1, step)]
+    del coarse
+    shares = _overhang_sums(np.concatenate([w for w, _ in elements] or [np.zeros(0, np.float32)]),
+                            np.concatenate([n for _, n in elements] or [np.zeros((0, 3), np.float32)]),
+                            profile.overhang_deg)
+    del elements
+    best_axis = min(shares, key=lambda k: (shares[k], k))
+    clock.mark("pieces and overhangs")
+
+    # as built: the solid grown by the process's deviation (a signed distance offsets by less than a voxel)
+    n_void_b = tallies["void_b"]
+    as_built = {"deviation_mm": profile.deviation_mm, "porosity": float(n_void_b) / n_region,
+                "throat_mm": 0.0, "void_reached_by_drain_share": None}
+    if n_void_b:
+        def grown_of(lo, hi):
+            return source.read(lo, hi) < profile.deviation_mm
+
+        def void_b_of(x0, x1):
+            return (patient.read(x0, x1) < 0) & ~grown_of(x0, x1)
+
+        d2s, _ = _distances_by_slabs(grown_of, grid, max_voxels, halo, folder, stage(3))
+        r2s = None
+        try:
+            r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
+            pores_b, reached_b = _pores_by_slabs(d2s, r2s, void_b_of, grid, h, max_voxels,
+                                                 [profile.drain_mm] if profile.drain_mm > 0 else [],
+                                                 progress=stage(4))
+        finally:
+            d2s.close()
+            if r2s is not None:
+                r2s.close()
+        as_built["throat_mm"] = pores_b.quantile(1 - THROAT_PORE_SHARE) if pores_b.pores else 0.0
+        if profile.drain_mm > 0:
+            as_built["void_reached_by_drain_share"] = float(reached_b[0] / n_void_b)
+    clock.mark("as built")
+    if progress is not None:
+        progress(5000, 5000)
+    return _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells,
+                     (sealed_n, tallies["sealed"]), (floating_n, floating_voxels), shares, best_axis, as_built,
+                     clock, {(a, i): m for m, (a, i) in zip(maps, planes)})
+
+
+def _section_of(arr: np.ndarray, axis: int, index: int, x0: int):
+    """The part of the section plane ``(axis, index)`` held by `arr` (planes from `x0`), or None."""
+    if axis == 0:
+        return arr[index - x0] if x0 <= index < x0 + arr.shape[0] else None
+    return np.take(arr, index, axis=axis)

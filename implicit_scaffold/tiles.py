@@ -410,11 +410,20 @@ class SlabComponents:
         """After :meth:`finish`: the pieces (of any size) joined across the slabs."""
         return int(np.count_nonzero(self._piece_sizes > 0)) if len(self._parent) else 0
 
+    @property
+    def sizes(self) -> np.ndarray:
+        """After :meth:`finish`: voxels of each piece, by root (0 for the labels that are not roots)."""
+        return self._piece_sizes if len(self._parent) else np.zeros(0)
+
     def roots_of(self, index: int, local: np.ndarray) -> np.ndarray:
         """After :meth:`finish`: the pieces (roots) of labels `local` (1-based) of slab `index`; -1 for 0."""
         local = np.asarray(local, np.int64)
-        roots = self._roots[np.maximum(local - 1, 0) + self._offsets[index]] if len(self._parent) else local * 0
-        return np.where(local > 0, roots, -1)
+        out = np.full(local.shape, -1, np.int64)
+        # only the labels there are: a slab without any has no entry at its offset to read
+        some = local > 0
+        if some.any():
+            out[some] = self._roots[local[some] - 1 + self._offsets[index]]
+        return out
 
     def keep_largest_per(self, group: np.ndarray) -> None:
         """After :meth:`finish`: keep the largest piece of each group instead of the one main body.

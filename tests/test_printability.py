@@ -206,3 +206,110 @@ def test_check_bad_input_one_line_exit_2(tmp_path, capsys):
         assert _run(args, tmp_path) == 2
         err = capsys.readouterr().err
         assert err.count("\n") == 1 and "Traceback" not in err
+
+
+# ----------------------------------------------------------------------------- in slabs
+
+
+def _same_certificate(want, got):
+    """Every figure of the two certificates equal (but the seconds), and the section maps."""
+    assert {k: v for k, v in got.items() if k != "seconds"} == {k: v for k, v in want.items() if k != "seconds"}
+    assert set(got.sections) == set(want.sections)
+    for key, section in want.sections.items():
+        assert np.array_equal(got.sections[key], section), key
+
+
+def _by_slabs_equals_whole(s, p, grid, profile, max_voxels, **kw):
+    from implicit_scaffold.printability import certificate_by_slabs
+    from implicit_scaffold.tiles import ArraySlabs
+
+    want = certificate(s < 0, grid.spacing, profile, field=s, region=p < 0, origin=grid.origin)
+    got = certificate_by_slabs(ArraySlabs(s, grid), ArraySlabs(p, grid), grid.spacing, profile,
+                               max_voxels=max_voxels, origin=grid.origin, **kw)
+    _same_certificate(want, got)
+    return want
+
+
+@pytest.fixture(scope="module")
+def small_scaffold():
+    from implicit_scaffold import generate
+
+    r = generate(size=2.0, voxel=0.05, seed=1, mesh=False, morphometry=False)
+    return np.asarray(r.field), np.asarray(r.patient_sdf), r.grid
+
+
+# slabs of one plane (thinner than any halo), a few planes, and most of the grid
+@pytest.mark.parametrize("planes", [1, 5, 30])
+def test_certificate_by_slabs_is_the_whole_grid_certificate(small_scaffold, planes):
+    s, p, grid = small_scaffold
+    plane = grid.shape[1] * grid.shape[2]
+    want = _by_slabs_equals_whole(s, p, grid, printer_profile("dlp-resin"), planes * plane, halo=1)
+    assert want["pore_throats_mm"]["pores"] > 10  # a real scaffold: many pores, real throats
+
+
+def _sdf_grid(shape):
+    n = np.asarray(shape)
+    return Grid((0.0, 0.0, 0.0), H, tuple(int(v) for v in n))
+
+
+def _centres(shape):
+    return np.meshgrid(*[(np.arange(n) + 0.5) * H for n in shape], indexing="ij")
+
+
+def _signed(solid):
+    """A signed distance (mm, negative in `solid`) from a voxel mask."""
+    return (H * (ndimage.distance_transform_edt(~solid) - ndimage.distance_transform_edt(solid))).astype(np.float32)
+
+
+@pytest.mark.parametrize("planes", [1, 4])
+def test_certificate_by_slabs_with_a_sealed_void_and_a_floating_piece(planes):
+    # a block pierced by two round channels along x, a sealed spherical cavity in it, and a
+    # ball floating in free space beside it; the patient is the whole grid
+    shape = (50, 36, 34)
+    X, Y, Z = _centres(shape)
+    block = (np.abs(X - 0.35) < 0.3) & (np.abs(Y - 0.36) < 0.3) & (np.abs(Z - 0.34) < 0.28)
+    channels = (np.hypot(Y - 0.2, Z - 0.2) < 0.06) | (np.hypot(Y - 0.5, Z - 0.45) < 0.04)
+    cavity = np.sqrt((X - 0.35) ** 2 + (Y - 0.45) ** 2 + (Z - 0.2) ** 2) < 0.08
+    ball = np.sqrt((X - 0.83) ** 2 + (Y - 0.36) ** 2 + (Z - 0.34) ** 2) < 0.1
+    s = _signed((block & ~channels & ~cavity) | ball)
+    p = np.full(shape, -1.0, np.float32)
+    want = _by_slabs_equals_whole(s, p, _sdf_grid(shape), printer_profile("dlp-resin"),
+                                  planes * shape[1] * shape[2], halo=1)
+    assert want["sealed_voids"]["count"] == 1 and want["floating_solid"]["count"] == 1
+
+
+def test_certificate_by_slabs_follows_a_serpentine_across_slabs():
+    # a solid block whose only wide way in is a channel (5 voxels square) that enters at x = 0
+    # and runs along x three times (there, back, there again), so the widest path to its last
+    # leg crosses every slab face three times; a hole one voxel wide from the top face reaches
+    # the last leg first, so its radii must rise as the wide path arrives over later sweeps
+    shape = (40, 32, 12)
+    channel = np.zeros(shape, bool)
+    for xs, ys in [((0, 34), (3, 8)), ((29, 34), (3, 18)), ((6, 34), (13, 18)), ((6, 11), (13, 28)),
+                   ((6, 36), (23, 28))]:
+        channel[slice(*xs), slice(*ys), 4:9] = True
+    channel[20, 27:, 6] = True
+    s = _signed(~channel)
+    p = np.full(shape, -1.0, np.float32)
+    profile = printer_profile("custom:min_strut=0.1,min_throat=0.1,drain=0.1")
+    _by_slabs_equals_whole(s, p, _sdf_grid(shape), profile, 3 * shape[1] * shape[2], halo=1)
+    # the oracle: the last leg holds the channel's inscribed radius (3 voxels), brought by the
+    # wide path, where the narrow hole alone allows 1 voxel
+    _, r2 = throat_radius(s < 0, H)
+    assert r2[30, 25, 6] == 9 and r2[20, 31, 6] == 1
+
+
+def test_tiled_run_with_a_printer_gives_the_whole_grid_certificate(tmp_path):
+    from implicit_scaffold import generate
+
+    kw = dict(size=2.0, voxel=0.05, seed=2, mesh=False, morphometry=False, printer="dlp-resin")
+    whole = generate(output=tmp_path / "whole.npy", tiled=False, **kw)
+    n = whole.grid.shape[1] * whole.grid.shape[2]
+    tiled = generate(output=tmp_path / "tiled.npy", tiled=6 * n, **kw)
+    assert tiled.report["tiled"]["slabs"] > 1
+    _same_certificate(whole.report["print_check"], tiled.report["print_check"])
+    # the run's page draws the certificate's two section maps from the tiled run too
+    from implicit_scaffold.report import write_run_report
+
+    write_run_report(tiled, tmp_path / "r.html")
+    assert (tmp_path / "r.html").read_text().count("print certificate: where the problems lie") == 2
