@@ -1,7 +1,9 @@
 """Issue 15 benchmark: the print certificate's time on a 400^3 scaffold, and which printer profiles
 the default cube and the femoral shaft pass, and why.
 
-    python benchmarks/bench_printability.py [--runs 3] [--only speed,profiles]
+    python benchmarks/bench_printability.py [--runs 3] [--only speed,profiles,slabs]
+
+slabs: the whole grid's certificate against the one measured slab by slab (issue 12), same figures.
 
 Each figure is the median of --runs runs after a warm-up, each in a fresh process. 2-core machines
 are noisy: read the medians. The femoral shaft needs ../shared/data (skipped with a note otherwise).
@@ -45,6 +47,55 @@ for name in profiles():
                                      'verdict')}}
 """
 
+BUILD_FIELDS = """
+import numpy as np
+import implicit_scaffold
+r = implicit_scaffold.generate(mesh=False, morphometry=False)
+np.ascontiguousarray(r.field, np.float32).tofile({folder!r} + '/field.f32')
+np.ascontiguousarray(r.patient_sdf, np.float32).tofile({folder!r} + '/patient.f32')
+_out = {{'origin': list(r.grid.origin), 'spacing': r.grid.spacing, 'shape': list(r.grid.shape)}}
+"""
+
+#: the certificate of the fields BUILD_FIELDS wrote, whole (planes 0) or slab by slab from files on
+#: disk as a tiled run holds them; the fields are read a few planes at a time, so the process's peak
+#: before the call is small and its peak RSS (ru_maxrss) is the certificate's
+SLABS = """
+import time
+import numpy as np, psutil
+from implicit_scaffold.grid import Grid
+from implicit_scaffold.printability import certificate, certificate_by_slabs, printer_profile
+from implicit_scaffold.tiles import FieldFile
+grid = Grid(tuple({origin!r}), {spacing!r}, tuple({shape!r}))
+profile = printer_profile('dlp-resin')
+plane = grid.shape[1] * grid.shape[2]
+def planes_of(name, x0, x1):
+    return np.fromfile({folder!r} + '/' + name, np.float32, count=(x1 - x0) * plane,
+                       offset=4 * x0 * plane).reshape(-1, grid.shape[1], grid.shape[2])
+if {planes!r}:
+    files = []
+    for name in ('field.f32', 'patient.f32'):
+        f = FieldFile(grid)
+        for x0 in range(0, grid.shape[0], 8):
+            f.write(x0, planes_of(name, x0, min(x0 + 8, grid.shape[0])))
+        files.append(f)
+    before = psutil.Process().memory_info().rss
+    t0 = time.perf_counter()
+    c = certificate_by_slabs(files[0], files[1], grid.spacing, profile, max_voxels={planes!r} * plane,
+                             origin=grid.origin)
+else:
+    field = planes_of('field.f32', 0, grid.shape[0])
+    region = planes_of('patient.f32', 0, grid.shape[0]) < 0
+    before = psutil.Process().memory_info().rss
+    t0 = time.perf_counter()
+    c = certificate(field < 0, grid.spacing, profile, field=field, region=region, origin=grid.origin)
+t = time.perf_counter() - t0
+c = dict(c)
+c.pop('seconds')
+import json, hashlib
+_out = {{'seconds': t, 'before_mb': before / 2**20,
+         'digest': hashlib.sha256(json.dumps(c, sort_keys=True, default=str).encode()).hexdigest()[:16]}}
+"""
+
 CUBE = "r = implicit_scaffold.generate(mesh=False, morphometry=False)"
 SHAFT = """from implicit_scaffold.patient_io import load_patient
 patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
@@ -60,6 +111,26 @@ def speed(runs):
     print(table(rows, ["part", "seconds"]))
     print(f"peak RSS {med['peak_rss_mb']:.0f} MB (the run's generate included); target <= 10 s: "
           f"{'met' if med['seconds'] <= 10 else 'NOT met'}")
+
+
+def slabs(runs):
+    """The whole grid's certificate against certificate_by_slabs on the default cube (195^3), each
+    in a fresh process; memory is the peak above what the process held before the call."""
+    import shutil
+    import tempfile
+
+    folder = tempfile.mkdtemp(prefix="bench_printability_")
+    g = run_isolated(BUILD_FIELDS.format(folder=folder))
+    rows, digests = [], set()
+    for planes in (0, 60, 20):
+        med, _ = median_runs(SLABS.format(folder=folder, planes=planes, **g), runs)
+        digests.add(med["digest"])
+        rows.append(["whole grid" if not planes else f"slabs of {planes} planes", f"{med['seconds']:.2f}",
+                     f"{med['peak_rss_mb'] - med['before_mb']:.0f}", med["digest"]])
+    print(f"\nPrint certificate (dlp-resin) of the default cube, 195^3 voxels, median of {runs} runs after a warm-up")
+    print(table(rows, ["certificate", "seconds", "peak MiB above the process", "figures' digest"]))
+    print(f"same figures whole and in slabs: {'yes' if len(digests) == 1 else 'NO'}")
+    shutil.rmtree(folder, ignore_errors=True)
 
 
 def _share(x):
@@ -98,7 +169,7 @@ def main():
     print(f"load average at start (1, 5, 15 min): {' '.join(f'{x:.2f}' for x in os.getloadavg())} "
           f"on {os.cpu_count()} CPUs")
     for name in args.only.split(","):
-        {"speed": speed, "profiles": profiles}[name.strip()](args.runs)
+        {"speed": speed, "profiles": profiles, "slabs": slabs}[name.strip()](args.runs)
 
 
 if __name__ == "__main__":
