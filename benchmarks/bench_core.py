@@ -190,7 +190,8 @@ SIMPLIFY = """
 import os, tempfile, time, zipfile
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold.mesh import mesh_summary, write_mesh
+from implicit_scaffold.mesh import mesh_summary
+from implicit_scaffold.mesh_writers import write_mesh
 from implicit_scaffold.simplify import euler_characteristic, simplification_error, simplify_mesh
 r = implicit_scaffold.generate(morphometry=False)  # the default cube, every triangle kept
 mesh, h, patient = r.mesh, r.grid.spacing, r.report['patient_volume_mm3']

@@ -189,14 +189,14 @@ def _mechanics(args) -> int:
             if fmt is None:
                 _check_report(path)
             else:
-                from .mesh import check_writable
+                from .files import check_writable
 
                 check_writable(path, formats=fmt)
     solid, h, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing)
     report, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis))
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
-        from .mesh import write_json
+        from .files import write_json
 
         write_json(report, args.output)
     if args.report is not None:
@@ -328,7 +328,7 @@ def _printer_names() -> list[str]:
 
 
 def _check_report(path) -> None:
-    from .mesh import check_writable
+    from .files import check_writable
 
     if not path.lower().endswith((".html", ".htm")):
         raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {path!r}")
@@ -342,7 +342,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
     patient = None
     if args.patient is not None:
-        from .mesh import check_writable
+        from .files import check_writable
 
         if output is not None:
             check_writable(output)  # before a long load, not after
@@ -413,7 +413,7 @@ def _check(args) -> int:
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)
     if args.output is not None:
-        from .mesh import check_writable
+        from .files import check_writable
 
         check_writable(args.output, formats=(".json",))
     scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing)
@@ -422,7 +422,7 @@ def _check(args) -> int:
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
                  "timings_s": {"check": round(time.perf_counter() - t0, 4)}})
     if args.output is not None:
-        from .mesh import write_json
+        from .files import write_json
 
         write_json(cert, args.output)
     if not args.quiet:
@@ -444,7 +444,7 @@ def _generate(args) -> int:
     result = _build(args, output=args.output)
     comp = None
     if args.mechanics:
-        from .mesh import write_json
+        from .files import write_json
 
         result.report["mechanics"], comp, h = _generate_mechanics(result, mat, args)
         write_json(result.report, result_json(args.output))
@@ -617,7 +617,7 @@ def _analyze(args) -> int:
 
     t0 = time.perf_counter()
     if args.output is not None:
-        from .mesh import check_writable
+        from .files import check_writable
 
         check_writable(args.output, formats=(".json",))
     if args.report is not None:
@@ -626,7 +626,7 @@ def _analyze(args) -> int:
     r = result.report
     r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
     if args.output is not None:
-        from .mesh import write_json
+        from .files import write_json
 
         write_json(r, args.output)
     if args.report is not None:

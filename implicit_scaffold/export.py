@@ -75,7 +75,7 @@ def write_volume(field, grid: Grid, path, *, binary: bool = False, max_bytes: in
         An unknown extension, a field that does not match its grid, a folder that
         cannot be written, or ``.zarr`` without the ``zarr`` extra installed.
     """
-    from .mesh import atomic_path, write_field
+    from .files import atomic_path, write_field
 
     final = Path(path)
     ext = volume_format(final)
@@ -298,7 +298,7 @@ def _write_zarr(field, grid: Grid, final: Path, name: str, dtype, *, max_bytes: 
         raise ScaffoldError("writing .zarr needs the zarr extra: pip install -e \".[zarr]\"") from None
     import secrets
 
-    from .mesh import check_writable
+    from .files import check_writable
 
     check_writable(final)
     if final.exists():

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-#: triangle meshes :func:`~implicit_scaffold.mesh.write_mesh` writes
+#: triangle meshes :func:`~implicit_scaffold.mesh_writers.write_mesh` writes
 MESH_WRITERS = (".stl", ".ply", ".obj", ".3mf")
 #: of those, the ones written straight from the slabs (:mod:`.mesh_stream`); the others
 #: are formatted from a streamed PLY

@@ -57,9 +57,9 @@ import numpy as np
 from .errors import ScaffoldError
 from .memory import available_memory
 from .files import atomic_path, check_writable, folder_of, new_temp, remove_quietly
-from .mesh import (FACE_CHUNK, STL_HEADER, TIE_ROUNDS, break_face_ties, check_level, check_meshable, compiled_kernels,
-                   face_measures, force_outside, index_to_mm, marching_cubes_surface, nothing_to_mesh, ply_header,
-                   prepare_planes, stl_buffer, stl_chunk)
+from .mesh import (FACE_CHUNK, TIE_ROUNDS, break_face_ties, check_level, check_meshable, compiled_kernels,
+                   face_measures, force_outside, index_to_mm, marching_cubes_surface, nothing_to_mesh, prepare_planes)
+from .mesh_writers import STL_HEADER, ply_header, stl_buffer, stl_chunk
 from .tiles import ArraySlabs, FieldFile, plan_slabs
 
 __all__ = ["MESH_BYTES_PER_TRIANGLE", "MESH_SLAB_BYTES_PER_VOXEL", "STREAM_FORMATS", "mesh_slab_bytes_per_voxel",

@@ -307,7 +307,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         params = replace(params, seeds_in="box" if patient is None else "patient")
     out_path = Path(output) if output is not None else None
     if out_path is not None:
-        from .mesh import check_writable
+        from .files import check_writable
 
         ext = output_format(out_path)
         if ext is None:
@@ -639,7 +639,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
     if out_path is not None:
-        from .mesh import write_json
+        from .files import write_json
 
         write_json(report, report_path(out_path))
     return result
@@ -1256,7 +1256,7 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
     if out_path is not None:
-        from .mesh import write_json
+        from .files import write_json
 
         write_json(report, report_path(out_path))
     return Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
@@ -1273,7 +1273,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     """Mesh a tiled run's field into `out_path` slab by slab, in bounded memory.
 
     Without simplification, STL and PLY are streamed straight to the file, and OBJ and 3MF
-    are formatted a block at a time from a streamed PLY (:func:`.mesh.write_mesh_from_ply`:
+    are formatted a block at a time from a streamed PLY (:func:`.mesh_writers.write_mesh_from_ply`:
     the 3MF's model XML is deflated into the zip as it is written). With a tolerance, the
     streamed PLY is read back whole and simplified when that fits in --max-memory, else
     written as it is, with a warning.
@@ -1289,7 +1289,8 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     """
     import os
 
-    from .mesh import mesh_summary, write_mesh, write_mesh_from_ply
+    from .mesh import mesh_summary
+    from .mesh_writers import write_mesh, write_mesh_from_ply
     from .memory import process_memory, release
     from .mesh_stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel, write_mesh_slabs
     from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE
@@ -1450,7 +1451,7 @@ def report_path(path) -> Path:
 def write_outputs(result: Result, path: Path) -> None:
     """Write the mesh or the field to `path` (atomically); the JSON is written by :func:`generate`."""
     from .export import write_volume
-    from .mesh import write_mesh
+    from .mesh_writers import write_mesh
 
     if output_format(path) in MESH_FORMATS:
         write_mesh(result.mesh, path)

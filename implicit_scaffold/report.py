@@ -13,7 +13,7 @@ import os
 
 import numpy as np
 
-from .mesh import atomic_path
+from .files import atomic_path
 
 
 def _png(fig) -> bytes:

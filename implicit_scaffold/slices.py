@@ -367,7 +367,7 @@ def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = Non
         A non-positive pixel or layer, a field that does not match its grid, a bound too
         small for one plane and its halo, or an output folder that cannot be written.
     """
-    from .mesh import write_json
+    from .files import write_json
 
     source = None
     if _is_source(field):

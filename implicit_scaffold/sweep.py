@@ -100,7 +100,7 @@ def _fmt(v) -> str:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    from .mesh import atomic_path
+    from .files import atomic_path
 
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -113,7 +113,7 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def _write_png(path: Path, fig) -> None:
-    from .mesh import atomic_path
+    from .files import atomic_path
     from .report import _png
 
     data = _png(fig)

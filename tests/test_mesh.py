@@ -19,8 +19,9 @@ import trimesh
 from implicit_scaffold import mesh as mesh_mod
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.grid import Grid
-from implicit_scaffold.mesh import (MESH_FORMATS, atomic_path, check_writable, mesh_field,
-                                    mesh_summary, write_field, write_json, write_mesh)
+from implicit_scaffold.files import atomic_path, check_writable, write_field, write_json
+from implicit_scaffold.mesh import mesh_field, mesh_summary
+from implicit_scaffold.mesh_writers import MESH_FORMATS, write_mesh
 
 
 # ----------------------------------------------------------------------------- helpers
@@ -427,7 +428,7 @@ def test_3mf_round_trips_and_is_deflated(small_mesh, tmp_path):
 
 @pytest.mark.parametrize("ext", MESH_FORMATS)
 def test_formats_from_a_ply_a_block_at_a_time_are_write_mesh_bytes(small_mesh, tmp_path, ext):
-    from implicit_scaffold.mesh import write_mesh_from_ply
+    from implicit_scaffold.mesh_writers import write_mesh_from_ply
 
     ply = write_mesh(small_mesh, tmp_path / "m.ply")
     whole = write_mesh(small_mesh, tmp_path / f"whole{ext}")
@@ -437,7 +438,7 @@ def test_formats_from_a_ply_a_block_at_a_time_are_write_mesh_bytes(small_mesh, t
 
 
 def test_from_ply_refuses_another_layout(tmp_path):
-    from implicit_scaffold.mesh import write_mesh_from_ply
+    from implicit_scaffold.mesh_writers import write_mesh_from_ply
 
     other = tmp_path / "o.ply"
     trimesh.creation.box().export(other, encoding="ascii")

@@ -17,7 +17,8 @@ import trimesh
 
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.grid import Grid
-from implicit_scaffold.mesh import mesh_field, write_mesh
+from implicit_scaffold.mesh import mesh_field
+from implicit_scaffold.mesh_writers import write_mesh
 from implicit_scaffold.mesh_stream import write_mesh_slabs
 from implicit_scaffold.tiles import ArraySlabs, FieldFile
 
@@ -474,7 +475,7 @@ def random_soup(seed, nv=500, nf=3000):
 def test_stl_records_match_numpy(tmp_path):
     import io
 
-    from implicit_scaffold.mesh import _write_stl_records
+    from implicit_scaffold.mesh_writers import _write_stl_records
 
     rec = np.dtype([("normal", "<f4", (3,)), ("vertex", "<f4", (3, 3)), ("attr", "<u2")])
     for seed in range(3):
