@@ -734,38 +734,77 @@ def _spans(nx: int, plane: int, max_voxels: int, halo: int) -> list[tuple[int, i
     return [(x0, min(x0 + owned, nx)) for x0 in range(0, nx, owned)]
 
 
-def _distances_by_slabs(solid_of, grid, max_voxels: int, halo: int, folder, progress=None) -> tuple[_IntPlanes, int]:
-    """The void's squared distance (:func:`throat_radius`'s ``d2``), exact, written plane by plane.
+def _distances_by_slabs(solid_of, region_of, grid, max_voxels: int, halo: int, folder, floor: int,
+                        progress=None) -> tuple[_IntPlanes, int]:
+    """The void's squared distance (:func:`throat_radius`'s ``d2``), capped where its value does not
+    matter, written plane by plane.
+
+    Every figure reads ``d2`` exactly inside the region (the patient), and elsewhere only as "at
+    least as large as any value inside, and at least `floor`" (the largest squared sphere radius
+    the reach checks ask of ``r2``): the flood takes minima along paths that end inside the
+    region, the pore centres are inside it, and a neighbour above the cap stays above every
+    value inside. So ``d2`` is capped at ``C = max(max d2 inside + 1, floor)``; the far outside
+    of a bone (a clip box's corners, tens of voxels from any solid) then needs no halo that wide.
 
     Each slab's distance transform reads `halo` planes on either side, the planes beyond
-    standing for void as the grid's outside does: the solid it misses is at least as far as
-    the first unread plane, so an owned voxel whose distance is within that is exact. A slab
-    where some voxel's is not is taken again with a halo as wide as its widest distance (more
-    solid only brings distances down, so that halo suffices), and the slabs after it keep the
-    wider halo. Returns the planes and the halo used last.
+    standing for void as the grid's outside does: the solid it misses is at least as far as the
+    first unread plane (``D`` planes away), so a voxel's value is exact when it is at most
+    ``D**2``, and its capped value is right whenever ``D**2 >= C``. A first pass finds the
+    largest value inside the region (widening the halo until those are exact), a second writes
+    the capped values (widening it until every capped value is right). Returns the planes and
+    the halo used last.
     """
     from .morphometry import _squared_edt
 
     nx = int(grid.shape[0])
     plane = int(grid.shape[1]) * int(grid.shape[2])
-    store = _IntPlanes(grid, folder)
-    try:
+    beyond = sum(int(n) ** 2 for n in grid.shape) + 1  # more than any squared distance in the grid
+
+    def slabs(check):
+        # (x0, x1, d2 of the owned planes), the halo widened until check(d2, x0, x1, lo, hi) holds
+        nonlocal halo
         x0 = 0
         while x0 < nx:
             x1 = min(nx, x0 + max(1, int(max_voxels) // plane - 2 * halo))
             lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
-            d2 = _squared_edt(~solid_of(lo, hi))[x0 - lo:x1 - lo]
-            widest = d2.reshape(x1 - x0, -1).max(axis=1).astype(np.int64)
+            void = ~solid_of(lo, hi)
+            if void.all():
+                # no solid within reach: farther than the unread planes, as far as anything in the grid
+                d2 = np.full((x1 - x0,) + tuple(grid.shape[1:]), beyond, np.int32)
+            else:
+                d2 = _squared_edt(void)[x0 - lo:x1 - lo]
+            del void
+            need = check(d2, x0, x1)
             xs = np.arange(x0, x1, dtype=np.int64)
-            exact = (lo == 0 or bool(np.all(widest <= (xs - lo + 1) ** 2))) and \
-                    (hi == nx or bool(np.all(widest <= (hi - xs) ** 2)))
-            if not exact:
-                halo = max(halo + 1, math.isqrt(int(widest.max()) - 1) + 1)
+            if not ((lo == 0 or bool(np.all(need <= (xs - lo + 1) ** 2)))
+                    and (hi == nx or bool(np.all(need <= (hi - xs) ** 2)))):
+                halo = max(halo + 1, math.isqrt(int(need.max()) - 1) + 1)
                 continue
-            store.write(x0, d2)
+            yield x0, x1, d2
             x0 = x1
+
+    # pass 1: the largest value inside the region, each plane's exact where it lies inside
+    inside_max = 0
+
+    def inside_widest(d2, x0, x1):
+        region = region_of(x0, x1)
+        return np.where(region, d2, 0).reshape(x1 - x0, -1).max(axis=1).astype(np.int64)
+
+    for x0, x1, d2 in slabs(inside_widest):
+        region = region_of(x0, x1)
+        if region.any():
+            inside_max = max(inside_max, int(d2[region].max()))
+    cap = max(inside_max + 1, int(floor))
+    # pass 2: the capped values
+    store = _IntPlanes(grid, folder)
+    try:
+        def capped_widest(d2, x0, x1):
+            return np.minimum(d2.reshape(x1 - x0, -1).max(axis=1).astype(np.int64), cap)
+
+        for x0, x1, d2 in slabs(capped_widest):
+            store.write(x0, np.minimum(d2, np.int32(cap)))
             if progress is not None:
-                progress(x0, nx)
+                progress(x1, nx)
     except BaseException:
         store.close()
         raise
@@ -985,11 +1024,16 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     def solid_of(lo, hi):
         return source.read(lo, hi) < 0
 
-    d2s, halo = _distances_by_slabs(solid_of, grid, max_voxels, halo, folder, stage(1))
+    def region_of(x0, x1):
+        return patient.read(x0, x1) < 0
+
+    diameters = [INFILTRATION_MM] + ([profile.drain_mm] if profile.drain_mm > 0 else [])
+    # the reach checks ask r2 >= rho**2 of each sphere: values above stay above when capped there
+    floor = max([1] + [math.ceil((0.5 * (float(d) / h - 1.0)) ** 2) + 1 for d in diameters])
+    d2s, halo = _distances_by_slabs(solid_of, region_of, grid, max_voxels, halo, folder, floor, stage(1))
     r2s = None
     try:
         r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)
-        diameters = [INFILTRATION_MM] + ([profile.drain_mm] if profile.drain_mm > 0 else [])
         sealed_parts, solid_parts = SlabComponents(), SlabComponents()
         f = max(1, math.ceil(max(shape) / OVERHANG_CELLS))
         coarse = np.empty(tuple(-(-n // f) for n in shape), np.float32)
@@ -1060,7 +1104,7 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
         def void_b_of(x0, x1):
             return (patient.read(x0, x1) < 0) & ~grown_of(x0, x1)
 
-        d2s, _ = _distances_by_slabs(grown_of, grid, max_voxels, halo, folder, stage(3))
+        d2s, _ = _distances_by_slabs(grown_of, region_of, grid, max_voxels, halo, folder, floor, stage(3))
         r2s = None
         try:
             r2s, _ = _flood_by_slabs(d2s, grid, max_voxels, folder)

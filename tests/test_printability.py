@@ -278,6 +278,27 @@ def test_certificate_by_slabs_with_a_sealed_void_and_a_floating_piece(planes):
     assert want["sealed_voids"]["count"] == 1 and want["floating_solid"]["count"] == 1
 
 
+@pytest.mark.parametrize("planes", [2, 9])
+def test_certificate_by_slabs_of_a_patient_far_from_the_grid_corners(small_scaffold, planes):
+    # a ball patient in a grid twice its size: the void's distance grows to tens of voxels in the
+    # corners, where no figure reads it exactly; the slabs cap it (a halo that wide would make
+    # every slab read most of the grid) and must still give the whole grid's certificate
+    s0, _, _ = small_scaffold
+    n = 2 * np.asarray(s0.shape)
+    s = np.full(tuple(n), H, np.float32)
+    q = (n - np.asarray(s0.shape)) // 2
+    s[q[0]:q[0] + s0.shape[0], q[1]:q[1] + s0.shape[1], q[2]:q[2] + s0.shape[2]] = s0
+    X, Y, Z = _centres(tuple(n))
+    c = n * H / 2
+    p = (np.sqrt((X - c[0]) ** 2 + (Y - c[1]) ** 2 + (Z - c[2]) ** 2) - 0.45 * s0.shape[0] * H).astype(np.float32)
+    s = np.maximum(s, p)
+    d2, _ = throat_radius(s < 0, H)
+    assert d2[0, 0, 0] > 20 ** 2  # the corners lie far from any solid
+    want = _by_slabs_equals_whole(s, p, _sdf_grid(tuple(n)), printer_profile("dlp-resin"),
+                                  planes * int(n[1]) * int(n[2]), halo=1)
+    assert want["pore_throats_mm"]["pores"] > 10
+
+
 def test_certificate_by_slabs_follows_a_serpentine_across_slabs():
     # a solid block whose only wide way in is a channel (5 voxels square) that enters at x = 0
     # and runs along x three times (there, back, there again), so the widest path to its last
