@@ -18,9 +18,9 @@ def test_match_names_only_the_listed_formats():
 
 
 def test_the_modules_dispatch_on_the_table():
-    from implicit_scaffold import export, mesh, mesh_stream, morphometry, patient_io, pipeline
+    from implicit_scaffold import export, mesh_stream, mesh_writers, morphometry, patient_io, pipeline
 
-    assert mesh.MESH_FORMATS is formats.MESH_WRITERS is pipeline.MESH_FORMATS
+    assert mesh_writers.MESH_FORMATS is formats.MESH_WRITERS is pipeline.MESH_FORMATS
     assert export.VOLUME_FORMATS is formats.FIELD_WRITERS is pipeline.FIELD_FORMATS
     assert mesh_stream.STREAM_FORMATS is formats.MESH_STREAMED
     assert set(formats.MESH_STREAMED) <= set(formats.MESH_WRITERS)
