@@ -136,7 +136,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
                      workers: int | None = None) -> dict:
     """Mesh the solid ``field < level`` of `source` slab by slab into a binary STL or PLY file.
 
-    The file is what :func:`~implicit_scaffold.mesh.write_mesh` writes for the whole
+    The file is what :func:`~implicit_scaffold.mesh_writers.write_mesh` writes for the whole
     grid's :func:`~implicit_scaffold.mesh.mesh_field` of the same float32 values (same
     header text, same records; a PLY header's comment is padded with spaces to a fixed
     size): the same triangles, with vertices off the shared planes up to a float32
