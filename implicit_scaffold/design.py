@@ -421,3 +421,16 @@ def load_parameters(path) -> dict:
     if unknown:
         raise ScaffoldError(f"--design: unknown parameters {', '.join(sorted(unknown))} in {path}")
     return params
+
+
+def generate_design(path, **options):
+    """:func:`.pipeline.generate` with the parameters of a design.json; `options` (``output``,
+    ``size``, ``patient``, ``voxel``, ...) are passed on and win over the design's.
+
+    Returns
+    -------
+    Result
+    """
+    from .pipeline import generate
+
+    return generate(**{**load_parameters(path), **options})
