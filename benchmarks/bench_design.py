@@ -20,7 +20,8 @@ CASES = [
     Targets(porosity=0.6, pore_size=0.4, min_strut=0.2),
     Targets(porosity=0.8, pore_size=0.6, min_strut=0.1),
     Targets(porosity=0.7, pore_size=0.5, min_strut=0.6),  # infeasible on purpose
-    Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=8.0, material="ti64"),
+    Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=9.5, material="ti64"),
+    Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=8.0, material="ti64"),  # strut-limited
     Targets(porosity=0.7, pore_size=0.5, min_strut=0.2, stiffness=3.0, material="ti64"),  # infeasible on purpose
 ]
 
