@@ -256,7 +256,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     # 2. else the struts style, Sv solved for the strut
     struts_pts: list[tuple[float, float]] = []
     if chosen is None:
-        lo, hi = SV_RANGE
+        hi = SV_RANGE[1]
         sv = 0.75
         while True:
             p = {"style": "struts", "sf": 0.75, "sv": round(sv, 4)}
@@ -284,7 +284,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
         same = [e for e in log if e["parameters"]["style"] == style]
         ok_sv = [e["parameters"]["sv"] for e in same if strut_ok(e["measured"])]
         fail_sv = [e["parameters"]["sv"] for e in same if not strut_ok(e["measured"])]
-        pts = [(e["parameters"]["sv"], e["measured"]["stiffness"]) for e in same if e["parameters"] is not chosen]
+        pts = [(e["parameters"]["sv"], e["measured"]["stiffness"]) for e in same if e["parameters"] != chosen]
         pts.append((chosen["sv"], chosen_m["stiffness"]))
         best = (abs(stiff_miss(chosen_m)), chosen, chosen_m)
         while len(log) < max_builds:
