@@ -1,4 +1,4 @@
-"""Command line: ``implicit-scaffold generate``, ``analyze`` and ``info``.
+"""Command line: ``implicit-scaffold generate``, ``design``, ``analyze`` and ``info``.
 
 A thin layer over the public API. Bad input prints one line on stderr and exits
 with code 2; nothing is written then.
@@ -66,6 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="simplify the mesh with manifold3d within MM (e.g. 0.01): about half the triangles; the "
                         "report gives the distance between the surfaces and the porosity moved, as measured, and "
                         "warns beyond a quarter voxel or 0.1 points (default 0: every triangle kept)")
+    g.add_argument("--design", metavar="JSON", default=None,
+                   help="build with the parameters of a design.json (implicit-scaffold design); options given "
+                        "here too override them")
     g.add_argument("--mechanics", action="store_true",
                    help="also measure the scaffold's stiffness (voxel FE): report section 'mechanics'")
     _add_mechanics_options(g)
@@ -126,6 +129,27 @@ def build_parser() -> argparse.ArgumentParser:
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
     me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+    de = sub.add_parser("design", help="inverse design: targets in, generate's parameters out (design.json)",
+                        description="Find the generator's parameters (style, Sf, Sv; the seed density and surface "
+                                    "offset follow) that meet porosity, pore size, minimum strut and stiffness "
+                                    "targets, by a few builds of a representative cube; verify them over random "
+                                    "seeds. Exit code 3 when the targets conflict (the output names them and the "
+                                    "nearest trade-off).")
+    de.add_argument("--porosity", type=float, required=True, help="target porosity in (0, 1)")
+    de.add_argument("--pore-size", type=float, required=True,
+                    help="target mean pore size (polyhedron-sphere, as generate reports it), mm")
+    de.add_argument("--min-strut", type=float, default=None,
+                    help="thinnest strut allowed: the 1st percentile local thickness stays at or above it, mm")
+    de.add_argument("--stiffness", default=None, metavar="MODULUS",
+                    help="target apparent modulus, e.g. 3GPa or 800MPa (platen compression of the cube)")
+    de.add_argument("--material", default="ti64", metavar="NAME",
+                    help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta (default ti64)")
+    de.add_argument("--printer", default=None, metavar="NAME",
+                    help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
+    de.add_argument("--seeds", type=int, default=5, help="random seeds of the verification (default 5)")
+    de.add_argument("-o", "--output", required=True, metavar="JSON", help="where to write design.json")
+    de.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
     sub.add_parser("info", help="versions and the OpenCL device")
     return parser
@@ -436,8 +460,63 @@ def _check(args) -> int:
     return 3 if args.require_printable and cert["verdict"]["overall"] == "fail" else 0
 
 
+def _apply_design(args) -> None:
+    """Fill `args` from a design.json's parameters, where the command line left the default."""
+    from .design import load_parameters
+
+    params = load_parameters(args.design)
+    defaults = build_parser().parse_args(["generate", "-o", "x.stl"])
+    for key, value in params.items():
+        if key == "porosity":
+            value = str(value)
+        if getattr(args, key) == getattr(defaults, key):
+            setattr(args, key, value)
+
+
+def _design(args) -> int:
+    from .design import Targets, check_targets, conflict_message, design, parse_stiffness
+    from .progress import Progress
+
+    t0 = time.perf_counter()
+    from .mesh import check_writable, write_json
+
+    check_writable(args.output, formats=(".json",))
+    min_strut = args.min_strut
+    if args.printer is not None:
+        from .printability import printer_profile
+
+        floor = printer_profile(args.printer).min_strut_mm
+        min_strut = floor if min_strut is None else max(min_strut, floor)
+    targets = Targets(porosity=args.porosity, pore_size=args.pore_size, min_strut=min_strut,
+                      stiffness=None if args.stiffness is None else parse_stiffness(args.stiffness),
+                      material=args.material)
+    check_targets(targets)  # bad input refused before the stage line
+    prog = Progress(not args.quiet)
+    with prog.stage("design", "forward builds of a representative cube, then the check over seeds"):
+        d = design(targets, seeds=args.seeds, progress=prog)
+    out = {"version": __version__, **d.to_json(), "printer": args.printer,
+           "timings_s": {"design": round(time.perf_counter() - t0, 3)}}
+    write_json(out, args.output)
+    if not args.quiet:
+        p = d.parameters
+        lines = [f"wrote {args.output}: {'feasible' if d.feasible else 'INFEASIBLE'}",
+                 f"  parameters: style {p['style']}, Sf {p['sf']:g}, Sv {p['sv']:g}, porosity {p['porosity']:g}, "
+                 f"pore size {p['pore_size']:g} mm, voxel {p['voxel']:.4g} mm",
+                 f"  {d.representative_volume['builds']} forward builds, checked over "
+                 f"{len(d.representative_volume['seeds'])} seeds (mean, min..max):"]
+        for k, v in d.achieved.items():
+            lines.append(f"    {k}: target {d.targets[k]:g}, achieved {v['mean']:.4g} ({v['min']:.4g}..{v['max']:.4g})")
+        if not d.feasible:
+            lines.append("  " + conflict_message(d))
+        lines.append(f"  time {time.perf_counter() - t0:.1f} s")
+        print("\n".join(lines))
+    return 0 if d.feasible else 3
+
+
 def _generate(args) -> int:
     t0 = time.perf_counter()
+    if args.design is not None:
+        _apply_design(args)
     if args.report is not None:
         _check_report(args.report)
     mat = _mechanics_setup(args) if args.mechanics else None
@@ -767,7 +846,7 @@ def main(argv=None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     commands = {"generate": _generate, "slice": _slice, "sweep": _sweep, "analyze": _analyze, "check": _check,
-                "info": _info, "mechanics": _mechanics}
+                "info": _info, "mechanics": _mechanics, "design": _design}
     # a kill (SIGTERM) ends the run as Ctrl-C does, so the writers remove their temporary files
     from . import progress
 
