@@ -478,7 +478,7 @@ def _design(args) -> int:
     from .progress import Progress
 
     t0 = time.perf_counter()
-    from .mesh import check_writable, write_json
+    from .files import check_writable, write_json
 
     check_writable(args.output, formats=(".json",))
     min_strut = args.min_strut
