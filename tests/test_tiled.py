@@ -198,8 +198,8 @@ def test_zarr_streams_from_slabs_with_the_whole_grid_values(tmp_path, monkeypatc
 
     whole = generate(output=tmp_path / "whole.zarr", mesh=False, morphometry=False, tiled=False, **SMALL)
     generate(output=tmp_path / "whole.npy", mesh=False, morphometry=False, tiled=False, **SMALL)
-    # chunks of 3 voxels a side: the rows of chunks do not line up with the slabs
-    monkeypatch.setattr(export, "ZARR_CHUNK", 3)
+    # chunks of 7 voxels a side: the rows of chunks do not line up with the slabs of 13 planes
+    monkeypatch.setattr(export, "ZARR_CHUNK", 7)
     rep = generate(output=tmp_path / "t.zarr", mesh=False, morphometry=False, tiled=13 * PLANE, **SMALL).report
     assert rep["tiled"]["slabs"] > 2
     field = np.load(tmp_path / "whole.npy")
@@ -207,7 +207,7 @@ def test_zarr_streams_from_slabs_with_the_whole_grid_values(tmp_path, monkeypatc
         group = zarr.open_group(str(tmp_path / name), mode="r")
         assert np.array_equal(group["sdf"][...], field), name
         assert group.attrs["spacing_mm"] == whole.grid.spacing
-    assert zarr.open_group(str(tmp_path / "t.zarr"), mode="r")["sdf"].chunks[0] == 3
+    assert zarr.open_group(str(tmp_path / "t.zarr"), mode="r")["sdf"].chunks[0] == 7
     assert sorted(p.name for p in tmp_path.iterdir()) == ["t.json", "t.zarr", "whole.json", "whole.npy",
                                                         "whole.zarr"]
 
