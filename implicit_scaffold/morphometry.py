@@ -34,17 +34,23 @@ MAX_BINS = 60
 # --------------------------------------------------------------------------- checks
 
 
-def _check_volume(solid, voxel, region=None) -> tuple[np.ndarray, float, np.ndarray | None]:
-    solid = np.asarray(solid)
-    if solid.ndim != 3 or min(solid.shape) < 1:
-        raise ScaffoldError(f"a solid volume must be a 3-D array, got shape {solid.shape}")
-    solid = solid.astype(bool, copy=False)
+def check_voxel(voxel) -> float:
+    """`voxel` as a positive, finite size in mm, else a :class:`ScaffoldError` saying so."""
     try:
         h = float(voxel)
     except (TypeError, ValueError):
         raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}") from None
     if not (math.isfinite(h) and h > 0):
         raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}")
+    return h
+
+
+def _check_volume(solid, voxel, region=None) -> tuple[np.ndarray, float, np.ndarray | None]:
+    solid = np.asarray(solid)
+    if solid.ndim != 3 or min(solid.shape) < 1:
+        raise ScaffoldError(f"a solid volume must be a 3-D array, got shape {solid.shape}")
+    solid = solid.astype(bool, copy=False)
+    h = check_voxel(voxel)
     if region is not None:
         region = np.asarray(region).astype(bool, copy=False)
         if region.shape != solid.shape:

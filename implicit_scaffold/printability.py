@@ -955,15 +955,10 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     -------
     Certificate
     """
-    from .morphometry import ThicknessTally, local_thickness
+    from .morphometry import ThicknessTally, check_voxel, local_thickness
     from .tiles import SlabComponents
 
-    try:
-        h = float(voxel)
-    except (TypeError, ValueError):
-        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}") from None
-    if not (math.isfinite(h) and h > 0):
-        raise ScaffoldError(f"the voxel size must be a positive number of mm, got {voxel!r}")
+    h = check_voxel(voxel)
     grid = source.grid
     shape = tuple(int(n) for n in grid.shape)
     if tuple(int(n) for n in patient.grid.shape) != shape:
