@@ -14,8 +14,7 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
-from .field import blend_field, check_porosity, sample, scaffold_field, solve_level_cut
-from .field import fill_sealed_voids as fill_sealed_void_pieces
+from .field import check_porosity, sample
 from .grid import Grid, run_bytes_per_voxel
 from .memory import available_memory, check_memory
 from .progress import Progress
@@ -281,11 +280,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     Result
     """
     from .cells import voronoi_cells
-    from .lattice import lattice_sdf, struts_field
     from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
-    from .patient import clamp_far_field, patient_sdf as eval_patient, primitive
-    from .pieces import (REPORT_PIECES, label_pieces, piece_table, remove_fragments_by_piece,
-                         small_pieces_warning)
+    from .patient import clamp_far_field, primitive
     from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
                         seed_count, seeds_in_patient, uniform_seeds)
     from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
@@ -462,187 +458,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
             edges = voronoi_edges(cells)
         # planned once the edges are held, so that the memory they take is not also given to the slabs
         slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + (GRADE_RESERVE if graded else 0))
-    if slab_voxels is not None:
-        return _generate_tiled(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10,
-                               window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
-                               seed_solve=tried or None, printer=printer,
-                               grade=(gfield, density, empty_power_cells if weighted else None) if graded else None)
-    with prog.stage("patient"):
-        s_p = eval_patient(fine_patient, grid)
-        inside = s_p < 0
-        n_inside = int(np.count_nonzero(inside))
-        if n_inside == 0:
-            raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
-    plan = level_field = None
-    if graded and (params.porosity is not None or gfield.kind == "ct"):
-        with prog.stage("grade", "offset bins"):
-            plan = grading.level_plan(gfield, s_p, grid, skin=params.skin + params.smooth_cut)
-    h = grid.spacing
-    k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
-    calibration = None
-    for _ in range(6):
-        with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels"):
-            if params.style == "paper":
-                base = lattice_sdf(skeleton, grid, cutoff=cutoff, progress=prog.bar("lattice"))
-            else:
-                base = struts_field(edges, grid, cutoff=cutoff, blend=k, progress=prog.bar("lattice"))
-        if params.style == "paper":
-            with prog.stage("blend", f"k = {k:.4g} mm"):
-                base = blend_field(base, h, k)
-        with prog.stage("offset"):
-            if plan is not None:
-                level_field = grading.solve_level_field(base, s_p, plan)
-                level = level_field.reach(params.style)
-            else:
-                level = 0.0 if params.porosity is None else solve_level_cut(
-                    base, s_p, params.porosity, skin=params.skin, smooth_cut=params.smooth_cut)
-        printed = _printed_kind(params, mesh, slices, graded=plan is not None)
-        if printed is not None:
-            with prog.stage("printed", f"the level for the {printed}"):
-                ys, zs = _prism(grid)
-                # the patient's pieces on the prism: each keeps its main body, as in the scaffold stage
-                prism_pieces = label_pieces(s_p < 0)[0][:, ys, zs] if params.remove_fragments else None
-                level, calibration = _printed_level(printed, lambda y, z: (base[:, y, z], s_p[:, y, z]), level,
-                                                    grid, params, slices, ys, zs, pieces=prism_pieces,
-                                                    whole_volume=float(patient.volume))
-                del prism_pieces
-        # every value that the level and the blend read must be unclamped
-        wider = next_cutoff(level, cutoff)
-        if wider is None:
-            break
-        cutoff = wider
-
-    # the cells that lie in the scaffold: their seed is inside the patient
-    cells_in = sample(s_p, grid, cells.seeds) < 0
-    with prog.stage("scaffold"):
-        if level_field is not None:
-            base = grading.apply_level(base, s_p, plan, level_field)
-        s = scaffold_field(base, s_p, level=0.0 if level_field is not None else level, skin=params.skin,
-                           smooth_cut=params.smooth_cut, out=base)
-        del base
-        # debris is judged within each piece of the patient: a second vertebra in the clip
-        # keeps its own scaffold however much larger the first one's is
-        pieces, n_pieces = label_pieces(inside)
-        removal = remove_fragments_by_piece(s, pieces, outside=h) if params.remove_fragments else None
-        fragments = None if removal is None else removal["removed"]
-        sealed = fill_sealed_void_pieces(s, inside=h, fill=params.fill_sealed_voids, keep_interior=params.skin > 0)
-        solid = int(np.count_nonzero(s < 0))
-        porosity_voxel = 1.0 - solid / n_inside
-        piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
-                                 main_bodies_only=removal is not None and n_pieces == 1)
-        del pieces
-
-    report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, cutoff, level,
-                          porosity_voxel, fragments, sealed, seed_solve=tried or None)
-    report["fragments_removed_mm3"] = None if removal is None else removal["removed_voxels"] * grid.voxel_volume
-    report["patient_pieces_count"] = n_pieces
-    report["patient_pieces"] = piece_rows[:REPORT_PIECES]
-    report["printed_level"] = calibration
-    if report["printed_level"] is None and params.porosity is not None:
-        report["printed_level"] = {"by": None, "why": "graded: the level is solved per depth bin in voxels"
-                                   if graded else "no mesh or slices: the field meets the target in voxels"}
-    if graded:
-        with prog.stage("profiles"):
-            report.update(_grade_report(params, gfield, density, plan, level_field, s, s_p, grid, cells))
-            if weighted:
-                report["grade"]["empty_power_cells"] = empty_power_cells
-        plan = level_field = density = None  # the mesh and metrics stages need the memory
-    # one pore: the target's, or (seeds given, or graded) the mean measured
-    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
-    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
-
-    result = Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
-                    field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
-    simplify_warnings = []
-    metrics_job, written = None, False
-    if mesh:
-        from .mesh import mesh_field, mesh_summary, mesh_volume
-
-        with prog.stage("mesh"):
-            # mesh_summary below checks closure and winding; no need to check twice
-            result.mesh = mesh_field(s, grid, check=False)
-            # the volume alone decides on a correction; the full summary is of the final mesh
-            step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
-            if step is not None:
-                # s = max(lattice - level, patient): the new level's field, exactly, as the
-                # step is far below a voxel (removed fragments and filled voids keep their
-                # sign); the step may break a thin bridge or add an isolated voxel: clean again
-                result.mesh = None  # its memory, before the second mesh
-                np.maximum(s - np.float32(step), s_p, out=s)
-                if params.remove_fragments:
-                    report["fragments_removed"] += remove_fragments_by_piece(
-                        s, label_pieces(s_p < 0)[0], outside=h)["removed"]
-                more = fill_sealed_void_pieces(s, inside=h, fill=params.fill_sealed_voids,
-                                         keep_interior=params.skin > 0)
-                report["sealed_voids"]["count"] += more[0]
-                report["sealed_voids"]["volume_mm3"] += more[1] * h ** 3
-                report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = float(level + step)
-                report["porosity_voxel"] = 1.0 - int(np.count_nonzero(s < 0)) / n_inside
-                result.mesh = mesh_field(s, grid, check=False)
-        tolerance = _tolerance(params, h)
-        if tolerance > 0:
-            result.mesh, report["simplification"], simplify_warnings = _simplify(
-                result.mesh, tolerance, h, float(patient.volume), prog, int(max_memory))
-        if morphometry and _metrics_fit_beside(result, tolerance, int(max_memory)):
-            from .morphometry import morphometry as measure
-
-            # the voxel measures run in a second thread while the mesh is summed up and
-            # written (the two overlap well on 2 cores: compiled loops and file writes that
-            # release the interpreter); the field is final from here on
-            metrics_job = _Beside(measure, s < 0, h, region=inside, surface=False)
-        with prog.stage("mesh summary"):
-            summary = mesh_summary(result.mesh)
-        report.update({
-            "triangles": summary["triangles"],
-            "watertight": summary["watertight"],
-            "winding_consistent": summary["winding_consistent"],
-            "bodies": summary["bodies"],
-            "mesh_volume_mm3": summary["volume_mm3"],
-            "surface_area_mm2": summary["surface_area_mm2"],
-            "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
-        })
-        report["porosity_printed"] = report["porosity_mesh"]
-    if metrics_job is not None and printer is None and slices is None and out_path is not None:
-        with prog.stage("write"):
-            write_outputs(result, out_path)
-        written = True
-    if morphometry:
-        from .morphometry import morphometry as measure, surface_measures
-
-        with prog.stage("metrics", "" if metrics_job is None else "beside the mesh summary and write"):
-            # measured on what was built: fragments counts pieces left after any removal
-            if metrics_job is None:
-                found = measure(s < 0, h, region=inside, surface=False)
-            else:
-                found = metrics_job.result()
-            if "surface_area_mm2" in report:
-                found.update(surface_measures(report["surface_area_mm2"], report["mesh_volume_mm3"]))
-        found.pop("porosity_voxel", None)  # the stage above counted it already
-        report.update(found)
-    if printer is not None:
-        from .printability import certificate
-
-        with prog.stage("print check", printer.name):
-            report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
-    if slices is not None:
-        report["slices"] = _write_stack(s, grid, slices, prog)
-        report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
-    if out_path is not None:
-        if not written:
-            with prog.stage("write"):
-                write_outputs(result, out_path)
-        report["file_size_bytes"] = out_path.stat().st_size
-    from .memory import peak_memory
-
-    report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
-    report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
-    report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
-    if out_path is not None:
-        from .files import write_json
-
-        write_json(report, report_path(out_path))
-    return result
+    # the field: one driver for every size, over one slab held in memory when the whole grid
+    # fits (slab_voxels None), else over slabs kept on disk
+    return _build(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10, window_p25,
+                  slab_voxels, scheduler, prog, mesh, out_path, morphometry, seed_solve=tried or None,
+                  printer=printer,
+                  grade=(gfield, density, empty_power_cells if weighted else None) if graded else None)
 
 
 class _Beside:
@@ -1120,133 +941,85 @@ def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
                                     origin=grid.origin, progress=prog.bar("print check"))
 
 
-def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
-                    wall_p10, window_p25, slab_voxels: int, scheduler, prog, mesh: bool, out_path,
-                    morphometry: bool = True, seed_solve=None, grade=None, printer=None) -> Result:
-    """The tiled run (:mod:`.tiled`): the same field as the whole-grid run, streamed to the outputs.
+def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
+           wall_p10, window_p25, slab_voxels: int | None, scheduler, prog, mesh: bool, out_path,
+           morphometry: bool = True, seed_solve=None, grade=None, printer=None) -> Result:
+    """From the cells' primitives to the outputs: the field by the one slab driver
+    (:func:`.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
 
-    `grade` is a graded run's ``(GradeField, SeedDensity, empty power cells or None)``; `printer`
-    a PrinterProfile to certify what was built for (slab by slab, the whole grid's certificate).
+    `slab_voxels` None holds the whole grid as one slab in memory; the outputs are then made
+    from the arrays (:func:`_finish_in_memory`), else slab by slab from the fields on disk
+    (:func:`_finish_in_slabs`); the report's keys mean the same either way. `grade` is a
+    graded run's ``(GradeField, SeedDensity, empty power cells or None)``; `printer` a
+    PrinterProfile to certify what was built for.
     """
-    from .memory import peak_memory
     from .patient import SHAPES
     from .tiled import runner_for, sample_slabs, tiled_scaffold
 
+    in_memory = slab_voxels is None
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
-    runner = runner_for(scheduler)
+    runner = runner_for(None if in_memory else scheduler)
     printed, calibration = _printed_kind(params, mesh, run.slices, graded=grade is not None), {}
     search = None
     if printed is not None:
         bands = _prism(grid)
 
-        def level_for(read, level):
-            found, info = _printed_level(printed, read, level, grid, params, run.slices, *bands,
+        def level_for(read, level, pieces):
+            found, info = _printed_level(printed, read, level, grid, params, run.slices, *bands, pieces=pieces,
                                          whole_volume=float(patient.volume))
             calibration.clear()
             calibration.update(info)
             return found
 
         search = (bands, level_for)
+    one_piece = isinstance(patient, tuple(SHAPES.values()))
     try:
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
                             remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
-                            patient_pieces=not isinstance(patient, tuple(SHAPES.values())),
-                            fill_sealed_voids=params.fill_sealed_voids, printed=search,
-                            prog=prog, skin=params.skin, smooth_cut=params.smooth_cut,
+                            patient_pieces=not one_piece, fill_sealed_voids=params.fill_sealed_voids,
+                            printed=search, prog=prog, skin=params.skin, smooth_cut=params.smooth_cut,
                             grade=None if grade is None or (params.porosity is None and grade[0].kind != "ct")
-                            else grade[0])
+                            else grade[0], in_memory=in_memory)
     finally:
         runner.close()
     try:
-        cells_in = sample_slabs(tf.patient, grid, cells.seeds) < 0
+        cells_in = (sample(tf.patient.field, grid, cells.seeds) if in_memory
+                    else sample_slabs(tf.patient, grid, cells.seeds)) < 0
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
                               tf.level, 1.0 - tf.solid / tf.n_inside, tf.fragments, tf.sealed, seed_solve=seed_solve)
+        report["fragments_removed_mm3"] = (None if tf.fragments is None
+                                           else tf.fragments_voxels * grid.voxel_volume)
         report["printed_level"] = calibration or None
         if grade is not None:
             gfield, density, empty = grade
             if report["printed_level"] is None and params.porosity is not None:
                 report["printed_level"] = {"by": None, "why": "graded: the level is solved per depth bin in voxels"}
             with prog.stage("profiles"):
-                report.update(_grade_report(params, gfield, density, tf.level_plan, tf.level_field, tf.field,
-                                            tf.patient, grid, cells, max_voxels=slab_voxels))
+                fields = (tf.field.field, tf.patient.field) if in_memory else (tf.field, tf.patient)
+                report.update(_grade_report(params, gfield, density, tf.level_plan, tf.level_field, *fields,
+                                            grid, cells, max_voxels=slab_voxels))
             if empty is not None:
                 report["grade"]["empty_power_cells"] = empty
-        report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
-                           "max_memory_mb": round(run.max_memory / 2**20, 1),
-                           "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
-                                                                                     scheduler))}
+            tf.level_plan = tf.level_field = None  # the mesh and metrics stages need the memory
+        elif params.porosity is not None and report["printed_level"] is None:
+            report["printed_level"] = {"by": None, "why": "no mesh or slices: the field meets the target in voxels"}
+        if not in_memory:
+            report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
+                               "max_memory_mb": round(run.max_memory / 2**20, 1),
+                               "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
+                                                                                         scheduler))}
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
-        simplify_warnings = []
-        ext = output_format(out_path) if out_path is not None else None
-        if mesh and ext in MESH_FORMATS:
-            def stream():
-                return _stream_mesh(tf.field, out_path, run, slab_voxels, prog,
-                                    tolerance=_tolerance(params, grid.spacing), voxel=grid.spacing,
-                                    patient_volume=float(patient.volume))
-
-            summary, simplified, simplify_warnings = stream()
-            step = _mesh_correction(summary["volume_mm3"], patient, params, calibration)
-            if step is not None:
-                # as the whole grid does: the mesh measured, the level moved by one step, the
-                # fragments and sealed voids cleaned again, and the mesh streamed once more
-                from .tiled import shift_level
-
-                with prog.stage("correct", f"level {step:+.3g} mm for the mesh's porosity"):
-                    more = shift_level(tf, step, remove_fragments=params.remove_fragments,
-                                       fill_sealed_voids=params.fill_sealed_voids, keep_interior=params.skin > 0,
-                                       patient_pieces=not isinstance(patient, tuple(SHAPES.values())),
-                                       progress=prog.bar("correct"))
-                report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = tf.level
-                report["porosity_voxel"] = 1.0 - tf.solid / tf.n_inside
-                if report.get("fragments_removed") is not None:
-                    report["fragments_removed"] += more[0]
-                report["sealed_voids"]["count"] += more[1]
-                report["sealed_voids"]["volume_mm3"] += more[2] * grid.voxel_volume
-                report["bodies_voxels"] = tf.pieces
-                summary, simplified, simplify_warnings = stream()
-            if simplified is not None:
-                report["simplification"] = simplified
-            report.update({
-                "triangles": summary["triangles"],
-                "watertight": summary["watertight"],
-                "winding_consistent": summary["winding_consistent"],
-                "bodies": summary.get("bodies", tf.pieces),
-                "mesh_volume_mm3": summary["volume_mm3"],
-                "surface_area_mm2": summary["surface_area_mm2"],
-                "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
-                "mesh_workers": summary.get("workers", 1),
-            })
-            report["porosity_printed"] = report["porosity_mesh"]
-        if morphometry:
-            # measured on what was built, after any correction of the level
-            report.update(_slab_morphometry(tf, grid, cells, run, prog))
-            if "mesh_volume_mm3" in report:
-                # as the whole-grid morphometry takes them: the mesh's area over its volume
-                report["bs_bv_per_mm"] = (report["surface_area_mm2"] / report["mesh_volume_mm3"]
-                                          if report["mesh_volume_mm3"] > 0 else None)
-        if printer is not None:
-            report["print_check"] = _slab_certificate(tf, grid, printer, run, prog)
-        if ext in FIELD_FORMATS:
-            from .export import write_volume
-            from .memory import process_memory
-
-            with prog.stage("write"):
-                # z blocks cut from the field on disk, within what --max-memory leaves
-                write_volume(tf.field, grid, out_path,
-                             max_bytes=max((run.max_memory - process_memory()) // 2, 2**26))
-        if run.slices is not None:
-            report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
-            report.setdefault("porosity_printed",
-                              1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-        report["warnings"] = _check_built(report, params, simplify_warnings)
-        # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
-        field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
-                                  for f in (tf.field, tf.patient))
+        finish = _finish_in_memory if in_memory else _finish_in_slabs
+        result = finish(tf, report, run, params, patient, grid, cells, cells_in, calibration, prog, mesh,
+                        out_path, morphometry, printer, one_piece=one_piece, slab_voxels=slab_voxels)
+        result.skeleton, result.edges, result.timings = skeleton, edges, prog.timings
     finally:
         tf.close()
+    from .memory import peak_memory
+
     if out_path is not None:
         report["file_size_bytes"] = out_path.stat().st_size
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
@@ -1259,7 +1032,167 @@ def _generate_tiled(run: _RunPlan, params: Params, patient, grid: Grid, cells, s
         from .files import write_json
 
         write_json(report, report_path(out_path))
-    return Result(params=params, report=report, cells=cells, skeleton=skeleton, edges=edges, grid=grid,
+    return result
+
+
+def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool) -> None:
+    """Move the finished field's surface by `step` mm (:func:`.tiled.shift_level`) and update the report."""
+    from .tiled import shift_level
+
+    with prog.stage("correct", f"level {step:+.3g} mm for the mesh's porosity"):
+        more = shift_level(tf, step, remove_fragments=params.remove_fragments,
+                           fill_sealed_voids=params.fill_sealed_voids, keep_interior=params.skin > 0,
+                           patient_pieces=not one_piece, progress=prog.bar("correct"))
+    report["surface_offset_mm" if params.style == "paper" else "strut_radius_mm"] = tf.level
+    report["porosity_voxel"] = 1.0 - tf.solid / tf.n_inside
+    if report.get("fragments_removed") is not None:
+        report["fragments_removed"] += more[0]
+        report["fragments_removed_mm3"] = tf.fragments_voxels * grid.voxel_volume
+    report["sealed_voids"]["count"] += more[1]
+    report["sealed_voids"]["volume_mm3"] += more[2] * grid.voxel_volume
+    report["bodies_voxels"] = tf.pieces
+
+
+def _mesh_report(report: dict, summary: dict, patient) -> None:
+    """The mesh's keys of the report, from :func:`.mesh.mesh_summary` (or the streamed mesh's summary)."""
+    report.update({
+        "triangles": summary["triangles"],
+        "watertight": summary["watertight"],
+        "winding_consistent": summary["winding_consistent"],
+        "bodies": summary.get("bodies", report.get("bodies_voxels")),
+        "mesh_volume_mm3": summary["volume_mm3"],
+        "surface_area_mm2": summary["surface_area_mm2"],
+        "porosity_mesh": 1.0 - summary["volume_mm3"] / float(patient.volume),
+    })
+    report["porosity_printed"] = report["porosity_mesh"]
+
+
+def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, grid: Grid, cells, cells_in,
+                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
+                      one_piece: bool, slab_voxels=None) -> Result:
+    """The outputs of a run held in memory: the patient's pieces, the mesh, the voxel measures,
+    the certificate, the slices and the files, from the field's arrays."""
+    from .pieces import REPORT_PIECES, label_pieces, piece_table, small_pieces_warning
+
+    s, s_p = tf.field.field, tf.patient.field
+    h = grid.spacing
+    inside = s_p < 0
+    pieces, n_pieces = label_pieces(inside)
+    piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
+                             main_bodies_only=params.remove_fragments and n_pieces == 1)
+    del pieces
+    report["patient_pieces_count"] = n_pieces
+    report["patient_pieces"] = piece_rows[:REPORT_PIECES]
+    # one pore: the target's, or (seeds given, or graded) the mean measured
+    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
+    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
+
+    result = Result(params=params, report=report, cells=cells, skeleton=None, edges=None, grid=grid,
+                    field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
+    simplify_warnings = []
+    metrics_job, written = None, False
+    if mesh:
+        from .mesh import mesh_field, mesh_summary, mesh_volume
+
+        with prog.stage("mesh"):
+            # mesh_summary below checks closure and winding; no need to check twice
+            result.mesh = mesh_field(s, grid, check=False)
+        # the volume alone decides on a correction; the full summary is of the final mesh
+        step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
+        if step is not None:
+            result.mesh = None  # its memory, before the second mesh
+            _correct(tf, step, report, params, grid, prog, one_piece)
+            with prog.stage("mesh", "again, at the corrected level"):
+                result.mesh = mesh_field(s, grid, check=False)
+        tolerance = _tolerance(params, h)
+        if tolerance > 0:
+            result.mesh, report["simplification"], simplify_warnings = _simplify(
+                result.mesh, tolerance, h, float(patient.volume), prog, run.max_memory)
+        if morphometry and _metrics_fit_beside(result, tolerance, run.max_memory):
+            from .morphometry import morphometry as measure
+
+            # the voxel measures run in a second thread while the mesh is summed up and
+            # written (the two overlap well on 2 cores: compiled loops and file writes that
+            # release the interpreter); the field is final from here on
+            metrics_job = _Beside(measure, s < 0, h, region=inside, surface=False)
+        with prog.stage("mesh summary"):
+            _mesh_report(report, mesh_summary(result.mesh), patient)
+    if metrics_job is not None and printer is None and run.slices is None and out_path is not None:
+        with prog.stage("write"):
+            write_outputs(result, out_path)
+        written = True
+    if morphometry:
+        from .morphometry import morphometry as measure, surface_measures
+
+        with prog.stage("metrics", "" if metrics_job is None else "beside the mesh summary and write"):
+            # measured on what was built: fragments counts pieces left after any removal
+            found = measure(s < 0, h, region=inside, surface=False) if metrics_job is None else metrics_job.result()
+            if "surface_area_mm2" in report:
+                found.update(surface_measures(report["surface_area_mm2"], report["mesh_volume_mm3"]))
+        found.pop("porosity_voxel", None)  # the scaffold pass counted it already
+        report.update(found)
+    if printer is not None:
+        from .printability import certificate
+
+        with prog.stage("print check", printer.name):
+            report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
+    if run.slices is not None:
+        report["slices"] = _write_stack(s, grid, run.slices, prog)
+        report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
+    if out_path is not None and not written:
+        with prog.stage("write"):
+            write_outputs(result, out_path)
+    return result
+
+
+def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, grid: Grid, cells, cells_in,
+                     calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
+                     one_piece: bool, slab_voxels: int) -> Result:
+    """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
+    simplify_warnings = []
+    ext = output_format(out_path) if out_path is not None else None
+    if mesh and ext in MESH_FORMATS:
+        def stream():
+            return _stream_mesh(tf.field, out_path, run, slab_voxels, prog,
+                                tolerance=_tolerance(params, grid.spacing), voxel=grid.spacing,
+                                patient_volume=float(patient.volume))
+
+        summary, simplified, simplify_warnings = stream()
+        step = _mesh_correction(summary["volume_mm3"], patient, params, calibration)
+        if step is not None:
+            # the mesh measured, the level moved by one step, the fragments and sealed voids
+            # cleaned again, and the mesh streamed once more
+            _correct(tf, step, report, params, grid, prog, one_piece)
+            summary, simplified, simplify_warnings = stream()
+        if simplified is not None:
+            report["simplification"] = simplified
+        _mesh_report(report, summary, patient)
+        report["mesh_workers"] = summary.get("workers", 1)
+    if morphometry:
+        # measured on what was built, after any correction of the level
+        report.update(_slab_morphometry(tf, grid, cells, run, prog))
+        if "mesh_volume_mm3" in report:
+            # as the whole-grid morphometry takes them: the mesh's area over its volume
+            report["bs_bv_per_mm"] = (report["surface_area_mm2"] / report["mesh_volume_mm3"]
+                                      if report["mesh_volume_mm3"] > 0 else None)
+    if printer is not None:
+        report["print_check"] = _slab_certificate(tf, grid, printer, run, prog)
+    if ext in FIELD_FORMATS:
+        from .export import write_volume
+        from .memory import process_memory
+
+        with prog.stage("write"):
+            # z blocks cut from the field on disk, within what --max-memory leaves
+            write_volume(tf.field, grid, out_path, max_bytes=max((run.max_memory - process_memory()) // 2, 2**26))
+    if run.slices is not None:
+        report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
+        report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
+    report["warnings"] = _check_built(report, params, simplify_warnings)
+    # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
+    field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
+                              for f in (tf.field, tf.patient))
+    return Result(params=params, report=report, cells=cells, skeleton=None, edges=None, grid=grid,
                   field=field_map, patient_sdf=patient_map, patient=patient, timings=prog.timings, tiled=tf.slabs)
 
 

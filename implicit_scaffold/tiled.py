@@ -1,12 +1,13 @@
-"""The tiled run: the scaffold's field slab by slab, in bounded memory, on one machine or a cluster.
+"""The one driver of the scaffold's field: slab by slab, in bounded memory, on one machine or a cluster.
 
-A grid whose whole-grid run would not fit in ``--max-memory`` is cut into slabs along
-x (:func:`~implicit_scaffold.tiles.plan_slabs`). Each slab's lattice field is computed
+Every run's field comes from :func:`tiled_scaffold`. A grid whose run fits in
+``--max-memory`` is one slab, held in memory (:class:`~.tiles.ArraySlabs`); a larger one
+is cut into slabs along x (:func:`~implicit_scaffold.tiles.plan_slabs`). Each slab's lattice field is computed
 for its own planes plus the halo the blend reads, in the whole grid's frame, so every
 value is the one the whole-grid run computes, bit for bit. The passes:
 
 1. lattice, blend and patient field of each slab (the heavy part; on Dask workers when
-   a scheduler is given), kept in two raw files on disk (:class:`~.tiles.FieldFile`),
+   a scheduler is given), kept in two raw files on disk (:class:`~.tiles.FieldFile`) or arrays,
    while the patient's voxels are counted and their lattice values histogrammed;
 2. the exact order statistics that give the surface offset (:class:`~.tiles.StreamQuantile`);
 3. the scaffold field ``max(lattice - level, patient)`` of each slab, with its solid
@@ -31,7 +32,7 @@ from .errors import ScaffoldError
 from .field import blend_field, level_between, scaffold_field, solid_voxels, void_mask
 from .grid import Grid
 from .memory import release
-from .tiles import FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_ranks, \
+from .tiles import ArraySlabs, FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_ranks, \
     plan_slabs
 
 #: bytes per voxel of a slab at the peak of pass 1 (lattice and blended planes, the
@@ -189,13 +190,14 @@ def runner_for(scheduler) -> LocalRunner | DaskRunner:
 
 @dataclass
 class TiledField:
-    """The finished scaffold field of a tiled run, on disk, and what its passes counted.
+    """The finished scaffold field, in its slab store, and what its passes counted.
 
     Attributes
     ----------
-    field : FieldFile
-        The scaffold's signed distance (negative in the solid), mm.
-    patient : FieldFile
+    field : FieldFile or ArraySlabs
+        The scaffold's signed distance (negative in the solid), mm: on disk, or in memory
+        for a run of one slab (``field.field`` is then the array).
+    patient : FieldFile or ArraySlabs
         The patient's signed distance, mm.
     level : float, mm
     cutoff : float, mm
@@ -229,9 +231,15 @@ class TiledField:
     patient_pieces: int = 1
     level_plan: Any = None
     level_field: Any = None
+    fragments_voxels: int = 0
+
+    @property
+    def in_memory(self) -> bool:
+        """The fields are arrays (one slab, the whole grid), not files."""
+        return isinstance(self.field, ArraySlabs)
 
     def close(self) -> None:
-        """Remove the files."""
+        """Remove the files (or let the arrays go)."""
         self.field.close()
         self.patient.close()
 
@@ -325,8 +333,12 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
                    max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
                    printed=None, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True, grade=None) -> TiledField:
-    """The scaffold's field on `grid`, slab by slab, bit for bit the whole-grid run's.
+                   patient_pieces: bool = True, grade=None, in_memory: bool = False) -> TiledField:
+    """The scaffold's field on `grid`, slab by slab: the one driver of every run's field.
+
+    A run whose whole grid fits in memory is the case of one slab held in memory
+    (`in_memory`); a larger one keeps its slabs' fields on disk. Both make the same
+    field, bit for bit, through the same passes.
 
     Parameters
     ----------
@@ -350,10 +362,11 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     prog : Progress, optional
     fill_sealed_voids : bool
         Fill the void pieces that do not reach the outside (always counted).
-    printed : (bands, callable(read, level) -> level), optional
+    printed : (bands, callable(read, level, pieces) -> level), optional
         The calibration prism's y and z bands and the search for the level of what is
         printed (:mod:`.printed`); ``read(ys, zs)`` gives the lattice and patient fields
-        on a band.
+        on a band, `pieces` the patient's pieces on the prism (in memory, when fragments
+        are removed; else None).
     skin, smooth_cut : float, mm
         As in :func:`~implicit_scaffold.field.scaffold_field`: voxel by voxel, from the
         patient's distance of the same voxel, so they need no halo.
@@ -364,6 +377,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         A graded run's targets: the offset is then a field solved bin by bin over the slabs
         (:func:`~implicit_scaffold.grade.solve_level_field`, the whole grid's solver), and
         `porosity` is not read.
+    in_memory : bool
+        One slab, the whole grid, whose fields are held in memory (`max_voxels` is then not read).
 
     Returns
     -------
@@ -374,13 +389,19 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
     prog = prog or Progress(False)
     runner = runner or LocalRunner()
-    check_disk(grid)
-    field, patient_file = FieldFile(grid), FieldFile(grid)
+    if in_memory:
+        field, patient_file = ArraySlabs(None, grid, views=True), ArraySlabs(None, grid, views=True)
+        max_voxels = None  # the graded passes read the arrays in their own chunks
+    else:
+        check_disk(grid)
+        field, patient_file = FieldFile(grid), FieldFile(grid)
     plan = level_field = None
     try:
         for _ in range(6):
             work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k))
-            slabs = plan_slabs(grid.shape, max_voxels=max_voxels, halo=work.halo)
+            nx = int(grid.shape[0])
+            slabs = [Slab(0, nx, 0, nx)] if in_memory else plan_slabs(grid.shape, max_voxels=max_voxels,
+                                                                      halo=work.halo)
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
                                        f"{len(slabs)} slab{'' if len(slabs) == 1 else 's'}"):
                 quantile, n_inside, lo, hi = _pass_lattice(work, slabs, runner, field, patient_file,
@@ -403,15 +424,22 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
+                    pieces = None
+                    if in_memory and remove_fragments:
+                        from .pieces import label_pieces
+
+                        # each patient piece keeps its main body on the prism, as in the scaffold pass
+                        pieces = label_pieces(patient_file.field < 0)[0][:, ys, zs]
                     level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
-                                   level)
+                                   level, pieces)
+                    del pieces
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
             cutoff = wider
         with prog.stage("scaffold"):
             shift = None if level_field is None else (plan, level_field)
-            solid, fragments, pieces, patient_pieces = _pass_scaffold(
+            solid, fragments, pieces, patient_pieces, removed = _pass_scaffold(
                 slabs, field, patient_file, 0.0 if shift else level, grid.spacing, remove_fragments,
                 prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=patient_pieces, shift=shift)
             sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
@@ -426,7 +454,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed, patient_pieces, plan, level_field)
+                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed)
 
 
 def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sealed_voids: bool,
@@ -439,7 +467,7 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
     -------
     (fragments, sealed void pieces, sealed voxels) found by this pass; `tf`'s counts are updated.
     """
-    solid, fragments, pieces, _ = _pass_scaffold(tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing,
+    solid, fragments, pieces, _, removed = _pass_scaffold(tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing,
                                                  remove_fragments, progress, patient_pieces=patient_pieces)
     sealed = _pass_sealed(tf.slabs, tf.field, tf.field.grid.spacing, fill_sealed_voids, keep_interior=keep_interior)
     if fill_sealed_voids:
@@ -448,13 +476,14 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
     tf.level = float(tf.level + step)
     if tf.fragments is not None:
         tf.fragments += fragments or 0
+        tf.fragments_voxels += removed
     tf.sealed = (tf.sealed[0] + sealed[0], tf.sealed[1] + sealed[1])
     return fragments or 0, sealed[0], sealed[1]
 
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int]:
+                   patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int, int]:
     """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
 
     Each piece of the patient keeps its own main body, as
@@ -465,7 +494,7 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
 
     Returns
     -------
-    solid, fragments (None when not removed), bodies, patient pieces
+    solid, fragments (None when not removed), bodies, patient pieces, voxels removed
     """
     by_piece = patient_pieces
     pieces, patient_pieces = SlabComponents(), SlabComponents()
@@ -503,16 +532,17 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         found = pieces.fragments()
     total = pieces.piece_count
     if not remove or found == 0:
-        return solid, (0 if remove else None), total, n_patient
+        return solid, (0 if remove else None), total, n_patient, 0
+    removed = 0
     for i, slab in enumerate(slabs):
         s = field.read(slab.x0, slab.x1)
         drop = pieces.fragment_mask(i, s < 0)
         s[drop] = np.float32(spacing)
-        solid -= int(np.count_nonzero(drop))
+        removed += int(np.count_nonzero(drop))
         field.write(slab.x0, s)
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
-    return solid, found, total - found, n_patient
+    return solid - removed, found, total - found, n_patient, removed
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:

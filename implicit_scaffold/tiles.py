@@ -456,23 +456,59 @@ class SlabComponents:
 
 
 class ArraySlabs:
-    """A field held in memory, read plane range by plane range like a :class:`FieldFile`.
+    """A field held in memory, read and written plane range by plane range like a :class:`FieldFile`.
+
+    It is the slab store of a run whose whole grid fits in memory: the same passes
+    (:func:`~implicit_scaffold.tiled.tiled_scaffold`) then run over one slab, the whole grid,
+    and the finished field is the array itself.
 
     Parameters
     ----------
-    field : (nx, ny, nz) float ndarray, mm
+    field : (nx, ny, nz) float ndarray, mm, or None
+        The field; None for a store that its first :meth:`write` fills.
     grid : Grid
+    views : bool
+        :meth:`read` gives views of the array (writing into them writes the store), not
+        copies: a pass over the whole grid then holds no second copy of it.
     """
 
-    def __init__(self, field: np.ndarray, grid):
-        if tuple(field.shape) != tuple(grid.shape):
+    path = None  # nothing on disk
+
+    def __init__(self, field: np.ndarray | None, grid, *, views: bool = False):
+        if field is not None and tuple(field.shape) != tuple(grid.shape):
             raise ScaffoldError(f"the field's shape {field.shape} does not match its grid {grid.shape}")
         self.field = field
         self.grid = grid
+        self.views = views
 
     def read(self, x0: int, x1: int) -> np.ndarray:
-        """Planes ``[x0, x1)``, ``(x1 - x0, ny, nz)`` float32 (a copy)."""
+        """Planes ``[x0, x1)``, ``(x1 - x0, ny, nz)`` float32 (a copy, or a view if :attr:`views`)."""
+        if self.views and self.field.dtype == np.float32:
+            return self.field[x0:x1]
         return np.array(self.field[x0:x1], np.float32)
+
+    def write(self, x0: int, planes: np.ndarray) -> None:
+        """Store planes ``x0 .. x0 + len(planes)``; a float32 array of the whole grid is kept as it is."""
+        shape = tuple(self.grid.shape)
+        if (int(x0) == 0 and tuple(planes.shape) == shape and planes.dtype == np.float32
+                and planes.flags.c_contiguous):
+            self.field = planes
+            return
+        if self.field is None:
+            self.field = np.empty(shape, np.float32)
+        if planes.shape[1:] != shape[1:]:
+            raise ValueError(f"planes of shape {planes.shape[1:]} for a grid of {shape}")
+        target = self.field[int(x0):int(x0) + len(planes)]
+        if np.may_share_memory(target, planes):
+            if (target.__array_interface__["data"][0] == planes.__array_interface__["data"][0]
+                    and target.shape == planes.shape and target.strides == planes.strides):
+                return  # a view that read() gave, written into in place
+            planes = np.array(planes)
+        target[...] = planes
+
+    def close(self) -> None:
+        """Let the array go (the caller may still hold it)."""
+        self.field = None
 
 
 class FieldFile:
