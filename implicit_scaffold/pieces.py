@@ -148,16 +148,113 @@ def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, s
         bodies = np.bincount(solid_piece(labels, piece_labels, n_solid)[1:], minlength=count + 1)
         del labels
     bounds = ndimage.find_objects(piece_labels)
+    lo = np.array([[s.start for s in box] for box in bounds], np.int64).reshape(-1, 3)
+    hi = np.array([[s.stop - 1 for s in box] for box in bounds], np.int64).reshape(-1, 3)
+    return _rows(voxels[1:], solid_voxels[1:], cells[1:], bodies[1:], lo, hi, grid)
+
+
+def _rows(voxels, solid_voxels, cells, bodies, lo, hi, grid) -> list[dict]:
+    """The table's rows from per-piece figures (piece i + 1 in row i; `lo`, `hi` voxel indices), largest first."""
+    lo_mm, hi_mm = grid.indices_to_points(lo), grid.indices_to_points(hi)
     rows = []
-    for i in range(1, count + 1):
-        box = bounds[i - 1]
-        lo = grid.indices_to_points(np.array([[s.start for s in box]]))[0]
-        hi = grid.indices_to_points(np.array([[s.stop - 1 for s in box]]))[0]
-        rows.append({"piece": i, "volume_mm3": float(voxels[i] * grid.voxel_volume), "cells": int(cells[i]),
+    for i in range(len(voxels)):
+        rows.append({"piece": i + 1, "volume_mm3": float(voxels[i] * grid.voxel_volume), "cells": int(cells[i]),
                      "porosity_voxel": float(1.0 - solid_voxels[i] / voxels[i]), "bodies": int(bodies[i]),
-                     "lo_mm": [round(float(v), 4) for v in lo], "hi_mm": [round(float(v), 4) for v in hi]})
+                     "lo_mm": [round(float(v), 4) for v in lo_mm[i]], "hi_mm": [round(float(v), 4) for v in hi_mm[i]]})
     rows.sort(key=lambda r: (-r["volume_mm3"], r["piece"]))
     return rows
+
+
+def piece_table_by_slabs(field, patient, grid, seeds: np.ndarray, *, max_voxels: int,
+                         main_bodies_only: bool = False, progress=None) -> list[dict]:
+    """:func:`piece_table` of a field in slabs (on disk or in memory), in one pass over them.
+
+    The patient's pieces and the solid's are joined across slab faces
+    (:class:`~implicit_scaffold.tiles.SlabComponents`); a piece's number is that of its
+    first voxel in C order, as whole-grid labelling gives it, so the rows are the same.
+
+    Parameters
+    ----------
+    field, patient : objects with ``read(x0, x1)`` (a FieldFile or ArraySlabs), mm
+        The scaffold's and the patient's signed distances.
+    grid : Grid
+    seeds : (n, 3) float ndarray, mm
+    max_voxels : int
+        Voxels a slab may hold.
+    main_bodies_only : bool
+        As in :func:`piece_table` (the solid is not labelled).
+    """
+    from scipy import ndimage
+
+    from .tiles import SlabComponents, plan_slabs
+
+    slabs = plan_slabs(grid.shape, max_voxels=max_voxels, halo=0)
+    probes = _seed_probes(grid, seeds)  # (9, n, 3): the voxels seed_pieces reads
+    flat = probes.reshape(-1, 3)
+    probe_local = np.zeros(len(flat), np.int64)
+    probe_slab = np.searchsorted([sl.x1 for sl in slabs], flat[:, 0], side="right")
+    parts, solids = SlabComponents(), None if main_bodies_only else SlabComponents()
+    los, his, solid_maps = [], [], []
+    for i, slab in enumerate(slabs):
+        solid = field.read(slab.x0, slab.x1) < 0
+        labels = parts.add(patient.read(slab.x0, slab.x1) < 0, tally=solid)
+        boxes = ndimage.find_objects(labels)
+        los.append(np.array([[b[0].start + slab.x0, b[1].start, b[2].start] for b in boxes], np.int64).reshape(-1, 3))
+        his.append(np.array([[b[0].stop - 1 + slab.x0, b[1].stop - 1, b[2].stop - 1] for b in boxes],
+                            np.int64).reshape(-1, 3))
+        here = np.flatnonzero(probe_slab == i)
+        probe_local[here] = labels[flat[here, 0] - slab.x0, flat[here, 1], flat[here, 2]]
+        if solids is not None:
+            solid_labels = solids.add(solid)
+            piece_of = np.zeros(int(solid_labels.max(initial=0)) + 1, np.int64)
+            piece_of[solid_labels[solid]] = labels[solid]
+            solid_maps.append(piece_of)
+            del solid_labels
+        del solid, labels
+        if progress is not None:
+            progress(i + 1, len(slabs))
+    parts.finish()
+    sizes = parts.sizes
+    roots = np.flatnonzero(sizes > 0)  # in C order of their first voxel: piece 1, 2, ...
+    number = np.zeros(len(sizes) + 1, np.int64)  # root + 1 -> piece number (0 for none)
+    number[roots + 1] = np.arange(1, len(roots) + 1)
+    count = len(roots)
+    all_roots = parts.roots_of_all()
+    lo = np.full((count, 3), np.iinfo(np.int64).max, np.int64)
+    hi = np.full((count, 3), -1, np.int64)
+    piece_of_label = number[all_roots + 1] - 1
+    np.minimum.at(lo, piece_of_label, np.concatenate(los))
+    np.maximum.at(hi, piece_of_label, np.concatenate(his))
+    probe_piece = np.zeros(len(flat), np.int64)
+    for i in range(len(slabs)):
+        here = np.flatnonzero(probe_slab == i)
+        probe_piece[here] = number[parts.roots_of(i, probe_local[here]) + 1]
+    probe_piece = probe_piece.reshape(probes.shape[:2])
+    out = probe_piece[0]
+    for corner in probe_piece[1:]:
+        out = np.where(out > 0, out, corner)
+    cells = np.bincount(out, minlength=count + 1)[1:]
+    solid_voxels = parts.tally_by_root()[roots]
+    if solids is None:
+        bodies = (solid_voxels > 0).astype(np.int64)
+    else:
+        solids.finish()
+        group = np.zeros(solids.labels, np.int64)
+        for i, piece_of in enumerate(solid_maps):
+            group[solids.roots_of(i, np.arange(1, len(piece_of)))] = number[parts.roots_of(i, piece_of[1:]) + 1]
+        solid_roots = np.flatnonzero(solids.sizes > 0)
+        bodies = np.bincount(group[solid_roots], minlength=count + 1)[1:]
+    return _rows(sizes[roots], solid_voxels, cells, bodies, lo, hi, grid)
+
+
+def _seed_probes(grid, seeds: np.ndarray) -> np.ndarray:
+    """The voxels :func:`seed_pieces` reads for each seed: ``(9, n, 3)`` indices, its nearest first."""
+    shape = np.asarray(grid.shape) - 1
+    p = (np.asarray(seeds, np.float64).reshape(-1, 3) - np.asarray(grid.origin)) / grid.spacing
+    base = np.floor(p).astype(np.int64)
+    out = [np.clip(np.rint(p).astype(np.int64), 0, shape)]
+    out += [np.clip(base + np.asarray(corner), 0, shape) for corner in np.ndindex(2, 2, 2)]
+    return np.stack(out)
 
 
 def seed_pieces(piece_labels: np.ndarray, grid, seeds: np.ndarray) -> np.ndarray:
@@ -170,13 +267,9 @@ def seed_pieces(piece_labels: np.ndarray, grid, seeds: np.ndarray) -> np.ndarray
     (n,) int64 ndarray
         0 for a seed with no voxel of the patient around it.
     """
-    shape = np.asarray(piece_labels.shape) - 1
-    p = (np.asarray(seeds, np.float64) - np.asarray(grid.origin)) / grid.spacing
-    near = np.clip(np.rint(p).astype(np.int64), 0, shape)
-    out = piece_labels[near[:, 0], near[:, 1], near[:, 2]].astype(np.int64)
-    base = np.floor(p).astype(np.int64)
-    for corner in np.ndindex(2, 2, 2):
-        c = np.clip(base + np.asarray(corner), 0, shape)
+    probes = _seed_probes(grid, seeds)
+    out = piece_labels[probes[0, :, 0], probes[0, :, 1], probes[0, :, 2]].astype(np.int64)
+    for c in probes[1:]:
         out = np.where(out > 0, out, piece_labels[c[:, 0], c[:, 1], c[:, 2]])
     return out
 

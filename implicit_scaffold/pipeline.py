@@ -245,14 +245,15 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         Print stage progress on stderr.
     morphometry : bool
         Measure the built solid's voxels (stage ``metrics``: local thickness, Conn.D,
-        interconnected porosity, fragments, BS/BV); False leaves those keys out. A tiled
-        run measures the Euler characteristic, Conn.D, fragments and BS/BV slab by slab,
-        not the others (they need the whole grid), and says so in the report.
+        interconnected porosity, fragments, BS/BV); False leaves those keys out. A run in
+        slabs measures them slab by slab (:func:`.morphometry.morphometry_by_slabs`), with
+        the whole grid's figures.
     max_memory : int or str, optional
         Bytes (or a size such as ``"4G"``) the run may hold; by default a safe share of
-        the free memory. A grid whose whole-grid run would not fit is run in slabs
-        (:mod:`.tiled`), with the same field bit for bit; one that cannot fit even so is
-        refused before the work starts.
+        the free memory. Every run's field is made by one slab driver (:mod:`.tiled`): a
+        grid that fits is one slab held in memory, a larger one runs in slabs kept on disk,
+        with the same field bit for bit; one that cannot fit even so is refused before the
+        work starts, naming the budget that would do.
     tiled : bool or int, optional
         Force (True) or forbid (False) the tiled run; by default it is chosen by memory.
         An int forces it with slabs of at most that many voxels (halo included).
@@ -279,12 +280,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     -------
     Result
     """
-    from .cells import voronoi_cells
-    from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
     from .patient import clamp_far_field, primitive
-    from .seeds import (PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, density_for_pore_size,
-                        seed_count, seeds_in_patient, uniform_seeds)
-    from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
 
     params = validate(shape=shape, size=size, seeds=seeds, pore_size=pore_size, porosity=porosity, sf=sf, sv=sv,
                       style=style, blend=blend, voxel=voxel, seed=seed, remove_fragments=remove_fragments,
@@ -301,34 +297,19 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if params.seeds_in is None:
         # time and memory then follow the bone's volume, not its bounding box's
         params = replace(params, seeds_in="box" if patient is None else "patient")
-    out_path = Path(output) if output is not None else None
-    if out_path is not None:
-        from .files import check_writable
-
-        ext = output_format(out_path)
-        if ext is None:
-            raise ScaffoldError(f"cannot write {out_path.name}: use one of "
-                                f"{', '.join(MESH_FORMATS + FIELD_FORMATS)}")
-        if ext in MESH_FORMATS and not mesh:
-            raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
-        check_writable(out_path)
-        check_writable(report_path(out_path))
+    out_path = _checked_output(output, mesh)
     if patient is None:
         patient = primitive(params.shape, params.size)
-    lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
-    box_volume = float(np.prod(hi - lo))
     # everything that can be checked before the work starts is checked now
     opencl.context()
-    run_bytes = run_bytes_per_voxel(mesh=mesh, morphometry=morphometry)
     from .memory import budget
 
-    max_memory = budget(max_memory)
-    graded = params.grade is not None or params.calibration is not None
     # the patient as the fine grid reads it: beyond the skin and smooth-cut widths (and a
     # depth grade's deepest node) only its sign matters, so a mesh's far field is clamped there
     # and computed slab by slab, the same on the whole grid as in slabs
     fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
-    run = _RunPlan(run_bytes, int(max_memory), tiled, params, fine_patient, out_path, slices)
+    run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry), int(budget(max_memory)), tiled, params,
+                   fine_patient, out_path, slices)
     prog = Progress(verbose)
     if mesh:
         # the mesh stages' libraries load while the cells and the lattice are computed (about
@@ -338,57 +319,148 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         # a patient read from a file (patient_io.load_patient) was loaded before this call
         prog.timings["load"] = float(patient.load_seconds)
 
-    p0 = closed_form_porosity(params.sf, params.sv)
-    seed_volume = box_volume if params.seeds_in == "box" else float(patient.volume)
-    if graded:
-        from . import grade as grading
+    graded = _graded_density(params, patient, ct, prog)
+    n = graded.density.count if graded else _seed_count(params, patient)
+    _plan_before_cells(run, params, patient, n, graded is not None)
+    built = _seeds_and_cells(params, patient, n, graded, run, prog)
+    grid = Grid.covering(patient.lo, patient.hi,
+                         params.voxel if params.voxel is not None else _default_voxel(built.wall, _box_volume(patient)))
+    skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
+    # the field: one driver for every size, over one slab held in memory when the whole grid
+    # fits (slab_voxels None), else over slabs kept on disk; then the outputs
+    return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
+                  built.wall_p10, built.window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
+                  seed_solve=built.tried or None, printer=printer,
+                  grade=(graded.field, graded.density, built.empty_power_cells) if graded else None)
 
-        if isinstance(ct, (str, Path)):
-            ct = grading.load_ct(ct)
-        gfield = grading.grade_field(params.grade, params.calibration, ct,
-                                     porosity=params.porosity if params.porosity is not None else p0)
-        with prog.stage("density", gfield.describe()):
-            density = grading.seed_density(gfield, patient, lo, hi)
-        n = density.count
-    elif params.seeds is not None:
-        n = params.seeds
-    elif params.seed_rule == "paper":
-        n = seed_count(seed_volume, params.porosity if params.porosity is not None else p0, params.pore_size)
-    else:
-        n = max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * seed_volume)))
+
+def _box_volume(patient) -> float:
+    """The patient's bounding box's volume, mm³."""
+    return float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
+
+
+def _checked_output(output, mesh: bool) -> Path | None:
+    """The output's path, checked before the work starts: a known format, writable, with its report."""
+    if output is None:
+        return None
+    from .files import check_writable
+
+    out_path = Path(output)
+    ext = output_format(out_path)
+    if ext is None:
+        raise ScaffoldError(f"cannot write {out_path.name}: use one of {', '.join(MESH_FORMATS + FIELD_FORMATS)}")
+    if ext in MESH_FORMATS and not mesh:
+        raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
+    check_writable(out_path)
+    check_writable(report_path(out_path))
+    return out_path
+
+
+@dataclass(frozen=True)
+class _Graded:
+    """A graded run's pore-size field and the seed density drawn from it (:mod:`.grade`)."""
+
+    field: Any
+    density: Any
+
+
+def _graded_density(params: Params, patient, ct, prog) -> _Graded | None:
+    """Stage ``density``: the seed density of a graded run (``--grade`` or ``--calibration``), else None."""
+    if params.grade is None and params.calibration is None:
+        return None
+    from . import grade as grading
+
+    if isinstance(ct, (str, Path)):
+        ct = grading.load_ct(ct)
+    p0 = closed_form_porosity(params.sf, params.sv)
+    gfield = grading.grade_field(params.grade, params.calibration, ct,
+                                 porosity=params.porosity if params.porosity is not None else p0)
+    with prog.stage("density", gfield.describe()):
+        density = grading.seed_density(gfield, patient, np.asarray(patient.lo, float), np.asarray(patient.hi, float))
+    return _Graded(gfield, density)
+
+
+def _seed_volume(params: Params, patient) -> float:
+    """The volume the seeds fill, mm³: the bounding box's or the patient's."""
+    return _box_volume(patient) if params.seeds_in == "box" else float(patient.volume)
+
+
+def _seed_count(params: Params, patient) -> int:
+    """The first seed count of an even (not graded) run: given, by the paper's formula, or for the pore size."""
+    from .seeds import density_for_pore_size, seed_count
+
+    if params.seeds is not None:
+        return params.seeds
+    volume = _seed_volume(params, patient)
+    if params.seed_rule == "paper":
+        p0 = closed_form_porosity(params.sf, params.sv)
+        return seed_count(volume, params.porosity if params.porosity is not None else p0, params.pore_size)
+    return max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * volume)))
+
+
+def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool) -> None:
+    """Refuse, before the cells, a run that cannot fit: the grid's plan (when the voxel is given)
+    and the cells' own memory."""
     from .cells import check_seed_memory
+    from .memory import process_memory
 
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
         from .tiles import blend_halo
 
-        # before the cells: what they, the skeleton and the packed primitives will hold, and the
-        # blend's halo at the widest the walls allow (half a wall; a wall is at most 1 - Sv of
-        # two cells' spans), estimated
-        span = (seed_volume / n) ** (1 / 3)
+        # what the cells, the skeleton and the packed primitives will hold, and the blend's halo
+        # at the widest the walls allow (half a wall; a wall is at most 1 - Sv of two cells'
+        # spans), estimated
+        span = (_seed_volume(params, patient) / n) ** (1 / 3)
         halo = blend_halo(params.voxel, params.blend if params.blend is not None else (1 - params.sv) * span)
-        run.plan(Grid.covering(lo, hi, params.voxel), halo=halo if params.style == "paper" else 0,
+        run.plan(Grid.covering(patient.lo, patient.hi, params.voxel), halo=halo if params.style == "paper" else 0,
                  reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
                  slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
-    from .memory import process_memory
-
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
-                      available=min(max_memory - process_memory(), available_memory()),
+                      available=min(run.max_memory - process_memory(), available_memory()),
                       chunked=params.seeds_in == "box" and not graded, seeds_given=params.seeds is not None)
-    # solve the seed count for the measured pore size: the Poisson-Voronoi estimate above, then
+
+
+@dataclass(frozen=True)
+class _Built:
+    """The seeds, their cells and what the cells tell the later stages (walls and windows, mm)."""
+
+    seeds: np.ndarray
+    cells: Any
+    tried: list
+    empty_power_cells: int | None
+    walls: np.ndarray
+    wall: float
+    wall_p10: float
+    window_p25: float
+
+
+def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, run: _RunPlan, prog) -> _Built:
+    """Stages ``seeds`` and ``cells``: the seeds drawn for `n` (for the pore size, the count
+    corrected until the cells measure it) and their Voronoi (or power) cells; the walls and
+    windows of the cells near the patient."""
+    from .cells import voronoi_cells
+    from .memory import release
+    from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
+    from .seeds import PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, seeds_in_patient, uniform_seeds
+
+    lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
+    # solve the seed count for the measured pore size: the Poisson-Voronoi estimate, then
     # corrected for what the cells measure (cells cut by the box walls are smaller)
-    solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
+    solving = graded is None and params.seeds is None and params.seed_rule == "pore-size"
     coarse = coarse_grid = None
     if params.seeds_in == "patient" or solving:
         coarse, coarse_grid = _coarse_patient(patient)
-    weighted = graded and params.weighted
+    weighted = graded is not None and params.weighted
+    if graded is not None:
+        from . import grade as grading
     tried = []
     for _ in range(PORE_SIZE_PASSES if solving else 1):
         # every pass draws from the same --seed: the seeds are a function of the count alone
         rng = np.random.default_rng(params.seed)
         with prog.stage("seeds", "patient, graded" if graded else f"in the {params.seeds_in}"):
-            if graded:
-                seeds = grading.draw_seeds(density, rng)
+            if graded is not None:
+                seeds = grading.draw_seeds(graded.density, rng)
             elif params.seeds_in == "box":
                 seeds = uniform_seeds(lo, hi, n, rng)
             else:
@@ -397,11 +469,12 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
                                          total=params.seeds is not None)
         prog.note(f"{len(seeds)} seeds drawn in the " + ("patient and one cell's margin"
                                                          if params.seeds_in == "patient" or graded else "box"))
-        if graded and params.relax:
+        if graded is not None and params.relax:
             with prog.stage("relax", f"{params.relax} Lloyd iterations"):
-                seeds = grading.lloyd_relax(seeds, density, params.relax)
+                seeds = grading.lloyd_relax(seeds, graded.density, params.relax)
         with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
-            cells = voronoi_cells(seeds, lo, hi, radii=grading.power_radii(density, seeds) if weighted else None)
+            cells = voronoi_cells(seeds, lo, hi,
+                                  radii=grading.power_radii(graded.density, seeds) if weighted else None)
         if not solving:
             break
         inside = sample(coarse, coarse_grid, cells.seeds) < 0
@@ -410,60 +483,64 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         if abs(measured / params.pore_size - 1) <= PORE_SIZE_TOLERANCE:
             break
         n = corrected_count(n, measured, params.pore_size)
-    from .memory import release
-
     release()  # voro++'s cells as Python objects leave megabytes per thousand seeds in the heap
+    empty = None
     if weighted:
         # seeds whose power cell is empty are gone: the lattice and the report count the others
-        empty_power_cells = len(seeds) - cells.n
+        empty = len(seeds) - cells.n
         seeds = cells.seeds
     walls = trabecular_thicknesses(cells, params.sv)
     # the narrowest end of each channel: its window (Sf) or its pore face (Sv), as a disc radius
     windows = min(params.sf, params.sv) * np.sqrt(cells.face_areas[interior_face_pairs(cells)] / np.pi)
-    if params.seeds_in == "patient" or graded:
+    if params.seeds_in == "patient" or graded is not None:
         near = _faces_near_patient(cells, patient)
         walls, windows = walls[near], windows[near]
     wall = float(np.median(walls)) if walls.size else float(np.min(hi - lo)) * (1 - params.sv)
-    wall_p10 = float(np.percentile(walls, 10)) if walls.size else wall
-    window_p25 = float(np.percentile(windows, 25)) if windows.size else wall
-    voxel = params.voxel if params.voxel is not None else _default_voxel(wall, box_volume)
-    grid = Grid.covering(lo, hi, voxel)
+    return _Built(seeds, cells, tried, empty, walls, wall,
+                  float(np.percentile(walls, 10)) if walls.size else wall,
+                  float(np.percentile(windows, 25)) if windows.size else wall)
+
+
+def _skeleton_stage(params: Params, built: _Built, grid: Grid, run: _RunPlan, prog, *, graded: bool):
+    """Stage ``skeleton``: the lattice's primitives, and the run's plan on the grid.
+
+    Returns
+    -------
+    skeleton, edges : the paper's skeleton (whole, or a SkeletonSource built slab by slab)
+        or the struts' edges; the other is None.
+    slab_voxels : int or None
+        Voxels per slab on disk, or None for one slab held in memory (:meth:`_RunPlan.plan`).
+    """
+    from .lattice import packed_bytes
+    from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
     from .tiles import blend_halo
 
-    skeleton = edges = None
-    from .lattice import packed_bytes
-
-    if params.style == "paper":
-        # planned from the cells: a whole grid holds the whole skeleton, a slab the skeleton of
-        # the cells that reach it (SkeletonSource), which it counts slab by slab
-        from .tiled import _band
-
-        source = SkeletonSource(cells, params.sf, params.sv)
-        primitives = max(packed_bytes(cells=cells), source.bytes_near(-np.inf, np.inf))
-        # a skeleton that takes little of the budget is built once, whole (the slabs then
-        # skip building their own); a larger one slab by slab
-        whole = primitives <= WHOLE_SKELETON_SHARE * run.max_memory
-        # the cut-off is not known yet: a cell's span is wider than any the lattice reads
-        span = float(np.median(cells.volumes)) ** (1 / 3)
-        slab_voxels = run.plan(grid, halo=blend_halo(voxel, _paper_blend(params, wall_p10, window_p25)),
-                               reserve=primitives + (GRADE_RESERVE if graded else 0),
-                               slab_share=0 if whole else primitives,
-                               slab_bytes=None if whole else
-                               (lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span))))
-        whole = whole or slab_voxels is None
-        with prog.stage("skeleton", "whole" if whole else "slab by slab"):
-            skeleton = scaled_skeleton(cells, params.sf, params.sv) if whole else source
-    else:
+    cells = built.cells
+    reserve = GRADE_RESERVE if graded else 0
+    if params.style != "paper":
         with prog.stage("skeleton"):
             edges = voronoi_edges(cells)
         # planned once the edges are held, so that the memory they take is not also given to the slabs
-        slab_voxels = run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + (GRADE_RESERVE if graded else 0))
-    # the field: one driver for every size, over one slab held in memory when the whole grid
-    # fits (slab_voxels None), else over slabs kept on disk
-    return _build(run, params, patient, grid, cells, skeleton, edges, seeds, walls, wall_p10, window_p25,
-                  slab_voxels, scheduler, prog, mesh, out_path, morphometry, seed_solve=tried or None,
-                  printer=printer,
-                  grade=(gfield, density, empty_power_cells if weighted else None) if graded else None)
+        return None, edges, run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + reserve)
+    # planned from the cells: a whole grid holds the whole skeleton, a slab the skeleton of
+    # the cells that reach it (SkeletonSource), which it counts slab by slab
+    from .tiled import _band
+
+    source = SkeletonSource(cells, params.sf, params.sv)
+    primitives = max(packed_bytes(cells=cells), source.bytes_near(-np.inf, np.inf))
+    # a skeleton that takes little of the budget is built once, whole (the slabs then
+    # skip building their own); a larger one slab by slab
+    whole = primitives <= WHOLE_SKELETON_SHARE * run.max_memory
+    # the cut-off is not known yet: a cell's span is wider than any the lattice reads
+    span = float(np.median(cells.volumes)) ** (1 / 3)
+    slab_voxels = run.plan(grid, halo=blend_halo(grid.spacing, _paper_blend(params, built.wall_p10, built.window_p25)),
+                           reserve=primitives + reserve, slab_share=0 if whole else primitives,
+                           slab_bytes=None if whole else
+                           (lambda h0, h1: source.bytes_near(*_band(grid, (h0, h1), span))))
+    whole = whole or slab_voxels is None
+    with prog.stage("skeleton", "whole" if whole else "slab by slab"):
+        skeleton = scaled_skeleton(cells, params.sf, params.sv) if whole else source
+    return skeleton, None, slab_voxels
 
 
 class _Beside:
@@ -1067,25 +1144,32 @@ def _mesh_report(report: dict, summary: dict, patient) -> None:
     report["porosity_printed"] = report["porosity_mesh"]
 
 
+def _pieces_report(report: dict, rows: list[dict]) -> str | None:
+    """The report's patient pieces (:func:`.pieces.piece_table`'s rows); a warning for the pieces
+    too small to hold one pore (the target's, or the mean measured), or None."""
+    from .pieces import REPORT_PIECES, small_pieces_warning
+
+    report["patient_pieces_count"] = len(rows)
+    report["patient_pieces"] = rows[:REPORT_PIECES]
+    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
+    return small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore) if pore else None
+
+
 def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, grid: Grid, cells, cells_in,
                       calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                       one_piece: bool, slab_voxels=None) -> Result:
     """The outputs of a run held in memory: the patient's pieces, the mesh, the voxel measures,
     the certificate, the slices and the files, from the field's arrays."""
-    from .pieces import REPORT_PIECES, label_pieces, piece_table, small_pieces_warning
+    from .pieces import label_pieces, piece_table
 
     s, s_p = tf.field.field, tf.patient.field
     h = grid.spacing
     inside = s_p < 0
-    pieces, n_pieces = label_pieces(inside)
-    piece_rows = piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
-                             main_bodies_only=params.remove_fragments and n_pieces == 1)
-    del pieces
-    report["patient_pieces_count"] = n_pieces
-    report["patient_pieces"] = piece_rows[:REPORT_PIECES]
-    # one pore: the target's, or (seeds given, or graded) the mean measured
-    pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
-    small_pieces = small_pieces_warning(piece_rows, math.pi * pore ** 3 / 6, pore) if pore else None
+    with prog.stage("pieces"):
+        pieces, n_pieces = label_pieces(inside)
+        small_pieces = _pieces_report(report, piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
+                                                          main_bodies_only=params.remove_fragments and n_pieces == 1))
+        del pieces
 
     result = Result(params=params, report=report, cells=cells, skeleton=None, edges=None, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)
@@ -1150,6 +1234,12 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                      one_piece: bool, slab_voxels: int) -> Result:
     """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
+    from .pieces import piece_table_by_slabs
+
+    with prog.stage("pieces", "by slabs"):
+        small_pieces = _pieces_report(report, piece_table_by_slabs(
+            tf.field, tf.patient, grid, cells.seeds[cells_in], max_voxels=slab_voxels,
+            main_bodies_only=params.remove_fragments and tf.patient_pieces == 1, progress=prog.bar("pieces")))
     simplify_warnings = []
     ext = output_format(out_path) if out_path is not None else None
     if mesh and ext in MESH_FORMATS:
@@ -1188,7 +1278,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     if run.slices is not None:
         report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, simplify_warnings)
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
     # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
     field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
                               for f in (tf.field, tf.patient))

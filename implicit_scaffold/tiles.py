@@ -375,11 +375,10 @@ class SlabComponents:
 
     def open_tally(self) -> tuple[int, int]:
         """After :meth:`finish`: the `tally` voxels in open pieces, and in all pieces."""
-        tallies = np.concatenate(self._tallies or [np.zeros(0, np.int64)])
-        if not len(self._parent) or not tallies.size:
+        per_root = self.tally_by_root()
+        if not per_root.size:
             return 0, 0
-        per_root = np.bincount(self._roots, weights=tallies, minlength=len(self._parent))
-        return int(per_root[self._open].sum()), int(tallies.sum())
+        return int(per_root[self._open].sum()), int(per_root.sum())
 
     def sealed(self, keep_interior: bool = False) -> tuple[int, int]:
         """After :meth:`finish`: the pieces that touch no face of the grid, and their voxels; with
@@ -414,6 +413,17 @@ class SlabComponents:
     def sizes(self) -> np.ndarray:
         """After :meth:`finish`: voxels of each piece, by root (0 for the labels that are not roots)."""
         return self._piece_sizes if len(self._parent) else np.zeros(0)
+
+    def roots_of_all(self) -> np.ndarray:
+        """After :meth:`finish`: the piece (root) of every label given, slab after slab."""
+        return self._roots if len(self._parent) else np.zeros(0, np.int64)
+
+    def tally_by_root(self) -> np.ndarray:
+        """After :meth:`finish`: the `tally` voxels (:meth:`add`) of each piece, by root."""
+        tallies = np.concatenate(self._tallies or [np.zeros(0, np.int64)])
+        if not len(self._parent) or not tallies.size:
+            return np.zeros(0, np.int64)
+        return np.bincount(self._roots, weights=tallies, minlength=len(self._parent)).astype(np.int64)
 
     def roots_of(self, index: int, local: np.ndarray) -> np.ndarray:
         """After :meth:`finish`: the pieces (roots) of labels `local` (1-based) of slab `index`; -1 for 0."""

@@ -138,3 +138,30 @@ def test_a_tiled_run_keeps_each_pieces_scaffold_with_the_whole_grid_bytes(tmp_pa
     assert tiled["fragments_removed"] == whole.report["fragments_removed"] > 0
     assert tiled["patient_pieces_count"] == whole.report["patient_pieces_count"] == 2
     assert tiled["bodies_voxels"] == 2
+    # the pieces' table, slab by slab, is the whole grid's
+    assert tiled["patient_pieces"] == whole.report["patient_pieces"]
+
+
+@pytest.mark.parametrize("main_bodies_only", [False, True])
+@pytest.mark.parametrize("planes", [1, 3, 7, 40])
+def test_the_pieces_table_by_slabs_is_the_whole_grids(planes, main_bodies_only):
+    from scipy import ndimage
+
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.pieces import label_pieces, piece_table, piece_table_by_slabs
+    from implicit_scaffold.tiles import ArraySlabs
+
+    rng = np.random.default_rng(11)
+    grid = Grid(origin=(0.0, 0.0, 0.0), spacing=0.1, shape=(33, 21, 18))
+    # smoothed noise: patient pieces and solid pieces that wind across the slabs' faces
+    patient = ndimage.gaussian_filter(rng.normal(size=grid.shape), 1.5).astype(np.float32)
+    patient = patient - np.float32(np.percentile(patient, 20))
+    field = np.maximum(ndimage.gaussian_filter(rng.normal(size=grid.shape), 1.0).astype(np.float32), patient)
+    seeds = rng.uniform(0, np.asarray(grid.shape) * 0.1, (300, 3))
+    labels, count = label_pieces(patient < 0)
+    assert count >= 4  # the test's premise: several pieces
+    solid = field < 0
+    want = piece_table(labels, count, solid, grid, seeds, main_bodies_only=main_bodies_only)
+    got = piece_table_by_slabs(ArraySlabs(field, grid), ArraySlabs(patient, grid), grid, seeds,
+                               max_voxels=planes * grid.shape[1] * grid.shape[2], main_bodies_only=main_bodies_only)
+    assert got == want
