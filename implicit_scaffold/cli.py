@@ -335,6 +335,10 @@ def _add_build_options(g) -> None:
                            "axis=+z; the certificate goes in the JSON under print_check")
     cg.add_argument("--require-printable", action="store_true",
                     help="exit with code 3 (after writing everything) when the certificate fails")
+    cg.add_argument("--repair", action="store_true",
+                    help="before the mesh, thicken struts thinner than the printer's minimum and open throats its "
+                         "drain cannot pass, by local offsets of the field, keeping the porosity; the JSON's repair "
+                         "says what changed and what could not be met (needs --printer)")
     rg = g.add_argument_group("memory and cluster")
     rg.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory the run may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
@@ -395,13 +399,27 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     if args.scheduler is not None:
         tiling["tiled"] = True  # the slabs are what the cluster runs
     return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
-                    slices=slices, printer=args.printer, **tiling,
+                    slices=slices, printer=args.printer, repair=getattr(args, "repair", False), **tiling,
                     shape=args.shape, size=args.size, seeds_in=args.seeds_in, seed_rule=args.seed_rule,
                     skin=args.skin,
                     smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
                     sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
                     remove_fragments=not args.keep_fragments, fill_sealed_voids=not args.keep_sealed_voids,
                     **graded, tolerance=getattr(args, "tolerance", None))
+
+
+def _repair_lines(rep: dict) -> list[str]:
+    """The summary's lines for --repair: what moved, the figures before and after, what does not hold."""
+    def share(x):
+        return "n/a" if x is None else f"{100 * x:.1f} %"
+
+    s, d = rep["thin_strut_share"], rep["undrained_pore_share"]
+    lines = [f"  repair ({rep['printer']}, {rep['rounds']} rounds): {rep['grown_mm3']:.4g} mm3 made solid, "
+             f"{rep['opened_mm3']:.4g} mm3 opened; porosity {rep['porosity']['before']:.4f} -> "
+             f"{rep['porosity']['after']:.4f}; solid in struts below the minimum {share(s['before'])} -> "
+             f"{share(s['after'])}; void in pores the drain cannot reach {share(d['before'])} -> {share(d['after'])}"]
+    lines += [f"    cannot: {why}" for why in rep["why"]]
+    return lines
 
 
 def _certificate_lines(cert: dict) -> list[str]:
@@ -561,6 +579,8 @@ def _generate(args) -> int:
         lines += _metric_lines(r)
         if r.get("grade"):
             lines.append(_grade_line(r["grade"]))
+        if r.get("repair"):
+            lines += _repair_lines(r["repair"])
         if isinstance(r.get("print_check"), dict):
             lines += _certificate_lines(r["print_check"])
         if "mechanics" in r:
@@ -750,6 +770,7 @@ def _slice(args) -> int:
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
             _porosity_line(r, 'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f'))
             + f"; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, voxels {solid:.4g} mm3",
+            *(_repair_lines(r["repair"]) if r.get("repair") else []),
             *(_certificate_lines(r["print_check"]) if isinstance(r.get("print_check"), dict) else []),
             _memory_line(r),
             f"  time: {time.perf_counter() - t0:.1f} s",

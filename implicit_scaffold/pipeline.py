@@ -220,7 +220,7 @@ def _report_stats(values) -> dict:
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
              morphometry: bool = True, max_memory=None, tiled: bool | int | None = None, scheduler=None,
-             slices: dict | None = None, ct=None, printer=None,
+             slices: dict | None = None, ct=None, printer=None, repair: bool = False,
              shape: str = Params.shape, size=Params.size, seeds: int | None = Params.seeds,
              pore_size: float = Params.pore_size, porosity: float | None = Params.porosity,
              sf: float = Params.sf, sv: float = Params.sv, style: str = Params.style,
@@ -267,6 +267,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     printer : str or PrinterProfile, optional
         Certify what was built for this printer (:mod:`.printability`): the certificate
         lands in ``report["print_check"]``.
+    repair : bool
+        Before the mesh, thicken the struts thinner than the printer's minimum and open the
+        throats its drain cannot pass, by local offsets of the field, keeping the porosity
+        (:mod:`.repair`); what changed lands in ``report["repair"]``. Needs `printer` and a
+        grid held in memory.
     shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed, remove_fragments, \
     fill_sealed_voids, seeds_in, seed_rule, skin, smooth_cut, grade, calibration, relax, weighted, tolerance
         What to build (see :class:`Params`, whose defaults these are; mm).
@@ -294,6 +299,8 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         from .printability import printer_profile
 
         printer = printer_profile(printer)
+    if repair and printer is None:
+        raise ScaffoldError("--repair repairs for a printer's limits; add --printer NAME (e.g. --printer dlp-resin)")
     if params.seeds_in is None:
         # time and memory then follow the bone's volume, not its bounding box's
         params = replace(params, seeds_in="box" if patient is None else "patient")
@@ -326,11 +333,15 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     grid = Grid.covering(patient.lo, patient.hi,
                          params.voxel if params.voxel is not None else _default_voxel(built.wall, _box_volume(patient)))
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
+    if repair and slab_voxels is not None:
+        raise ScaffoldError(f"--repair needs the whole grid in memory, and a grid of {grid.shape[0]}x{grid.shape[1]}x"
+                            f"{grid.shape[2]} voxels runs in slabs within --max-memory; raise --max-memory or use a "
+                            "larger --voxel")
     # the field: one driver for every size, over one slab held in memory when the whole grid
     # fits (slab_voxels None), else over slabs kept on disk; then the outputs
     return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
                   built.wall_p10, built.window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
-                  seed_solve=built.tried or None, printer=printer,
+                  seed_solve=built.tried or None, printer=printer, repair=repair,
                   grade=(graded.field, graded.density, built.empty_power_cells) if graded else None)
 
 
@@ -677,7 +688,7 @@ def _mesh_correction(volume: float, patient, params: Params, calibration) -> flo
     """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`."""
     from .printed import correction
 
-    if not calibration or calibration.get("by") != "mesh":
+    if not calibration or calibration.get("by") != "mesh" or "correction" in calibration:
         return None
     printed = 1.0 - volume / float(patient.volume)
     step = correction(printed, params.porosity, calibration)
@@ -1020,7 +1031,7 @@ def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
 
 def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
            wall_p10, window_p25, slab_voxels: int | None, scheduler, prog, mesh: bool, out_path,
-           morphometry: bool = True, seed_solve=None, grade=None, printer=None) -> Result:
+           morphometry: bool = True, seed_solve=None, grade=None, printer=None, repair: bool = False) -> Result:
     """From the cells' primitives to the outputs: the field by the one slab driver
     (:func:`.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
 
@@ -1089,6 +1100,11 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
                                                                                          scheduler))}
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
+        if repair:
+            _repair(tf, report, params, printer, grid, prog, one_piece)
+            if calibration and not report["repair"]["holds"]["porosity"]:
+                # a level moved for the printed porosity would undo the repair where it moved the porosity
+                calibration["correction"] = "none: the repair moved the porosity (see repair.why)"
         finish = _finish_in_memory if in_memory else _finish_in_slabs
         result = finish(tf, report, run, params, patient, grid, cells, cells_in, calibration, prog, mesh,
                         out_path, morphometry, printer, one_piece=one_piece, slab_voxels=slab_voxels)
@@ -1112,11 +1128,13 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     return result
 
 
-def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool) -> None:
-    """Move the finished field's surface by `step` mm (:func:`.tiled.shift_level`) and update the report."""
+def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool,
+             why: str | None = None) -> None:
+    """Move the finished field's surface by `step` mm (:func:`.tiled.shift_level`), clean its
+    fragments and sealed voids again, and update the report."""
     from .tiled import shift_level
 
-    with prog.stage("correct", f"level {step:+.3g} mm for the mesh's porosity"):
+    with prog.stage("correct", why or f"level {step:+.3g} mm for the mesh's porosity"):
         more = shift_level(tf, step, remove_fragments=params.remove_fragments,
                            fill_sealed_voids=params.fill_sealed_voids, keep_interior=params.skin > 0,
                            patient_pieces=not one_piece, progress=prog.bar("correct"))
@@ -1128,6 +1146,22 @@ def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, on
     report["sealed_voids"]["count"] += more[1]
     report["sealed_voids"]["volume_mm3"] += more[2] * grid.voxel_volume
     report["bodies_voxels"] = tf.pieces
+
+
+def _repair(tf, report: dict, params: Params, printer, grid: Grid, prog, one_piece: bool) -> None:
+    """Stage ``repair``: the field repaired for the printer (:func:`.repair.repair`), cleaned of the
+    fragments and sealed voids it may leave, and the report's figures updated."""
+    from .repair import repair
+
+    with prog.stage("repair", printer.name):
+        # the voxels' porosity as built is what is kept: the level met the target (or the printed
+        # geometry's) already
+        repaired, info = repair(tf.field.field, tf.patient.field, grid.spacing, printer, porosity=None,
+                                progress=prog.bar("repair"))
+        tf.field.field[...] = repaired
+        del repaired
+    _correct(tf, 0.0, report, params, grid, prog, one_piece, why="fragments and sealed voids after the repair")
+    report["repair"] = info
 
 
 def _mesh_report(report: dict, summary: dict, patient) -> None:

@@ -50,6 +50,7 @@ BAD = [
     (["--porosity", "80"], "fraction, not a percentage"),
     (["--pore-size", "0"], "--pore-size must be a positive"),
     (["--style", "struts", "--porosity", "none"], "solves the strut radius"),
+    (["--repair"], "--repair repairs for a printer's limits; add --printer NAME"),
 ]
 
 

@@ -1,0 +1,110 @@
+"""Repair for a printer (issue 15): thin struts thickened, narrow throats opened, porosity kept."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from implicit_scaffold.printability import printer_profile
+from implicit_scaffold.repair import repair
+
+H = 0.05  # mm
+
+
+def _grid(n):
+    ax = (np.arange(n) + 0.5) * H
+    return np.meshgrid(ax, ax, ax, indexing="ij")
+
+
+def _box(X, Y, Z, lo, hi):
+    q = [np.abs(v - (a + b) / 2) - (b - a) / 2 for v, a, b in zip((X, Y, Z), lo, hi)]
+    return np.sqrt(sum(np.maximum(v, 0) ** 2 for v in q)) + np.minimum(np.max(q, axis=0), 0)
+
+
+def _noise(shape):
+    # breaks the exact ties of analytic fields on a voxel grid (whole planes of equal values),
+    # which no level can split; a lattice's field has none
+    return np.random.default_rng(0).uniform(-1e-4, 1e-4, shape)
+
+
+def test_a_thin_rod_is_thickened_to_the_minimum_and_the_porosity_kept():
+    X, Y, Z = _grid(60)
+    rod = np.sqrt((X - 1.0) ** 2 + (Y - 0.8) ** 2) - 0.1          # 0.2 mm across, along z
+    wall = np.abs(Y - 2.013) - 0.4                                 # 0.8 mm: material to give back
+    box = _box(X, Y, Z, [0.25] * 3, [2.75] * 3)
+    field = (np.maximum(np.minimum(rod, wall), box) + _noise(X.shape)).astype(np.float32)
+    patient = box.astype(np.float32)
+    out, info = repair(field, patient, H, printer_profile("custom:min_strut=0.4,min_throat=0.5,drain=0"),
+                       porosity=None)
+    region = patient < 0
+    before = 1 - np.count_nonzero((field < 0) & region) / np.count_nonzero(region)
+    after = 1 - np.count_nonzero((out < 0) & region) / np.count_nonzero(region)
+    assert after == pytest.approx(before, abs=1e-3) and info["holds"]["porosity"]
+    # the rod's cross-section (a plane across it, away from the wall) against a disc's area
+    section = out[:, : int(1.5 / H), 30] < 0
+    diameter = 2 * np.sqrt(np.count_nonzero(section) * H * H / np.pi)
+    assert diameter >= 0.4 - H
+    assert info["holds"]["min_strut"] and info["grown_mm3"] > 0 and info["opened_mm3"] > 0
+    # what the rod took, the wall gave: it is thinner, and still above the minimum
+    assert 0.4 <= np.count_nonzero(out[30, int(1.5 / H):, 30] < 0) * H < 0.8
+
+
+def test_a_hole_narrower_than_the_drain_is_opened_until_a_drain_sized_ball_passes():
+    X, Y, Z = _grid(72)
+    block = _box(X, Y, Z, [0.3] * 3, [3.3] * 3)
+    cavity = _box(X, Y, Z, [1.3] * 3, [2.3] * 3)                                   # a pore inside the block
+    hole = np.maximum(np.sqrt((X - 1.8) ** 2 + (Y - 1.8) ** 2) - 0.15, 2.2 - Z)   # its only way out: 0.3 mm
+    groove = _box(X, Y, Z, [0.0, 0.0, 1.0], [0.9, 3.6, 3.6])                      # open void to give back from
+    field = (np.max([block, -cavity, -hole, -groove], axis=0) + _noise(X.shape)).astype(np.float32)
+    patient = (block + 1e-3).astype(np.float32)
+    profile = printer_profile("custom:min_strut=0.3,min_throat=0.5,drain=0.5")
+    out, info = repair(field, patient, H, profile, porosity=None)
+    assert info["holds"] == {"min_strut": True, "drain": True, "porosity": True}
+    assert info["undrained_pore_share"]["before"] > 0.1 and info["undrained_pore_share"]["after"] == 0
+    # independent of the repair's own measure: in every plane along the hole, the void's 2-D
+    # distance map holds a disc of the drain's diameter (to the voxels' boundaries)
+    for k in range(int(2.35 / H), int(3.3 / H)):
+        void = out[20:52, 20:52, k] >= 0
+        radius = ndimage.distance_transform_edt(void).max() * H + H / 2
+        assert radius >= 0.25 - 1e-9, (k, radius)
+    region = patient < 0
+    porosity = [1 - np.count_nonzero((f < 0) & region) / np.count_nonzero(region) for f in (field, out)]
+    assert porosity[1] == pytest.approx(porosity[0], abs=1e-3)
+
+
+def test_a_repair_that_would_do_harm_is_not_made_and_says_why():
+    # a lattice of thin rods only: nothing thick to give material back at this porosity
+    X, Y, Z = _grid(48)
+    rods = np.min([np.sqrt((Y - c1) ** 2 + (Z - c2) ** 2) for c1 in (0.6, 1.2, 1.8) for c2 in (0.6, 1.2, 1.8)],
+                  axis=0) - 0.08
+    box = _box(X, Y, Z, [0.2] * 3, [2.2] * 3)
+    field = (np.maximum(rods, box) + _noise(X.shape)).astype(np.float32)
+    out, info = repair(field, box.astype(np.float32), H, printer_profile("custom:min_strut=0.4,min_throat=0.5,drain=0"),
+                       porosity=None)
+    assert np.array_equal(out, field) and info["rounds"] == 0
+    assert not info["holds"]["min_strut"] and any("too thin" in w for w in info["why"])
+
+
+def test_generate_repair_reports_what_changed_and_needs_a_printer(tmp_path):
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.pipeline import generate
+
+    with pytest.raises(ScaffoldError, match="add --printer"):
+        generate(size=2, seeds=20, repair=True, mesh=False)
+    kw = dict(size=4, pore_size=0.8, porosity=0.75, printer="custom:min_strut=0.18,min_throat=0.3,drain=0.4",
+              mesh=False, morphometry=False)
+    plain, r = generate(**kw), generate(repair=True, **kw)
+    rep = r.report["repair"]
+    assert set(rep) >= {"rounds", "porosity", "volume_moved_mm3", "grown_mm3", "opened_mm3", "holds", "why",
+                        "thin_strut_share", "undrained_pore_share"}
+    assert rep["rounds"] >= 1 and rep["undrained_pore_share"]["before"] > 0
+    assert rep["undrained_pore_share"]["after"] < rep["undrained_pore_share"]["before"]
+    assert rep["holds"]["porosity"] and not rep["why"]
+    # the report's porosity is the repaired field's, and still the target's
+    inside = r.patient_sdf < 0
+    assert r.report["porosity_voxel"] == pytest.approx(1 - np.count_nonzero((r.field < 0) & inside)
+                                                       / np.count_nonzero(inside))
+    assert abs(r.report["porosity_voxel"] - 0.75) < 2e-3
+    # the certificate, measured on its own after the repair, finds more of the void drained
+    assert (r.report["print_check"]["void_reached_by_drain_share"]
+            > plain.report["print_check"]["void_reached_by_drain_share"])
