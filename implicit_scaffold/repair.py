@@ -70,6 +70,7 @@ def measure(solid: np.ndarray, h: float, profile, region: np.ndarray) -> dict:
         rho2 = (0.5 * (float(profile.drain_mm) / h - 1.0)) ** 2  # the drain's radius, voxels², as reached_by
         # an undrained pore holds a drain-sized ball that cannot get out; the crevices along the
         # drained void's walls, where no such ball fits, drain with it
+        fits = bool(void_in.any() and d2[void_in].max() >= rho2)
         labels, count = ndimage.label(unreached)
         widest = np.asarray(ndimage.maximum(d2, labels, np.arange(1, count + 1))) if count else np.zeros(0)
         undrained = np.concatenate([[False], widest >= rho2])[labels]
@@ -88,11 +89,12 @@ def measure(solid: np.ndarray, h: float, profile, region: np.ndarray) -> dict:
         n_unreached = int(np.count_nonzero(unreached))
     else:
         undrained = throat = np.zeros(solid.shape, bool)
-        n_unreached = 0
+        n_unreached, fits = 0, True
     n_solid, n_void = int(np.count_nonzero(solid)), int(np.count_nonzero(void_in))
     return {"thickness": thickness, "below": below, "thin": thin, "undrained": undrained, "throat": throat, "d2": d2, "r2": r2,
             "below_min_strut_share": float(np.count_nonzero(below) / n_solid) if n_solid else 0.0,
             "thin_share": float(np.count_nonzero(thin) / n_solid) if n_solid else 0.0,
+            "drain_fits": fits,
             "undrained_share": float(np.count_nonzero(undrained) / n_void) if n_void else 0.0,
             "thinnest_p1_mm": float(np.percentile(thickness[solid], 1)) if n_solid else 0.0,
             "void_reached_by_drain_share": (float(1.0 - n_unreached / n_void) if n_void else 1.0)
@@ -225,9 +227,9 @@ def _holds(found: dict, profile, each: bool = False):
     """Whether (but for :data:`LEFT_OVER` of the solid or void) no strut is thinner than the minimum
     and no pore is undrained (:func:`measure`'s ``thin_share`` and ``undrained_share``: the sharp
     edges and crevices the certificate's shares count are not struts or pores, and no offset
-    changes them)."""
+    changes them); and a drain-sized ball fits somewhere in the void."""
     strut = found["thin_share"] <= LEFT_OVER
-    drain = found["undrained_share"] <= LEFT_OVER
+    drain = found["drain_fits"] and found["undrained_share"] <= LEFT_OVER
     return {"min_strut": strut, "drain": drain} if each else strut and drain
 
 
@@ -351,7 +353,10 @@ def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosit
                    f"{profile.min_strut_mm:g} mm after {done} rounds: at porosity {target:.3g} the struts this pore "
                    "size leaves are too thin to thicken them all with what the rest can give; lower --porosity or "
                    "raise --pore-size")
-    if not holds["drain"]:
+    if not found["drain_fits"]:
+        why.append(f"no pore holds a {profile.drain_mm:g} mm ball: the pores are smaller than the printer's drain, "
+                   "which no local offset changes; raise --pore-size")
+    elif not holds["drain"]:
         why.append(f"{found['undrained_share']:.1%} of the void is in pores a {profile.drain_mm:g} mm drain still "
                    f"cannot reach after {done} rounds: their windows cannot open that wide without thinning struts "
                    "below the minimum; raise --pore-size or --sf")
