@@ -244,22 +244,28 @@ class TiledField:
         self.patient.close()
 
 
-def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: FieldFile, progress):
-    """Pass 1; returns the quantile's first pass, the patient's voxel count and its values' range."""
+def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: FieldFile, progress, count=True):
+    """Pass 1; returns the quantile's first pass, the patient's voxel count and its values' range
+    (with `count` False, for one slab held in memory, only the voxel count: the level is then
+    found on the arrays themselves)."""
     quantile = StreamQuantile()
     n_inside, lo, hi = 0, np.inf, -np.inf
     for done, (slab, base, s_p) in enumerate(runner.map(slab_fields, work, slabs), 1):
         inside = s_p < 0
-        found = quantile.n
-        quantile.count(base, inside)
-        if quantile.n > found:
-            n_inside += quantile.n - found
-            lo = min(lo, float(np.min(base, where=inside, initial=np.inf)))
-            hi = max(hi, float(np.max(base, where=inside, initial=-np.inf)))
+        if not count:
+            n_inside += int(np.count_nonzero(inside))
+        else:
+            found = quantile.n
+            quantile.count(base, inside)
+            if quantile.n > found:
+                n_inside += quantile.n - found
+                lo = min(lo, float(np.min(base, where=inside, initial=np.inf)))
+                hi = max(hi, float(np.max(base, where=inside, initial=-np.inf)))
         field.write(slab.x0, base)
         patient.write(slab.x0, s_p)
         del base, s_p, inside
-        release()  # what the slab's kernels and temporaries left in the heap, before the next
+        if len(slabs) > 1:
+            release()  # what the slab's kernels and temporaries left in the heap, before the next
         if progress is not None:
             progress(done, len(slabs))
     return quantile, n_inside, lo, hi
@@ -405,7 +411,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
                                        f"{len(slabs)} slab{'' if len(slabs) == 1 else 's'}"):
                 quantile, n_inside, lo, hi = _pass_lattice(work, slabs, runner, field, patient_file,
-                                                           prog.bar("lattice"))
+                                                           prog.bar("lattice"), count=not in_memory)
             if n_inside == 0:
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
             if grade is not None:
@@ -417,6 +423,13 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                 with prog.stage("offset", f"{len(plan.edges) - 1} bins"):
                     level_field = solve_level_field(field, patient_file, plan, max_voxels=max_voxels)
                 level = level_field.reach(style)
+            elif in_memory:
+                from .field import solve_level_cut
+
+                with prog.stage("offset"):
+                    # one slab: the streamed quantile's order statistics are the arrays' own
+                    level = 0.0 if porosity is None else solve_level_cut(
+                        field.field, patient_file.field, porosity, skin=skin, smooth_cut=smooth_cut)
             else:
                 with prog.stage("offset"):
                     level = _solve_level(quantile, slabs, field, patient_file, n_inside, lo, hi, porosity,
