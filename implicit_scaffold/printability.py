@@ -235,6 +235,61 @@ def _flood_kernel():
     return _flood_kernels()[0]
 
 
+@functools.lru_cache(maxsize=None)
+def _local_kernels():
+    """Compiled neighbourhood tests (numba), built on first use and cached on disk:
+    ``peaks(d2, where, out)`` marks the voxels of `where` with ``d2 > 0`` that no voxel of their
+    3x3x3 neighbourhood exceeds (the grid's faces repeated outward, as ``maximum_filter``'s
+    ``mode="nearest"``); ``near(r2, rho2, offsets, out)`` marks the voxels with ``r2 > 0`` that
+    lie within one of `offsets` of a voxel with ``r2 >= rho2`` (inside the grid)."""
+    import numba as nb
+
+    @nb.njit(cache=True, boundscheck=False)
+    def peaks(d2, where, out):  # pragma: no cover - compiled
+        nx, ny, nz = d2.shape
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    v = d2[i, j, k]
+                    if v <= 0 or not where[i, j, k]:
+                        continue
+                    top = True
+                    for a in range(max(i - 1, 0), min(i + 2, nx)):
+                        for b in range(max(j - 1, 0), min(j + 2, ny)):
+                            for c in range(max(k - 1, 0), min(k + 2, nz)):
+                                if d2[a, b, c] > v:
+                                    top = False
+                                    break
+                            if not top:
+                                break
+                        if not top:
+                            break
+                    out[i, j, k] = top
+
+    @nb.njit(cache=True, boundscheck=False)
+    def near(r2, rho2, offsets, out):  # pragma: no cover - compiled
+        nx, ny, nz = r2.shape
+        for i in range(nx):
+            for j in range(ny):
+                for k in range(nz):
+                    if r2[i, j, k] <= 0:
+                        continue
+                    if r2[i, j, k] >= rho2:
+                        out[i, j, k] = True
+                        continue
+                    for t in range(offsets.shape[0]):
+                        a, b, c = i + offsets[t, 0], j + offsets[t, 1], k + offsets[t, 2]
+                        if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz and r2[a, b, c] >= rho2:
+                            out[i, j, k] = True
+                            break
+
+    return peaks, near
+
+
+#: below this radius (voxels) a sphere's reach is found by its stencil, above by a distance transform
+STENCIL_RHO = 3.0
+
+
 def throat_radius(solid, voxel: float):
     """Squared void distance and the squared radius of the largest sphere that reaches each place.
 
@@ -277,6 +332,15 @@ def reached_by(r2, diameter_mm: float, voxel: float) -> np.ndarray:
     void = r2 > 0
     if rho <= 0:
         return void
+    if rho <= STENCIL_RHO:
+        # a small sphere: the offsets nearer than rho, tried voxel by voxel (the distance
+        # transform below reads the same set, far2 < rho^2, over the whole grid)
+        span = int(math.ceil(rho))
+        grid = np.mgrid[-span:span + 1, -span:span + 1, -span:span + 1].reshape(3, -1).T
+        offsets = np.ascontiguousarray(grid[(grid ** 2).sum(axis=1) < rho * rho], np.int64)
+        out = np.zeros(r2.shape, bool)
+        _local_kernels()[1](np.ascontiguousarray(r2), rho * rho, offsets, out)
+        return out
     centres = r2 >= rho * rho
     if not centres.any():
         return np.zeros(r2.shape, bool)
@@ -301,9 +365,9 @@ def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]
 def _pore_centres(d2, void_in) -> np.ndarray:
     """Pore centres: void voxels of `void_in` where `d2` is a local maximum (3x3x3, the grid's
     faces repeated outward)."""
-    from scipy import ndimage
-
-    return (d2 > 0) & void_in & (ndimage.maximum_filter(d2, size=3, mode="nearest") == d2)
+    out = np.zeros(d2.shape, bool)
+    _local_kernels()[0](np.ascontiguousarray(d2), np.ascontiguousarray(void_in, bool), out)
+    return out
 
 
 def weighted_quantile(values, weights, q: float) -> float:
