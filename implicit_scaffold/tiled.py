@@ -371,8 +371,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     printed : (bands, callable(read, level, pieces) -> level), optional
         The calibration prism's y and z bands and the search for the level of what is
         printed (:mod:`.printed`); ``read(ys, zs)`` gives the lattice and patient fields
-        on a band, `pieces` the patient's pieces on the prism (in memory, when fragments
-        are removed; else None).
+        on a band, `pieces` the patient's pieces on the prism (:func:`prism_pieces`; None
+        when fragments are kept or the patient is one piece).
     skin, smooth_cut : float, mm
         As in :func:`~implicit_scaffold.field.scaffold_field`: voxel by voxel, from the
         patient's distance of the same voxel, so they need no halo.
@@ -438,11 +438,10 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                 (ys, zs), search = printed
                 with prog.stage("printed"):
                     pieces = None
-                    if in_memory and remove_fragments:
-                        from .pieces import label_pieces
-
+                    if remove_fragments and patient_pieces:
                         # each patient piece keeps its main body on the prism, as in the scaffold pass
-                        pieces = label_pieces(patient_file.field < 0)[0][:, ys, zs]
+                        # (a primitive is one piece: its largest body is its main body)
+                        pieces = prism_pieces(patient_file, slabs, ys, zs)
                     level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
                                    level, pieces)
                     del pieces
@@ -556,6 +555,28 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
     return solid - removed, found, total - found, n_patient, removed
+
+
+def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
+    """The patient's 6-connected pieces on the prism ``[:, ys, zs]``, int32, 0 outside, numbered
+    as whole-grid labelling (:func:`~implicit_scaffold.pieces.label_pieces`) numbers them: the
+    pieces are joined across the slabs (:class:`~.tiles.SlabComponents`), each numbered by its
+    first voxel in C order."""
+    if isinstance(patient, ArraySlabs):
+        from .pieces import label_pieces
+
+        return label_pieces(patient.field < 0)[0][:, ys, zs]
+    parts, local = SlabComponents(), []
+    for slab in slabs:
+        local.append(parts.add(patient.read(slab.x0, slab.x1) < 0)[:, ys, zs].copy())
+    parts.finish()
+    roots = np.flatnonzero(parts.sizes > 0)
+    number = np.zeros(len(parts.sizes) + 1, np.int32)
+    number[roots + 1] = np.arange(1, len(roots) + 1)
+    out = np.empty((patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
+    for i, (slab, labels) in enumerate(zip(slabs, local)):
+        out[slab.x0:slab.x1] = number[parts.roots_of(i, labels) + 1]
+    return out
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
