@@ -111,7 +111,7 @@ class Result:
     patient: Any
     mesh: Any = None
     timings: dict = dc_field(default_factory=dict)
-    #: a tiled run's slabs (None for a whole-grid run)
+    #: the slabs of a run kept on disk (None for one slab held in memory)
     tiled: Any = None
 
 
@@ -921,7 +921,8 @@ class _RunPlan:
 
     def plan(self, grid: Grid, halo: int = 0, reserve: int = 0, slab_share: int = 0,
              slab_bytes=None) -> int | None:
-        """None for a whole-grid run, else the voxels a slab may hold; raise if neither fits.
+        """None for one slab held in memory (the whole grid), else the voxels a slab on disk may hold;
+        raise if neither fits.
 
         `reserve` is what the stages hold beside the grid's voxels on the whole grid (the
         lattice's primitives, :func:`~.lattice.packed_bytes`); of that, `slab_share` is
