@@ -247,6 +247,15 @@ def piece_table_by_slabs(field, patient, grid, seeds: np.ndarray, *, max_voxels:
     return _rows(sizes[roots], solid_voxels, cells, bodies, lo, hi, grid)
 
 
+def one_piece_table(voxels: int, solid_voxels: int, cells: int, bodies: int, box, grid) -> list[dict]:
+    """:func:`piece_table` of a patient known to be one piece (a primitive), from counts a run
+    has made already: its voxels and solid voxels, its cells (every seed the patient's
+    trilinear distance puts inside has a patient voxel among the 8 around it, so all count),
+    its solid bodies and the bounds ``box`` (voxel indices, inclusive) of its voxels."""
+    lo, hi = (np.asarray(b, np.int64).reshape(1, 3) for b in box)
+    return _rows(np.array([voxels]), np.array([solid_voxels]), np.array([cells]), np.array([bodies]), lo, hi, grid)
+
+
 def _seed_probes(grid, seeds: np.ndarray) -> np.ndarray:
     """The voxels :func:`seed_pieces` reads for each seed: ``(9, n, 3)`` indices, its nearest first."""
     shape = np.asarray(grid.shape) - 1

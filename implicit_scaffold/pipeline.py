@@ -1269,12 +1269,19 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                      one_piece: bool, slab_voxels: int) -> Result:
     """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
-    from .pieces import piece_table_by_slabs
+    from .pieces import one_piece_table, piece_table_by_slabs
 
-    with prog.stage("pieces", "by slabs"):
-        small_pieces = _pieces_report(report, piece_table_by_slabs(
-            tf.field, tf.patient, grid, cells.seeds[cells_in], max_voxels=slab_voxels,
-            main_bodies_only=params.remove_fragments and tf.patient_pieces == 1, progress=prog.bar("pieces")))
+    if one_piece and params.remove_fragments:
+        # a primitive keeping its main body: its one row from what the passes counted, without
+        # another pass
+        small_pieces = _pieces_report(report, one_piece_table(
+            tf.n_inside, tf.solid, int(np.count_nonzero(cells_in)),
+            min(tf.pieces, 1), tf.inside_box, grid))
+    else:
+        with prog.stage("pieces", "by slabs"):
+            small_pieces = _pieces_report(report, piece_table_by_slabs(
+                tf.field, tf.patient, grid, cells.seeds[cells_in], max_voxels=slab_voxels,
+                main_bodies_only=params.remove_fragments and tf.patient_pieces == 1, progress=prog.bar("pieces")))
     simplify_warnings = []
     ext = output_format(out_path) if out_path is not None else None
     if mesh and ext in MESH_FORMATS:

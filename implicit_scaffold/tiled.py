@@ -216,6 +216,10 @@ class TiledField:
         The patient's 6-connected pieces on the grid.
     level_plan, level_field : LevelPlan, LevelField or None
         A graded run's offset bins and offset field (:mod:`.grade`).
+    fragments_voxels : int
+        Voxels of the solid fragments removed.
+    inside_box : ((3,) int ndarray, (3,) int ndarray) or None
+        The bounds of the patient's voxels (indices, inclusive).
     """
 
     field: FieldFile
@@ -232,6 +236,7 @@ class TiledField:
     level_plan: Any = None
     level_field: Any = None
     fragments_voxels: int = 0
+    inside_box: Any = None
 
     @property
     def in_memory(self) -> bool:
@@ -245,13 +250,16 @@ class TiledField:
 
 
 def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: FieldFile, progress, count=True):
-    """Pass 1; returns the quantile's first pass, the patient's voxel count and its values' range
+    """Pass 1; returns the quantile's first pass, the patient's voxel count, its values' range
     (with `count` False, for one slab held in memory, only the voxel count: the level is then
-    found on the arrays themselves)."""
+    found on the arrays themselves), and the bounds ``(lo, hi)`` of the patient's voxels (indices,
+    inclusive; None without any)."""
     quantile = StreamQuantile()
     n_inside, lo, hi = 0, np.inf, -np.inf
+    box = None
     for done, (slab, base, s_p) in enumerate(runner.map(slab_fields, work, slabs), 1):
         inside = s_p < 0
+        box = _union_box(box, inside, slab.x0)
         if not count:
             n_inside += int(np.count_nonzero(inside))
         else:
@@ -268,7 +276,18 @@ def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: Fiel
             release()  # what the slab's kernels and temporaries left in the heap, before the next
         if progress is not None:
             progress(done, len(slabs))
-    return quantile, n_inside, lo, hi
+    return quantile, n_inside, lo, hi, box
+
+
+def _union_box(box, mask: np.ndarray, x0: int):
+    """`box` (``(lo, hi)`` voxel indices, inclusive, or None) grown by the voxels of `mask`,
+    planes from `x0`."""
+    if not mask.any():
+        return box
+    ends = [np.flatnonzero(mask.any(axis=tuple(a for a in range(3) if a != axis))) for axis in range(3)]
+    lo = np.array([e[0] for e in ends]) + (x0, 0, 0)
+    hi = np.array([e[-1] for e in ends]) + (x0, 0, 0)
+    return (lo, hi) if box is None else (np.minimum(box[0], lo), np.maximum(box[1], hi))
 
 
 def _solve_level(quantile: StreamQuantile, slabs, field: FieldFile, patient: FieldFile, n_inside: int,
@@ -410,7 +429,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                                                                       halo=work.halo)
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
                                        f"{len(slabs)} slab{'' if len(slabs) == 1 else 's'}"):
-                quantile, n_inside, lo, hi = _pass_lattice(work, slabs, runner, field, patient_file,
+                quantile, n_inside, lo, hi, box = _pass_lattice(work, slabs, runner, field, patient_file,
                                                            prog.bar("lattice"), count=not in_memory)
             if n_inside == 0:
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
@@ -466,7 +485,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed)
+                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed, box)
 
 
 def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sealed_voids: bool,

@@ -201,3 +201,14 @@ def test_a_patient_in_pieces_gets_the_same_printed_level_in_slabs(tmp_path):
     assert tiled["tiled"]["slabs"] > 2 and whole["printed_level"]["by"] == "mesh"
     assert tiled["surface_offset_mm"] == whole["surface_offset_mm"]
     assert tiled["triangles"] == whole["triangles"] and tiled["bodies"] == whole["bodies"] == 2
+
+
+@pytest.mark.parametrize("shape", ["sphere", "cylinder"])
+def test_a_primitives_one_row_in_slabs_is_the_whole_grids(shape):
+    # in slabs a primitive's row comes from the passes' counts, in memory from labelling the grid
+    kw = dict(shape=shape, size=4, pore_size=0.8, porosity=0.7, voxel=0.08, mesh=False, morphometry=False)
+    whole = implicit_scaffold.generate(tiled=False, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    tiled = implicit_scaffold.generate(tiled=12 * plane, **kw)
+    assert tiled.report["tiled"]["slabs"] > 2
+    assert tiled.report["patient_pieces"] == whole.report["patient_pieces"]
