@@ -91,7 +91,7 @@ def measure(solid: np.ndarray, h: float, profile, region: np.ndarray) -> dict:
         undrained = throat = np.zeros(solid.shape, bool)
         n_unreached, fits = 0, True
     n_solid, n_void = int(np.count_nonzero(solid)), int(np.count_nonzero(void_in))
-    return {"thickness": thickness, "below": below, "thin": thin, "undrained": undrained, "throat": throat, "d2": d2, "r2": r2,
+    return {"thickness": thickness, "thin": thin, "undrained": undrained, "throat": throat, "d2": d2, "r2": r2,
             "below_min_strut_share": float(np.count_nonzero(below) / n_solid) if n_solid else 0.0,
             "thin_share": float(np.count_nonzero(thin) / n_solid) if n_solid else 0.0,
             "drain_fits": fits,
@@ -115,12 +115,9 @@ def _ridge(d2: np.ndarray) -> np.ndarray:
 
 def _far(source_not: np.ndarray, h: float) -> np.ndarray:
     """Distance (mm, float32) from each voxel to the nearest voxel where `source_not` is False."""
-    import edt
+    from .morphometry import _squared_edt
 
-    from .morphometry import _threads
-
-    return np.sqrt(edt.edtsq(np.ascontiguousarray(source_not, dtype=np.uint8), black_border=False,
-                             parallel=_threads())).astype(np.float32) * np.float32(h)
+    return np.sqrt(_squared_edt(source_not)).astype(np.float32) * np.float32(h)
 
 
 def _spread(amount: np.ndarray, where: np.ndarray, h: float, full: float, fade: float) -> np.ndarray:

@@ -238,11 +238,6 @@ class TiledField:
     fragments_voxels: int = 0
     inside_box: Any = None
 
-    @property
-    def in_memory(self) -> bool:
-        """The fields are arrays (one slab, the whole grid), not files."""
-        return isinstance(self.field, ArraySlabs)
-
     def close(self) -> None:
         """Remove the files (or let the arrays go)."""
         self.field.close()
