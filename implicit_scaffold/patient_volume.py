@@ -25,9 +25,9 @@ The bone's surface is a smooth signed distance built from the voxel mask:
    ``direction @ diag(spacing)``, tile by tile; outside the crop it grows with the distance
    to the crop, so it stays positive (outside) everywhere beyond the bone.
 
-Steps 1, 3 and 4 and the bounds run as compiled kernels (:mod:`.volume_kernels`); their
-NumPy/SciPy forms stay here as oracles (``load_volume(..., reference=True)``), 6-25x slower
-(``benchmarks/bench_load.py``).
+Every step and the bounds run as compiled kernels (:mod:`.volume_kernels`); their
+NumPy/SciPy forms stay here as oracles (``load_volume(..., reference=True)``), many times
+slower (``benchmarks/bench_load.py`` prints the ratio).
 """
 from __future__ import annotations
 
@@ -149,28 +149,35 @@ def _box_distance(mask: np.ndarray, spacing: np.ndarray) -> np.ndarray:
     return out
 
 
+def _gaussian_weights(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """The 1-D Gaussian of `sigma` (voxels) and its second derivative, as
+    ``scipy.ndimage.gaussian_filter1d`` samples them (truncated at 4 sigma), float32."""
+    r = int(4.0 * sigma + 0.5)
+    x = np.arange(-r, r + 1, dtype=np.float64)
+    g = np.exp(-0.5 * x * x / sigma ** 2)
+    g /= g.sum()
+    return g.astype(np.float32), ((x * x / sigma ** 4 - 1 / sigma ** 2) * g).astype(np.float32)
+
+
 def _unbiased_gaussian(field: np.ndarray, sigma: float) -> np.ndarray:
-    """:func:`_unbiased_gaussian_reference` in 7 one-axis passes instead of 12 (the 1-D
-    Gaussians are shared between the terms; float32 throughout, as there)."""
-    from scipy import ndimage
+    """:func:`_unbiased_gaussian_reference` by the compiled separable passes of
+    :mod:`.volume_kernels` (three passes over the grid, the 1-D Gaussians and their second
+    derivatives shared between the terms, float32 throughout, both cores)."""
+    from .volume_kernels import kernels
 
     if sigma <= 0:
         return field.astype(np.float32, copy=True)
-
-    def g(a, axis, order):
-        return ndimage.gaussian_filter1d(a, sigma, axis=axis, order=order, mode="nearest", output=np.float32)
-
+    k = kernels()
+    w0, w2 = _gaussian_weights(sigma)
     half = np.float32(sigma ** 2 / 2)
-    a, b = g(field, 2, 0), g(field, 2, 2)            # along k: G, G''
-    c = g(a, 1, 0)                                   # G G
-    d = g(a, 1, 2)                                   # G'' G
-    d += g(b, 1, 0)                                  # + G G''
+    f = np.ascontiguousarray(field, np.float32)
+    a, b = np.empty_like(f), np.empty_like(f)
+    k.gauss_k(f, w0, w2, a, b)                       # along k: G, G''
+    c, d = np.empty_like(f), np.empty_like(f)
+    k.gauss_j(a, b, w0, w2, half, c, d)              # G G, G G - sigma²/2 (G'' G + G G'')
     del a, b
-    d *= half
-    np.subtract(c, d, out=d)                         # G G - sigma²/2 (G'' G + G G'')
-    out = g(d, 0, 0)
-    del d
-    out -= half * g(c, 0, 2)                         # - sigma²/2 G'' G G
+    out = np.empty_like(f)
+    k.gauss_i(c, d, w0, w2, half, out)               # ... - sigma²/2 G'' G G
     return out
 
 
@@ -203,15 +210,36 @@ def _smooth_surface(mask: np.ndarray, spacing: np.ndarray, *, reference: bool = 
     voxels the tube is wide across the thick slices, where the steps are) and with every voxel
     centre :data:`KEEP_VOXELS` on its own side (so a plate one voxel thin, which a plain
     Gaussian erases, is kept), then smoothed again lightly to round the constraints' kinks.
-    Negative inside, mm. `reference`: the box distance by SciPy's feature transform.
+    Negative inside, mm. `reference`: every step in NumPy/SciPy (SciPy's feature transform).
     """
     if reference:
         box = _box_distance(mask, spacing) - _box_distance(~mask, spacing)
-        gaussian = _unbiased_gaussian_reference
+        gaussian, tube = _unbiased_gaussian_reference, _tube_clip_reference
     else:
         box = _signed_box_distance(mask, spacing)
-        gaussian = _unbiased_gaussian
-    field = gaussian(box, SMOOTH_VOXELS)
+        gaussian, tube = _unbiased_gaussian, _tube_clip
+    lower, upper, field = tube(gaussian(box, SMOOTH_VOXELS), box, mask, spacing)
+    del box
+    field = gaussian(field, SMOOTH_VOXELS / 2)
+    return np.clip(field, lower, upper, out=field)
+
+
+def _tube_clip(field: np.ndarray, box: np.ndarray, mask: np.ndarray, spacing: np.ndarray):
+    """:func:`_tube_clip_reference` in one compiled pass (:mod:`.volume_kernels`)."""
+    from .volume_kernels import kernels
+
+    lower, upper, clipped = (np.empty(field.shape, np.float32) for _ in range(3))
+    h = [float(v) for v in spacing]
+    kernels().tube_clip(field, box, mask, h[0], h[1], h[2], float(TUBE_VOXELS), float(KEEP_VOXELS * min(h)),
+                        lower, upper, clipped)
+    return lower, upper, clipped
+
+
+def _tube_clip_reference(field: np.ndarray, box: np.ndarray, mask: np.ndarray, spacing: np.ndarray):
+    """``(lower, upper, clipped)``: the bounds a smoothed `field` must keep (mm), the box
+    distance `box` -/+ :data:`TUBE_VOXELS` x the voxel's extent along the normal of `field`,
+    every voxel centre :data:`KEEP_VOXELS` on its side of the `mask`; and `field` clipped to them.
+    """
     # the voxel's extent along the unit normal n: sum |n_a| h_a (its support width)
     grad = np.gradient(field, *spacing)
     norm = np.sqrt(sum(g * g for g in grad))
@@ -226,9 +254,7 @@ def _smooth_surface(mask: np.ndarray, spacing: np.ndarray, *, reference: bool = 
     np.minimum(upper, -margin, out=upper, where=mask)
     np.maximum(lower, margin, out=lower, where=~mask)
     del tube
-    np.clip(field, lower, upper, out=field)
-    field = gaussian(field, SMOOTH_VOXELS / 2)
-    return np.clip(field, lower, upper, out=field)
+    return lower, upper, np.clip(field, lower, upper)
 
 
 def _band(field: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -250,9 +276,7 @@ def _redistance(field: np.ndarray, spacing: np.ndarray, newton: int = 5) -> np.n
     analytic gradient where that one takes central differences of 0.05 voxel, the feature
     transform's choice among equally near band voxels, otherwise the same steps.
     """
-    from scipy import ndimage
-
-    from .volume_kernels import feature_transform, kernels
+    from .volume_kernels import feature_transform, kernels, spline_coefficients
 
     k = kernels()
     h = np.asarray(spacing, np.float64)
@@ -260,7 +284,7 @@ def _redistance(field: np.ndarray, spacing: np.ndarray, newton: int = 5) -> np.n
     band = np.empty(field.shape, bool)
     k.band(inside, band)
     pts = np.argwhere(band).astype(np.int32)                # crop indices
-    coef = ndimage.spline_filter(field, order=3, output=np.float32, mode="nearest")
+    coef = spline_coefficients(field)
     q = np.empty(pts.shape, np.float64)
     valid = np.empty(len(pts), bool)
     # two full Newton steps, then the gradient is kept (see _redistance_reference)
@@ -529,16 +553,20 @@ class VolumePatient:
 
         The smoothing shrinks convex parts of the bone by about ``sigma² x mean curvature``;
         a constant offset (the field stays a distance) restores the mask's volume on average.
-        Newton steps on :meth:`_level_volume` (its derivative comes with it) stop within
-        :data:`VOLUME_TOLERANCE` of `target`.
+        A Newton step on :meth:`_level_volume` (its derivative comes with it), then secant
+        steps (the sampled derivative runs a few per cent off the volume's own slope, which
+        left Newton converging only linearly), stop within :data:`VOLUME_TOLERANCE` of `target`.
         """
         c = 0.0
         vol, der = self._level_volume(c)
         for _ in range(12):
             if abs(vol - target) <= VOLUME_TOLERANCE * target or der <= 0:
                 break
-            c += (target - vol) / der
-            vol, der = self._level_volume(c)
+            step = (target - vol) / der
+            c_new = c + step
+            vol_new, der_new = self._level_volume(c_new)
+            secant = (vol_new - vol) / step
+            c, vol, der = c_new, vol_new, secant if secant > 0 else der_new
         self._field -= np.float32(c)
         return vol
 

@@ -66,6 +66,44 @@ def test_band_is_scipys():
     np.testing.assert_array_equal(got, ref)
 
 
+@pytest.mark.parametrize("sigma", [1.5, 0.75])
+def test_unbiased_gaussian_is_scipys(sigma):
+    """The compiled passes give scipy.ndimage's Gaussian minus sigma²/2 times its Laplacian
+    (``_unbiased_gaussian_reference``, 12 filters), on a random field of odd sizes, one axis
+    shorter than the kernel's radius (the "nearest" border on both sides at once)."""
+    rng = np.random.default_rng(12)
+    field = rng.normal(size=(19, 5, 23)).astype(np.float32)
+    got = pv._unbiased_gaussian(field, sigma)
+    ref = pv._unbiased_gaussian_reference(field, sigma)
+    np.testing.assert_allclose(got, ref, rtol=0, atol=2e-6 * np.abs(ref).max())
+
+
+def test_tube_clip_is_numpys():
+    """The compiled bounds and clip equal the NumPy formula (numpy.gradient's differences,
+    one-sided on the faces) on a smoothed random box distance with anisotropic voxels."""
+    rng = np.random.default_rng(13)
+    h = np.array([0.5, 0.7, 0.3])
+    mask = rng.random((14, 11, 16)) < 0.4
+    box = pv._signed_box_distance(mask, h)
+    field = pv._unbiased_gaussian_reference(box, 1.5)
+    for got, ref in zip(pv._tube_clip(field, box, mask, h), pv._tube_clip_reference(field, box, mask, h)):
+        np.testing.assert_allclose(got, ref, rtol=0, atol=1e-5)
+    lower, upper, _ = pv._tube_clip(field, box, mask, h)
+    assert np.all(upper[mask] <= -pv.KEEP_VOXELS * h.min() + 1e-7)
+    assert np.all(lower[~mask] >= pv.KEEP_VOXELS * h.min() - 1e-7)
+
+
+def test_spline_coefficients_are_scipys():
+    """The compiled prefilter is scipy.ndimage.spline_filter(order=3, mode="nearest") in
+    float32, on odd sizes of 12 samples or more along each axis (a crop has at least 17: the
+    two margins; on shorter lines the border's start value differs by O(z^2n))."""
+    from scipy import ndimage
+
+    field = np.random.default_rng(14).normal(size=(13, 17, 12)).astype(np.float32)
+    ref = ndimage.spline_filter(field, order=3, output=np.float32, mode="nearest")
+    np.testing.assert_allclose(vk.spline_coefficients(field), ref, rtol=0, atol=1e-5)
+
+
 def test_spline_value_and_gradient_match_scipy():
     """The kernel's cubic spline is scipy's (order 3, "nearest", prefilter off) and its
     gradient the derivative of that spline (central differences of 1e-4 voxel in float64)."""
@@ -77,10 +115,10 @@ def test_spline_value_and_gradient_match_scipy():
     x = rng.random((200, 3)) * (np.array(coef.shape) + 1) - 1      # some stencils leave the grid
     got = np.empty(len(x))
     grad = np.empty((len(x), 3))
-    w = [np.empty(4) for _ in range(6)]
     for n, p in enumerate(x):
-        g = np.zeros(3)
-        got[n] = vk.spline(coef, p[0], p[1], p[2], g, *w)
+        got[n] = vk.spline(coef, p[0], p[1], p[2])
+        value, *g = vk.spline_gradient(coef, p[0], p[1], p[2])
+        assert value == pytest.approx(got[n], abs=1e-12)
         grad[n] = g
     ref = ndimage.map_coordinates(c64, x.T, order=3, mode="nearest", prefilter=False)
     np.testing.assert_allclose(got, ref, atol=1e-9)
