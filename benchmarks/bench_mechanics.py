@@ -1,6 +1,7 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
     python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
+                                         [--femur] [--femur-tol 1e-4]
 
 - **solve**: all six load cases of periodic homogenization (one block, PCG with the FFT
   reference-medium preconditioner, the element operator on the OpenCL device in double) of
@@ -15,6 +16,12 @@
   E/Es = C rho^n fitted by least squares in log-log (E the mean of Ex, Ey, Ez); Roberts &
   Garboczi (2001) report 0.93 rho^2.04 for random open-cell Voronoi foams, the issue asks
   n in 1.8-2.3.
+- **femur** (``--femur``): the 20 mm femoral shaft scaffold (jigsaw_femur.stl cut at z = 210 and
+  230 mm, pore size 0.6 mm, porosity 0.7) at 0.1 mm, compressed along its axis (z) between
+  lubricated platens in Ti-6Al-4V and in PCL, each in a fresh process: the apparent modulus over
+  the box's cross-section (the command's figure) and over the bone's mean cross-section (its
+  volume over its length: the shaft is round, the box is not), beside bone's bands. Needs
+  ../shared/data.
 
 Timings on a shared 2-core machine are noisy (other jobs run beside): read them as such.
 """
@@ -129,6 +136,55 @@ _out = {{'voxel': r.grid.spacing, 'grid': 'x'.join(map(str, solid.shape)), 'soli
 """
 
 
+FEMUR_BUILD = """
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold.patient_io import load_patient
+patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
+r = implicit_scaffold.generate(patient=patient, pore_size=0.6, porosity=0.7, voxel=0.1, seed=0, mesh=False,
+                               morphometry=False)
+inside = r.patient_sdf < 0
+box = tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(inside))
+solid = (r.field < 0)[box]
+np.save({out!r}, solid)
+length = solid.shape[2] * r.grid.spacing
+_out = {{'grid': 'x'.join(map(str, solid.shape)), 'voxel': r.grid.spacing, 'solid_voxels': int(solid.sum()),
+        'porosity': r.report['porosity_voxel'], 'bone_mm3': float(patient.volume),
+        'box_area_mm2': float(solid.shape[0] * solid.shape[1] * r.grid.spacing ** 2),
+        'bone_area_mm2': float(patient.volume) / length}}
+"""
+
+FEMUR_SOLVE = """
+import numpy as np
+from implicit_scaffold import mechanics as M
+solid = np.load({solid!r})
+c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter=5000)
+_out = {{'modulus_gpa': c.apparent_modulus_gpa, 'iterations': c.iterations, 'residual': c.residual,
+        'seconds': c.seconds, 'dropped_voxels': c.dropped_voxels, 'verdict': M.bone_verdict(c.apparent_modulus_gpa)}}
+"""
+
+
+def femur(tmp: Path, tol: float) -> None:
+    """The femoral shaft scaffold at 0.1 mm, compressed along its axis in Ti-6Al-4V and PCL."""
+    from _common import DATA
+
+    path = tmp / "femur_solid.npy"
+    info = run_isolated(FEMUR_BUILD.format(femur=str(DATA / "jigsaw_femur.stl"), out=str(path)), timeout=7200)
+    print(f"femoral shaft scaffold: {info['grid']} voxels of {info['voxel']} mm, {info['solid_voxels']:,} solid, "
+          f"porosity {info['porosity']:.4f}; bone {info['bone_mm3']:.0f} mm3, mean cross-section "
+          f"{info['bone_area_mm2']:.1f} mm2 in a box of {info['box_area_mm2']:.1f} mm2", flush=True)
+    rows = []
+    for material in ("ti64", "pcl"):
+        r = run_isolated(FEMUR_SOLVE.format(solid=str(path), voxel=info["voxel"], material=material, tol=tol),
+                         timeout=7200)
+        per_bone = r["modulus_gpa"] * info["box_area_mm2"] / info["bone_area_mm2"]
+        rows.append([material, f"{r['modulus_gpa']:.4g}", f"{per_bone:.4g}", r["iterations"], f"{r['residual']:.1e}",
+                     f"{r['seconds']:.1f}", f"{r['peak_rss_mb']:.0f}", r["dropped_voxels"], r["verdict"]])
+        print(f"  {material} done: {r['seconds']:.1f} s", file=sys.stderr, flush=True)
+    print(table(rows, ["material", "E over box GPa", "E over bone section GPa", "CG its", "residual", "s",
+                       "peak MiB", "voxels off the load path", "verdict (box figure)"]))
+
+
 def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "paper", pore: float = 0.6,
           seed: int = 0) -> tuple[Path, dict]:
     out = tmp / f"solid_{style}_{n}_{porosity}.npy"
@@ -152,6 +208,8 @@ def main(argv=None) -> int:
     ap.add_argument("--mugrid", action="store_true")
     ap.add_argument("--convergence", action="store_true",
                     help="a 2 mm cube at generate's default voxel and at half of it")
+    ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
+    ap.add_argument("--femur-tol", type=float, default=1e-4, help="the femur solves' CG tolerance")
     args = ap.parse_args(argv)
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
@@ -205,6 +263,8 @@ def main(argv=None) -> int:
                            "CG its (hom, comp)"]))
         for key in ("compression_gpa", "Ez_gpa", "Ex_gpa"):
             print(f"  {key}: h -> h/2 changes by {100 * (coarse[key] / fine[key] - 1):+.2f} %")
+    if args.femur:
+        femur(tmp, args.femur_tol)
     return 0
 
 

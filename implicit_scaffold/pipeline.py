@@ -460,8 +460,8 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
     # corrected for what the cells measure (cells cut by the box walls are smaller)
     solving = graded is None and params.seeds is None and params.seed_rule == "pore-size"
     coarse = coarse_grid = None
-    if params.seeds_in == "patient" or solving:
-        coarse, coarse_grid = _coarse_patient(patient)
+    if params.seeds_in == "patient" or solving or graded is not None:
+        coarse, coarse_grid = _coarse_patient(patient, (float(patient.volume) / n) ** (1 / 3))
     weighted = graded is not None and params.weighted
     if graded is not None:
         from . import grade as grading
@@ -504,7 +504,7 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
     # the narrowest end of each channel: its window (Sf) or its pore face (Sv), as a disc radius
     windows = min(params.sf, params.sv) * np.sqrt(cells.face_areas[interior_face_pairs(cells)] / np.pi)
     if params.seeds_in == "patient" or graded is not None:
-        near = _faces_near_patient(cells, patient)
+        near = _faces_near_patient(cells, coarse, coarse_grid)
         walls, windows = walls[near], windows[near]
     wall = float(np.median(walls)) if walls.size else float(np.min(hi - lo)) * (1 - params.sv)
     return _Built(seeds, cells, tried, empty, walls, wall,
@@ -1483,19 +1483,31 @@ def _fragments_why(report: dict, removed: int, otherwise: str) -> str:
     return f"removing {removed} solid fragments{share} not attached to the main body of their patient piece moved it"
 
 
-def _coarse_patient(patient, cells_across: float = 64.0):
-    """The patient's signed distance on a coarse grid (for seeding), and that grid."""
+#: the seeding grid's points at most (float32: 32 MB), so that a large box stays cheap
+SEEDING_POINTS = 8_000_000
+
+
+def _coarse_patient(patient, cell: float | None = None, cells_across: float = 64.0):
+    """The patient's signed distance on the seeding grid, and that grid.
+
+    Its spacing is half a `cell` (mm; the seeds' spacing) where :data:`SEEDING_POINTS` allow,
+    and never coarser than `cells_across` steps across the patient's box. A grid of 64 steps
+    alone misses thin anatomy in a large box: on an abdominal CT's ribs and vertebrae (a 300 mm
+    box, 4.7 mm steps) it held 41,364 of the 78,620 seeds that lay in the bone, and the seed
+    count solved on those cells gave pores 17 % larger than asked.
+    """
     lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
     h = float(np.max(hi - lo)) / cells_across
+    if cell is not None:
+        h = min(h, max(cell / 2, (float(np.prod(hi - lo)) / SEEDING_POINTS) ** (1 / 3)))
     grid = Grid.covering(lo, hi, h)
     return np.asarray(patient.sdf_grid(grid), np.float32), grid
 
 
-def _faces_near_patient(cells, patient) -> np.ndarray:
-    """Interior faces (counted once) whose two cells' seeds lie in the patient (coarse test)."""
+def _faces_near_patient(cells, coarse: np.ndarray, grid) -> np.ndarray:
+    """Interior faces (counted once) whose two cells' seeds lie in the patient (on the seeding grid)."""
     from .metrics import interior_face_pairs
 
-    coarse, grid = _coarse_patient(patient)
     inside = sample(coarse, grid, cells.seeds) < 0
     f = interior_face_pairs(cells)
     return inside[cells.face_cell[f]] & inside[cells.face_neighbor[f]]

@@ -23,3 +23,14 @@ def test_seeds_reproducible_and_inside():
 def test_bad_seed_count_inputs(args):
     with pytest.raises(ScaffoldError):
         seed_count(*args)
+
+
+def test_seeds_in_a_patient_the_grid_does_not_see_stop():
+    """A patient no grid point lies in (thinner than a step) gets the seeds asked for in its margin."""
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.seeds import seeds_in_patient
+
+    grid = Grid.covering(np.zeros(3), np.full(3, 10.0), 1.0)
+    sdf = np.full(grid.shape, 0.3, np.float32)   # 0.3 mm from a surface everywhere, inside nowhere
+    seeds = seeds_in_patient(sdf, grid, np.zeros(3), np.full(3, 10.0), 50, np.random.default_rng(1), margin=0.5)
+    assert len(seeds) == 50
