@@ -171,20 +171,20 @@ def test_a_skin_closing_the_patient_keeps_its_porous_interior():
 
 
 class _TwoPlates:
-    """Two 1.5 mm plates of 20 x 20 mm at opposite corners of a 100 mm box: thin anatomy far
+    """Two 0.6 mm plates of 10 x 10 mm at opposite corners of a 40 mm box: thin anatomy far
     apart (ribs in an abdominal CT), thinner than a 64-step grid of the box resolves."""
 
     lo = np.zeros(3)
-    hi = np.full(3, 100.0)
-    volume = 2 * 20 * 20 * 1.5
+    hi = np.full(3, 40.0)
+    volume = 2 * 10 * 10 * 0.6
 
     @staticmethod
     def sdf(p):
         def box(c, half):
             q = np.abs(p - c) - half
             return np.linalg.norm(np.maximum(q, 0), axis=-1) + np.minimum(q.max(axis=-1), 0)
-        return np.minimum(box(np.array([10, 10, 0.75]), np.array([10, 10, 0.75])),
-                          box(np.array([90, 90, 99.25]), np.array([10, 10, 0.75])))
+        half = np.array([5, 5, 0.3])
+        return np.minimum(box(np.array([5, 5, 0.3]), half), box(np.array([35, 35, 39.7]), half))
 
     def sdf_grid(self, grid, x_range=None):
         from implicit_scaffold.grid import evaluate_by_slabs
@@ -202,10 +202,10 @@ def test_seeds_fill_thin_parts_of_a_large_box():
     from implicit_scaffold.pipeline import _coarse_patient
     from implicit_scaffold.seeds import seeds_in_patient
 
-    patient, n = _TwoPlates(), 2000
+    patient, n = _TwoPlates(), 500
     cell = (patient.volume / n) ** (1 / 3)
     coarse, grid = _coarse_patient(patient, cell)
-    assert grid.spacing <= 100 / 64
+    assert grid.spacing <= cell / 2 + 1e-9
     seeds = seeds_in_patient(coarse, grid, patient.lo, patient.hi, n, np.random.default_rng(3), margin=cell)
     d = patient.sdf(seeds)
     # a binomial count around n: 4 standard deviations, and the grid's own error a little more
