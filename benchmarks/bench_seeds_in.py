@@ -38,7 +38,8 @@ rep = r.report
 _out = {{'total_s': time.perf_counter() - t0, 'stages': rep['timings_s'],
         'patient_volume_mm3': rep['patient_volume_mm3'], 'box_volume_mm3': rep['box_volume_mm3'],
         'seeds': rep['seeds'], 'cells_in_scaffold': rep['cells_in_scaffold'],
-        'porosity_voxel': rep['porosity_voxel'], 'pore_size_mm': rep['pore_size_mm']['mean'],
+        'porosity_voxel': rep['porosity_voxel'], 'porosity_printed': rep['porosity_printed'],
+        'patient_pieces': rep['patient_pieces_count'], 'pore_size_mm': rep['pore_size_mm']['mean'],
         'triangles': rep['triangles'], 'bodies': rep['bodies'], 'cell_passes': len(rep['seed_solve'] or [1])}}
 """
 
@@ -101,14 +102,16 @@ def main(argv=None) -> int:
         first = first or med
         rows.append([where, f"{med['seeds']:.0f}", f"{med['cells_in_scaffold']:.0f}",
                      f"{med['stages']['cells']:.2f} ({med['cell_passes']:.0f} passes)", f"{med['stages']['lattice']:.2f}", f"{med['total_s']:.1f}",
-                     f"{med['peak_rss_mb']:.0f}", f"{med['porosity_voxel']:.4f}", f"{med['pore_size_mm']:.4f}",
-                     f"{med['triangles']:.0f}", f"{med['bodies']:.0f}"])
+                     f"{med['peak_rss_mb']:.0f}", f"{med['porosity_printed']:.4f}", f"{med['porosity_voxel']:.4f}",
+                     f"{med['pore_size_mm']:.4f}", f"{med['triangles']:.0f}",
+                     f"{med['bodies']:.0f} ({med['patient_pieces']:.0f} patient pieces)"])
     if rows:
         print(f"L3 clip {CLIP} of clouthier_lumbar_L3_mean.stl: patient {first['patient_volume_mm3']:.0f} mm3 in a "
               f"{first['box_volume_mm3']:.0f} mm3 box; pore size {args.pore_size} mm, porosity 0.7, voxel "
               f"{args.voxel} mm; median of {args.runs} (shared machine: timings noisy)")
         print(table(rows, ["seeds in", "cells", "cells in scaffold", "cells s", "lattice s", "total s",
-                           "peak RSS MiB", "porosity", "pore size mm", "triangles", "bodies"]))
+                           "peak RSS MiB", "porosity printed (mesh)", "porosity voxels", "pore size mm",
+                           "triangles", "bodies"]))
     if "ct" in args.cases:
         ct_case()
     return 0

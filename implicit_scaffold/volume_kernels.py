@@ -312,7 +312,7 @@ _GAIN = 6.0
 
 @nb.njit(cache=True, boundscheck=False, parallel=True)
 def prefilter_middle(a):  # pragma: no cover - compiled
-    # the cubic B-spline coefficients along axis 1 of a (n0, n1, n2) float32, in place: the
+    # the cubic B-spline coefficients along axis 1 of a (n0, n1, n2) float32 (any strides), in place: the
     # causal and anti-causal recursions of scipy.ndimage.spline_filter1d(order=3, mode="nearest"),
     # whose borders are the half-sample reflection's, in double, across the last axis at once
     n0, n1, n2 = a.shape
@@ -346,40 +346,15 @@ def prefilter_middle(a):  # pragma: no cover - compiled
                 a[i, j, k] = c[j, k]
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def prefilter_last(a):  # pragma: no cover - compiled
-    # prefilter_middle along the last axis (each line on its own)
-    n0, n1, n = a.shape
-    z = _POLE
-    zn = z ** n
-    for i in nb.prange(n0):
-        c = np.empty(n)
-        for j in range(n1):
-            for k in range(n):
-                c[k] = _GAIN * a[i, j, k]
-            first = c[0] + zn * c[n - 1]
-            zi = z
-            for k in range(1, n):
-                first += zi * (c[k] + zn * c[n - 1 - k])
-                zi *= z
-            c[0] += first * z / (1.0 - zn * zn)
-            for k in range(1, n):
-                c[k] += z * c[k - 1]
-            c[n - 1] *= z / (z - 1.0)
-            for k in range(n - 2, -1, -1):
-                c[k] = z * (c[k + 1] - c[k])
-            for k in range(n):
-                a[i, j, k] = c[k]
-
-
 def spline_coefficients(field: np.ndarray) -> np.ndarray:
     """The cubic B-spline coefficients of `field` (float32): ``scipy.ndimage.spline_filter(field,
     order=3, output=np.float32, mode="nearest")``, axis by axis (float32 between the axes, as
     there), on both cores."""
     a = np.array(field, np.float32, order="C")
+    # each axis in turn as the middle one (the last through a transposed view, read plane by plane)
     prefilter_middle(a.transpose(1, 0, 2))
     prefilter_middle(a)
-    prefilter_last(a)
+    prefilter_middle(a.transpose(0, 2, 1))
     return a
 
 
@@ -412,6 +387,16 @@ def stencil(x, n):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
+def stencils(coef, x0, x1, x2):  # pragma: no cover - compiled
+    # the fractions and the clamped indices of the spline's stencil at (x0, x1, x2), per axis
+    n0, n1, n2 = coef.shape
+    t0, ia = stencil(x0, n0)
+    t1, ib = stencil(x1, n1)
+    t2, ic = stencil(x2, n2)
+    return t0, t1, t2, ia, ib, ic
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
 def _row(coef, i, j, k, w, d):  # pragma: no cover - compiled
     # sum_c w[c] coef[i, j, k[c]] and sum_c d[c] coef[i, j, k[c]] (unrolled: tuples indexed by
     # constants only stay in registers)
@@ -438,10 +423,7 @@ def spline_gradient(coef, x0, x1, x2):  # pragma: no cover - compiled
     # (value, d/dx0, d/dx1, d/dx2) of the cubic spline with coefficients coef at (x0, x1, x2):
     # scipy.ndimage.map_coordinates(order=3, mode="nearest", prefilter=False); the gradient in
     # index units
-    n0, n1, n2 = coef.shape
-    t0, ia = stencil(x0, n0)
-    t1, ib = stencil(x1, n1)
-    t2, ic = stencil(x2, n2)
+    t0, t1, t2, ia, ib, ic = stencils(coef, x0, x1, x2)
     wa = weights(t0)
     wb = weights(t1)
     wc = weights(t2)
@@ -464,10 +446,7 @@ def _dot(coef, i, j, k, w):  # pragma: no cover - compiled
 @nb.njit(cache=True, boundscheck=False, nogil=True)
 def spline(coef, x0, x1, x2):  # pragma: no cover - compiled
     # the value of spline_gradient alone
-    n0, n1, n2 = coef.shape
-    t0, ia = stencil(x0, n0)
-    t1, ib = stencil(x1, n1)
-    t2, ic = stencil(x2, n2)
+    t0, t1, t2, ia, ib, ic = stencils(coef, x0, x1, x2)
     wa = weights(t0)
     wb = weights(t1)
     wc = weights(t2)
