@@ -1,7 +1,7 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
     python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
-                                         [--femur] [--femur-tol 1e-4]
+                                         [--femur] [--femur-tol 1e-3] [--femur-maxiter N]
 
 - **solve**: all six load cases of periodic homogenization (one block, PCG with the FFT
   reference-medium preconditioner, the element operator on the OpenCL device in double) of
@@ -158,13 +158,13 @@ FEMUR_SOLVE = """
 import numpy as np
 from implicit_scaffold import mechanics as M
 solid = np.load({solid!r})
-c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter=5000)
+c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter={maxiter!r})
 _out = {{'modulus_gpa': c.apparent_modulus_gpa, 'iterations': c.iterations, 'residual': c.residual,
         'seconds': c.seconds, 'dropped_voxels': c.dropped_voxels, 'verdict': M.bone_verdict(c.apparent_modulus_gpa)}}
 """
 
 
-def femur(tmp: Path, tol: float) -> None:
+def femur(tmp: Path, tol: float, maxiter: int) -> None:
     """The femoral shaft scaffold at 0.1 mm, compressed along its axis in Ti-6Al-4V and PCL."""
     from _common import DATA
 
@@ -175,12 +175,15 @@ def femur(tmp: Path, tol: float) -> None:
           f"{info['bone_area_mm2']:.1f} mm2 in a box of {info['box_area_mm2']:.1f} mm2", flush=True)
     rows = []
     for material in ("ti64", "pcl"):
-        r = run_isolated(FEMUR_SOLVE.format(solid=str(path), voxel=info["voxel"], material=material, tol=tol),
+        r = run_isolated(FEMUR_SOLVE.format(solid=str(path), voxel=info["voxel"], material=material, tol=tol,
+                                           maxiter=maxiter),
                          timeout=7200)
         per_bone = r["modulus_gpa"] * info["box_area_mm2"] / info["bone_area_mm2"]
         rows.append([material, f"{r['modulus_gpa']:.4g}", f"{per_bone:.4g}", r["iterations"], f"{r['residual']:.1e}",
                      f"{r['seconds']:.1f}", f"{r['peak_rss_mb']:.0f}", r["dropped_voxels"], r["verdict"]])
-        print(f"  {material} done: {r['seconds']:.1f} s", file=sys.stderr, flush=True)
+        # each material as it comes: a solve is long, and a run cut short keeps what it measured
+        print(f"  {material}: E {r['modulus_gpa']:.4g} GPa over the box, {per_bone:.4g} over the bone's section; "
+              f"{r['iterations']} CG its, residual {r['residual']:.1e}, {r['seconds']:.1f} s", flush=True)
     print(table(rows, ["material", "E over box GPa", "E over bone section GPa", "CG its", "residual", "s",
                        "peak MiB", "voxels off the load path", "verdict (box figure)"]))
 
@@ -209,7 +212,9 @@ def main(argv=None) -> int:
     ap.add_argument("--convergence", action="store_true",
                     help="a 2 mm cube at generate's default voxel and at half of it")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
-    ap.add_argument("--femur-tol", type=float, default=1e-4, help="the femur solves' CG tolerance")
+    ap.add_argument("--femur-tol", type=float, default=1e-3, help="the femur solves' CG tolerance")
+    ap.add_argument("--femur-maxiter", type=int, default=5000,
+                    help="stop the femur solves' CG there (a capped run: its residual says how far it got)")
     args = ap.parse_args(argv)
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
@@ -264,7 +269,7 @@ def main(argv=None) -> int:
         for key in ("compression_gpa", "Ez_gpa", "Ex_gpa"):
             print(f"  {key}: h -> h/2 changes by {100 * (coarse[key] / fine[key] - 1):+.2f} %")
     if args.femur:
-        femur(tmp, args.femur_tol)
+        femur(tmp, args.femur_tol, args.femur_maxiter)
     return 0
 
 
