@@ -1,10 +1,12 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
     python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
-                                         [--femur] [--femur-tol 1e-3] [--femur-maxiter N]
+                                         [--preconditioners multigrid,fft] [--peers-up-to 64]
+                                         [--femur] [--femur-tol 1e-6] [--femur-maxiter N]
 
-- **solve**: all six load cases of periodic homogenization (one block, PCG with the FFT
-  reference-medium preconditioner, the element operator on the OpenCL device in double) of
+- **solve**: all six load cases of periodic homogenization (one block, PCG with each
+  preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
+  reference-medium one; the element operator on the OpenCL device in double) of
   a paper-style Voronoi scaffold at porosity 0.7 (about 30 % solid), N^3 voxels of 0.04 mm
   (pore size 0.6 mm), in a fresh process per run (peak memory is that run's own). The
   scaffold is built once per size, outside the timed region. Medians of --runs runs.
@@ -60,7 +62,8 @@ opencl.kernel('mechanics', 'stiffness_apply', NCASE=6, USE_DOUBLE=1)  # built ou
 import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime
 t = time.perf_counter()
-hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl', maxiter={maxiter!r})
+hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl', maxiter={maxiter!r},
+                   preconditioner={preconditioner!r})
 _out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'residual': hom.residual,
          'C': hom.stiffness.tolist(), 'solid_voxels': int(solid.sum()), 'rss_before_mb': before}}
 """
@@ -158,13 +161,14 @@ FEMUR_SOLVE = """
 import numpy as np
 from implicit_scaffold import mechanics as M
 solid = np.load({solid!r})
-c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter={maxiter!r})
+c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter={maxiter!r},
+               preconditioner={preconditioner!r})
 _out = {{'modulus_gpa': c.apparent_modulus_gpa, 'iterations': c.iterations, 'residual': c.residual,
         'seconds': c.seconds, 'dropped_voxels': c.dropped_voxels, 'verdict': M.bone_verdict(c.apparent_modulus_gpa)}}
 """
 
 
-def femur(tmp: Path, tol: float, maxiter: int) -> None:
+def femur(tmp: Path, tol: float, maxiter: int, preconditioner: str) -> None:
     """The femoral shaft scaffold at 0.1 mm, compressed along its axis in Ti-6Al-4V and PCL."""
     from _common import DATA
 
@@ -176,7 +180,7 @@ def femur(tmp: Path, tol: float, maxiter: int) -> None:
     rows = []
     for material in ("ti64", "pcl"):
         r = run_isolated(FEMUR_SOLVE.format(solid=str(path), voxel=info["voxel"], material=material, tol=tol,
-                                           maxiter=maxiter),
+                                           maxiter=maxiter, preconditioner=preconditioner),
                          timeout=7200)
         per_bone = r["modulus_gpa"] * info["box_area_mm2"] / info["bone_area_mm2"]
         rows.append([material, f"{r['modulus_gpa']:.4g}", f"{per_bone:.4g}", r["iterations"], f"{r['residual']:.1e}",
@@ -212,25 +216,37 @@ def main(argv=None) -> int:
     ap.add_argument("--convergence", action="store_true",
                     help="a 2 mm cube at generate's default voxel and at half of it")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
-    ap.add_argument("--femur-tol", type=float, default=1e-3, help="the femur solves' CG tolerance")
+    ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
     ap.add_argument("--femur-maxiter", type=int, default=5000,
                     help="stop the femur solves' CG there (a capped run: its residual says how far it got)")
+    ap.add_argument("--preconditioners", default="multigrid,fft",
+                    help="comma-separated: ours with each (multigrid, fft), side by side in the same run")
+    ap.add_argument("--peers-up-to", type=int, default=64,
+                    help="run the FFT preconditioner and muGrid only up to this N (theirs take hundreds of "
+                         "iterations; 128^3 would take half an hour each)")
     args = ap.parse_args(argv)
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
     rows = []
     for n in args.sizes:
         path, info = build(tmp, n, voxel=voxel, porosity=0.7)
-        med, runs = median_runs(OURS.format(solid=str(path), voxel=voxel, tol=args.tol, maxiter=args.maxiter),
-                                args.runs, warmup=0)
-        # the solve's own memory: the peak above what the process held before it started
-        per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
-        rows.append([f"{info['grid']}", f"{info['solid_fraction']:.3f}", "ours (OpenCL operator, FFT-PCG)"
-                     + (" capped" if med["residual"] > args.tol else ""),
-                     f"{med['seconds']:.1f}", med["iterations"], f"{med['residual']:.1e}",
-                     f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}", ", ".join(f"{r['seconds']:.1f}" for r in runs)])
-        print(f"  {n}^3 done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
-        if args.mugrid:
+        first = None
+        for pc in args.preconditioners.split(","):
+            if pc != "multigrid" and n > args.peers_up_to:
+                continue
+            med, runs = median_runs(OURS.format(solid=str(path), voxel=voxel, tol=args.tol, maxiter=args.maxiter,
+                                                preconditioner=pc), args.runs, warmup=0)
+            # the solve's own memory: the peak above what the process held before it started
+            per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
+            name = {"multigrid": "multigrid", "fft": "FFT"}[pc]
+            ratio = "" if first is None else f"; ratio {med['seconds'] / first['seconds']:.2f}x the first row's"
+            rows.append([f"{info['grid']}", f"{info['solid_fraction']:.3f}", f"ours (OpenCL operator, {name}-PCG{ratio})"
+                         + (" capped" if med["residual"] > args.tol else ""),
+                         f"{med['seconds']:.1f}", med["iterations"], f"{med['residual']:.1e}",
+                         f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}", ", ".join(f"{r['seconds']:.1f}" for r in runs)])
+            first = first or med
+            print(f"  {n}^3 {pc} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+        if args.mugrid and n <= args.peers_up_to:
             try:
                 mg, mruns = median_runs(MUGRID.format(solid=str(path), voxel=voxel, tol=args.tol), args.runs,
                                         warmup=0)
@@ -239,7 +255,7 @@ def main(argv=None) -> int:
             else:
                 ours_C, mg_C = np.array(runs[0]["C"]), np.array(mg["C"])
                 dev = np.abs(ours_C - mg_C).max() / np.abs(mg_C).max()
-                rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {med['seconds'] / mg['seconds']:.2f}; "
+                rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {first['seconds'] / mg['seconds']:.2f}; "
                              f"max |dC|/max|C| {dev:.2e})", f"{mg['seconds']:.1f}", mg["iterations"], "",
                              f"{mg['peak_rss_mb']:.0f}", "", ", ".join(f"{r['seconds']:.1f}" for r in mruns)])
     if rows:
@@ -269,7 +285,7 @@ def main(argv=None) -> int:
         for key in ("compression_gpa", "Ez_gpa", "Ex_gpa"):
             print(f"  {key}: h -> h/2 changes by {100 * (coarse[key] / fine[key] - 1):+.2f} %")
     if args.femur:
-        femur(tmp, args.femur_tol, args.femur_maxiter)
+        femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0
 
 

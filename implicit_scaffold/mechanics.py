@@ -344,6 +344,33 @@ def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = Fa
     return apply
 
 
+def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol: float):
+    """The conjugate gradients' preconditioner for the system ``F K F`` of `model`.
+
+    Parameters
+    ----------
+    kind : {"multigrid", "fft"}
+        ``multigrid``: a V-cycle over Galerkin coarse grids of the solid itself
+        (:class:`~implicit_scaffold.multigrid.Multigrid`), whose iteration count stays nearly
+        flat on thin struts; ``fft``: the reference-medium inverse
+        (:func:`fft_preconditioner`), whose count grows there.
+    free : (N,) or (3, N) array of 0 and 1
+        The unknowns.
+    tol : float
+        The solve's tolerance (above 1e-7 the preconditioner runs in float32: it need only be
+        close to ``K^-1``, and CG to 1e-6 does not feel its rounding).
+    """
+    if kind == "multigrid":
+        from .multigrid import Multigrid
+
+        if tol >= 1e-7 and hasattr(op, "single"):
+            return Multigrid(model, op.single(), free, dtype=np.float32)
+        return Multigrid(model, op, free)
+    if kind == "fft":
+        return fft_preconditioner(model, free, single=tol >= 1e-7)
+    raise ValueError(f"preconditioner must be 'multigrid' or 'fft', got {kind!r}")
+
+
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
         maxiter: int = 2000):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
@@ -429,7 +456,7 @@ def check_solid(solid) -> np.ndarray:
 
 
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
-               maxiter: int = 2000, backend: str = "numpy") -> Homogenization:
+               maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid") -> Homogenization:
     """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
 
     Parameters
@@ -444,6 +471,8 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         Relative residual of the CG solves.
     backend : {"numpy", "opencl"}
         Where the element operator runs.
+    preconditioner : {"multigrid", "fft"}
+        See :func:`make_preconditioner`.
     """
     t0 = time.perf_counter()
     solid = check_solid(solid)
@@ -471,7 +500,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         b = -op(base)
         extra = None
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
-    precond = fft_preconditioner(model, free, single=tol >= 1e-7)
+    precond = make_preconditioner(preconditioner, model, op, free, tol)
     x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter)
     u = base + x
     ue_sum = gather(model, u).sum(axis=2)  # (6, 24)
@@ -541,7 +570,8 @@ def von_mises_strain(strain: np.ndarray) -> np.ndarray:
 
 
 def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
-             tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy") -> Compression:
+             tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy",
+             preconditioner: str = "multigrid") -> Compression:
     """Compress a voxel sample between two rigid platens on its faces normal to `axis`.
 
     The lower platen holds its nodes' axial displacement at 0, the upper one moves them by
@@ -584,7 +614,8 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     ns = model.conn.shape[1]
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
-    x, iterations, res = pcg(op, fft_preconditioner(model, free, single=tol >= 1e-7), b, free, scale=scale, tol=tol, maxiter=maxiter)
+    precond = make_preconditioner(preconditioner, model, op, free, tol)
+    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter)
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h

@@ -1,0 +1,486 @@
+"""A geometric multigrid preconditioner for the voxel finite-element solver (issue 14).
+
+The FFT reference-medium preconditioner of :mod:`~implicit_scaffold.mechanics` needs hundreds
+of iterations on thin struts: the void's infinite contrast is what it cannot see. Multigrid
+over the solid (ParOSol's approach for bone micro-FE) sees it, because every coarse operator
+is built from the solid itself:
+
+- **Grids.** Each coarse node grid keeps every other node of the finer one, on the same
+  periodic node grid the solver uses (a box sample is padded by a void layer, so it never
+  wraps). An axis of odd length ends in a coarse element one fine element long, so any grid
+  coarsens, down to a few thousand unknowns, which are solved exactly (a pseudo-inverse:
+  the periodic problem keeps its rigid translations).
+- **Transfer.** Prolongation is trilinear interpolation from the coarse corners; restriction
+  is its transpose.
+- **Coarse operators** are Galerkin's, ``A_c = P^T F A F P`` with ``F`` the mask of the free
+  unknowns, assembled element by element: the fine nodes inside a coarse element are
+  interpolated from its eight corners only, so ``A_c`` is a sum of 24 x 24 coarse element
+  matrices, each the sum over its (up to eight) children of ``W^T K_child W``. The
+  first coarse level has few distinct matrices (a child pattern of 8 bits on an unmasked
+  element), which are computed once and shared; deeper levels keep one matrix per element.
+  Galerkin operators keep a thin strut's stiffness on the coarse grid, where re-discretising
+  with averaged moduli would smear it over its neighbours' void.
+- **Smoothing**: Chebyshev polynomials in ``D^-1 A`` (degree 2, on the upper part
+  ``[0.1, 1.1] x`` the largest eigenvalue, estimated by power iterations), the smoother of
+  PETSc's GAMG. A polynomial in ``D^-1 A`` is symmetric, so the V-cycle is a symmetric
+  preconditioner, as conjugate gradients need.
+
+The fine operator is the solver's own (the OpenCL kernel or its NumPy reference); the coarse
+levels run compiled (numba) on both cores. Units: mm, GPa.
+"""
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+#: the coarsest level is solved exactly when it has at most this many unknowns
+COARSEST_UNKNOWNS = 1000
+#: Chebyshev smoothing: degree and the share of the largest eigenvalue it targets
+DEGREE = 2
+LOWER = 0.1
+UPPER = 1.1
+POWER_ITERATIONS = 12
+
+
+# ----------------------------------------------------------------------------- compiled kernels
+
+
+@functools.lru_cache(maxsize=None)
+def _kernels():
+    """The compiled level kernels (numba), built on first use and cached on disk:
+
+    - ``galerkin(fine_index, fine_mats, fine_free, elems, out)``: the coarse element
+      matrices ``sum over children W^T (F K_child F) W`` of the coarse elements ``elems``;
+    - ``apply(index, mats, x, y)``: ``y = A x`` of a coarse level, one node per work item,
+      gathering the rows of the (up to eight) elements around it (no races);
+    - ``diagonal(index, mats, d)``: the diagonal of the same operator.
+    """
+    import numba as nb
+
+    @nb.njit(cache=True, parallel=True, boundscheck=False)
+    def galerkin(fine_index, fine_mats, fine_free, elems, out):  # pragma: no cover - compiled
+        f1, f2, f3 = fine_index.shape
+        for e in nb.prange(elems.shape[0]):
+            ci, cj, ck = elems[e, 0], elems[e, 1], elems[e, 2]
+            lx = 2 if 2 * ci + 2 <= f1 else 1
+            ly = 2 if 2 * cj + 2 <= f2 else 1
+            lz = 2 if 2 * ck + 2 <= f3 else 1
+            acc = np.zeros((24, 24))
+            w = np.empty((8, 8))
+            fm = np.empty(24)
+            t = np.empty((24, 24))
+            for a in range(lx):
+                for b in range(ly):
+                    for c in range(lz):
+                        fe = fine_index[2 * ci + a, 2 * cj + b, 2 * ck + c]
+                        if fe < 0:
+                            continue
+                        K = fine_mats[fe]
+                        # W[q, r]: weight of coarse corner r at this child's corner q
+                        for q in range(8):
+                            qx, qy, qz = q & 1, (q >> 1) & 1, (q >> 2) & 1
+                            tx = (a + qx) / lx
+                            ty = (b + qy) / ly
+                            tz = (c + qz) / lz
+                            for r in range(8):
+                                wx = tx if (r & 1) else 1.0 - tx
+                                wy = ty if ((r >> 1) & 1) else 1.0 - ty
+                                wz = tz if ((r >> 2) & 1) else 1.0 - tz
+                                w[q, r] = wx * wy * wz
+                            node = ((((2 * ci + a + qx) % f1) * f2 + (2 * cj + b + qy) % f2) * f3
+                                    + (2 * ck + c + qz) % f3)
+                            for d in range(3):
+                                fm[3 * q + d] = fine_free[d, node]
+                        # t = (F K F) W, column by column of W's coarse corners
+                        for i in range(24):
+                            for r in range(8):
+                                for d in range(3):
+                                    s = 0.0
+                                    for q in range(8):
+                                        if w[q, r] != 0.0:
+                                            s += w[q, r] * K[i, 3 * q + d] * fm[3 * q + d]
+                                    t[i, 3 * r + d] = s * fm[i]
+                        for r2 in range(8):
+                            for d2 in range(3):
+                                for j in range(24):
+                                    s = 0.0
+                                    for q in range(8):
+                                        if w[q, r2] != 0.0:
+                                            s += w[q, r2] * t[3 * q + d2, j]
+                                    acc[3 * r2 + d2, j] += s
+            for i in range(24):
+                for j in range(24):
+                    out[e, i, j] = acc[i, j]
+
+    @nb.njit(cache=True, parallel=True, boundscheck=False)
+    def apply(index, mats, x, y):  # pragma: no cover - compiled
+        # x, y: (N, 3, m), node-major, so that a node's load cases are read together
+        n1, n2, n3 = index.shape
+        m = x.shape[2]
+        for i in nb.prange(n1):
+            acc = np.empty((3, m))
+            for j in range(n2):
+                for k in range(n3):
+                    node = (i * n2 + j) * n3 + k
+                    acc[:] = 0.0
+                    for b in range(8):
+                        ei = (i - (b & 1)) % n1
+                        ej = (j - ((b >> 1) & 1)) % n2
+                        ek = (k - ((b >> 2) & 1)) % n3
+                        mi = index[ei, ej, ek]
+                        if mi < 0:
+                            continue
+                        for a in range(8):
+                            q = ((((ei + (a & 1)) % n1) * n2 + (ej + ((a >> 1) & 1)) % n2) * n3
+                                 + (ek + ((a >> 2) & 1)) % n3)
+                            for d in range(3):
+                                r0 = mats[mi, 3 * b + d, 3 * a]
+                                r1 = mats[mi, 3 * b + d, 3 * a + 1]
+                                r2 = mats[mi, 3 * b + d, 3 * a + 2]
+                                for c in range(m):
+                                    acc[d, c] += r0 * x[q, 0, c] + r1 * x[q, 1, c] + r2 * x[q, 2, c]
+                    for d in range(3):
+                        for c in range(m):
+                            y[node, d, c] = acc[d, c]
+
+    @nb.njit(cache=True, parallel=True, boundscheck=False)
+    def diagonal(index, mats, out):  # pragma: no cover - compiled
+        n1, n2, n3 = index.shape
+        n = n1 * n2 * n3
+        for node in nb.prange(n):
+            i = node // (n2 * n3)
+            j = (node // n3) % n2
+            k = node % n3
+            for d in range(3):
+                out[d, node] = 0.0
+            for b in range(8):
+                ei = (i - (b & 1)) % n1
+                ej = (j - ((b >> 1) & 1)) % n2
+                ek = (k - ((b >> 2) & 1)) % n3
+                mi = index[ei, ej, ek]
+                if mi < 0:
+                    continue
+                for a in range(8):
+                    q = ((((ei + (a & 1)) % n1) * n2 + (ej + ((a >> 1) & 1)) % n2) * n3
+                         + (ek + ((a >> 2) & 1)) % n3)
+                    if q == node:
+                        for d in range(3):
+                            out[d, node] += mats[mi, 3 * b + d, 3 * a + d]
+
+    return galerkin, apply, diagonal
+
+
+# ----------------------------------------------------------------------------- transfer
+
+
+def coarse_shape(shape) -> tuple:
+    """The coarse node grid of a periodic node grid: every other node, ``ceil(n / 2)``."""
+    return tuple((int(n) + 1) // 2 for n in shape)
+
+
+def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
+    """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N)."""
+    m = y.shape[0]
+    out = y.reshape((m, 3) + coarse_shape(fine_shape))
+    for axis, n in enumerate(fine_shape):
+        ax = axis + 2
+        shape = list(out.shape)
+        shape[ax] = n
+        fine = np.empty(shape, y.dtype)
+        even = [slice(None)] * 5
+        even[ax] = slice(0, None, 2)
+        fine[tuple(even)] = out
+        odd = [slice(None)] * 5
+        odd[ax] = slice(1, None, 2)
+        half = [slice(None)] * 5
+        half[ax] = slice(0, n // 2)
+        mid = 0.5 * (out + np.roll(out, -1, axis=ax))
+        fine[tuple(odd)] = mid[tuple(half)]
+        out = fine
+    return out.reshape(m, 3, -1)
+
+
+def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
+    """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid."""
+    m = r.shape[0]
+    out = r.reshape((m, 3) + tuple(fine_shape))
+    for axis, n in enumerate(fine_shape):
+        ax = axis + 2
+        mc = (n + 1) // 2
+        even = [slice(None)] * 5
+        even[ax] = slice(0, None, 2)
+        coarse = out[tuple(even)].copy()
+        odd = [slice(None)] * 5
+        odd[ax] = slice(1, None, 2)
+        shape = list(out.shape)
+        shape[ax] = mc
+        o = np.zeros(shape, r.dtype)
+        head = [slice(None)] * 5
+        head[ax] = slice(0, n // 2)
+        o[tuple(head)] = out[tuple(odd)]
+        # the odd node of interval k feeds corners k and k + 1
+        coarse += 0.5 * (o + np.roll(o, 1, axis=ax))
+        out = coarse
+    return out.reshape(m, 3, -1)
+
+
+def _blocks(grid: np.ndarray) -> np.ndarray:
+    """(m1, m2, m3, 8) view of a fine element grid by coarse element and child (a + 2b + 4c),
+    a missing child (an odd axis' last coarse element) reading as the fill value (0 or -1)."""
+    pad = [(0, n % 2) for n in grid.shape]
+    fill = -1 if grid.dtype.kind == "i" else 0
+    g = np.pad(grid, pad, constant_values=fill)
+    m1, m2, m3 = (s // 2 for s in g.shape)
+    g = g.reshape(m1, 2, m2, 2, m3, 2).transpose(0, 2, 4, 5, 3, 1)  # ..., c, b, a
+    return g.reshape(m1, m2, m3, 8)
+
+
+# ----------------------------------------------------------------------------- levels
+
+
+@dataclass
+class Level:
+    """One coarse level: its node grid, element matrices and smoother.
+
+    Attributes
+    ----------
+    shape : (3,) ints
+        Node grid (= element grid, periodic).
+    index : (n1, n2, n3) int32 ndarray
+        Each element's matrix in `mats`; -1 for an element with no solid below it.
+    mats : (nm, 24, 24) float ndarray, GPa mm
+    inv_diag : (3, N) float ndarray
+        The inverse of the operator's diagonal (0 on unknowns no solid reaches).
+    lmax : float
+        The largest eigenvalue of ``D^-1 A`` (estimated).
+    """
+
+    shape: tuple
+    index: np.ndarray
+    mats: np.ndarray
+    inv_diag: np.ndarray
+    lmax: float = 2.0
+
+    def apply(self, x: np.ndarray) -> np.ndarray:
+        """``A x`` for (m, 3, N) nodal values."""
+        _, apply, _ = _kernels()
+        xt = np.ascontiguousarray(x.transpose(2, 1, 0))
+        y = np.empty_like(xt)
+        apply(self.index, self.mats, xt, y)
+        return y.transpose(2, 1, 0)
+
+    def matrix(self) -> np.ndarray:
+        """(3 N, 3 N) dense matrix of the level (unknown ``d N + node``): for the coarsest only."""
+        n = int(np.prod(self.shape))
+        A = np.zeros((3 * n, 3 * n))
+        e = np.flatnonzero(self.index.ravel() >= 0)
+        ijk = np.array(np.unravel_index(e, self.shape))  # (3, ne)
+        dims = np.array(self.shape)[:, None]
+        nodes = np.stack([np.ravel_multi_index(tuple((ijk + np.array(off)[:, None]) % dims), self.shape)
+                          for off in ((a & 1, (a >> 1) & 1, (a >> 2) & 1) for a in range(8))])  # (8, ne)
+        dof = (np.arange(3)[None, :, None] * n + nodes[:, None, :]).reshape(24, -1)  # (24, ne), corner-major
+        M = self.mats[self.index.ravel()[e]]  # (ne, 24, 24)
+        np.add.at(A, (dof.T[:, :, None], dof.T[:, None, :]), M)
+        return A
+
+
+def _first_coarse(model, free3: np.ndarray) -> Level:
+    """The Galerkin level under the fine voxels of `model`, with its unknowns' mask `free3`."""
+    galerkin, _, _ = _kernels()
+    shape = model.shape
+    solid = model.solid
+    child = _blocks(solid.astype(np.uint8))  # (m1, m2, m3, 8)
+    code = (child.astype(np.int64) << np.arange(8)).sum(axis=-1)
+    cshape = code.shape
+    # the length of each coarse element per axis (1 at the end of an odd axis), in the code
+    lens = [np.where(2 * np.arange(m) + 2 <= n, 0, 1) for m, n in zip(cshape, shape)]
+    code = code + 256 * (lens[0][:, None, None] + 2 * lens[1][None, :, None] + 4 * lens[2][None, None, :])
+    # an element touching a fixed unknown has its own matrix (F masks some of its rows)
+    fixed = (model.active & (free3 == 0).any(axis=0)).reshape(shape)
+    near = np.zeros(shape, bool)
+    for off in range(8):
+        near |= np.roll(fixed, tuple(-int(o) for o in ((off & 1), (off >> 1) & 1, (off >> 2) & 1)), axis=(0, 1, 2))
+    touched = _blocks((near & solid).astype(np.uint8)).any(axis=-1)
+    nonempty = child.any(axis=-1)
+    code = np.where(nonempty, code, -1)
+    own = touched & nonempty
+    code[own] = 4096 + np.arange(int(own.sum()))
+    flat = code.ravel()
+    keep = np.flatnonzero(flat >= 0)
+    uniq, first, inverse = np.unique(flat[keep], return_index=True, return_inverse=True)
+    elems = np.array(np.unravel_index(keep[first], cshape), np.int64).T.copy()
+    mats = np.empty((len(uniq), 24, 24))
+    fine_index = np.where(solid, 0, -1).astype(np.int32)
+    galerkin(fine_index, model.ke[None].astype(np.float64), np.ascontiguousarray(free3, np.float64), elems, mats)
+    index = np.full(flat.shape, -1, np.int32)
+    index[keep] = inverse.astype(np.int32)
+    return _level(cshape, index.reshape(cshape), mats)
+
+
+def _next_coarse(level: Level) -> Level:
+    """The Galerkin level under a coarse level (one matrix per element)."""
+    galerkin, _, _ = _kernels()
+    nonempty = _blocks(level.index).max(axis=-1) >= 0
+    cshape = nonempty.shape
+    keep = np.flatnonzero(nonempty.ravel())
+    elems = np.array(np.unravel_index(keep, cshape), np.int64).T.copy()
+    mats = np.empty((len(keep), 24, 24))
+    ones = np.ones((3, int(np.prod(level.shape))))
+    galerkin(level.index, level.mats, ones, elems, mats)
+    index = np.full(int(np.prod(cshape)), -1, np.int32)
+    index[keep] = np.arange(len(keep), dtype=np.int32)
+    return _level(cshape, index.reshape(cshape), mats)
+
+
+def _level(shape, index, mats) -> Level:
+    _, _, diagonal = _kernels()
+    d = np.empty((3, int(np.prod(shape))))
+    diagonal(index, mats, d)
+    return Level(tuple(int(s) for s in shape), index, mats, _inverse_diagonal(d))
+
+
+def _inverse_diagonal(d: np.ndarray) -> np.ndarray:
+    # unknowns no solid reaches (or reaches with a vanishing share) have no equation
+    live = d > 1e-12 * d.max() if d.size else d > 0
+    return np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
+
+
+def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
+    """The largest eigenvalue of ``D^-1 A`` by power iterations (enough for a smoother's bound)."""
+    x = (rng.standard_normal((1,) + inv_diag.shape) * (inv_diag > 0)).astype(inv_diag.dtype)
+    lam = 1.0
+    for _ in range(POWER_ITERATIONS):
+        norm = np.linalg.norm(x)
+        if norm == 0:
+            return 1.0
+        x /= norm
+        y = inv_diag * apply(x)
+        lam = float(np.vdot(x, y))
+        x = y
+    return max(lam, 1e-12)
+
+
+def _chebyshev(apply, inv_diag, lmax, b, x=None):
+    """Chebyshev smoothing of ``A x = b`` in ``D^-1 A`` on ``[LOWER, UPPER] * lmax`` (degree DEGREE)."""
+    lo, hi = LOWER * lmax, UPPER * lmax
+    theta, delta = (hi + lo) / 2, (hi - lo) / 2
+    sigma = theta / delta
+    rho = 1 / sigma
+    r = b.copy() if x is None else b - apply(x)
+    d = inv_diag * r
+    d *= 1 / theta
+    if x is None:
+        x = d.copy()
+    else:
+        x += d
+    for _ in range(DEGREE - 1):
+        r -= apply(d)
+        rho_new = 1 / (2 * sigma - rho)
+        d *= rho_new * rho
+        t = inv_diag * r
+        t *= 2 * rho_new / delta
+        d += t
+        rho = rho_new
+        x += d
+    return x
+
+
+class Multigrid:
+    """A V-cycle of the voxel operator as a conjugate-gradient preconditioner.
+
+    Parameters
+    ----------
+    model : VoxelModel
+        The fine voxels (:func:`~implicit_scaffold.mechanics.voxel_model`).
+    op : callable
+        The fine operator, (m, 3, N) -> K u (OpenCL or NumPy).
+    free : (N,) or (3, N) array of 0 and 1
+        The unknowns; the system solved is ``F K F``.
+    seed : int
+        For the eigenvalue estimates' start vectors (the preconditioner is deterministic).
+    dtype : numpy float type
+        Of the cycle's vectors (float32 halves its time and memory; the coarse matrices and
+        the coarsest solve stay float64).
+    """
+
+    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64):
+        from .mechanics import diagonal
+
+        n = int(np.prod(model.shape))
+        free = np.asarray(free, float)
+        self.dtype = np.dtype(dtype)
+        self.free = np.broadcast_to(free.reshape(-1, n), (3, n)).astype(self.dtype)
+        self.fine_shape = tuple(model.shape)
+        self.op = op
+        rng = np.random.default_rng(seed)
+        self.inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
+        self.lmax = _largest_eigenvalue(self._fine, self.inv_diag, rng)
+        self.levels: list[Level] = []
+        shape = self.fine_shape
+        if 3 * n > COARSEST_UNKNOWNS and min(shape) >= 4:
+            level = _first_coarse(model, self.free)
+            self.levels.append(level)
+            while 3 * np.prod(level.shape) > COARSEST_UNKNOWNS and min(level.shape) >= 4:
+                level = _next_coarse(level)
+                self.levels.append(level)
+        for level in self.levels:
+            level.inv_diag = level.inv_diag.astype(self.dtype)
+            level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
+        self._coarsest = self._exact(self.levels[-1]) if self.levels else None
+
+    def _fine(self, x):
+        # K x, unmasked: every use of it in the cycle is masked after (by the inverse
+        # diagonal, or before the restriction), so the cycle solves F K F
+        return self.op(x)
+
+    @staticmethod
+    def _exact(level: Level):
+        """The pseudo-inverse of a small level (rigid motions and unreached unknowns get 0)."""
+        nd = 3 * int(np.prod(level.shape))
+        if nd > COARSEST_UNKNOWNS:
+            return None
+        A = level.matrix()
+        live = np.flatnonzero(level.inv_diag.ravel() > 0)
+        sub = A[np.ix_(live, live)]
+        sub = 0.5 * (sub + sub.T)
+        w, v = np.linalg.eigh(sub)
+        keep = w > 1e-10 * max(w.max(), 1e-300)
+        pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
+        return live, pinv
+
+    def _cycle(self, depth: int, b: np.ndarray) -> np.ndarray:
+        if depth == 0:
+            apply, inv_diag, lmax, shape = self._fine, self.inv_diag, self.lmax, self.fine_shape
+        else:
+            level = self.levels[depth - 1]
+            apply, inv_diag, lmax, shape = level.apply, level.inv_diag, level.lmax, level.shape
+            if depth == len(self.levels) and self._coarsest is not None:
+                live, pinv = self._coarsest
+                m = b.shape[0]
+                x = np.zeros_like(b)
+                flat = x.reshape(m, -1)
+                flat[:, live] = b.reshape(m, -1)[:, live] @ pinv
+                return x
+        if depth == len(self.levels):
+            # no exact solve (a level too large and too thin to coarsen): smooth harder
+            x = None
+            for _ in range(4):
+                x = _chebyshev(apply, inv_diag, lmax, b, x)
+            return x
+        x = _chebyshev(apply, inv_diag, lmax, b)
+        r = b - apply(x)
+        if depth == 0:
+            r *= self.free
+        xc = self._cycle(depth + 1, restrict(r, shape))
+        corr = prolong(xc, shape)
+        if depth == 0:
+            corr *= self.free
+        x += corr
+        return _chebyshev(apply, inv_diag, lmax, b, x)
+
+    def __call__(self, r: np.ndarray) -> np.ndarray:
+        """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
+        b = (self.free * r).astype(self.dtype, copy=False)
+        return (self.free * self._cycle(0, b)).astype(r.dtype, copy=False)
