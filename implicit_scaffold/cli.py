@@ -203,6 +203,21 @@ def _mechanics_lines(mech: dict) -> list[str]:
     return lines
 
 
+def _solver_progress(args, every: float = 5.0):
+    """A CG progress line on stderr at most every `every` seconds (none when quiet)."""
+    if getattr(args, "quiet", False):
+        return None
+    last = [time.perf_counter()]
+
+    def tell(name, it, res):
+        now = time.perf_counter()
+        if now - last[0] >= every:
+            last[0] = now
+            print(f"  {name}: CG iteration {it}, residual {res:.1e}", file=sys.stderr, flush=True)
+
+    return tell
+
+
 def _mechanics(args) -> int:
     from .mechanics import load_sample, measure
 
@@ -217,7 +232,8 @@ def _mechanics(args) -> int:
 
                 check_writable(path, formats=fmt)
     solid, h, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing)
-    report, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis))
+    report, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis), backend="opencl",
+                           progress=_solver_progress(args))
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .files import write_json
@@ -251,7 +267,8 @@ def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
     if boundary == "auto" and result.patient_sdf is not None:
         # a box patient is a box sample (periodic); any other shape is not (kinematic)
         boundary = "periodic" if crop(result.patient_sdf < 0).all() else "kinematic"
-    mech, comp = measure(solid, h, mat, boundary=boundary, axis="xyz".index(args.axis))
+    mech, comp = measure(solid, h, mat, boundary=boundary, axis="xyz".index(args.axis), backend="opencl",
+                         progress=_solver_progress(args))
     return mech, comp, h
 
 

@@ -2,15 +2,20 @@
 
 One trilinear hexahedron per solid voxel (exact 2x2x2 Gauss stiffness); void voxels carry
 no unknowns (a node is an unknown only when a solid voxel touches it). The system is
-solved by preconditioned conjugate gradients, all load cases as one block, with an
-FFT-based reference-medium preconditioner: the inverse of the same finite-element operator
-on the full (all-solid) periodic grid, which Fourier diagonalises, with Green-Jacobi
-scaling. It is the preconditioner of the "Fourier-accelerated nodal solvers" (Leuschner &
-Fritzen 2018, Comput Mech 62:359; Ladecký et al. 2023). Its iteration count stays flat as
-a pore cell is refined (a 20 % spherical pore: 20 and 25 iterations at 16 and 32 voxels
-across), but it grows on thin-strut scaffolds, where the void's infinite contrast is felt
-(a 30 % solid Voronoi scaffold at 0.04 mm: 231 iterations at 32^3, 343 at 64^3; muGrid's
-own Green-Jacobi FFT solver needs 280-292 per load case on the same 64^3 voxels).
+solved by preconditioned conjugate gradients, all load cases as one block. Two
+preconditioners (:func:`make_preconditioner`):
+
+- ``multigrid`` (the default): a V-cycle over Galerkin coarse grids of the solid itself
+  (:mod:`~implicit_scaffold.multigrid`, ParOSol's approach for bone micro-FE). Its count
+  stays flat where struts are thin: a 30 % solid Voronoi scaffold at 0.04 mm took 25, 27
+  iterations at 32^3, 64^3 (six load cases).
+- ``fft``: the inverse of the same finite-element operator on the full (all-solid)
+  periodic grid, which Fourier diagonalises, with Green-Jacobi scaling ("Fourier-accelerated
+  nodal solvers": Leuschner & Fritzen 2018, Comput Mech 62:359; Ladecky et al. 2023). Flat
+  as a pore cell is refined (a 20 % spherical pore: 20 and 25 iterations at 16 and 32
+  voxels across), but it grows on thin struts, where the void's infinite contrast is felt
+  (the same scaffold: 154 iterations at 32^3, 288 at 64^3; muGrid's own Green-Jacobi FFT
+  solver needs 280-292 per load case on the same 64^3 voxels).
 
 Three problems:
 
@@ -372,7 +377,7 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
 
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000):
+        maxiter: int = 2000, progress=None):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Parameters
@@ -389,6 +394,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         converged at once).
     tol : float
         Stop when every ``|r| / scale`` is below it.
+    progress : callable, optional
+        Called after every iteration with (iteration, largest relative residual).
 
     Returns
     -------
@@ -415,6 +422,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         rz = rz_new
         res = np.where(live, np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale, res)
         it += 1
+        if progress is not None:
+            progress(it, float(res.max()))
     return x, it, res
 
 
@@ -456,7 +465,8 @@ def check_solid(solid) -> np.ndarray:
 
 
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
-               maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid") -> Homogenization:
+               maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid",
+               progress=None) -> Homogenization:
     """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
 
     Parameters
@@ -473,6 +483,8 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         Where the element operator runs.
     preconditioner : {"multigrid", "fft"}
         See :func:`make_preconditioner`.
+    progress : callable, optional
+        (iteration, residual) after every CG iteration.
     """
     t0 = time.perf_counter()
     solid = check_solid(solid)
@@ -501,7 +513,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         extra = None
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
     precond = make_preconditioner(preconditioner, model, op, free, tol)
-    x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter)
+    x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress)
     u = base + x
     ue_sum = gather(model, u).sum(axis=2)  # (6, 24)
     if extra is not None:
@@ -571,7 +583,7 @@ def von_mises_strain(strain: np.ndarray) -> np.ndarray:
 
 def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
              tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy",
-             preconditioner: str = "multigrid") -> Compression:
+             preconditioner: str = "multigrid", progress=None) -> Compression:
     """Compress a voxel sample between two rigid platens on its faces normal to `axis`.
 
     The lower platen holds its nodes' axial displacement at 0, the upper one moves them by
@@ -615,7 +627,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
-    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter)
+    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress)
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
@@ -759,7 +771,8 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
 
 
 def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
-            backend: str = "numpy", origin=(0.0, 0.0, 0.0)) -> tuple[dict, Compression]:
+            backend: str = "numpy", origin=(0.0, 0.0, 0.0),
+            preconditioner: str = "multigrid", progress=None) -> tuple[dict, Compression]:
     """Every mechanical figure of a voxel sample, as the report's ``mechanics`` section.
 
     Parameters
@@ -774,6 +787,10 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     tol : float
         Relative residual of the CG solves (1e-6: moduli to about 1e-6, far below the voxel
         discretisation's error).
+    preconditioner : {"multigrid", "fft"}
+        See :func:`make_preconditioner`.
+    progress : callable, optional
+        (solve name, iteration, residual) after every CG iteration of each solve.
 
     Returns
     -------
@@ -784,8 +801,14 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     solid = check_solid(solid)
     if boundary == "auto":
         boundary = choose_boundary(solid)
-    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend)  # first: it refuses a solid with no load path
-    hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend)
+    # compression first: it refuses a solid with no load path
+    def tell(name):
+        return None if progress is None else (lambda it, res: progress(name, it, res))
+
+    comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
+                    progress=tell("compression"))
+    hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
+                     progress=tell("homogenization"))
     consts = engineering_constants(hom.stiffness)
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
@@ -809,8 +832,10 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
                    "residual": max(hom.residual, comp.residual),
                    "seconds": round(hom.seconds + comp.seconds, 4),
-                   "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, FFT reference-medium "
-                             "preconditioner", "backend": backend, "voxel_mm": float(h),
+                   "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, "
+                             + {"multigrid": "geometric multigrid (Galerkin) preconditioner",
+                                "fft": "FFT reference-medium preconditioner"}[preconditioner],
+                   "preconditioner": preconditioner, "backend": backend, "voxel_mm": float(h),
                    "grid_shape": list(solid.shape)},
         "hashin_shtrikman_upper_gpa": {"bulk": K_hs, "shear": G_hs},
         "bone_bands_gpa": {k: {"low": lo, "high": hi, "source": src} for k, (lo, hi, src) in BONE_BANDS.items()},

@@ -17,28 +17,18 @@ def has_double() -> bool:
     return "cl_khr_fp64" in ctx.devices[0].extensions
 
 
-class StiffnessOperator:
-    """``K u`` of a :class:`~implicit_scaffold.mechanics.VoxelModel` on the device.
+class _Gather:
+    """``f = A u`` by the gather kernel of ``kernels/mechanics.cl`` on a periodic node grid."""
 
-    Parameters
-    ----------
-    model : VoxelModel
-    double : bool, optional
-        Compute in double (default: when the device can).
-    """
-
-    def __init__(self, model, *, double: bool | None = None):
-        self.model = model
-        self.double = has_double() if double is None else bool(double)
+    def __init__(self, shape, owner, mats, *, double: bool, per_element: bool):
+        self.shape = tuple(int(v) for v in shape)
+        self.double = bool(double)
         self.dtype = np.float64 if self.double else np.float32
-        self.solid = opencl.to_device(model.solid.ravel(), np.uint8)
-        self.ke = opencl.to_device(model.ke, self.dtype)
-        self.n = int(np.prod(model.shape))
+        self.per_element = int(per_element)
+        self.owner = opencl.to_device(owner.ravel(), np.int32 if per_element else np.uint8)
+        self.mats = opencl.to_device(mats, self.dtype)
+        self.n = int(np.prod(self.shape))
         self._buffers = {}
-
-    def single(self) -> "StiffnessOperator":
-        """The same operator in float (a preconditioner's: half the time and memory of double)."""
-        return self if not self.double else StiffnessOperator(self.model, double=False)
 
     def _io(self, m):
         import pyopencl as cl
@@ -50,25 +40,58 @@ class StiffnessOperator:
                                 cl.Buffer(ctx, cl.mem_flags.WRITE_ONLY, nbytes))
         return self._buffers[m]
 
-    def __call__(self, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
-        """K u for (m, 3, N) nodal displacements, in float64 (or in the operator's own float
-        when `u` comes in it); with `element_extra` (a one-off right-hand side) the NumPy
-        reference does it."""
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """A u for (m, 3, N) nodal values, in float64 (or in the operator's own float when
+        `u` comes in it)."""
         import pyopencl as cl
 
-        if element_extra is not None:
-            from .mechanics import apply_stiffness
-
-            return apply_stiffness(self.model, u, element_extra)
         m = u.shape[0]
         _, queue = opencl.context()
-        k = opencl.kernel("mechanics", "stiffness_apply", NCASE=m, USE_DOUBLE=int(self.double))
+        k = opencl.kernel("mechanics", "stiffness_apply", NCASE=m, USE_DOUBLE=int(self.double),
+                          PER_ELEMENT=self.per_element)
         u_buf, f_buf = self._io(m)
         native = u.dtype == self.dtype
         host = np.ascontiguousarray(u, self.dtype)
         cl.enqueue_copy(queue, u_buf, host)
-        n1, n2, n3 = self.model.shape
-        k(queue, (self.n,), None, self.solid, self.ke, u_buf, f_buf, np.int32(n1), np.int32(n2), np.int32(n3))
+        n1, n2, n3 = self.shape
+        k(queue, (self.n,), None, self.owner, self.mats, u_buf, f_buf, np.int32(n1), np.int32(n2), np.int32(n3))
         out = np.empty(host.shape, self.dtype)
         cl.enqueue_copy(queue, out, f_buf)
         return out if native else out.astype(np.float64)
+
+
+class StiffnessOperator(_Gather):
+    """``K u`` of a :class:`~implicit_scaffold.mechanics.VoxelModel` on the device.
+
+    Parameters
+    ----------
+    model : VoxelModel
+    double : bool, optional
+        Compute in double (default: when the device can).
+    """
+
+    def __init__(self, model, *, double: bool | None = None):
+        self.model = model
+        super().__init__(model.shape, model.solid, model.ke, double=has_double() if double is None else double,
+                         per_element=False)
+
+    def single(self) -> "StiffnessOperator":
+        """The same operator in float (a preconditioner's: half the time and memory of double)."""
+        return self if not self.double else StiffnessOperator(self.model, double=False)
+
+    def __call__(self, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
+        """K u; with `element_extra` (a one-off right-hand side) the NumPy reference does it."""
+        if element_extra is not None:
+            from .mechanics import apply_stiffness
+
+            return apply_stiffness(self.model, u, element_extra)
+        return super().__call__(u)
+
+
+class LevelOperator(_Gather):
+    """``A u`` of a coarse multigrid level (:class:`~implicit_scaffold.multigrid.Level`) on
+    the device, in the float of its matrices."""
+
+    def __init__(self, level):
+        super().__init__(level.shape, level.index, level.mats, double=level.mats.dtype == np.float64,
+                         per_element=True)

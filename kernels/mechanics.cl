@@ -11,6 +11,11 @@
  * that has cl_khr_fp64: the solver's CG runs in double, and a float operator limits its
  * residual to about 1e-6.
  * Reference: implicit_scaffold.mechanics.apply_stiffness (NumPy).
+ *
+ * With -DPER_ELEMENT=1 the same gather serves a coarse level of the multigrid
+ * preconditioner, where each element has its own 24 x 24 matrix: `owner` holds its row in
+ * `mats` (-1: no solid under it) instead of a solid flag, and `mats` its matrices.
+ * Reference: implicit_scaffold.multigrid.Level.apply (numba).
  */
 #ifndef NCASE
 #define NCASE 1
@@ -21,8 +26,24 @@ typedef double real;
 #else
 typedef float real;
 #endif
+#ifndef PER_ELEMENT
+#define PER_ELEMENT 0
+#endif
+#if PER_ELEMENT
+typedef int owner_t;
+#define HAS(s) ((s) >= 0)
+#define MATS __global const real *mats
+#define ROW(s, b, a) (mats + (size_t)(s) * 576 + (3 * (b)) * 24 + 3 * (a))
+#define MATS_ROW_T __global const real *
+#else
+typedef uchar owner_t;
+#define HAS(s) (s)
+#define MATS __constant real *mats
+#define ROW(s, b, a) (mats + (3 * (b)) * 24 + 3 * (a))
+#define MATS_ROW_T __constant const real *
+#endif
 
-__kernel void stiffness_apply(__global const uchar *solid, __constant real *ke, __global const real *u,
+__kernel void stiffness_apply(__global const owner_t *solid, MATS, __global const real *u,
                               __global real *f, const int n1, const int n2, const int n3)
 {
     const int node = (int)get_global_id(0);
@@ -34,13 +55,49 @@ __kernel void stiffness_apply(__global const uchar *solid, __constant real *ke, 
     const int J[3] = {(j == 0 ? n2 : j) - 1, j, j + 1 == n2 ? 0 : j + 1};
     const int K[3] = {(k == 0 ? n3 : k) - 1, k, k + 1 == n3 ? 0 : k + 1};
     /* this node is corner b of the voxel whose low corner is node - offset(b) */
-    uchar s[8];
-    uchar any = 0;
+    owner_t s[8];
+    int any = 0;
 #pragma unroll
     for (int b = 0; b < 8; ++b) {
         s[b] = solid[(I[1 - (b & 1)] * n2 + J[1 - ((b >> 1) & 1)]) * n3 + K[1 - ((b >> 2) & 1)]];
-        any |= s[b];
+        any |= HAS(s[b]);
     }
+#if PER_ELEMENT
+    real acc[3 * NCASE];
+#pragma unroll
+    for (int t = 0; t < 3 * NCASE; ++t) acc[t] = (real)0;
+    if (any) {
+        /* the 27 neighbours, wrapped once; each 3 x 3 block of a matrix is read once for all
+           the cases (a coarse level's matrices differ from element to element) */
+        int nb[27];
+        for (int q = 0; q < 27; ++q) nb[q] = (I[q % 3] * n2 + J[(q / 3) % 3]) * n3 + K[q / 9];
+        for (int b = 0; b < 8; ++b) {
+            if (!HAS(s[b])) continue;
+            for (int a = 0; a < 8; ++a) {
+                /* corner a of that voxel is this node + offset(a) - offset(b) */
+                const int q = (1 + (a & 1) - (b & 1)) + 3 * (1 + ((a >> 1) & 1) - ((b >> 1) & 1))
+                              + 9 * (1 + ((a >> 2) & 1) - ((b >> 2) & 1));
+                MATS_ROW_T row = ROW(s[b], b, a);
+                const real k00 = row[0], k01 = row[1], k02 = row[2];
+                const real k10 = row[24], k11 = row[25], k12 = row[26];
+                const real k20 = row[48], k21 = row[49], k22 = row[50];
+                const int m = nb[q];
+#pragma unroll
+                for (int c = 0; c < NCASE; ++c) {
+                    const real ux = u[(3 * c) * n + m], uy = u[(3 * c + 1) * n + m], uz = u[(3 * c + 2) * n + m];
+                    acc[c] += k00 * ux + k01 * uy + k02 * uz;
+                    acc[NCASE + c] += k10 * ux + k11 * uy + k12 * uz;
+                    acc[2 * NCASE + c] += k20 * ux + k21 * uy + k22 * uz;
+                }
+            }
+        }
+    }
+    for (int c = 0; c < NCASE; ++c) {
+        f[(3 * c + 0) * n + node] = acc[c];
+        f[(3 * c + 1) * n + node] = acc[NCASE + c];
+        f[(3 * c + 2) * n + node] = acc[2 * NCASE + c];
+    }
+#else
     for (int c = 0; c < NCASE; ++c) {
         real ax = (real)0, ay = (real)0, az = (real)0;
         if (any) {
@@ -55,13 +112,13 @@ __kernel void stiffness_apply(__global const uchar *solid, __constant real *ke, 
             }
 #pragma unroll
             for (int b = 0; b < 8; ++b) {
-                if (!s[b]) continue;
+                if (!HAS(s[b])) continue;
 #pragma unroll
                 for (int a = 0; a < 8; ++a) {
                     /* corner a of that voxel is this node + offset(a) - offset(b) */
                     const int q = (1 + (a & 1) - (b & 1)) + 3 * (1 + ((a >> 1) & 1) - ((b >> 1) & 1))
                                   + 9 * (1 + ((a >> 2) & 1) - ((b >> 2) & 1));
-                    __constant const real *row = ke + (3 * b) * 24 + 3 * a;
+                    MATS_ROW_T row = ROW(s[b], b, a);
                     const real ux = U[3 * q], uy = U[3 * q + 1], uz = U[3 * q + 2];
                     ax += row[0] * ux + row[1] * uy + row[2] * uz;
                     ay += row[24] * ux + row[25] * uy + row[26] * uz;
@@ -73,4 +130,5 @@ __kernel void stiffness_apply(__global const uchar *solid, __constant real *ke, 
         f[(3 * c + 1) * n + node] = ay;
         f[(3 * c + 2) * n + node] = az;
     }
+#endif
 }

@@ -117,3 +117,26 @@ def test_multigrid_iterations_stay_flat_when_struts_are_refined(scaffolds):
     assert its[0.04][0] <= 1.3 * its[0.08][0]
     assert its[0.04][1] <= 1.3 * its[0.08][1]
     assert max(its[0.04]) < 60
+
+
+@pytest.mark.parametrize("cases", [1, 6])
+def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one(cases):
+    from implicit_scaffold import opencl
+    from implicit_scaffold.mechanics_cl import LevelOperator, has_double
+
+    rng = np.random.default_rng(5)
+    solid = rng.random((9, 10, 11)) < 0.4
+    model = M.voxel_model(solid, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    devices = opencl.working_devices()
+    assert devices, "no working OpenCL device"
+    for dtype, tol in ((np.float32, 1e-6), (np.float64, 1e-12)):
+        level = G._first_coarse(model, free, dtype)
+        x = rng.standard_normal((cases, 3, int(np.prod(level.shape)))).astype(dtype)
+        ref = level.apply(x.astype(np.float64))
+        for check in devices:
+            with opencl.using(check):
+                if dtype == np.float64 and not has_double():
+                    continue
+                got = LevelOperator(level)(x)
+                assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
