@@ -1,7 +1,7 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
     python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
-                                         [--preconditioners multigrid,fft] [--peers-up-to 64]
+                                         [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
                                          [--femur] [--femur-tol 1e-6] [--femur-maxiter N]
 
 - **solve**: all six load cases of periodic homogenization (one block, PCG with each
@@ -221,6 +221,9 @@ def main(argv=None) -> int:
                     help="stop the femur solves' CG there (a capped run: its residual says how far it got)")
     ap.add_argument("--preconditioners", default="multigrid,fft",
                     help="comma-separated: ours with each (multigrid, fft), side by side in the same run")
+    ap.add_argument("--peer-runs", type=int, default=1,
+                    help="runs of the FFT preconditioner and of muGrid (each takes minutes: the median of "
+                         "--runs is for ours)")
     ap.add_argument("--peers-up-to", type=int, default=64,
                     help="run the FFT preconditioner and muGrid only up to this N (theirs take hundreds of "
                          "iterations; 128^3 would take half an hour each)")
@@ -235,7 +238,8 @@ def main(argv=None) -> int:
             if pc != "multigrid" and n > args.peers_up_to:
                 continue
             med, runs = median_runs(OURS.format(solid=str(path), voxel=voxel, tol=args.tol, maxiter=args.maxiter,
-                                                preconditioner=pc), args.runs, warmup=0)
+                                                preconditioner=pc),
+                                    args.runs if pc == "multigrid" else args.peer_runs, warmup=0)
             # the solve's own memory: the peak above what the process held before it started
             per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
             name = {"multigrid": "multigrid", "fft": "FFT"}[pc]
@@ -244,16 +248,17 @@ def main(argv=None) -> int:
                          + (" capped" if med["residual"] > args.tol else ""),
                          f"{med['seconds']:.1f}", med["iterations"], f"{med['residual']:.1e}",
                          f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}", ", ".join(f"{r['seconds']:.1f}" for r in runs)])
-            first = first or med
+            if first is None:
+                first, first_runs = med, runs
             print(f"  {n}^3 {pc} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
         if args.mugrid and n <= args.peers_up_to:
             try:
-                mg, mruns = median_runs(MUGRID.format(solid=str(path), voxel=voxel, tol=args.tol), args.runs,
+                mg, mruns = median_runs(MUGRID.format(solid=str(path), voxel=voxel, tol=args.tol), args.peer_runs,
                                         warmup=0)
             except RuntimeError as exc:
                 print(f"  mugrid failed at {n}^3: {str(exc).splitlines()[-1]}", file=sys.stderr)
             else:
-                ours_C, mg_C = np.array(runs[0]["C"]), np.array(mg["C"])
+                ours_C, mg_C = np.array(first_runs[0]["C"]), np.array(mg["C"])
                 dev = np.abs(ours_C - mg_C).max() / np.abs(mg_C).max()
                 rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {first['seconds'] / mg['seconds']:.2f}; "
                              f"max |dC|/max|C| {dev:.2e})", f"{mg['seconds']:.1f}", mg["iterations"], "",
