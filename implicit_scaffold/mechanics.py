@@ -366,11 +366,15 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
         close to ``K^-1``, and CG to 1e-6 does not feel its rounding).
     """
     if kind == "multigrid":
-        from .multigrid import Multigrid
+        from .multigrid import COARSEST_UNKNOWNS, Multigrid
 
-        if tol >= 1e-7 and hasattr(op, "single"):
-            return Multigrid(model, op.single(), free, dtype=np.float32)
-        return Multigrid(model, op, free)
+        # a grid too thin to coarsen (an axis under 4 nodes, too many unknowns to solve
+        # exactly) would get smoothing only: the FFT one serves it better
+        if min(model.shape) >= 4 or 3 * np.prod(model.shape) <= COARSEST_UNKNOWNS:
+            if tol >= 1e-7 and hasattr(op, "single"):
+                return Multigrid(model, op.single(), free, dtype=np.float32)
+            return Multigrid(model, op, free)
+        kind = "fft"
     if kind == "fft":
         return fft_preconditioner(model, free, single=tol >= 1e-7)
     raise ValueError(f"preconditioner must be 'multigrid' or 'fft', got {kind!r}")
@@ -611,8 +615,14 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     shape = model.shape
     n = int(np.prod(shape))
     length = (shape[axis] - 1) * h
-    index = np.unravel_index(np.arange(n), shape)[axis]
-    bottom, top = index == 0, index == shape[axis] - 1
+    # the platens' node planes (as masks: a flat index of every node would take 8 bytes a node)
+    bottom, top = np.zeros(shape, bool), np.zeros(shape, bool)
+    plane = [slice(None)] * 3
+    plane[axis] = 0
+    bottom[tuple(plane)] = True
+    plane[axis] = shape[axis] - 1
+    top[tuple(plane)] = True
+    bottom, top = bottom.ravel(), top.ravel()
     base = np.zeros((1, 3, n))
     base[0, axis, top] = -strain * length
     platen = bottom | top
