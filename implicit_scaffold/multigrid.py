@@ -171,64 +171,42 @@ def _kernels():
                         for c in range(m):
                             y[node, d, c] = acc[d, c]
 
-    # (the transfers inline their per-axis weights: a kernel calling another closure's
-    # kernel is not cached on disk, and these took 3 s and 7 s to compile in every process)
+    # the transfers take their per-axis stencils as arrays (:func:`_stencils`): branch-free
+    # loops, which numba compiles in about 2 s (the same loops with the weights worked out
+    # inside took 18 s per float type)
     @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def prolong_kernel(y, out):  # pragma: no cover - compiled
-        # fine node 2 I takes coarse node I; an odd one half of each of its two neighbours
-        m, _, c1, c2, c3 = y.shape
+    def prolong_kernel(y, out, pa, wa, pb, wb, pg, wg):  # pragma: no cover - compiled
+        m = y.shape[0]
         n1, n2, n3 = out.shape[2], out.shape[3], out.shape[4]
         for i in nb.prange(n1):
-            a0 = i // 2
-            a1 = (a0 + 1) % c1 if i % 2 else a0
-            wa = 0.5 if i % 2 else 1.0
             for c in range(m):
                 for d in range(3):
                     for j in range(n2):
-                        b0 = j // 2
-                        b1 = (b0 + 1) % c2 if j % 2 else b0
-                        wb = 0.5 if j % 2 else 1.0
                         for k in range(n3):
-                            g0 = k // 2
-                            g1 = (g0 + 1) % c3 if k % 2 else g0
-                            wg = 0.5 if k % 2 else 1.0
-                            v = (wb * (wg * y[c, d, a0, b0, g0] + (1 - wg) * y[c, d, a0, b0, g1])
-                                 + (1 - wb) * (wg * y[c, d, a0, b1, g0] + (1 - wg) * y[c, d, a0, b1, g1]))
-                            w = (wb * (wg * y[c, d, a1, b0, g0] + (1 - wg) * y[c, d, a1, b0, g1])
-                                 + (1 - wb) * (wg * y[c, d, a1, b1, g0] + (1 - wg) * y[c, d, a1, b1, g1]))
-                            out[c, d, i, j, k] = wa * v + (1 - wa) * w
+                            v = 0.0
+                            for s in range(2):
+                                for t in range(2):
+                                    for u in range(2):
+                                        v += (wa[i, s] * wb[j, t] * wg[k, u]
+                                              * y[c, d, pa[i, s], pb[j, t], pg[k, u]])
+                            out[c, d, i, j, k] = v
 
     @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def restrict_kernel(r, out):  # pragma: no cover - compiled
-        # coarse node I sums fine node 2 I and half of each odd neighbour 2 I +- 1 (periodic;
-        # at an odd axis' end the neighbour is even or missing, and gives nothing); one
-        # component of one case at a time, so that each plane is read along its rows
-        m, _, n1, n2, n3 = r.shape
+    def restrict_kernel(r, out, ca, wa, cb, wb, cg, wg):  # pragma: no cover - compiled
+        m = r.shape[0]
         c1, c2, c3 = out.shape[2], out.shape[3], out.shape[4]
-        for I in nb.prange(c1):
+        for i in nb.prange(c1):
             for c in range(m):
                 for d in range(3):
-                    for J in range(c2):
-                        for K in range(c3):
+                    for j in range(c2):
+                        for k in range(c3):
                             v = 0.0
-                            for oa in range(-1, 2):
-                                fa = (2 * I + oa) % n1
-                                if oa != 0 and (fa % 2 == 0 or 2 * I + oa >= n1):
-                                    continue
-                                wa = 1.0 if oa == 0 else 0.5
-                                for ob in range(-1, 2):
-                                    fb = (2 * J + ob) % n2
-                                    if ob != 0 and (fb % 2 == 0 or 2 * J + ob >= n2):
-                                        continue
-                                    wb = 1.0 if ob == 0 else 0.5
-                                    row = 0.0
-                                    for og in range(-1, 2):
-                                        fg = (2 * K + og) % n3
-                                        if og != 0 and (fg % 2 == 0 or 2 * K + og >= n3):
-                                            continue
-                                        row += (1.0 if og == 0 else 0.5) * r[c, d, fa, fb, fg]
-                                    v += wa * wb * row
-                            out[c, d, I, J, K] = v
+                            for s in range(3):
+                                for t in range(3):
+                                    for u in range(3):
+                                        v += (wa[i, s] * wb[j, t] * wg[k, u]
+                                              * r[c, d, ca[i, s], cb[j, t], cg[k, u]])
+                            out[c, d, i, j, k] = v
 
     return galerkin, apply, prolong_kernel, restrict_kernel
 
@@ -247,17 +225,40 @@ def coarse_shape(shape) -> tuple:
     return tuple((int(n) + 1) // 2 for n in shape)
 
 
-def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
-    """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N).
+@functools.lru_cache(maxsize=64)
+def _stencils(n: int):
+    """The 1-D transfer stencils of a periodic axis of `n` fine nodes.
 
-    Fine node ``2 I`` takes coarse node ``I``; an odd node ``2 I + 1`` takes half of ``I``
-    and half of ``I + 1`` (periodic).
+    Returns
+    -------
+    parents, weights : (n, 2) int64, (n, 2) float64
+        The coarse nodes each fine node interpolates (fine ``2 I``: ``I`` alone; an odd one:
+        half of each neighbour).
+    children, shares : (ceil(n / 2), 3) int64, (ceil(n / 2), 3) float64
+        The transpose: fine nodes ``2 I - 1, 2 I, 2 I + 1`` of coarse node ``I`` and their
+        weights (0 where that node is even or missing, at an odd axis' end).
     """
+    mc = (n + 1) // 2
+    i = np.arange(n)
+    lo = i // 2
+    odd = i % 2 == 1
+    parents = np.stack([lo, np.where(odd, (lo + 1) % mc, lo)], axis=1)
+    weights = np.stack([np.where(odd, 0.5, 1.0), np.where(odd, 0.5, 0.0)], axis=1)
+    c = np.arange(mc)
+    children = np.stack([(2 * c - 1) % n, 2 * c, np.minimum(2 * c + 1, n - 1)], axis=1)
+    shares = np.stack([np.where(((2 * c - 1) % n) % 2 == 1, 0.5, 0.0), np.ones(mc),
+                       np.where(2 * c + 1 < n, 0.5, 0.0)], axis=1)
+    return parents, weights, children, shares
+
+
+def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
+    """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N)."""
     _, _, prolong_kernel, _ = _kernels()
     m = y.shape[0]
     n1, n2, n3 = (int(v) for v in fine_shape)
     out = np.empty((m, 3, n1, n2, n3), y.dtype)
-    prolong_kernel(np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out)
+    args = [a for n in (n1, n2, n3) for a in _stencils(n)[:2]]
+    prolong_kernel(np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out, *args)
     return out.reshape(m, 3, -1)
 
 
@@ -265,8 +266,10 @@ def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
     """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid."""
     _, _, _, restrict_kernel = _kernels()
     m = r.shape[0]
+    fine_shape = tuple(int(v) for v in fine_shape)
     out = np.empty((m, 3) + coarse_shape(fine_shape), r.dtype)
-    restrict_kernel(np.ascontiguousarray(r).reshape((m, 3) + tuple(int(v) for v in fine_shape)), out)
+    args = [a for n in fine_shape for a in _stencils(n)[2:]]
+    restrict_kernel(np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, *args)
     return out.reshape(m, 3, -1)
 
 
