@@ -244,10 +244,11 @@ def main(argv=None) -> int:
             per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
             name = {"multigrid": "multigrid", "fft": "FFT"}[pc]
             ratio = "" if first is None else f"; ratio {med['seconds'] / first['seconds']:.2f}x the first row's"
-            rows.append([f"{info['grid']}", f"{info['solid_fraction']:.3f}", f"ours (OpenCL operator, {name}-PCG{ratio})"
-                         + (" capped" if med["residual"] > args.tol else ""),
+            solver = f"ours (OpenCL operator, {name}-PCG{ratio})" + (" capped" if med["residual"] > args.tol else "")
+            rows.append([f"{info['grid']}", f"{info['solid_fraction']:.3f}", solver,
                          f"{med['seconds']:.1f}", med["iterations"], f"{med['residual']:.1e}",
-                         f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}", ", ".join(f"{r['seconds']:.1f}" for r in runs)])
+                         f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}",
+                         ", ".join(f"{r['seconds']:.1f}" for r in runs)])
             if first is None:
                 first, first_runs = med, runs
             print(f"  {n}^3 {pc} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
@@ -260,7 +261,8 @@ def main(argv=None) -> int:
             else:
                 ours_C, mg_C = np.array(first_runs[0]["C"]), np.array(mg["C"])
                 dev = np.abs(ours_C - mg_C).max() / np.abs(mg_C).max()
-                rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {first['seconds'] / mg['seconds']:.2f}; "
+                ratio = first["seconds"] / mg["seconds"]
+                rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {ratio:.2f}; "
                              f"max |dC|/max|C| {dev:.2e})", f"{mg['seconds']:.1f}", mg["iterations"], "",
                              f"{mg['peak_rss_mb']:.0f}", "", ", ".join(f"{r['seconds']:.1f}" for r in mruns)])
     if rows:

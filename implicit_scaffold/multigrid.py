@@ -61,8 +61,8 @@ def _kernels():
       matrices ``sum over children W^T (F K_child F) W`` of the coarse elements ``elems``;
     - ``apply(index, mats, x, y)``: ``y = A x`` of a coarse level, one node per work item,
       gathering the rows of the (up to eight) elements around it (no races);
-    - ``prolong_kernel(y, out)``, ``restrict_kernel(r, out)``: the transfers, each in one
-      gathering pass.
+    - ``transfer(src, out, ...)``: prolongation and restriction, each one gathering pass of a
+      separable stencil.
     """
     import numba as nb
 
@@ -173,44 +173,28 @@ def _kernels():
                         for c in range(m):
                             y[node, d, c] = acc[d, c]
 
-    # the transfers take their per-axis stencils as arrays (:func:`_stencils`): branch-free
-    # loops, which numba compiles in about 2 s (the same loops with the weights worked out
-    # inside took 18 s per float type)
+    # both transfers are one stencil sum over per-axis stencils given as arrays (:func:`_stencils`):
+    # branch-free loops, which numba compiles in about 2 s (the same loops with the weights
+    # worked out inside took 18 s per float type)
     @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def prolong_kernel(y, out, pa, wa, pb, wb, pg, wg):  # pragma: no cover - compiled
-        m = y.shape[0]
+    def transfer(src, out, ia, wa, ib, wb, ig, wg):  # pragma: no cover - compiled
+        # out[c, d, i, j, k] = sum over s, t, u of wa[i, s] wb[j, t] wg[k, u] src[c, d, ia[i, s], ib[j, t], ig[k, u]]
+        m = src.shape[0]
         n1, n2, n3 = out.shape[2], out.shape[3], out.shape[4]
+        sa, sb, sg = ia.shape[1], ib.shape[1], ig.shape[1]
         for i in nb.prange(n1):
             for c in range(m):
                 for d in range(3):
                     for j in range(n2):
                         for k in range(n3):
                             v = 0.0
-                            for s in range(2):
-                                for t in range(2):
-                                    for u in range(2):
-                                        v += (wa[i, s] * wb[j, t] * wg[k, u]
-                                              * y[c, d, pa[i, s], pb[j, t], pg[k, u]])
+                            for s in range(sa):
+                                for t in range(sb):
+                                    for u in range(sg):
+                                        v += wa[i, s] * wb[j, t] * wg[k, u] * src[c, d, ia[i, s], ib[j, t], ig[k, u]]
                             out[c, d, i, j, k] = v
 
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def restrict_kernel(r, out, ca, wa, cb, wb, cg, wg):  # pragma: no cover - compiled
-        m = r.shape[0]
-        c1, c2, c3 = out.shape[2], out.shape[3], out.shape[4]
-        for i in nb.prange(c1):
-            for c in range(m):
-                for d in range(3):
-                    for j in range(c2):
-                        for k in range(c3):
-                            v = 0.0
-                            for s in range(3):
-                                for t in range(3):
-                                    for u in range(3):
-                                        v += (wa[i, s] * wb[j, t] * wg[k, u]
-                                              * r[c, d, ca[i, s], cb[j, t], cg[k, u]])
-                            out[c, d, i, j, k] = v
-
-    return galerkin, apply, prolong_kernel, restrict_kernel
+    return galerkin, apply, transfer
 
 
 #: qtab[b, a]: among a node's 27 neighbours (x fastest, offsets -1, 0, 1), corner a of the
@@ -255,23 +239,23 @@ def _stencils(n: int):
 
 def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N)."""
-    _, _, prolong_kernel, _ = _kernels()
+    _, _, transfer = _kernels()
     m = y.shape[0]
     n1, n2, n3 = (int(v) for v in fine_shape)
     out = np.empty((m, 3, n1, n2, n3), y.dtype)
     args = [a for n in (n1, n2, n3) for a in _stencils(n)[:2]]
-    prolong_kernel(np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out, *args)
+    transfer(np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out, *args)
     return out.reshape(m, 3, -1)
 
 
 def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
     """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid."""
-    _, _, _, restrict_kernel = _kernels()
+    _, _, transfer = _kernels()
     m = r.shape[0]
     fine_shape = tuple(int(v) for v in fine_shape)
     out = np.empty((m, 3) + coarse_shape(fine_shape), r.dtype)
     args = [a for n in fine_shape for a in _stencils(n)[2:]]
-    restrict_kernel(np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, *args)
+    transfer(np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, *args)
     return out.reshape(m, 3, -1)
 
 
@@ -322,7 +306,7 @@ class Level:
         # six faster here (0.29 s against 0.39 s): the device's loop reads each case apart
         if self.device is not None and x.shape[0] == 1:
             return self.device(x)
-        _, apply, _, _ = _kernels()
+        _, apply, _ = _kernels()
         xt = np.ascontiguousarray(x.transpose(2, 1, 0))
         y = np.empty_like(xt)
         apply(self.index, self.mats, xt, y, _QTAB)
@@ -346,7 +330,7 @@ class Level:
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
     """The Galerkin level under the fine voxels of `model`, with its unknowns' mask `free3`
     (its element matrices stored in `dtype`)."""
-    galerkin, _, _, _ = _kernels()
+    galerkin, _, _ = _kernels()
     shape = model.shape
     solid = model.solid
     child = _blocks(solid.astype(np.uint8))  # (m1, m2, m3, 8)
@@ -381,7 +365,7 @@ def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
 
 def _next_coarse(level: Level) -> Level:
     """The Galerkin level under a coarse level (one matrix per element, in the level's float)."""
-    galerkin, _, _, _ = _kernels()
+    galerkin, _, _ = _kernels()
     nonempty = _blocks(level.index).max(axis=-1) >= 0
     cshape = nonempty.shape
     keep = np.flatnonzero(nonempty.ravel())
