@@ -7,8 +7,8 @@ preconditioners (:func:`make_preconditioner`):
 
 - ``multigrid`` (the default): a V-cycle over Galerkin coarse grids of the solid itself
   (:mod:`~implicit_scaffold.multigrid`, ParOSol's approach for bone micro-FE). Its count
-  stays flat where struts are thin: a 30 % solid Voronoi scaffold at 0.04 mm took 25, 27
-  iterations at 32^3, 64^3 (six load cases).
+  stays flat where struts are thin: a 30 % solid Voronoi scaffold at 0.04 mm took 23, 28
+  and 34 iterations at 32^3, 64^3 and 128^3 (six load cases).
 - ``fft``: the inverse of the same finite-element operator on the full (all-solid)
   periodic grid, which Fourier diagonalises, with Green-Jacobi scaling ("Fourier-accelerated
   nodal solvers": Leuschner & Fritzen 2018, Comput Mech 62:359; Ladecky et al. 2023). Flat
