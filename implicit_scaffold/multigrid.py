@@ -467,7 +467,7 @@ class Multigrid:
         self.op = op
         rng = np.random.default_rng(seed)
         self.inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
-        self.lmax = _largest_eigenvalue(self._fine, self.inv_diag, rng)
+        self.lmax = _largest_eigenvalue(self.op, self.inv_diag, rng)
         self.levels: list[Level] = []
         shape = self.fine_shape
         if 3 * n > COARSEST_UNKNOWNS and min(shape) >= 4:
@@ -488,11 +488,6 @@ class Multigrid:
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
         self._coarsest = self._exact(self.levels[-1]) if self.levels else None
 
-    def _fine(self, x):
-        # K x, unmasked: every use of it in the cycle is masked after (by the inverse
-        # diagonal, or before the restriction), so the cycle solves F K F
-        return self.op(x)
-
     @staticmethod
     def _exact(level: Level):
         """The pseudo-inverse of a small level (rigid motions and unreached unknowns get 0)."""
@@ -510,7 +505,9 @@ class Multigrid:
 
     def _cycle(self, depth: int, b: np.ndarray) -> np.ndarray:
         if depth == 0:
-            apply, inv_diag, lmax, shape = self._fine, self.inv_diag, self.lmax, self.fine_shape
+            # K x unmasked: every use of it in the cycle is masked after (by the inverse
+            # diagonal, or before the restriction), so the cycle solves F K F
+            apply, inv_diag, lmax, shape = self.op, self.inv_diag, self.lmax, self.fine_shape
         else:
             level = self.levels[depth - 1]
             apply, inv_diag, lmax, shape = level.apply, level.inv_diag, level.lmax, level.shape

@@ -43,7 +43,6 @@ def test_coarse_levels_are_galerkin_products_of_the_dense_operator(shape, period
     rng = np.random.default_rng(sum(shape))
     solid = rng.random(shape) < 0.5
     model = M.voxel_model(solid, 0.1, MAT, periodic=periodic)
-    n = int(np.prod(model.shape))
     free = np.repeat(model.active[None], 3, axis=0).astype(float)
     if fix:  # some unknowns held (a face, a platen's axial component)
         free[:, :: 7] = 0
