@@ -68,12 +68,13 @@ def compiled_kernels():
         return _KERNELS
     import numba as nb
 
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def ridge(d2, need):  # pragma: no cover - compiled
+    from .threads import over_rows
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def ridge_rows(d2, need, keep, lo, hi):  # pragma: no cover - compiled
         # a voxel is a centre of a maximal sphere unless a 26-neighbour's sphere holds its sphere
         nx, ny, nz = d2.shape
-        keep = np.zeros(d2.shape, np.bool_)
-        for i in nb.prange(nx):
+        for i in range(lo, hi):
             for j in range(ny):
                 for k in range(nz):
                     v = d2[i, j, k]
@@ -97,21 +98,17 @@ def compiled_kernels():
                                     ok = False
                                     break
                     keep[i, j, k] = ok
-        return keep
 
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def paint(nx, ny, nz, ci_, cj_, ck_, cv_, isq, nslab, out, scale):  # pragma: no cover - compiled
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def paint_rows(nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, out, scale, x0, x1):  # pragma: no cover - compiled
         # spheres come sorted by decreasing squared radius, so the first to reach a voxel is
         # the largest that holds it. One bit per voxel says "painted": a sphere's row is
         # skipped a 64-voxel word at a time, and the bits (nx * ny * nz / 8 bytes) stay in
-        # cache where a pointer per voxel would not. Each slab of x is one thread's.
+        # cache where a pointer per voxel would not. Each slab of x [x0, x1) is one thread's.
         nw = (nz + 63) >> 6
-        bits = np.zeros(nx * ny * nw, np.uint64)
         one = np.uint64(1)
         n = ci_.shape[0]
-        for s in nb.prange(nslab):
-            x0 = s * nx // nslab
-            x1 = (s + 1) * nx // nslab
+        if x1 > x0:
             for t in range(n):
                 v = cv_[t]
                 ci = ci_[t]
@@ -147,6 +144,15 @@ def compiled_kernels():
                                 for bb in range(a, b + 1):
                                     if (free >> np.uint64(bb)) & one:
                                         out[i, j, (w << 6) + bb] = val
+
+    def ridge(d2, need):
+        keep = np.zeros(d2.shape, np.bool_)
+        over_rows(ridge_rows, d2.shape[0], d2, need, keep)
+        return keep
+
+    def paint(nx, ny, nz, ci_, cj_, ck_, cv_, isq, nslab, out, scale):
+        bits = np.zeros(nx * ny * ((nz + 63) >> 6), np.uint64)
+        over_rows(paint_rows, nx, nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, out, scale, pieces=nslab)
         return out
 
     _KERNELS = (ridge, paint)
@@ -241,9 +247,9 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
 
 
 def _threads() -> int:
-    import numba
+    from .threads import count
 
-    return int(numba.get_num_threads())
+    return count()
 
 
 class ThicknessTally:

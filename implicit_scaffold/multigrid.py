@@ -66,10 +66,12 @@ def _kernels():
     """
     import numba as nb
 
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def galerkin(fine_index, fine_mats, fine_free, elems, out):  # pragma: no cover - compiled
+    from .threads import over_rows
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def galerkin_rows(fine_index, fine_mats, fine_free, elems, out, lo, hi):  # pragma: no cover - compiled
         f1, f2, f3 = fine_index.shape
-        for e in nb.prange(elems.shape[0]):
+        for e in range(lo, hi):
             ci, cj, ck = elems[e, 0], elems[e, 1], elems[e, 2]
             lx = 2 if 2 * ci + 2 <= f1 else 1
             ly = 2 if 2 * cj + 2 <= f2 else 1
@@ -121,14 +123,14 @@ def _kernels():
                 for j in range(24):
                     out[e, i, j] = acc[i, j]
 
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def apply(index, mats, x, y, qtab):  # pragma: no cover - compiled
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def apply_rows(index, mats, x, y, qtab, lo, hi):  # pragma: no cover - compiled
         # x, y: (N, 3, m), node-major, so that a node's load cases are read together. The
         # 27 neighbours are wrapped once per node and read once into U; qtab[b, a] is where
         # corner a of the element whose corner b is this node sits among them.
         n1, n2, n3 = index.shape
         m = x.shape[2]
-        for i in nb.prange(n1):
+        for i in range(lo, hi):
             I = np.empty(3, np.int64)
             J = np.empty(3, np.int64)
             K = np.empty(3, np.int64)
@@ -174,25 +176,47 @@ def _kernels():
                             y[node, d, c] = acc[d, c]
 
     # both transfers are one stencil sum over per-axis stencils given as arrays (:func:`_stencils`):
-    # branch-free loops, which numba compiles in about 2 s (the same loops with the weights
-    # worked out inside took 18 s per float type)
-    @nb.njit(cache=True, parallel=True, boundscheck=False)
-    def transfer(src, out, ia, wa, ib, wb, ig, wg):  # pragma: no cover - compiled
+    # plain loops, which numba compiles in well under a second (the same loops with the weights
+    # worked out inside took 18 s per float type); the (i, j) weights are taken once per row of
+    # k, and zero weights (half of a prolongation's) are skipped
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def transfer_rows(src, out, ia, wa, ib, wb, ig, wg, lo, hi):  # pragma: no cover - compiled
         # out[c, d, i, j, k] = sum over s, t, u of wa[i, s] wb[j, t] wg[k, u] src[c, d, ia[i, s], ib[j, t], ig[k, u]]
         m = src.shape[0]
-        n1, n2, n3 = out.shape[2], out.shape[3], out.shape[4]
+        n2, n3 = out.shape[3], out.shape[4]
         sa, sb, sg = ia.shape[1], ib.shape[1], ig.shape[1]
-        for i in nb.prange(n1):
+        row = np.empty(n3)
+        for i in range(lo, hi):
             for c in range(m):
                 for d in range(3):
                     for j in range(n2):
-                        for k in range(n3):
-                            v = 0.0
-                            for s in range(sa):
-                                for t in range(sb):
+                        row[:] = 0.0
+                        for s in range(sa):
+                            ws = wa[i, s]
+                            if ws == 0.0:
+                                continue
+                            ii = ia[i, s]
+                            for t in range(sb):
+                                wt = ws * wb[j, t]
+                                if wt == 0.0:
+                                    continue
+                                jj = ib[j, t]
+                                for k in range(n3):
+                                    v = 0.0
                                     for u in range(sg):
-                                        v += wa[i, s] * wb[j, t] * wg[k, u] * src[c, d, ia[i, s], ib[j, t], ig[k, u]]
-                            out[c, d, i, j, k] = v
+                                        v += wg[k, u] * src[c, d, ii, jj, ig[k, u]]
+                                    row[k] += wt * v
+                        for k in range(n3):
+                            out[c, d, i, j, k] = row[k]
+
+    def galerkin(fine_index, fine_mats, fine_free, elems, out):
+        over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
+
+    def apply(index, mats, x, y, qtab):
+        over_rows(apply_rows, index.shape[0], index, mats, x, y, qtab)
+
+    def transfer(src, out, ia, wa, ib, wb, ig, wg):
+        over_rows(transfer_rows, out.shape[2], src, out, ia, wa, ib, wb, ig, wg)
 
     return galerkin, apply, transfer
 

@@ -235,6 +235,8 @@ def _kernels():
         return _KERNELS
     import numba as nb
 
+    from .threads import over_rows
+
     @nb.njit(cache=True, nogil=True)
     def fill(i0, i1, dims, offsets, keys, ids):  # pragma: no cover - compiled
         for t in range(i0.shape[0]):
@@ -292,9 +294,9 @@ def _kernels():
         qz = apz - abz * v - acz * w
         return qx * qx + qy * qy + qz * qz
 
-    @nb.njit(cache=True, nogil=True, parallel=True)
-    def nearest(points, tri, ids, start, stop, reach2, out):  # pragma: no cover - compiled
-        for i in nb.prange(points.shape[0]):
+    @nb.njit(cache=True, nogil=True)
+    def nearest_rows(points, tri, ids, start, stop, reach2, out, lo, hi):  # pragma: no cover - compiled
+        for i in range(lo, hi):
             best = np.inf
             for j in range(start[i], stop[i]):
                 d = dist2(points[i], tri[ids[j]])
@@ -302,6 +304,9 @@ def _kernels():
                     best = d
             if best <= reach2:
                 out[i] = np.sqrt(best)
+
+    def nearest(points, tri, ids, start, stop, reach2, out):
+        over_rows(nearest_rows, points.shape[0], points, tri, ids, start, stop, reach2, out)
 
     _KERNELS = {"fill": fill, "nearest": nearest}
     return _KERNELS

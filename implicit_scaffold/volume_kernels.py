@@ -37,6 +37,8 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
+from .threads import over_rows
+
 #: no site (an envelope) or no feature
 inf = np.inf
 
@@ -78,14 +80,12 @@ def envelope(f, w2, n, v, z, arg):  # pragma: no cover - compiled
         arg[p] = v[j]
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def _feature_transform(feat, h0, h1, h2):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _feature_planes(feat, h1, h2, fj, fk, lo, hi):  # pragma: no cover - compiled
+    # planes i in [lo, hi): the nearest feature within the plane (fj, fk)
     n0, n1, n2 = feat.shape
-    fk = np.empty(feat.shape, np.int32)
-    fj = np.empty(feat.shape, np.int32)
-    fi = np.empty(feat.shape, np.int32)
     # along k: the nearest feature in the row
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         for j in range(n1):
             last = -1
             for k in range(n2):
@@ -102,7 +102,7 @@ def _feature_transform(feat, h0, h1, h2):  # pragma: no cover - compiled
     # along j: lower envelope of the rows' parabolas
     w1 = h1 * h1
     w2 = h2 * h2
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         f = np.empty(n1, np.float64)
         col = np.empty(n1, np.int32)
         v = np.empty(n1, np.int64)
@@ -118,9 +118,17 @@ def _feature_transform(feat, h0, h1, h2):  # pragma: no cover - compiled
                 a = arg[j]
                 fj[i, j, k] = a
                 fk[i, j, k] = -1 if a < 0 else col[a]
-    # along i, a plane j at a time copied to contiguous buffers (the columns are strided)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _feature_columns(h0, h1, h2, fi, fj, fk, lo, hi):  # pragma: no cover - compiled
+    # planes j in [lo, hi): along i, the nearest of the planes' nearest features (fi, and fj,
+    # fk updated), a plane j at a time copied to contiguous buffers (the columns are strided)
+    n0, n1, n2 = fi.shape
     w0 = h0 * h0
-    for j in nb.prange(n1):
+    w1 = h1 * h1
+    w2 = h2 * h2
+    for j in range(lo, hi):
         f = np.empty(n0, np.float64)
         bj = np.empty((n0, n2), np.int32)
         bk = np.empty((n0, n2), np.int32)
@@ -150,17 +158,22 @@ def _feature_transform(feat, h0, h1, h2):  # pragma: no cover - compiled
                 else:
                     fj[i, j, k] = bj[a, k]
                     fk[i, j, k] = bk[a, k]
+
+
+def _feature_transform(feat, h0, h1, h2):
+    fk = np.empty(feat.shape, np.int32)
+    fj = np.empty(feat.shape, np.int32)
+    fi = np.empty(feat.shape, np.int32)
+    over_rows(_feature_planes, feat.shape[0], feat, h1, h2, fj, fk)
+    over_rows(_feature_columns, feat.shape[1], h0, h1, h2, fi, fj, fk)
     return fi, fj, fk
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def band(inside, out):  # pragma: no cover - compiled
-    # out: the voxels with a face neighbour on the other side of the surface (`inside` differs),
-    # and their face neighbours: scipy.ndimage's binary_dilation(binary_dilation(inside) &
-    # ~binary_erosion(inside, border_value=1)) with its default (face) structure
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _edge_rows(inside, edge, lo, hi):  # pragma: no cover - compiled
+    # edge: the voxels with a face neighbour on the other side of the surface (`inside` differs)
     n0, n1, n2 = inside.shape
-    edge = np.zeros(inside.shape, np.bool_)
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         for j in range(n1):
             for k in range(n2):
                 s = inside[i, j, k]
@@ -178,7 +191,13 @@ def band(inside, out):  # pragma: no cover - compiled
                 elif k < n2 - 1 and inside[i, j, k + 1] != s:
                     e = True
                 edge[i, j, k] = e
-    for i in nb.prange(n0):
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _dilate_rows(edge, out, lo, hi):  # pragma: no cover - compiled
+    # out: the edge voxels and their face neighbours
+    n0, n1, n2 = edge.shape
+    for i in range(lo, hi):
         for j in range(n1):
             for k in range(n2):
                 out[i, j, k] = (edge[i, j, k] or (i > 0 and edge[i - 1, j, k]) or (i < n0 - 1 and edge[i + 1, j, k])
@@ -186,12 +205,21 @@ def band(inside, out):  # pragma: no cover - compiled
                                 or (k > 0 and edge[i, j, k - 1]) or (k < n2 - 1 and edge[i, j, k + 1]))
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def box_distance(feat, fi, fj, fk, h0, h1, h2, sign, out):  # pragma: no cover - compiled
+def band(inside, out):
+    # out: the voxels with a face neighbour on the other side of the surface (`inside` differs),
+    # and their face neighbours: scipy.ndimage's binary_dilation(binary_dilation(inside) &
+    # ~binary_erosion(inside, border_value=1)) with its default (face) structure
+    edge = np.zeros(inside.shape, np.bool_)
+    over_rows(_edge_rows, inside.shape[0], inside, edge)
+    over_rows(_dilate_rows, inside.shape[0], edge, out)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _box_distance_rows(feat, fi, fj, fk, h0, h1, h2, sign, out, lo, hi):  # pragma: no cover - compiled
     # out = sign x the distance (mm) from each voxel centre that is not a feature to the
     # box of its nearest feature voxel; feature voxels are left as they are
     n0, n1, n2 = feat.shape
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         for j in range(n1):
             for k in range(n2):
                 if feat[i, j, k] or fi[i, j, k] < 0:
@@ -202,14 +230,18 @@ def box_distance(feat, fi, fj, fk, h0, h1, h2, sign, out):  # pragma: no cover -
                 out[i, j, k] = sign * np.sqrt(a * a + b * b + c * c)
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def gauss_k(f, w0, w2, a, b):  # pragma: no cover - compiled
+def box_distance(feat, fi, fj, fk, h0, h1, h2, sign, out):
+    over_rows(_box_distance_rows, feat.shape[0], feat, fi, fj, fk, h0, h1, h2, sign, out)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _gauss_k_rows(f, w0, w2, a, b, lo, hi):  # pragma: no cover - compiled
     # a, b: f correlated along axis 2 with w0 and with w2 (odd lengths, centred; the border
     # "nearest": scipy.ndimage.correlate1d(mode="nearest"))
     n0, n1, n2 = f.shape
     m = w0.shape[0]
     r = (m - 1) // 2
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         row = np.empty(n2 + 2 * r, np.float32)
         acc0 = np.empty(n2, np.float32)
         acc2 = np.empty(n2, np.float32)
@@ -230,13 +262,17 @@ def gauss_k(f, w0, w2, a, b):  # pragma: no cover - compiled
                 b[i, j, k] = acc2[k]
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def gauss_j(a, b, w0, w2, half, c, d):  # pragma: no cover - compiled
+def gauss_k(f, w0, w2, a, b):
+    over_rows(_gauss_k_rows, f.shape[0], f, w0, w2, a, b)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _gauss_j_rows(a, b, w0, w2, half, c, d, lo, hi):  # pragma: no cover - compiled
     # along axis 1: c = w0 * a, d = c - half (w2 * a + w0 * b) ("nearest" border)
     n0, n1, n2 = a.shape
     m = w0.shape[0]
     r = (m - 1) // 2
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         acc0 = np.empty(n2, np.float32)
         acc2 = np.empty(n2, np.float32)
         for j in range(n1):
@@ -254,13 +290,17 @@ def gauss_j(a, b, w0, w2, half, c, d):  # pragma: no cover - compiled
                 d[i, j, k] = acc0[k] - half * acc2[k]
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def gauss_i(c, d, w0, w2, half, out):  # pragma: no cover - compiled
+def gauss_j(a, b, w0, w2, half, c, d):
+    over_rows(_gauss_j_rows, a.shape[0], a, b, w0, w2, half, c, d)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _gauss_i_rows(c, d, w0, w2, half, out, lo, hi):  # pragma: no cover - compiled
     # along axis 0: out = w0 * d - half (w2 * c) ("nearest" border)
     n0, n1, n2 = c.shape
     m = w0.shape[0]
     r = (m - 1) // 2
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         acc = np.empty(n2, np.float32)
         for j in range(n1):
             acc[:] = 0
@@ -274,13 +314,17 @@ def gauss_i(c, d, w0, w2, half, out):  # pragma: no cover - compiled
                 out[i, j, k] = acc[k]
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def tube_clip(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out):  # pragma: no cover - compiled
+def gauss_i(c, d, w0, w2, half, out):
+    over_rows(_gauss_i_rows, c.shape[0], c, d, w0, w2, half, out)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _tube_clip_rows(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out, lo, hi):  # pragma: no cover - compiled
     # lower, upper: box -/+ tube_voxels x the voxel's extent along the normal of `field`
     # (sum |n_a| h_a, the normal from numpy.gradient's differences), with every mask voxel at
     # most -margin and every other at least margin; out: field clipped to [lower, upper]
     n0, n1, n2 = field.shape
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         i0 = max(i - 1, 0)
         i1 = min(i + 1, n0 - 1)
         for j in range(n1):
@@ -305,20 +349,24 @@ def tube_clip(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, o
                 out[i, j, k] = min(max(field[i, j, k], lo), hi)
 
 
+def tube_clip(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out):
+    over_rows(_tube_clip_rows, field.shape[0], field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out)
+
+
 #: the cubic B-spline's pole (sqrt(3) - 2) and the interpolating filter's gain
 _POLE = 3.0 ** 0.5 - 2.0
 _GAIN = 6.0
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def prefilter_middle(a):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _prefilter_middle_rows(a, lo, hi):  # pragma: no cover - compiled
     # the cubic B-spline coefficients along axis 1 of a (n0, n1, n2) float32 (any strides), in place: the
     # causal and anti-causal recursions of scipy.ndimage.spline_filter1d(order=3, mode="nearest"),
     # whose borders are the half-sample reflection's, in double, across the last axis at once
     n0, n1, n2 = a.shape
     z = _POLE
     zn = z ** n1
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         c = np.empty((n1, n2))
         for j in range(n1):
             for k in range(n2):
@@ -344,6 +392,10 @@ def prefilter_middle(a):  # pragma: no cover - compiled
         for j in range(n1):
             for k in range(n2):
                 a[i, j, k] = c[j, k]
+
+
+def prefilter_middle(a):
+    over_rows(_prefilter_middle_rows, a.shape[0], a)
 
 
 def spline_coefficients(field: np.ndarray) -> np.ndarray:
@@ -459,64 +511,69 @@ def spline(coef, x0, x1, x2):  # pragma: no cover - compiled
     return val
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def newton(coef, pts, h, iters, gradient_iters, limit, still, tol, q, valid):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _newton_points(coef, pts, h, iters, gradient_iters, limit, still, tol, q, valid, lo, hi):  # pragma: no cover - compiled
+    # q[p]: pts[p] moved onto the zero level by at most `iters` Newton steps (the gradient taken
+    # anew in the first `gradient_iters`, kept after: a chord method), each at most `limit` mm,
+    # stopping after a chord step of at most `still` mm; valid[p]: |spline(q)| <= tol
+    h0 = h[0]
+    h1 = h[1]
+    h2 = h[2]
+    for p in range(lo, hi):
+        x0 = float(pts[p, 0])
+        x1 = float(pts[p, 1])
+        x2 = float(pts[p, 2])
+        m0 = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        f = 0.0
+        done = False
+        for it in range(iters):
+            if it < gradient_iters:
+                f, d0, d1, d2 = spline_gradient(coef, x0, x1, x2)
+                m0 = d0 / h0
+                m1 = d1 / h1
+                m2 = d2 / h2
+            else:
+                f = spline(coef, x0, x1, x2)
+            g2 = max(m0 * m0 + m1 * m1 + m2 * m2, 1e-12)
+            s0 = f / g2 * m0
+            s1 = f / g2 * m1
+            s2 = f / g2 * m2
+            length = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
+            if length > limit:
+                s0 *= limit / length
+                s1 *= limit / length
+                s2 *= limit / length
+            x0 -= s0 / h0
+            x1 -= s1 / h1
+            x2 -= s2 / h2
+            if it >= gradient_iters and length <= still:
+                done = True         # the steps left would not move it: f is already as small
+                break
+        q[p, 0] = x0
+        q[p, 1] = x1
+        q[p, 2] = x2
+        if not done:
+            f = spline(coef, x0, x1, x2)
+        valid[p] = abs(f) <= tol
+
+
+def newton(coef, pts, h, iters, gradient_iters, limit, still, tol, q, valid):
     # q[p]: pts[p] moved onto the zero level by at most `iters` Newton steps (the gradient taken
     # anew in the first `gradient_iters`, kept after: a chord method), each at most `limit` mm,
     # stopping after a chord step of at most `still` mm; valid[p]: |spline(q)| <= tol
     n = pts.shape[0]
-    chunk = 4096
-    h0 = h[0]
-    h1 = h[1]
-    h2 = h[2]
-    for ch in nb.prange((n + chunk - 1) // chunk):
-        for p in range(ch * chunk, min(n, (ch + 1) * chunk)):
-            x0 = float(pts[p, 0])
-            x1 = float(pts[p, 1])
-            x2 = float(pts[p, 2])
-            m0 = 0.0
-            m1 = 0.0
-            m2 = 0.0
-            f = 0.0
-            done = False
-            for it in range(iters):
-                if it < gradient_iters:
-                    f, d0, d1, d2 = spline_gradient(coef, x0, x1, x2)
-                    m0 = d0 / h0
-                    m1 = d1 / h1
-                    m2 = d2 / h2
-                else:
-                    f = spline(coef, x0, x1, x2)
-                g2 = max(m0 * m0 + m1 * m1 + m2 * m2, 1e-12)
-                s0 = f / g2 * m0
-                s1 = f / g2 * m1
-                s2 = f / g2 * m2
-                length = np.sqrt(s0 * s0 + s1 * s1 + s2 * s2)
-                if length > limit:
-                    s0 *= limit / length
-                    s1 *= limit / length
-                    s2 *= limit / length
-                x0 -= s0 / h0
-                x1 -= s1 / h1
-                x2 -= s2 / h2
-                if it >= gradient_iters and length <= still:
-                    done = True         # the steps left would not move it: f is already as small
-                    break
-            q[p, 0] = x0
-            q[p, 1] = x1
-            q[p, 2] = x2
-            if not done:
-                f = spline(coef, x0, x1, x2)
-            valid[p] = abs(f) <= tol
+    over_rows(_newton_points, n, coef, pts, h, iters, gradient_iters, limit, still, tol, q, valid,
+              pieces=max(1, min(n // 4096, 64)))
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def choose(pts, q, valid, lookup, h, chosen):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _choose_rows(pts, q, valid, lookup, h, chosen, lo, hi):  # pragma: no cover - compiled
     # chosen[p]: the valid band neighbour (27, itself included, in np.ndindex order, the
     # first of equals) whose closest point is nearest to pts[p]; p itself if none is valid
-    n = pts.shape[0]
     n0, n1, n2 = lookup.shape
-    for p in nb.prange(n):
+    for p in range(lo, hi):
         best = inf
         ch = -1
         for o0 in range(-1, 2):
@@ -544,12 +601,16 @@ def choose(pts, q, valid, lookup, h, chosen):  # pragma: no cover - compiled
         chosen[p] = ch if ch >= 0 else p
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def owner_distance(inside, fi, fj, fk, lookup, q, h, out):  # pragma: no cover - compiled
+def choose(pts, q, valid, lookup, h, chosen):
+    over_rows(_choose_rows, pts.shape[0], pts, q, valid, lookup, h, chosen)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _owner_distance_rows(inside, fi, fj, fk, lookup, q, h, out, lo, hi):  # pragma: no cover - compiled
     # out: the distance (mm) from each voxel centre to the closest point q of its nearest band
     # voxel (the feature), negative inside
     n0, n1, n2 = inside.shape
-    for i in nb.prange(n0):
+    for i in range(lo, hi):
         for j in range(n1):
             for k in range(n2):
                 o = lookup[fi[i, j, k], fj[i, j, k], fk[i, j, k]]
@@ -558,6 +619,10 @@ def owner_distance(inside, fi, fj, fk, lookup, q, h, out):  # pragma: no cover -
                 d2 = (k - q[o, 2]) * h[2]
                 d = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
                 out[i, j, k] = -d if inside[i, j, k] else d
+
+
+def owner_distance(inside, fi, fj, fk, lookup, q, h, out):
+    over_rows(_owner_distance_rows, inside.shape[0], inside, fi, fj, fk, lookup, q, h, out)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
@@ -580,16 +645,14 @@ BOT = np.array([[0, 1, 2, 3], [0, 1, 4, 5], [0, 2, 4, 6]], np.int64)
 TOP = np.array([[4, 5, 6, 7], [2, 3, 6, 7], [1, 3, 5, 7]], np.int64)
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def level_volume(field, level, shift, shape, h, sub):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _level_volume_planes(field, level, shift, shape, h, sub, vol, der, lo, hi):  # pragma: no cover - compiled
     # Volume (index units) inside {max(field - level, image box) < 0} of the trilinear
     # interpolant, and its derivative with the level. Each cell is cut into sub x sub
     # columns along one axis, along which the trilinear field is linear: the length
     # inside is exact, and the columns' midpoints sample the cell's cross-section.
     n0, n1, n2 = field.shape
-    vol = np.zeros(n0)
-    der = np.zeros(n0)
-    for i in nb.prange(n0 - 1):
+    for i in range(lo, hi):
         c = np.empty(8)
         qa = np.empty(2)
         qb = np.empty(n1)
@@ -664,16 +727,25 @@ def level_volume(field, level, shift, shape, h, sub):  # pragma: no cover - comp
                 d_i += ds / (sub * sub)
         vol[i] = v_i
         der[i] = d_i
+
+
+def level_volume(field, level, shift, shape, h, sub):
+    # Volume (index units) inside {max(field - level, image box) < 0} of the trilinear
+    # interpolant, and its derivative with the level
+    n0 = field.shape[0]
+    vol = np.zeros(n0)
+    der = np.zeros(n0)
+    over_rows(_level_volume_planes, n0 - 1, field, float(level), shift, shape, h, int(sub), vol, der)
     return vol.sum(), der.sum()
 
 
-@nb.njit(cache=True, boundscheck=False, parallel=True)
-def near_bounds(field, shift, shape, h, depth, affine, lo, hi):  # pragma: no cover - compiled
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _near_bounds_planes(field, shift, shape, h, depth, affine, lo, hi, i0, i1):  # pragma: no cover - compiled
     # For the samples of the field refined twice (trilinear midpoints), cut by the image's
     # box, that lie within `depth` below 0: the physical bounds of their inscribed balls,
     # per plane i of cells (lo, hi: (n0, 3), +-inf where none)
     n0, n1, n2 = field.shape
-    for i in nb.prange(n0 - 1):
+    for i in range(i0, i1):
         c = np.empty(8)
         for r in range(3):
             lo[i, r] = inf
@@ -721,6 +793,11 @@ def near_bounds(field, shift, shape, h, depth, affine, lo, hi):  # pragma: no co
                                     lo[i, r] = p - d
                                 if p + d > hi[i, r]:
                                     hi[i, r] = p + d
+
+
+def near_bounds(field, shift, shape, h, depth, affine, lo, hi):
+    # lo, hi: (n0, 3), the physical bounds of the inscribed balls per plane i of cells
+    over_rows(_near_bounds_planes, field.shape[0] - 1, field, shift, shape, h, depth, affine, lo, hi)
 
 
 def kernels():

@@ -1,0 +1,100 @@
+"""Compiled loops on every core, without numba's parallel compiler.
+
+numba's ``parallel=True`` costs 1.5 to 8 s of compilation per kernel and signature (its
+parfor passes), against well under a second for the same loop compiled serially: on a
+fresh machine the 19 parallel kernels of this package took most of a minute to compile
+before the first scaffold was measured. The kernels are therefore serial, compiled with
+``nogil=True``, and take the range ``[lo, hi)`` of outer rows they work on;
+:func:`over_rows` splits the rows into consecutive pieces and runs the pieces on a thread
+pool, so both cores still share the work.
+
+Every row is written by one piece alone, and a kernel that sums writes one partial per row
+(summed afterwards in row order), so the result is the same bytes whatever the number of
+threads.
+"""
+from __future__ import annotations
+
+import os
+import threading
+from concurrent.futures import ThreadPoolExecutor
+
+_POOL: ThreadPoolExecutor | None = None
+_POOL_SIZE = 0
+_LOCK = threading.Lock()
+
+
+def _forget_pool() -> None:
+    # a forked child has none of its parent's threads: it starts a pool of its own
+    global _POOL, _POOL_SIZE
+    _POOL, _POOL_SIZE = None, 0
+
+
+if hasattr(os, "register_at_fork"):
+    os.register_at_fork(after_in_child=_forget_pool)
+
+
+def _pool(size: int) -> ThreadPoolExecutor:
+    """One pool for the process, kept between calls (a multigrid cycle makes thousands of
+    small calls, and starting threads for each cost a millisecond)."""
+    global _POOL, _POOL_SIZE
+    with _LOCK:
+        if _POOL is None or _POOL_SIZE < size:
+            if _POOL is not None:
+                _POOL.shutdown(wait=False)
+            _POOL, _POOL_SIZE = ThreadPoolExecutor(size, thread_name_prefix="implicit_scaffold"), size
+        return _POOL
+
+
+def count() -> int:
+    """The number of threads for compiled loops: numba's (``numba.set_num_threads``, else
+    ``NUMBA_NUM_THREADS`` when it is set, else the CPUs this process may run on)."""
+    import numba
+
+    return max(1, int(numba.get_num_threads()))
+
+
+def over_rows(kernel, n: int, *args, pieces: int | None = None) -> None:
+    """Call ``kernel(*args, lo, hi)`` over consecutive pieces ``[lo, hi)`` of ``range(n)``,
+    concurrently.
+
+    Parameters
+    ----------
+    kernel : callable
+        A compiled kernel that releases the interpreter (``nogil=True``) and writes only the
+        rows it is given.
+    n : int
+        The number of rows.
+    *args
+        The kernel's leading arguments.
+    pieces : int, optional
+        How many pieces (default four per thread, so that uneven rows even out).
+    """
+    n = int(n)
+    if n <= 0:
+        return
+    threads = count()
+    k = max(1, min(n, pieces if pieces is not None else 4 * threads))
+    if threads == 1 or k == 1:
+        kernel(*args, 0, n)
+        return
+    bounds = [n * p // k for p in range(k + 1)]
+    left = iter(range(k))
+    lock = threading.Lock()
+
+    def work():
+        while True:
+            with lock:
+                p = next(left, None)
+            if p is None:
+                return
+            kernel(*args, bounds[p], bounds[p + 1])
+
+    # the calling thread works too, beside threads - 1 of the pool's: pieces go to whoever is free
+    helpers = min(threads, k) - 1
+    pool = _pool(helpers)
+    jobs = [pool.submit(work) for _ in range(helpers)]
+    try:
+        work()
+    finally:
+        for job in jobs:
+            job.result()
