@@ -168,9 +168,9 @@ def remove_fragments(field: np.ndarray, *, outside: float) -> int:
     int
         Number of pieces removed (the report's ``fragments``).
     """
-    from scipy import ndimage
+    from .pieces import label_pieces
 
-    labels, count = ndimage.label(field < 0)
+    labels, count = label_pieces(field < 0)
     if count <= 1:
         return 0
     sizes = np.bincount(labels.ravel())
@@ -229,9 +229,9 @@ def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True,
     (int, int)
         Sealed pieces and their voxels, counted before filling (the report's ``sealed_voids``).
     """
-    from scipy import ndimage
+    from .pieces import label_pieces
 
-    labels, count = ndimage.label(void_mask(field))
+    labels, count = label_pieces(void_mask(field))
     if count <= 1:
         return 0, 0
     sealed = _sealed_labels(labels, count)

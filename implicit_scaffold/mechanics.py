@@ -565,9 +565,9 @@ def load_path(solid: np.ndarray, axis: int) -> np.ndarray:
     A piece touching one platen or none carries no load (it is free at one end at least);
     six-connectivity, since voxels that share only an edge or a corner form a hinge.
     """
-    from scipy import ndimage
+    from .pieces import label_pieces
 
-    labels, count = ndimage.label(solid)
+    labels, count = label_pieces(solid)
     if count == 0:
         return np.zeros_like(solid)
     low = np.unique(np.take(labels, 0, axis=axis))

@@ -419,7 +419,7 @@ def interconnected_porosity(solid, region=None) -> float | None:
     The outside is every voxel outside the region, and the space beyond the array.
     None when there is no void.
     """
-    from scipy import ndimage
+    from .pieces import label_pieces
 
     solid = np.asarray(solid, bool)
     void = ~solid if region is None else (np.asarray(region, bool) & ~solid)
@@ -427,7 +427,7 @@ def interconnected_porosity(solid, region=None) -> float | None:
     if total == 0:
         return None
     open_ = np.pad(~solid, 1, constant_values=True)  # void and outside alike, and the space beyond
-    labels, _ = ndimage.label(open_)
+    labels, _ = label_pieces(open_)
     outside = labels[0, 0, 0]  # the padding layer is one component
     reach = labels[1:-1, 1:-1, 1:-1] == outside
     if region is not None:
@@ -438,9 +438,9 @@ def interconnected_porosity(solid, region=None) -> float | None:
 
 def count_fragments(solid) -> int:
     """Solid pieces (6-connected, as the pipeline removes them) besides the largest one."""
-    from scipy import ndimage
+    from .pieces import label_pieces
 
-    _, n = ndimage.label(np.asarray(solid, bool))
+    _, n = label_pieces(solid)
     return max(0, int(n) - 1)
 
 

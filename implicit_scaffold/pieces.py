@@ -18,23 +18,28 @@ REPORT_PIECES = 20
 
 
 def label_pieces(inside: np.ndarray) -> tuple[np.ndarray, int]:
-    """The patient's 6-connected pieces.
+    """The 6-connected pieces of a mask (the patient's, the solid's, the void's).
 
     Parameters
     ----------
-    inside : (nx, ny, nz) bool ndarray
-        Voxels inside the patient.
+    inside : bool ndarray, 2-D or 3-D
+        The voxels that belong to some piece.
 
     Returns
     -------
-    labels : (nx, ny, nz) int32 ndarray
-        0 outside, 1..count for the pieces, numbered in C order of their first voxel.
+    labels : int32 ndarray of the mask's shape
+        0 outside, 1..count for the pieces, numbered in C order of their first voxel:
+        ``scipy.ndimage.label``'s labels, by connected-components-3d (cc3d), 3-4x faster.
     count : int
     """
-    from scipy import ndimage
+    import cc3d
 
-    labels, count = ndimage.label(inside)
-    return labels.astype(np.int32, copy=False), int(count)
+    mask = np.ascontiguousarray(inside, dtype=bool)  # cc3d numbers in memory order: C order
+    if mask.size == 0 or not mask.any():
+        return np.zeros(mask.shape, np.int32), 0
+    labels, count = cc3d.connected_components(mask, connectivity=4 if mask.ndim == 2 else 6, return_N=True,
+                                              out_dtype=np.uint32)
+    return labels.view(np.int32), int(count)
 
 
 def main_bodies(solid_labels: np.ndarray, sizes: np.ndarray, piece_labels: np.ndarray) -> np.ndarray:
@@ -96,9 +101,7 @@ def remove_fragments_by_piece(field: np.ndarray, piece_labels: np.ndarray, *, ou
     dict
         ``removed`` (pieces turned into void) and ``removed_voxels``.
     """
-    from scipy import ndimage
-
-    labels, count = ndimage.label(field < 0)
+    labels, count = label_pieces(field < 0)
     if count <= 1:
         return {"removed": 0, "removed_voxels": 0}
     sizes = np.bincount(labels.ravel(), minlength=count + 1)
@@ -144,12 +147,19 @@ def piece_table(piece_labels: np.ndarray, count: int, solid: np.ndarray, grid, s
     if main_bodies_only:
         bodies = (solid_voxels > 0).astype(np.int64)
     else:
-        labels, n_solid = ndimage.label(solid)
+        labels, n_solid = label_pieces(solid)
         bodies = np.bincount(solid_piece(labels, piece_labels, n_solid)[1:], minlength=count + 1)
         del labels
-    bounds = ndimage.find_objects(piece_labels)
-    lo = np.array([[s.start for s in box] for box in bounds], np.int64).reshape(-1, 3)
-    hi = np.array([[s.stop - 1 for s in box] for box in bounds], np.int64).reshape(-1, 3)
+    if count == 1:  # one piece (every primitive): its bounds from the mask's three projections
+        inside = piece_labels > 0
+        lo, hi = np.zeros((1, 3), np.int64), np.zeros((1, 3), np.int64)
+        for a in range(3):
+            on = np.flatnonzero(inside.any(axis=tuple(b for b in range(3) if b != a)))
+            lo[0, a], hi[0, a] = on[0], on[-1]
+    else:
+        bounds = ndimage.find_objects(piece_labels)
+        lo = np.array([[s.start for s in box] for box in bounds], np.int64).reshape(-1, 3)
+        hi = np.array([[s.stop - 1 for s in box] for box in bounds], np.int64).reshape(-1, 3)
     return _rows(voxels[1:], solid_voxels[1:], cells[1:], bodies[1:], lo, hi, grid)
 
 

@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ScaffoldError
+from .pieces import label_pieces
 
 #: cells need windows of about 100 um to grow in (the issue's figure; Karageorgiou & Kaplan 2005)
 INFILTRATION_MM = 0.1
@@ -379,9 +380,7 @@ def weighted_quantile(values, weights, q: float) -> float:
 
 def pieces(mask) -> tuple[int, np.ndarray]:
     """6-connected pieces of `mask`: count and the voxel count of each."""
-    from scipy import ndimage
-
-    labels, n = ndimage.label(mask)
+    labels, n = label_pieces(mask)
     return int(n), np.bincount(labels.ravel())[1:]
 
 
@@ -652,7 +651,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
 
     sealed = void_in & (r2 == 0)
     sealed_n, sealed_sizes = pieces(sealed)
-    solid_labels, solid_n = ndimage.label(solid)
+    solid_labels, solid_n = label_pieces(solid)
     solid_sizes = np.bincount(solid_labels.ravel())[1:]
     floating = np.sort(solid_sizes)[:-1] if solid_n > 1 else np.zeros(0, np.int64)
     for m, (a, i) in zip(maps, planes):

@@ -152,12 +152,12 @@ def clean_prism(s: np.ndarray, spacing: float, *, remove_fragments: bool, fill_s
     patient's `pieces` (their labels on the prism), each piece keeps its own main body, as the
     scaffold stage does (:func:`.pieces.remove_fragments_by_piece`).
     """
-    from scipy import ndimage
+    from .pieces import label_pieces
 
     from .field import fill_sealed_voids
 
     if remove_fragments:
-        labels, count = ndimage.label(s < 0)
+        labels, count = label_pieces(s < 0)
         if count > 1:
             sizes = np.bincount(labels.ravel())
             sizes[0] = 0

@@ -66,12 +66,14 @@ def measure(solid: np.ndarray, h: float, profile, region: np.ndarray) -> dict:
     if profile.drain_mm > 0:
         from scipy import ndimage
 
+        from .pieces import label_pieces
+
         unreached = void_in & ~reached_by(r2, profile.drain_mm, h)
         rho2 = (0.5 * (float(profile.drain_mm) / h - 1.0)) ** 2  # the drain's radius, voxels², as reached_by
         # an undrained pore holds a drain-sized ball that cannot get out; the crevices along the
         # drained void's walls, where no such ball fits, drain with it
         fits = bool(void_in.any() and d2[void_in].max() >= rho2)
-        labels, count = ndimage.label(unreached)
+        labels, count = label_pieces(unreached)
         widest = np.asarray(ndimage.maximum(d2, labels, np.arange(1, count + 1))) if count else np.zeros(0)
         undrained = np.concatenate([[False], widest >= rho2])[labels]
         del labels
@@ -211,9 +213,9 @@ def _bodies(solid: np.ndarray) -> int:
     """The solid's 6-connected pieces of more than :data:`SPECK` of its voxels: a strut cut through
     leaves a piece that large, while a voxel or two left by the global offset on a flat wall
     (which the pipeline's clean-up removes) is not counted."""
-    from scipy import ndimage
+    from .pieces import label_pieces
 
-    labels, count = ndimage.label(solid)
+    labels, count = label_pieces(solid)
     if count <= 1:
         return count
     sizes = np.bincount(labels.ravel())[1:]

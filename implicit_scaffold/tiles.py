@@ -315,9 +315,9 @@ class SlabComponents:
 
     @staticmethod
     def _label(solid: np.ndarray):
-        from scipy import ndimage
+        from .pieces import label_pieces
 
-        return ndimage.label(solid)
+        return label_pieces(solid)
 
     def add(self, solid: np.ndarray, opens: np.ndarray | None = None, tally: np.ndarray | None = None) -> np.ndarray:
         """Pass 1: the solid (bool, owned planes only) of the next slab along x.
