@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import ScaffoldError, positive_mm
+from .threads import count
 
 #: histograms of thickness get at most this many bins (bin width a whole number of voxels)
 MAX_BINS = 60
@@ -108,42 +109,41 @@ def compiled_kernels():
         nw = (nz + 63) >> 6
         one = np.uint64(1)
         n = ci_.shape[0]
-        if x1 > x0:
-            for t in range(n):
-                v = cv_[t]
-                ci = ci_[t]
-                r = isq[v]
-                lo = max(ci - r, x0)
-                hi = min(ci + r, x1 - 1)
-                if lo > hi:
-                    continue
-                cj = cj_[t]
-                ck = ck_[t]
-                val = np.float32(scale * np.sqrt(v))
-                for i in range(lo, hi + 1):
-                    ri = v - (i - ci) * (i - ci)
-                    rj = isq[ri]
-                    for j in range(max(cj - rj, 0), min(cj + rj, ny - 1) + 1):
-                        hk = isq[ri - (j - cj) * (j - cj)]
-                        k0 = max(ck - hk, 0)
-                        k1 = min(ck + hk, nz - 1)
-                        base = (i * ny + j) * nw
-                        w0 = k0 >> 6
-                        w1 = k1 >> 6
-                        for w in range(w0, w1 + 1):
-                            a = k0 - (w << 6) if w == w0 else 0
-                            b = k1 - (w << 6) if w == w1 else 63
-                            if b - a == 63:
-                                mask = ~np.uint64(0)
-                            else:
-                                mask = ((one << np.uint64(b - a + 1)) - one) << np.uint64(a)
-                            cur = bits[base + w]
-                            free = mask & ~cur
-                            if free != 0:
-                                bits[base + w] = cur | mask
-                                for bb in range(a, b + 1):
-                                    if (free >> np.uint64(bb)) & one:
-                                        out[i, j, (w << 6) + bb] = val
+        for t in range(n):
+            v = cv_[t]
+            ci = ci_[t]
+            r = isq[v]
+            lo = max(ci - r, x0)
+            hi = min(ci + r, x1 - 1)
+            if lo > hi:
+                continue
+            cj = cj_[t]
+            ck = ck_[t]
+            val = np.float32(scale * np.sqrt(v))
+            for i in range(lo, hi + 1):
+                ri = v - (i - ci) * (i - ci)
+                rj = isq[ri]
+                for j in range(max(cj - rj, 0), min(cj + rj, ny - 1) + 1):
+                    hk = isq[ri - (j - cj) * (j - cj)]
+                    k0 = max(ck - hk, 0)
+                    k1 = min(ck + hk, nz - 1)
+                    base = (i * ny + j) * nw
+                    w0 = k0 >> 6
+                    w1 = k1 >> 6
+                    for w in range(w0, w1 + 1):
+                        a = k0 - (w << 6) if w == w0 else 0
+                        b = k1 - (w << 6) if w == w1 else 63
+                        if b - a == 63:
+                            mask = ~np.uint64(0)
+                        else:
+                            mask = ((one << np.uint64(b - a + 1)) - one) << np.uint64(a)
+                        cur = bits[base + w]
+                        free = mask & ~cur
+                        if free != 0:
+                            bits[base + w] = cur | mask
+                            for bb in range(a, b + 1):
+                                if (free >> np.uint64(bb)) & one:
+                                    out[i, j, (w << 6) + bb] = val
 
     def ridge(d2, need):
         keep = np.zeros(d2.shape, np.bool_)
@@ -170,7 +170,7 @@ def _squared_edt(phase: np.ndarray) -> np.ndarray:
     """
     import edt
 
-    d2 = edt.edtsq(np.ascontiguousarray(phase, dtype=np.uint8), black_border=False, parallel=_threads())
+    d2 = edt.edtsq(np.ascontiguousarray(phase, dtype=np.uint8), black_border=False, parallel=count())
     return np.rint(d2).astype(np.int32)
 
 
@@ -241,15 +241,9 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     del d2
     order = np.argsort(-v, kind="stable")  # ties in index order: same inputs, same work
     nx, ny, nz = phase.shape
-    nslab = max(1, min(nx, 4 * _threads()))
+    nslab = max(1, min(nx, 4 * count()))
     paint(nx, ny, nz, ci[order], cj[order], ck[order], v[order], isq, nslab, out, 2.0 * h)
     return out
-
-
-def _threads() -> int:
-    from .threads import count
-
-    return count()
 
 
 class ThicknessTally:

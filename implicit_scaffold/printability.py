@@ -345,9 +345,9 @@ def reached_by(r2, diameter_mm: float, voxel: float) -> np.ndarray:
     centres = r2 >= rho * rho
     if not centres.any():
         return np.zeros(r2.shape, bool)
-    from .morphometry import _threads
+    from .threads import count
 
-    far2 = edt.edtsq(np.ascontiguousarray(~centres, dtype=np.uint8), black_border=False, parallel=_threads())
+    far2 = edt.edtsq(np.ascontiguousarray(~centres, dtype=np.uint8), black_border=False, parallel=count())
     return void & (far2 < rho * rho)
 
 
@@ -930,7 +930,7 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
     import edt
     from scipy import ndimage
 
-    from .morphometry import _threads
+    from .threads import count
 
     nx = int(grid.shape[0])
     plane = int(grid.shape[1]) * int(grid.shape[2])
@@ -959,7 +959,7 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
                 allowed = r2w >= rho * rho
                 if allowed.any():
                     far2 = edt.edtsq(np.ascontiguousarray(~allowed, dtype=np.uint8), black_border=False,
-                                     parallel=_threads())[own]
+                                     parallel=count())[own]
                     inside = inside & (far2 < rho * rho)
                     del far2
                 else:
