@@ -239,7 +239,11 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     del keep
     v = d2[ci, cj, ck]
     del d2
-    order = np.argsort(-v, kind="stable")  # ties in index order: same inputs, same work
+    # ties in index order: same inputs, same work; squared radii under 2^15 (a radius of 181
+    # voxels) sort as int16, by NumPy's radix sort, 3x faster than the merge sort of int32
+    key = -v.astype(np.int16) if vmax < 2 ** 15 else -v
+    order = np.argsort(key, kind="stable")
+    del key
     nx, ny, nz = phase.shape
     nslab = max(1, min(nx, 4 * count()))
     paint(nx, ny, nz, ci[order], cj[order], ck[order], v[order], isq, nslab, out, 2.0 * h)
