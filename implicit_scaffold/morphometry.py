@@ -171,7 +171,10 @@ def _squared_edt(phase: np.ndarray) -> np.ndarray:
     import edt
 
     d2 = edt.edtsq(np.ascontiguousarray(phase, dtype=np.uint8), black_border=False, parallel=count())
-    return np.rint(d2).astype(np.int32)
+    # sums of squared integers, exact in float32 below 2^24; rounded half up in place (one
+    # temporary fewer than np.rint) before the cast, against any last-bit error
+    d2 += np.float32(0.5)
+    return d2.astype(np.int32)
 
 
 def _maximal_sphere_tables(vmax: int):
