@@ -66,7 +66,7 @@ def _kernels():
     """
     import numba as nb
 
-    from .threads import over_rows
+    from .threads import by_rows, over_rows
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def galerkin_rows(fine_index, fine_mats, fine_free, elems, out, lo, hi):  # pragma: no cover - compiled
@@ -212,13 +212,10 @@ def _kernels():
     def galerkin(fine_index, fine_mats, fine_free, elems, out):
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
-    def apply(index, mats, x, y, qtab):
-        over_rows(apply_rows, index.shape[0], index, mats, x, y, qtab)
-
     def transfer(src, out, ia, wa, ib, wb, ig, wg):
         over_rows(transfer_rows, out.shape[2], src, out, ia, wa, ib, wb, ig, wg)
 
-    return galerkin, apply, transfer
+    return galerkin, by_rows(apply_rows), transfer
 
 
 #: qtab[b, a]: among a node's 27 neighbours (x fastest, offsets -1, 0, 1), corner a of the

@@ -235,7 +235,7 @@ def _kernels():
         return _KERNELS
     import numba as nb
 
-    from .threads import over_rows
+    from .threads import by_rows
 
     @nb.njit(cache=True, nogil=True)
     def fill(i0, i1, dims, offsets, keys, ids):  # pragma: no cover - compiled
@@ -305,8 +305,5 @@ def _kernels():
             if best <= reach2:
                 out[i] = np.sqrt(best)
 
-    def nearest(points, tri, ids, start, stop, reach2, out):
-        over_rows(nearest_rows, points.shape[0], points, tri, ids, start, stop, reach2, out)
-
-    _KERNELS = {"fill": fill, "nearest": nearest}
+    _KERNELS = {"fill": fill, "nearest": by_rows(nearest_rows)}
     return _KERNELS

@@ -98,3 +98,13 @@ def over_rows(kernel, n: int, *args, pieces: int | None = None) -> None:
     finally:
         for job in jobs:
             job.result()
+
+
+def by_rows(kernel):
+    """``kernel`` over the rows of its first argument's first axis, concurrently: a callable
+    ``f(*args)`` that runs ``over_rows(kernel, args[0].shape[0], *args)``."""
+    def run(*args):
+        over_rows(kernel, args[0].shape[0], *args)
+
+    run.__name__ = run.__qualname__ = kernel.__name__.removeprefix("_").removesuffix("_rows")
+    return run

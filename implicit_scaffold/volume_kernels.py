@@ -37,7 +37,7 @@ from __future__ import annotations
 import numba as nb
 import numpy as np
 
-from .threads import over_rows
+from .threads import by_rows, over_rows
 
 #: no site (an envelope) or no feature
 inf = np.inf
@@ -230,8 +230,7 @@ def _box_distance_rows(feat, fi, fj, fk, h0, h1, h2, sign, out, lo, hi):  # prag
                 out[i, j, k] = sign * np.sqrt(a * a + b * b + c * c)
 
 
-def box_distance(feat, fi, fj, fk, h0, h1, h2, sign, out):
-    over_rows(_box_distance_rows, feat.shape[0], feat, fi, fj, fk, h0, h1, h2, sign, out)
+box_distance = by_rows(_box_distance_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -262,8 +261,7 @@ def _gauss_k_rows(f, w0, w2, a, b, lo, hi):  # pragma: no cover - compiled
                 b[i, j, k] = acc2[k]
 
 
-def gauss_k(f, w0, w2, a, b):
-    over_rows(_gauss_k_rows, f.shape[0], f, w0, w2, a, b)
+gauss_k = by_rows(_gauss_k_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -290,8 +288,7 @@ def _gauss_j_rows(a, b, w0, w2, half, c, d, lo, hi):  # pragma: no cover - compi
                 d[i, j, k] = acc0[k] - half * acc2[k]
 
 
-def gauss_j(a, b, w0, w2, half, c, d):
-    over_rows(_gauss_j_rows, a.shape[0], a, b, w0, w2, half, c, d)
+gauss_j = by_rows(_gauss_j_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -314,8 +311,7 @@ def _gauss_i_rows(c, d, w0, w2, half, out, lo, hi):  # pragma: no cover - compil
                 out[i, j, k] = acc[k]
 
 
-def gauss_i(c, d, w0, w2, half, out):
-    over_rows(_gauss_i_rows, c.shape[0], c, d, w0, w2, half, out)
+gauss_i = by_rows(_gauss_i_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -349,8 +345,7 @@ def _tube_clip_rows(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, up
                 out[i, j, k] = min(max(field[i, j, k], lo), hi)
 
 
-def tube_clip(field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out):
-    over_rows(_tube_clip_rows, field.shape[0], field, box, mask, h0, h1, h2, tube_voxels, margin, lower, upper, out)
+tube_clip = by_rows(_tube_clip_rows)
 
 
 #: the cubic B-spline's pole (sqrt(3) - 2) and the interpolating filter's gain
@@ -394,8 +389,7 @@ def _prefilter_middle_rows(a, lo, hi):  # pragma: no cover - compiled
                 a[i, j, k] = c[j, k]
 
 
-def prefilter_middle(a):
-    over_rows(_prefilter_middle_rows, a.shape[0], a)
+prefilter_middle = by_rows(_prefilter_middle_rows)
 
 
 def spline_coefficients(field: np.ndarray) -> np.ndarray:
@@ -601,8 +595,7 @@ def _choose_rows(pts, q, valid, lookup, h, chosen, lo, hi):  # pragma: no cover 
         chosen[p] = ch if ch >= 0 else p
 
 
-def choose(pts, q, valid, lookup, h, chosen):
-    over_rows(_choose_rows, pts.shape[0], pts, q, valid, lookup, h, chosen)
+choose = by_rows(_choose_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -621,8 +614,7 @@ def _owner_distance_rows(inside, fi, fj, fk, lookup, q, h, out, lo, hi):  # prag
                 out[i, j, k] = -d if inside[i, j, k] else d
 
 
-def owner_distance(inside, fi, fj, fk, lookup, q, h, out):
-    over_rows(_owner_distance_rows, inside.shape[0], inside, fi, fj, fk, lookup, q, h, out)
+owner_distance = by_rows(_owner_distance_rows)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")

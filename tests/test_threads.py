@@ -61,3 +61,14 @@ def test_an_error_in_a_piece_is_raised():
 
     with pytest.raises(ValueError, match="bad row"):
         over_rows(piece, 8, pieces=4)
+
+
+def test_by_rows_covers_the_first_arguments_rows():
+    from implicit_scaffold.threads import by_rows
+
+    def _mark_rows(hits, lo, hi):
+        hits[lo:hi] += 1
+
+    hits = np.zeros((13, 4), int)
+    by_rows(_mark_rows)(hits)
+    assert np.array_equal(hits, np.ones((13, 4), int))
