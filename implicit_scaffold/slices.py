@@ -22,6 +22,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
+import numba as nb
 import numpy as np
 
 from .errors import ScaffoldError, positive_mm
@@ -182,6 +183,68 @@ def layer_coverage(field: np.ndarray, grid: Grid, z: float, pixel: float, origin
     return _coverage(_sample(plane, ix, iy), pixel)
 
 
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _grey_columns_rows(planes, sx, iy, k0s, k1s, ws, pixel, out, lo, hi):  # pragma: no cover - compiled
+    # out[k, c, r]: the grey level of layer k's pixel (column c, row r), as _sample, _coverage
+    # and _grey give it: the two planes blended in z, then bilinear in x and y, indices
+    # clamped to the planes as map_coordinates' "nearest" mode does
+    nx, ny, _ = planes.shape
+    for c in range(lo, hi):
+        x = sx[c]
+        fx0 = np.floor(x)
+        fx = x - fx0
+        i0 = min(max(int(fx0), 0), nx - 1)
+        i1 = min(max(int(fx0) + 1, 0), nx - 1)
+        for r in range(iy.shape[0]):
+            y = iy[r]
+            fy0 = np.floor(y)
+            fy = y - fy0
+            j0 = min(max(int(fy0), 0), ny - 1)
+            j1 = min(max(int(fy0) + 1, 0), ny - 1)
+            for k in range(k0s.shape[0]):
+                a, b, w = k0s[k], k1s[k], ws[k]
+                v00 = (1.0 - w) * planes[i0, j0, a] + w * planes[i0, j0, b]
+                v01 = (1.0 - w) * planes[i0, j1, a] + w * planes[i0, j1, b]
+                v10 = (1.0 - w) * planes[i1, j0, a] + w * planes[i1, j0, b]
+                v11 = (1.0 - w) * planes[i1, j1, a] + w * planes[i1, j1, b]
+                v = (1.0 - fx) * ((1.0 - fy) * v00 + fy * v01) + fx * ((1.0 - fy) * v10 + fy * v11)
+                cover = np.float32(min(max(0.5 - v / pixel, 0.0), 1.0))
+                out[k, c, r] = np.uint8(np.rint(cover * np.float32(255.0)))
+
+
+def grey_columns(planes: np.ndarray, sx: np.ndarray, iy: np.ndarray, planes_at, pixel: float) -> np.ndarray:
+    """Grey levels of every layer's pixel columns that sample `planes`, ``(layers, columns, rows)`` uint8.
+
+    Parameters
+    ----------
+    planes : (n, ny, nz) float ndarray, mm
+        The field's planes the columns read (a slab, or the whole grid).
+    sx : (columns,) float64 ndarray
+        The columns' centres as fractional plane indices of `planes`.
+    iy : (rows,) float64 ndarray
+        The rows' centres as fractional y indices (row 0 first).
+    planes_at : list of (k0, k1, w)
+        Per layer, the two z planes around its height and the upper one's weight.
+    pixel : float, mm
+
+    Returns
+    -------
+    (layers, columns, rows) uint8 ndarray
+        ``round(255 clip(0.5 - s / pixel, 0, 1))`` of the trilinear sample ``s``: the grey
+        levels of :func:`layer_coverage`, in one pass over the planes on every core.
+    """
+    from .threads import over_rows
+
+    k0s = np.array([p[0] for p in planes_at], np.int64)
+    k1s = np.array([p[1] for p in planes_at], np.int64)
+    ws = np.array([p[2] for p in planes_at], np.float64)
+    sx = np.ascontiguousarray(sx, np.float64)
+    out = np.empty((len(planes_at), len(sx), len(iy)), np.uint8)
+    over_rows(_grey_columns_rows, len(sx), planes, sx, np.ascontiguousarray(iy, np.float64), k0s, k1s, ws,
+              float(pixel), out)
+    return out
+
+
 def _png_bytes(grey: np.ndarray) -> bytes:
     from PIL import Image
 
@@ -244,11 +307,25 @@ def _check_max_voxels(max_voxels) -> int:
     return int(max_voxels)
 
 
-def _emit_layer(folder: Path, k: int, grey: np.ndarray, shares: list, greys: list) -> None:
-    """Write layer `k` as a PNG and note its solid share and mean grey."""
-    shares.append(float(np.count_nonzero(grey >= 128) / grey.size))
-    greys.append(float(grey.mean(dtype=np.float64) / 255))
-    (folder / LAYER_NAME.format(k)).write_bytes(_png_bytes(grey))
+def _encode_layer(grey: np.ndarray) -> tuple[float, float, bytes]:
+    """A layer's solid share, mean grey and PNG bytes (Pillow's encoder frees the interpreter,
+    so layers encode on every core)."""
+    return (float(np.count_nonzero(grey >= 128) / grey.size), float(grey.mean(dtype=np.float64) / 255),
+            _png_bytes(grey))
+
+
+def _emit_layers(folder: Path, greys_in, shares: list, greys: list, progress=None, done: int = 0,
+                 total: int = 0) -> None:
+    """Write each layer of `greys_in` (an iterable of ``(height, width)`` uint8, in order) as a PNG
+    and note its solid share and mean grey."""
+    from .threads import imap
+
+    for k, (share, mean, png) in enumerate(imap(_encode_layer, greys_in)):
+        shares.append(share)
+        greys.append(mean)
+        (folder / LAYER_NAME.format(k)).write_bytes(png)
+        if progress is not None:
+            progress(done + k + 1, total)
 
 
 def _write_all(fh, data: np.ndarray) -> None:
@@ -285,6 +362,8 @@ def _slab_layers(source, grid: Grid, folder: Path, *, origin, width: int, height
     owner = np.clip(np.floor(ix), 0, nx - 1)  # non-decreasing, so a slab's columns are a run
     planes_at = [_layer_planes(grid, origin[2] + (k + 0.5) * layer) for k in range(layers)]
     size = width * height
+    # layers per kernel call: the slab's grey levels of about 64 MiB at most
+    chunk = max(1, (64 << 20) // max(1, size))
     scratch = folder / ".layers.u8"
     with open(scratch, "w+b", buffering=0) as fh:
         for n, slab in enumerate(slabs):
@@ -295,22 +374,23 @@ def _slab_layers(source, grid: Grid, folder: Path, *, origin, width: int, height
                     raise ValueError(f"the field source gave planes of shape {planes.shape} for "
                                      f"[{slab.h0}, {slab.h1}) of a grid of {grid.shape}")
                 # whole-number shift: the fractions, hence the weights, stay bit for bit
-                sx = ix[c0:c1] - slab.h0
-                for k, (k0, k1, w) in enumerate(planes_at):
-                    grey = _grey(_coverage(_sample(_blend_planes(planes[:, :, k0], planes[:, :, k1], w),
-                                                   sx, iy), pixel))
-                    fh.seek(k * size + c0 * height)
-                    _write_all(fh, grey.T)
+                for k0 in range(0, layers, chunk):
+                    grey = grey_columns(planes, ix[c0:c1] - slab.h0, iy, planes_at[k0:k0 + chunk], pixel)
+                    for k in range(grey.shape[0]):
+                        fh.seek((k0 + k) * size + c0 * height)
+                        _write_all(fh, grey[k])
+                    del grey
                 del planes  # before the next read, so that two slabs are never held at once
             if progress is not None:
                 progress(n + 1, total)
         shares, greys = [], []
-        for k in range(layers):
-            fh.seek(k * size)
-            grey = np.ascontiguousarray(_read_exactly(fh, size).reshape(width, height).T)
-            _emit_layer(folder, k, grey, shares, greys)
-            if progress is not None:
-                progress(len(slabs) + k + 1, total)
+
+        def stored():
+            for k in range(layers):
+                fh.seek(k * size)
+                yield np.ascontiguousarray(_read_exactly(fh, size).reshape(width, height).T)
+
+        _emit_layers(folder, stored(), shares, greys, progress, len(slabs), total)
     scratch.unlink()
     return shares, greys
 
@@ -400,12 +480,18 @@ def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = Non
                                          layers=layers, pixel=pixel, layer=layer, max_voxels=max_voxels,
                                          progress=progress)
         else:
-            for k in range(layers):
-                z = origin[2] + (k + 0.5) * layer
-                _emit_layer(tmp, k, _grey(layer_coverage(field, grid, z, pixel, origin, width, height)),
-                            shares, greys)
-                if progress is not None:
-                    progress(k + 1, layers)
+            ix, iy = _pixel_indices(grid, pixel, origin, width, height)
+            planes_at = [_layer_planes(grid, origin[2] + (k + 0.5) * layer) for k in range(layers)]
+            # layers per kernel call: about 64 MiB of grey levels at a time
+            chunk = max(1, (64 << 20) // max(1, width * height))
+
+            def sampled():
+                for k0 in range(0, layers, chunk):
+                    grey = grey_columns(field, ix, iy, planes_at[k0:k0 + chunk], pixel)
+                    for k in range(grey.shape[0]):
+                        yield np.ascontiguousarray(grey[k].T)
+
+            _emit_layers(tmp, sampled(), shares, greys, progress, 0, layers)
         stack = SliceStack(pixel_mm=float(pixel), layer_mm=float(layer), width=width, height=height,
                            layers=layers, origin_mm=tuple(float(v) for v in origin), files=LAYER_NAME,
                            solid_share=tuple(shares), grey_mean=tuple(greys))

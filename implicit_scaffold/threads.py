@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import os
 import threading
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 
 _POOL: ThreadPoolExecutor | None = None
@@ -108,3 +109,24 @@ def by_rows(kernel):
 
     run.__name__ = run.__qualname__ = kernel.__name__.removeprefix("_").removesuffix("_rows")
     return run
+
+
+def imap(fn, items, *, ahead: int | None = None):
+    """``fn(item)`` for each of `items` on the thread pool, yielded in the items' order.
+
+    For work that frees the interpreter (an image encoder, file writes). At most `ahead`
+    items (default twice the threads) are in flight, so the memory they hold stays bounded.
+    """
+    threads = count()
+    if threads == 1:
+        yield from map(fn, items)
+        return
+    pool = _pool(threads)
+    ahead = max(1, int(ahead or 2 * threads))
+    waiting: deque = deque()
+    for item in items:
+        waiting.append(pool.submit(fn, item))
+        if len(waiting) >= ahead:
+            yield waiting.popleft().result()
+    while waiting:
+        yield waiting.popleft().result()

@@ -241,3 +241,19 @@ def test_source_with_another_grid(tmp_path):
     with pytest.raises(ScaffoldError, match="grid"):
         write_slices(ArraySlabs(field, grid), other, tmp_path / "s")
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("pixel, layer", [(0.09, 0.09), (0.033, 0.07), (0.021, 0.013)])
+def test_grey_columns_match_scipy_bilinear_samples(pixel, layer):
+    # the compiled sampler against SciPy's map_coordinates on blended planes (layer_coverage)
+    from implicit_scaffold.slices import _grey, _layer_planes, _pixel_indices, grey_columns, layer_coverage, \
+        stack_geometry
+
+    field, grid = _wavy(seed=7, shape=(26, 21, 19), h=0.09)
+    origin, (width, height, layers) = stack_geometry(grid, pixel, layer)
+    ix, iy = _pixel_indices(grid, pixel, origin, width, height)
+    heights = [origin[2] + (k + 0.5) * layer for k in range(layers)]
+    grey = grey_columns(field, ix, iy, [_layer_planes(grid, z) for z in heights], pixel)
+    ref = np.stack([_grey(layer_coverage(field, grid, z, pixel, origin, width, height)).T for z in heights])
+    assert 0 < np.count_nonzero(ref) < ref.size and np.count_nonzero((ref > 0) & (ref < 255)) > 0
+    np.testing.assert_array_equal(grey, ref)
