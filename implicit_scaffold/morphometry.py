@@ -73,7 +73,8 @@ def compiled_kernels():
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def ridge_rows(d2, need, keep, lo, hi):  # pragma: no cover - compiled
-        # a voxel is a centre of a maximal sphere unless a 26-neighbour's sphere holds its sphere
+        # a voxel is a centre of a maximal sphere unless a sphere centred up to two voxels away
+        # holds its sphere
         nx, ny, nz = d2.shape
         for i in range(lo, hi):
             for j in range(ny):
@@ -98,15 +99,37 @@ def compiled_kernels():
                                 if d2[ii, jj, kk] >= need[v, c]:
                                     ok = False
                                     break
+                    if ok:
+                        # the survivors (a sixth of the phase) against the shell two voxels out:
+                        # a third of them are held by a sphere there, a third less to paint
+                        for di in range(-2, 3):
+                            ii = i + di
+                            if ii < 0 or ii >= nx or not ok:
+                                continue
+                            for dj in range(-2, 3):
+                                jj = j + dj
+                                if jj < 0 or jj >= ny or not ok:
+                                    continue
+                                for dk in range(-2, 3):
+                                    kk = k + dk
+                                    if kk < 0 or kk >= nz or (di * di < 4 and dj * dj < 4 and dk * dk < 4):
+                                        continue
+                                    if d2[ii, jj, kk] >= need[v, di * di + dj * dj + dk * dk]:
+                                        ok = False
+                                        break
                     keep[i, j, k] = ok
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def paint_rows(nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, out, scale, x0, x1):  # pragma: no cover - compiled
+    def paint_rows(nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, todo, out, scale, x0, x1):  # pragma: no cover
         # spheres come sorted by decreasing squared radius, so the first to reach a voxel is
         # the largest that holds it. One bit per voxel says "painted": a sphere's row is
         # skipped a 64-voxel word at a time, and the bits (nx * ny * nz / 8 bytes) stay in
-        # cache where a pointer per voxel would not. Each slab of x [x0, x1) is one thread's.
+        # cache where a pointer per voxel would not. `todo` counts the phase voxels not yet
+        # painted in each brick of 8 rows by one word (one plane of x): the parts of a sphere
+        # in bricks that larger spheres finished are skipped eight rows at a time. Each slab of
+        # x [x0, x1) is one thread's, bricks included.
         nw = (nz + 63) >> 6
+        nbj = (ny + 7) >> 3
         one = np.uint64(1)
         n = ci_.shape[0]
         for t in range(n):
@@ -123,36 +146,58 @@ def compiled_kernels():
             for i in range(lo, hi + 1):
                 ri = v - (i - ci) * (i - ci)
                 rj = isq[ri]
-                for j in range(max(cj - rj, 0), min(cj + rj, ny - 1) + 1):
-                    hk = isq[ri - (j - cj) * (j - cj)]
-                    k0 = max(ck - hk, 0)
-                    k1 = min(ck + hk, nz - 1)
-                    base = (i * ny + j) * nw
-                    w0 = k0 >> 6
-                    w1 = k1 >> 6
-                    for w in range(w0, w1 + 1):
-                        a = k0 - (w << 6) if w == w0 else 0
-                        b = k1 - (w << 6) if w == w1 else 63
-                        if b - a == 63:
-                            mask = ~np.uint64(0)
-                        else:
-                            mask = ((one << np.uint64(b - a + 1)) - one) << np.uint64(a)
-                        cur = bits[base + w]
-                        free = mask & ~cur
-                        if free != 0:
-                            bits[base + w] = cur | mask
-                            for bb in range(a, b + 1):
-                                if (free >> np.uint64(bb)) & one:
-                                    out[i, j, (w << 6) + bb] = val
+                j0 = max(cj - rj, 0)
+                j1 = min(cj + rj, ny - 1)
+                wa = max(ck - rj, 0) >> 6
+                wb = min(ck + rj, nz - 1) >> 6
+                for jb in range(j0 >> 3, (j1 >> 3) + 1):
+                    for w in range(wa, wb + 1):
+                        brick = (i * nbj + jb) * nw + w
+                        left = todo[brick]
+                        if left == 0:
+                            continue
+                        for j in range(max(jb << 3, j0), min((jb << 3) + 7, j1) + 1):
+                            hk = isq[ri - (j - cj) * (j - cj)]
+                            k0 = max(ck - hk, w << 6)
+                            k1 = min(ck + hk, nz - 1, (w << 6) + 63)
+                            if k0 > k1:
+                                continue
+                            a = k0 - (w << 6)
+                            b = k1 - (w << 6)
+                            if b - a == 63:
+                                mask = ~np.uint64(0)
+                            else:
+                                mask = ((one << np.uint64(b - a + 1)) - one) << np.uint64(a)
+                            word = (i * ny + j) * nw + w
+                            cur = bits[word]
+                            free = mask & ~cur
+                            if free != 0:
+                                bits[word] = cur | mask
+                                # the free bits alone, lowest first: a power of two's remainder
+                                # modulo 67 names its bit (_LOW_BIT)
+                                while free != 0:
+                                    low = free & (~free + one)
+                                    out[i, j, (w << 6) + _LOW_BIT[low % np.uint64(67)]] = val
+                                    left -= 1
+                                    free ^= low
+                        todo[brick] = left
 
     def ridge(d2, need):
         keep = np.zeros(d2.shape, np.bool_)
         over_rows(ridge_rows, d2.shape[0], d2, need, keep)
         return keep
 
-    def paint(nx, ny, nz, ci_, cj_, ck_, cv_, isq, nslab, out, scale):
+    def paint(phase, ci_, cj_, ck_, cv_, isq, nslab, out, scale):
+        nx, ny, nz = phase.shape
         bits = np.zeros(nx * ny * ((nz + 63) >> 6), np.uint64)
-        over_rows(paint_rows, nx, nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, out, scale, pieces=nslab)
+        # phase voxels per brick of 8 rows (y) by 64 voxels (z), one plane of x
+        padded = np.zeros((nx, -(-ny // 8) * 8, -(-nz // 64) * 64), np.bool_)
+        padded[:, :ny, :nz] = phase
+        todo = np.ascontiguousarray(
+            padded.reshape(nx, padded.shape[1] // 8, 8, padded.shape[2] // 64, 64).sum(axis=(2, 4), dtype=np.int32))
+        del padded
+        over_rows(paint_rows, nx, nx, ny, nz, ci_, cj_, ck_, cv_, isq, bits, todo.reshape(-1), out, scale,
+                  pieces=nslab)
         return out
 
     _KERNELS = (ridge, paint)
@@ -160,6 +205,10 @@ def compiled_kernels():
 
 
 _KERNELS = None
+#: ``_LOW_BIT[(1 << b) % 67] == b`` for b < 64: 67 is the least modulus under which the powers
+#: of two up to 2^63 all differ
+_LOW_BIT = np.zeros(67, np.int64)
+_LOW_BIT[[pow(2, b, 67) for b in range(64)]] = np.arange(64)
 
 
 def _squared_edt(phase: np.ndarray) -> np.ndarray:
@@ -181,7 +230,8 @@ def _maximal_sphere_tables(vmax: int):
     """Look-up tables for integer squared radii ``v <= vmax``.
 
     ``need[v, c]``: the least squared radius a sphere centred at a neighbour ``c`` voxels²
-    away (c = 1, 2, 3) must have to hold every voxel of the sphere ``|x|² < v``;
+    away (c = 1 to 12, offsets of at most two voxels along each axis) must have to hold every
+    voxel of the sphere ``|x|² < v``;
     ``isq[m]``: the largest ``h`` with ``h² < m`` (-1 for m = 0).
     """
     r = math.isqrt(max(vmax, 1)) + 2
@@ -193,8 +243,11 @@ def _maximal_sphere_tables(vmax: int):
     order = np.argsort(n2, kind="stable")
     n2 = n2[order]
     last = np.searchsorted(n2, np.arange(vmax + 1) - 1, side="right") - 1  # points with |x|² <= v - 1
-    need = np.full((vmax + 1, 4), np.iinfo(np.int64).max, dtype=np.int64)
-    for c, (a, b, e) in ((1, (1, 0, 0)), (2, (1, 1, 0)), (3, (1, 1, 1))):
+    need = np.full((vmax + 1, 13), np.iinfo(np.int64).max, dtype=np.int64)
+    # offsets up to two voxels along each axis: each squared length names one offset up to
+    # symmetry (7, 10 and 11 name none)
+    for c, (a, b, e) in ((1, (1, 0, 0)), (2, (1, 1, 0)), (3, (1, 1, 1)), (4, (2, 0, 0)), (5, (2, 1, 0)),
+                         (6, (2, 1, 1)), (8, (2, 2, 0)), (9, (2, 2, 1)), (12, (2, 2, 2))):
         far = ((x - a) ** 2 + (y - b) ** 2 + (z - e) ** 2).ravel()[order]
         reach = np.maximum.accumulate(far) + 1
         need[1:, c] = reach[last[1:]]
@@ -249,7 +302,7 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     del key
     nx, ny, nz = phase.shape
     nslab = max(1, min(nx, 4 * count()))
-    paint(nx, ny, nz, ci[order], cj[order], ck[order], v[order], isq, nslab, out, 2.0 * h)
+    paint(phase, ci[order], cj[order], ck[order], v[order], isq, nslab, out, 2.0 * h)
     return out
 
 
