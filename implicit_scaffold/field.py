@@ -168,12 +168,12 @@ def remove_fragments(field: np.ndarray, *, outside: float) -> int:
     int
         Number of pieces removed (the report's ``fragments``).
     """
-    from .pieces import label_pieces
+    from .pieces import label_pieces, label_sizes
 
     labels, count = label_pieces(field < 0)
     if count <= 1:
         return 0
-    sizes = np.bincount(labels.ravel())
+    sizes = label_sizes(labels, count)
     sizes[0] = 0
     main = int(np.argmax(sizes))
     drop = (labels != main) & (labels != 0)
@@ -229,13 +229,13 @@ def fill_sealed_voids(field: np.ndarray, *, inside: float, fill: bool = True,
     (int, int)
         Sealed pieces and their voxels, counted before filling (the report's ``sealed_voids``).
     """
-    from .pieces import label_pieces
+    from .pieces import label_pieces, label_sizes
 
     labels, count = label_pieces(void_mask(field))
     if count <= 1:
         return 0, 0
     sealed = _sealed_labels(labels, count)
-    sizes = np.bincount(labels.ravel(), minlength=count + 1)
+    sizes = label_sizes(labels, count)
     sizes[0] = 0
     if keep_interior and sealed.any():
         sealed[int(np.argmax(np.where(sealed, sizes, -1)))] = False

@@ -11,6 +11,7 @@ solid lies inside the patient, every solid piece lies in exactly one patient pie
 """
 from __future__ import annotations
 
+import numba as nb
 import numpy as np
 
 #: pieces listed one by one in the report (the largest first); the rest are summed up
@@ -40,6 +41,40 @@ def label_pieces(inside: np.ndarray) -> tuple[np.ndarray, int]:
     labels, count = cc3d.connected_components(mask, connectivity=4 if mask.ndim == 2 else 6, return_N=True,
                                               out_dtype=np.uint32)
     return labels.view(np.int32), int(count)
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _count_labels(flat, n):  # pragma: no cover - compiled
+    out = np.zeros(n + 1, np.int64)
+    for x in flat:
+        out[x] += 1
+    return out
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _count_labels_where(flat, where, n):  # pragma: no cover - compiled
+    out = np.zeros(n + 1, np.int64)
+    for i in range(flat.size):
+        out[flat[i]] += where[i]  # no branch: the mask is read, not tested
+    return out
+
+
+def label_sizes(labels: np.ndarray, count: int, where: np.ndarray | None = None) -> np.ndarray:
+    """Voxels per label, ``(count + 1,)`` int64 (label 0 first): ``np.bincount(labels.ravel(),
+    minlength=count + 1)``, or of the voxels of `where` alone, in one pass without the 8-byte
+    copy of the labels that bincount makes (9x faster on a slab of 50 M voxels).
+
+    Parameters
+    ----------
+    labels : int ndarray
+        Labels 0..count, as :func:`label_pieces` gives them.
+    count : int
+    where : bool ndarray of the labels' shape, optional
+    """
+    flat = np.ascontiguousarray(labels).reshape(-1)
+    if where is None:
+        return _count_labels(flat, int(count))
+    return _count_labels_where(flat, np.ascontiguousarray(where, np.bool_).reshape(-1).view(np.uint8), int(count))
 
 
 def main_bodies(solid_labels: np.ndarray, sizes: np.ndarray, piece_labels: np.ndarray) -> np.ndarray:

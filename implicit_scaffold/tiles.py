@@ -326,12 +326,14 @@ class SlabComponents:
         the void: the space outside the patient); `tally` marks voxels counted per piece
         (:meth:`open_tally`). Returns the slab's labels (1-based, 0 for none).
         """
+        from .pieces import label_sizes
+
         labels, count = self._label(solid)
         offset = len(self._parent)
         self._offsets.append(offset)
-        self._sizes.append(np.bincount(labels.ravel(), minlength=count + 1)[1:])
+        self._sizes.append(label_sizes(labels, count)[1:])
         if tally is not None:
-            self._tallies.append(np.bincount(labels[tally], minlength=count + 1)[1:])
+            self._tallies.append(label_sizes(labels, count, where=tally)[1:])
         self._parent = np.concatenate([self._parent, np.arange(offset, offset + count, dtype=np.int64)])
         first = labels[0]
         faces = [labels[:, 0], labels[:, -1], labels[:, :, 0], labels[:, :, -1]]
@@ -345,7 +347,10 @@ class SlabComponents:
             both = (self._last_plane > 0) & (first > 0)
             a = self._last_plane[both].astype(np.int64) - 1 + self._last_offset
             b = first[both].astype(np.int64) - 1 + offset
-            pairs = np.unique(np.stack([a, b], axis=1), axis=0) if a.size else np.zeros((0, 2), np.int64)
+            # the distinct pairs, as one int64 key each (a 1-D unique, not a row-wise one)
+            span = int(b.max(initial=0)) + 1
+            keys = np.unique(a * span + b)
+            pairs = np.stack([keys // span, keys % span], axis=1)
             for u, v in pairs:
                 ru, rv = int(self._find(u)), int(self._find(v))
                 if ru != rv:

@@ -212,3 +212,15 @@ def test_a_primitives_one_row_in_slabs_is_the_whole_grids(shape):
     tiled = implicit_scaffold.generate(tiled=12 * plane, **kw)
     assert tiled.report["tiled"]["slabs"] > 2
     assert tiled.report["patient_pieces"] == whole.report["patient_pieces"]
+
+
+def test_label_sizes_count_as_bincount_does():
+    from implicit_scaffold.pieces import label_pieces, label_sizes
+
+    rng = np.random.default_rng(5)
+    labels, count = label_pieces(rng.random((23, 17, 31)) < 0.4)
+    assert count > 10
+    np.testing.assert_array_equal(label_sizes(labels, count), np.bincount(labels.ravel(), minlength=count + 1))
+    where = rng.random(labels.shape) < 0.5
+    np.testing.assert_array_equal(label_sizes(labels, count, where=where),
+                                  np.bincount(labels[where], minlength=count + 1))
