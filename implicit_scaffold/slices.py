@@ -472,6 +472,15 @@ def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = Non
         plan_slabs(grid.shape, max_voxels=max_voxels, halo=1)  # a bound too small fails before any folder
     origin, (width, height, layers) = stack_geometry(grid, pixel, layer)
     final = Path(out_dir)
+    if source is not None:
+        # the scratch file of grey levels sits in the stack's folder until the layers are encoded
+        scratch = width * height * layers
+        parent = Path(os.path.abspath(os.fspath(final))).parent
+        free = shutil.disk_usage(parent).free if parent.is_dir() else scratch
+        if scratch > free:
+            raise ScaffoldError(f"the stack's {layers} layers of {width}x{height} pixels need {scratch / 2**30:.1f} GiB "
+                                f"of scratch space beside {final.name} while they are sampled, but only "
+                                f"{free / 2**30:.1f} GiB is free there; free disk space or write the stack elsewhere")
     tmp = _prepare_folder(final)
     shares, greys = [], []
     try:

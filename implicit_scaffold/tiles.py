@@ -526,6 +526,28 @@ class ArraySlabs:
         self.field = None
 
 
+def _remove_orphans(folder) -> None:
+    """Remove the field files that runs killed outright (SIGKILL, a lost machine) left in
+    `folder`: those named after a process that no longer runs. A run that ends any other way
+    removes its own (:meth:`FieldFile.close`)."""
+    import os
+    from pathlib import Path
+
+    for path in Path(folder).glob("implicit_scaffold-*-*.f32"):
+        pid = path.name.split("-")[1]
+        if not pid.isdigit() or int(pid) == os.getpid():
+            continue
+        try:
+            os.kill(int(pid), 0)
+        except ProcessLookupError:
+            try:
+                path.unlink()
+            except OSError:
+                pass
+        except OSError:
+            pass  # alive, another user's
+
+
 class FieldFile:
     """A float32 field over a grid kept in a raw file (C order, x slowest), written and read by planes.
 
@@ -541,11 +563,14 @@ class FieldFile:
     """
 
     def __init__(self, grid, folder=None):
+        import os
         import tempfile
 
         self.grid = grid
         self._plane = int(grid.shape[1]) * int(grid.shape[2])
-        fd, name = tempfile.mkstemp(prefix="implicit_scaffold-", suffix=".f32", dir=folder)
+        _remove_orphans(folder or tempfile.gettempdir())
+        # the process's id in the name: a run killed outright leaves its file to the next run
+        fd, name = tempfile.mkstemp(prefix=f"implicit_scaffold-{os.getpid()}-", suffix=".f32", dir=folder)
         self.path = name
         self._fh = open(fd, "r+b", buffering=0)
         try:

@@ -1,4 +1,6 @@
 """Slabs give what the whole grid gives: the offset level and the fragments, bit for bit."""
+import os
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -117,6 +119,28 @@ def test_field_file_holds_planes_and_vanishes(tmp_path):
         assert np.array_equal(ArraySlabs(field, grid).read(2, 9), f.read(2, 9))
         assert len(list(tmp_path.iterdir())) == 1
     assert not list(tmp_path.iterdir())
+
+
+def test_field_file_removes_what_killed_runs_left(tmp_path):
+    # a run killed outright (kill -9) leaves its field file: the next run removes it, and keeps
+    # the files of runs still going and anything not named as a field file
+    import subprocess
+    import sys
+
+    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.tiles import FieldFile
+
+    dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True)
+    orphan = tmp_path / f"implicit_scaffold-{int(dead.stdout)}-abc.f32"
+    orphan.write_bytes(b"x" * 64)
+    alive = tmp_path / f"implicit_scaffold-{os.getppid()}-def.f32"
+    alive.write_bytes(b"y")
+    other = tmp_path / "implicit_scaffold-notes.f32"
+    other.write_bytes(b"z")
+    with FieldFile(Grid((0.0, 0.0, 0.0), 0.1, (3, 2, 2)), folder=tmp_path) as f:
+        assert not orphan.exists() and alive.exists() and other.exists()
+        assert f.path.startswith(str(tmp_path / f"implicit_scaffold-{os.getpid()}-"))
 
 
 def test_group_quantile_gives_each_groups_order_statistics():
