@@ -128,7 +128,71 @@ def _flood_kernels():
     the grid's: their planes come from the neighbours, as part of the marker ``r2``)."""
     import numba as nb
 
-    @nb.njit(cache=True, boundscheck=False)
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def spread(d2, r2, queue, qh, qt):  # pragma: no cover - compiled
+        # the FIFO: each queued voxel raises its face neighbours that it can (min of its value
+        # and theirs under d2), and queues those it raised; False if the ring overflowed
+        nx, ny, nz = d2.shape
+        fd = d2.ravel()
+        fr = r2.ravel()
+        sx = ny * nz
+        size = queue.shape[0]
+        while qh != qt:
+            q = queue[qh]
+            qh = qh + 1 if qh + 1 < size else 0
+            k = q % nz
+            j = (q // nz) % ny
+            i = q // sx
+            v = fr[q]
+            for t in range(6):
+                if t == 0:
+                    if i == 0:
+                        continue
+                    u = q - sx
+                elif t == 1:
+                    if i == nx - 1:
+                        continue
+                    u = q + sx
+                elif t == 2:
+                    if j == 0:
+                        continue
+                    u = q - nz
+                elif t == 3:
+                    if j == ny - 1:
+                        continue
+                    u = q + nz
+                elif t == 4:
+                    if k == 0:
+                        continue
+                    u = q - 1
+                else:
+                    if k == nz - 1:
+                        continue
+                    u = q + 1
+                if fr[u] < v and fr[u] < fd[u]:
+                    fr[u] = min(v, fd[u])
+                    queue[qt] = u
+                    qt = qt + 1 if qt + 1 < size else 0
+                    if qt == qh:  # more waiting than voxels: never seen; say so rather than loop
+                        return False
+        return True
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def settle_across(d2, r2, m):  # pragma: no cover - compiled
+        # two halves flooded apart, [0, m) and [m, nx): the FIFO from both planes of the cut
+        # carries what crosses it, and only that
+        nx, ny, nz = d2.shape
+        queue = np.empty(nx * ny * nz + 1, np.int64)
+        qt = 0
+        for i in (m - 1, m):
+            for j in range(ny):
+                for k in range(nz):
+                    if d2[i, j, k] > 0:
+                        queue[qt] = (i * ny + j) * nz + k
+                        qt += 1
+        return spread(d2, r2, queue, 0, qt)
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
     def flood_faces(d2, r2, low_x, high_x):  # pragma: no cover - compiled
         # grey reconstruction by dilation of the marker r2 (raised to d2 on the seeded faces)
         # under d2, by Vincent's hybrid method: a raster scan and an anti-raster scan carry most
@@ -180,53 +244,23 @@ def _flood_kernels():
                             or (k < nz - 1 and r2[i, j, k + 1] < v and r2[i, j, k + 1] < d2[i, j, k + 1])):
                         queue[qt] = (i * ny + j) * nz + k
                         qt += 1
-        fd = d2.ravel()
-        fr = r2.ravel()
-        sx = ny * nz
-        size = n + 1
-        while qh != qt:
-            q = queue[qh]
-            qh = qh + 1 if qh + 1 < size else 0
-            k = q % nz
-            j = (q // nz) % ny
-            i = q // sx
-            v = fr[q]
-            for t in range(6):
-                if t == 0:
-                    if i == 0:
-                        continue
-                    u = q - sx
-                elif t == 1:
-                    if i == nx - 1:
-                        continue
-                    u = q + sx
-                elif t == 2:
-                    if j == 0:
-                        continue
-                    u = q - nz
-                elif t == 3:
-                    if j == ny - 1:
-                        continue
-                    u = q + nz
-                elif t == 4:
-                    if k == 0:
-                        continue
-                    u = q - 1
-                else:
-                    if k == nz - 1:
-                        continue
-                    u = q + 1
-                if fr[u] < v and fr[u] < fd[u]:
-                    fr[u] = min(v, fd[u])
-                    queue[qt] = u
-                    qt = qt + 1 if qt + 1 < size else 0
-                    if qt == qh:  # more waiting than voxels: never seen; say so rather than loop
-                        return False
-        return True
+        return spread(d2, r2, queue, qh, qt)
 
-    @nb.njit(cache=True, boundscheck=False)
-    def flood(d2, r2):  # pragma: no cover - compiled
-        return flood_faces(d2, r2, True, True)
+    def flood(d2, r2):
+        # both halves along x at once, each from its own faces of the grid, then what crosses
+        # the cut: the same fixpoint (the reconstruction is unique), on two cores
+        from .threads import count, over_rows
+
+        nx = d2.shape[0]
+        if count() < 2 or nx < 8:
+            return flood_faces(d2, r2, True, True)
+        ok = [True, True]
+
+        def half(d2, r2, lo, hi):
+            ok[lo > 0] = flood_faces(d2[lo:hi], r2[lo:hi], lo == 0, hi == nx)
+
+        over_rows(half, nx, d2, r2, pieces=2)
+        return ok[0] and ok[1] and settle_across(d2, r2, nx // 2)
 
     return flood, flood_faces
 

@@ -336,3 +336,21 @@ def test_tiled_run_with_a_printer_gives_the_whole_grid_certificate(tmp_path):
 
     write_run_report(tiled, tmp_path / "r.html")
     assert (tmp_path / "r.html").read_text().count("print certificate: where the problems lie") == 2
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_flood_in_two_halves_gives_the_single_floods_fixpoint(seed):
+    # the halves flooded on two cores and joined across the cut, against one flood of the whole
+    # (a reconstruction has one fixpoint); a blobby void whose best paths cross the cut both ways
+    from scipy import ndimage
+
+    from implicit_scaffold.morphometry import _squared_edt
+    from implicit_scaffold.printability import _flood_kernels
+
+    flood, flood_faces = _flood_kernels()
+    solid = ndimage.gaussian_filter(np.random.default_rng(seed).normal(size=(40 + seed, 27, 33)), 1.5) > 0.1
+    d2 = np.ascontiguousarray(_squared_edt(~solid))
+    halves, whole = np.zeros_like(d2), np.zeros_like(d2)
+    assert flood(d2, halves) and flood_faces(d2, whole, True, True)
+    assert 0 < np.count_nonzero(whole) and np.count_nonzero(whole < d2) > 100
+    np.testing.assert_array_equal(halves, whole)
