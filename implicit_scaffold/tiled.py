@@ -523,7 +523,7 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     solid, fragments (None when not removed), bodies, patient pieces, voxels removed
     """
     by_piece = patient_pieces
-    pieces, patient_pieces = SlabComponents(), SlabComponents()
+    pieces, patient_pieces = SlabComponents(keep_labels=remove and len(slabs) == 1), SlabComponents()
     where = []  # per slab: the patient label (local) of each solid label (local)
     solid = 0
     for done, slab in enumerate(slabs, 1):
@@ -604,7 +604,7 @@ def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
 def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool, keep_interior: bool = False) -> tuple[int, int]:
     """Passes 5 and 6: the void pieces joined across slabs; the sealed ones filled, as
     :func:`~implicit_scaffold.field.fill_sealed_voids` does on the whole grid."""
-    voids = SlabComponents()
+    voids = SlabComponents(keep_labels=fill and len(slabs) == 1)
     last = len(slabs) - 1
 
     def mask(i, s):

@@ -295,7 +295,11 @@ class SlabComponents:
     :meth:`sealed_mask`), as :func:`~implicit_scaffold.field.fill_sealed_voids` finds them.
     """
 
-    def __init__(self):
+    def __init__(self, keep_labels: bool = False):
+        # a run of one slab held in memory keeps its labels for the second pass (4 bytes a
+        # voxel) instead of labelling the same mask again
+        self._keep_labels = bool(keep_labels)
+        self._labels_of: dict[int, np.ndarray] = {}
         self._offsets: list[int] = []
         self._sizes: list[np.ndarray] = []
         self._parent = np.zeros(0, np.int64)
@@ -312,6 +316,14 @@ class SlabComponents:
             if np.array_equal(nxt, root):
                 return root
             root = nxt
+
+    def _labels_again(self, index: int, mask: np.ndarray):
+        """Slab `index`'s labels of pass 1 (kept, or the same mask labelled again) and their count."""
+        labels = self._labels_of.pop(index, None)
+        if labels is None:
+            return self._label(mask)
+        nxt = self._offsets[index + 1] if index + 1 < len(self._offsets) else len(self._parent)
+        return labels, nxt - self._offsets[index]
 
     @staticmethod
     def _label(solid: np.ndarray):
@@ -330,6 +342,8 @@ class SlabComponents:
 
         labels, count = self._label(solid)
         offset = len(self._parent)
+        if self._keep_labels:
+            self._labels_of[len(self._offsets)] = labels
         self._offsets.append(offset)
         self._sizes.append(label_sizes(labels, count)[1:])
         if tally is not None:
@@ -399,7 +413,7 @@ class SlabComponents:
 
     def sealed_mask(self, index: int, mask: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same mask as given to :meth:`add`) in a sealed piece."""
-        labels, count = self._label(mask)
+        labels, count = self._labels_again(index, mask)
         root = self._roots[self._offsets[index]:self._offsets[index] + count]
         sealed = np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
         return sealed[labels]
@@ -461,9 +475,8 @@ class SlabComponents:
 
     def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same solid as given to :meth:`add`) to turn into void."""
-        labels, _ = self._label(solid)
-        global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index]
-                                                        + int(labels.max(initial=0))]])
+        labels, count = self._labels_again(index, solid)
+        global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index] + count]])
         kept = getattr(self, "_kept_roots", None)
         if kept is not None:
             return (labels > 0) & ~kept[np.maximum(global_root, 0)][labels]

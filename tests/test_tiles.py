@@ -177,3 +177,29 @@ def test_group_quantile_refuses_ranks_beyond_a_group():
         q.select([[0, 2], [0, 1]])
     with pytest.raises(ValueError, match="group numbers outside"):
         q.count(np.ones(2, np.float32), np.array([0, 2]))
+
+
+def test_kept_labels_give_the_relabelled_masks():
+    # one slab held in memory keeps pass 1's labels: the same fragments and sealed pieces as
+    # labelling the mask again (and as scipy's whole-grid labels)
+    rng = np.random.default_rng(8)
+    solid = ndimage.binary_opening(rng.random((30, 26, 22)) < 0.55)
+    want_labels, n = ndimage.label(solid)
+    sizes = np.bincount(want_labels.ravel())
+    sizes[0] = 0
+    want = (want_labels > 0) & (want_labels != np.argmax(sizes))
+    for keep in (False, True):
+        c = SlabComponents(keep_labels=keep)
+        c.add(solid)
+        assert c.finish() == n - 1 > 2
+        np.testing.assert_array_equal(c.fragment_mask(0, solid), want)
+    void = ~solid
+    masks = []
+    for keep in (False, True):
+        v = SlabComponents(keep_labels=keep)
+        v.add(void)
+        v.finish()
+        v.sealed(False)
+        masks.append(v.sealed_mask(0, void))
+    assert masks[0].any()
+    np.testing.assert_array_equal(masks[0], masks[1])
