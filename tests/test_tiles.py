@@ -193,13 +193,19 @@ def test_kept_labels_give_the_relabelled_masks():
         c.add(solid)
         assert c.finish() == n - 1 > 2
         np.testing.assert_array_equal(c.fragment_mask(0, solid), want)
-    void = ~solid
+    # a block with three closed cavities and a channel through it: the cavities are sealed
+    block = np.ones((20, 18, 16), bool)
+    cavities = np.zeros_like(block)
+    cavities[3:6, 3:6, 3:6] = cavities[12:15, 4:7, 9:12] = cavities[8:10, 12:15, 2:4] = True
+    block &= ~cavities
+    block[:, 9, 8] = False
+    void = ~block
     masks = []
     for keep in (False, True):
         v = SlabComponents(keep_labels=keep)
         v.add(void)
         v.finish()
-        v.sealed(False)
+        assert v.sealed(False)[0] == 3
         masks.append(v.sealed_mask(0, void))
-    assert masks[0].any()
+    np.testing.assert_array_equal(masks[0], cavities)
     np.testing.assert_array_equal(masks[0], masks[1])
