@@ -948,6 +948,8 @@ class _RunPlan:
             return None
         ext = output_format(self.out_path) if self.out_path is not None else None
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
+        # what the process holds once the patient has run (its compiled code loaded, e.g. numba's)
+        held = release() + STAGE_RESERVE + int(reserve) - int(slab_share)
         from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
         plane = grid.shape[1] * grid.shape[2]
@@ -1195,16 +1197,22 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
                       one_piece: bool, slab_voxels=None) -> Result:
     """The outputs of a run held in memory: the patient's pieces, the mesh, the voxel measures,
     the certificate, the slices and the files, from the field's arrays."""
-    from .pieces import label_pieces, piece_table
+    from .pieces import label_pieces, one_piece_table, piece_table
 
     s, s_p = tf.field.field, tf.patient.field
     h = grid.spacing
-    inside = s_p < 0
-    with prog.stage("pieces"):
-        pieces, n_pieces = label_pieces(inside)
-        small_pieces = _pieces_report(report, piece_table(pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
-                                                          main_bodies_only=params.remove_fragments and n_pieces == 1))
-        del pieces
+    inside = s_p < 0 if morphometry or printer is not None else None
+    if one_piece and params.remove_fragments:
+        # a primitive keeping its main body: its one row from what the passes counted, as in slabs
+        small_pieces = _pieces_report(report, one_piece_table(
+            tf.n_inside, tf.solid, int(np.count_nonzero(cells_in)), min(tf.pieces, 1), tf.inside_box, grid))
+    else:
+        with prog.stage("pieces"):
+            pieces, n_pieces = label_pieces(s_p < 0 if inside is None else inside)
+            small_pieces = _pieces_report(report, piece_table(
+                pieces, n_pieces, s < 0, grid, cells.seeds[cells_in],
+                main_bodies_only=params.remove_fragments and n_pieces == 1))
+            del pieces
 
     result = Result(params=params, report=report, cells=cells, skeleton=None, edges=None, grid=grid,
                     field=s, patient_sdf=s_p, patient=patient, timings=prog.timings)

@@ -205,13 +205,23 @@ def test_a_patient_in_pieces_gets_the_same_printed_level_in_slabs(tmp_path):
 
 @pytest.mark.parametrize("shape", ["sphere", "cylinder"])
 def test_a_primitives_one_row_in_slabs_is_the_whole_grids(shape):
-    # in slabs a primitive's row comes from the passes' counts, in memory from labelling the grid
+    # a primitive's row comes from the passes' counts, in memory and in slabs; the oracle labels
+    # the finished grid's patient and solid and reads the table off them
+    from implicit_scaffold.field import sample
+    from implicit_scaffold.pieces import label_pieces, piece_table
+
     kw = dict(shape=shape, size=4, pore_size=0.8, porosity=0.7, voxel=0.08, mesh=False, morphometry=False)
     whole = implicit_scaffold.generate(tiled=False, **kw)
     plane = whole.grid.shape[1] * whole.grid.shape[2]
     tiled = implicit_scaffold.generate(tiled=12 * plane, **kw)
     assert tiled.report["tiled"]["slabs"] > 2
-    assert tiled.report["patient_pieces"] == whole.report["patient_pieces"]
+    s, s_p = np.asarray(whole.field), np.asarray(whole.patient_sdf)
+    labels, count = label_pieces(s_p < 0)
+    seeds = whole.cells.seeds[sample(s_p, whole.grid, whole.cells.seeds) < 0]
+    want = piece_table(labels, count, s < 0, whole.grid, seeds)
+    assert count == 1 and want[0]["bodies"] == 1
+    assert whole.report["patient_pieces"] == want
+    assert tiled.report["patient_pieces"] == want
 
 
 def test_label_sizes_count_as_bincount_does():
@@ -224,3 +234,25 @@ def test_label_sizes_count_as_bincount_does():
     where = rng.random(labels.shape) < 0.5
     np.testing.assert_array_equal(label_sizes(labels, count, where=where),
                                   np.bincount(labels[where], minlength=count + 1))
+    # long runs of one label (counted run by run), a run through the last voxel, one voxel, none
+    blobs, n = label_pieces((np.arange(40) % 9 < 6)[:, None, None] & np.ones((12, 50), bool))
+    assert n > 2 and blobs.reshape(-1)[-1] > 0
+    np.testing.assert_array_equal(label_sizes(blobs, n), np.bincount(blobs.ravel(), minlength=n + 1))
+    np.testing.assert_array_equal(label_sizes(np.array([[[3]]], np.int32), 3), [0, 0, 0, 1])
+    np.testing.assert_array_equal(label_sizes(np.zeros((0, 4, 4), np.int32), 2), [0, 0, 0])
+
+
+@pytest.mark.parametrize("contiguous", [True, False])
+def test_paint_labels_writes_what_a_boolean_mask_writes(contiguous):
+    from implicit_scaffold.pieces import label_pieces, paint_labels
+
+    rng = np.random.default_rng(4)
+    labels, count = label_pieces(rng.random((23, 19, 17)) < 0.4)
+    table = rng.random(count + 1) < 0.3
+    table[0] = False
+    field = rng.normal(size=labels.shape).astype(np.float32)
+    want = field.copy()
+    want[table[labels]] = 7.5
+    got = field.copy() if contiguous else np.asfortranarray(field)
+    assert paint_labels(labels, table, got, 7.5) == np.count_nonzero(table[labels]) > 0
+    np.testing.assert_array_equal(got, want)
