@@ -562,9 +562,7 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     removed = 0
     for i, slab in enumerate(slabs):
         s = field.read(slab.x0, slab.x1)
-        drop = pieces.fragment_mask(i, s < 0)
-        s[drop] = np.float32(spacing)
-        removed += int(np.count_nonzero(drop))
+        removed += pieces.drop_fragments(i, s, spacing)
         field.write(slab.x0, s)
         if progress is not None:
             progress(len(slabs) + i + 1, 2 * len(slabs))
@@ -617,7 +615,7 @@ def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool, keep_inter
     if fill and count:
         for i, slab in enumerate(slabs):
             s = field.read(slab.x0, slab.x1)
-            s[voids.sealed_mask(i, mask(i, s))] = -np.float32(spacing)
+            voids.fill_sealed(i, lambda: mask(i, s), s, -spacing)
             field.write(slab.x0, s)
     return count, voxels
 

@@ -321,7 +321,7 @@ class SlabComponents:
         """Slab `index`'s labels of pass 1 (kept, or the same mask labelled again) and their count."""
         labels = self._labels_of.pop(index, None)
         if labels is None:
-            return self._label(mask)
+            return self._label(mask() if callable(mask) else mask)
         nxt = self._offsets[index + 1] if index + 1 < len(self._offsets) else len(self._parent)
         return labels, nxt - self._offsets[index]
 
@@ -414,9 +414,20 @@ class SlabComponents:
     def sealed_mask(self, index: int, mask: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same mask as given to :meth:`add`) in a sealed piece."""
         labels, count = self._labels_again(index, mask)
+        return self._sealed_table(index, count)[labels]
+
+    def fill_sealed(self, index: int, mask, field: np.ndarray, value: float) -> int:
+        """Pass 2: write `value` into the voxels of slab `index` in a sealed piece, in place;
+        `mask` is the void given to :meth:`add` (or a function that makes it: not called when
+        the labels were kept). Returns the voxels written."""
+        from .pieces import paint_labels
+
+        labels, count = self._labels_again(index, mask)
+        return paint_labels(labels, self._sealed_table(index, count), field, value)
+
+    def _sealed_table(self, index: int, count: int) -> np.ndarray:
         root = self._roots[self._offsets[index]:self._offsets[index] + count]
-        sealed = np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
-        return sealed[labels]
+        return np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
 
     @property
     def labels(self) -> int:
@@ -476,11 +487,22 @@ class SlabComponents:
     def fragment_mask(self, index: int, solid: np.ndarray) -> np.ndarray:
         """Pass 2: voxels of slab `index` (same solid as given to :meth:`add`) to turn into void."""
         labels, count = self._labels_again(index, solid)
-        global_root = np.concatenate([[-1], self._roots[self._offsets[index]:self._offsets[index] + count]])
+        return self._fragment_table(index, count)[labels]
+
+    def drop_fragments(self, index: int, field: np.ndarray, value: float) -> int:
+        """Pass 2: write `value` into the voxels of slab `index` (the field whose ``field < 0`` was
+        given to :meth:`add`) that lie in a fragment, in place. Returns the voxels written."""
+        from .pieces import paint_labels
+
+        labels, count = self._labels_again(index, lambda: field < 0)
+        return paint_labels(labels, self._fragment_table(index, count), field, value)
+
+    def _fragment_table(self, index: int, count: int) -> np.ndarray:
+        """Whether each label of slab `index` (0 first: never) lies in a fragment."""
+        root = self._roots[self._offsets[index]:self._offsets[index] + count]
         kept = getattr(self, "_kept_roots", None)
-        if kept is not None:
-            return (labels > 0) & ~kept[np.maximum(global_root, 0)][labels]
-        return (labels > 0) & (global_root[labels] != self.main)
+        drop = ~kept[root] if kept is not None else root != self.main
+        return np.concatenate([[False], drop])
 
 
 class ArraySlabs:

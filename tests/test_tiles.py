@@ -84,6 +84,12 @@ def test_fragments_across_slabs_match_the_whole_grid(thickness):
         drop = comp.fragment_mask(i, field[s.x0:s.x1] < 0)
         tiled[s.x0:s.x1][drop] = 1.0
     assert np.array_equal(tiled, whole)
+    # the painting pass writes the same voxels in place (the slab relabelled from its field)
+    painted, written = field.copy(), 0
+    for i, s in enumerate(slabs):
+        written += comp.drop_fragments(i, painted[s.x0:s.x1], 1.0)
+    assert np.array_equal(painted, whole)
+    assert written == np.count_nonzero(whole != field)
 
 
 @pytest.mark.parametrize("k", [0.0, 0.05, 0.13])
@@ -209,3 +215,20 @@ def test_kept_labels_give_the_relabelled_masks():
         masks.append(v.sealed_mask(0, void))
     np.testing.assert_array_equal(masks[0], cavities)
     np.testing.assert_array_equal(masks[0], masks[1])
+    # and painted in place from the kept labels (the mask's function is then not called)
+    for keep in (False, True):
+        v = SlabComponents(keep_labels=keep)
+        v.add(void)
+        v.finish()
+        v.sealed(False)
+        field = np.where(void, 1.0, -1.0).astype(np.float32)
+        calls = []
+        written = v.fill_sealed(0, lambda: calls.append(1) or void, field, -0.5)
+        assert written == np.count_nonzero(cavities) and len(calls) == (0 if keep else 1)
+        np.testing.assert_array_equal(field == -0.5, cavities)
+    c = SlabComponents(keep_labels=True)
+    c.add(solid)
+    c.finish()
+    field = np.where(solid, -1.0, 1.0).astype(np.float32)
+    assert c.drop_fragments(0, field, 2.0) == np.count_nonzero(want)
+    np.testing.assert_array_equal(field == 2.0, want)
