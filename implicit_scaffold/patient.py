@@ -10,6 +10,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numba as nb
 import numpy as np
 
 from .errors import ScaffoldError
@@ -73,6 +74,17 @@ class Box(_Analytic):
         p = np.asarray(points, np.float64)
         return self.sdf_axes(p[..., 0], p[..., 1], p[..., 2])
 
+    def sdf_grid(self, grid: Grid, x_range=None) -> np.ndarray:
+        """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm, negative
+        inside: :meth:`sdf_axes` voxel by voxel in one compiled pass, without its float64 grids
+        (the same operations in the same order, so the same values)."""
+        lo, hi = (0, grid.shape[0]) if x_range is None else (int(x_range[0]), int(x_range[1]))
+        half = self.hi / 2
+        q = [np.abs(c - m) - m for c, m in zip(grid.axes(), half)]
+        out = np.empty((hi - lo,) + tuple(grid.shape[1:]), np.float32)
+        _box_planes(np.ascontiguousarray(q[0][lo:hi]), q[1], q[2], out)
+        return out
+
     def sdf_axes(self, x, y, z):
         half = self.hi / 2
         q = [np.abs(c - m) - m for c, m in zip((x, y, z), half)]
@@ -83,6 +95,20 @@ class Box(_Analytic):
         inner = np.maximum(np.maximum(q[0], q[1]), q[2])
         np.minimum(inner, 0, out=inner)
         return np.add(outside, inner, out=outside if outside.shape == inner.shape else None)
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _box_planes(qx, qy, qz, out):  # pragma: no cover - compiled
+    # Box.sdf_axes from the axes' distances to the faces, q = |c - m| - m
+    for i in range(qx.size):
+        ox = max(qx[i], 0.0)
+        for j in range(qy.size):
+            oy = max(qy[j], 0.0)
+            oxy = ox * ox + oy * oy
+            mxy = max(qx[i], qy[j])
+            for k in range(qz.size):
+                oz = max(qz[k], 0.0)
+                out[i, j, k] = math.sqrt(oxy + oz * oz) + min(max(mxy, qz[k]), 0.0)
 
 
 @dataclass(frozen=True)
