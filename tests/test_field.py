@@ -15,6 +15,32 @@ def test_solve_level_counts_exactly():
         assert solid == round((1 - p) * inside.sum())
 
 
+@pytest.mark.parametrize("shape", [(23, 19, 17), (61, 47, 43)])
+@pytest.mark.parametrize("kind", ["normal", "ties", "tiny", "zeros", "clamped", "sample misled"])
+def test_solve_level_is_midway_between_the_sorted_values(kind, shape):
+    # the oracle: the two order statistics around the rank, from a full sort (the small grid
+    # is below the sampled bracket's size, the large one above it)
+    rng = np.random.default_rng(3)
+    field = {"normal": lambda: rng.normal(size=shape),
+             "ties": lambda: rng.integers(-3, 3, shape) * 0.5,
+             "tiny": lambda: rng.normal(size=shape) * 1e-30,
+             "zeros": lambda: np.where(rng.random(shape) < 0.5, -0.0, 0.0),
+             # most voxels at one value (a lattice clamped at its cut-off), the rest spread
+             "clamped": lambda: np.minimum(rng.normal(size=shape), 0.3),
+             "sample misled": lambda: rng.normal(size=shape)}[kind]().astype(np.float32)
+    if kind == "sample misled":
+        # the voxels the sample reads hold values far above the others: its bracket misses
+        from implicit_scaffold.field import _SAMPLE_STRIDE
+
+        field.reshape(-1)[::_SAMPLE_STRIDE] = 100.0
+    inside = rng.random(shape) < 0.7
+    values = np.sort(field[inside])
+    for p in (0.01, 0.3, 0.8, 0.99):
+        k = round((1 - p) * len(values))
+        want = float(values[k - 1]) + (float(values[k]) - float(values[k - 1])) / 2
+        assert solve_level(field, inside, p) == want
+
+
 def test_offset_of_a_plane_moves_the_surface():
     # field = x - 5 (solid x < 5); a 0.8 porosity over x in [0, 10) puts the surface at x = 2
     x = np.arange(100) * 0.1 + 0.05
