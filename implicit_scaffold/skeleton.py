@@ -103,6 +103,16 @@ def _next_in_polygon(start: np.ndarray) -> np.ndarray:
     return nxt
 
 
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``np.cross`` of ``(m, 3)`` rows: the same products and differences, without its
+    general axis handling (2.5x)."""
+    out = np.empty(a.shape)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     """Build rims, cages, rails, the channels' side quads and the void's pieces.
 
@@ -129,8 +139,9 @@ def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     cages = g_c + sv * (F - g_c)
 
     nxt = _next_in_polygon(start)
-    quads = np.stack([cages, cages[nxt], rims[nxt], rims], axis=1)
-    area_vec = 0.5 * np.cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
+    quads = np.empty((len(F), 4, 3))
+    quads[:, 0], quads[:, 1], quads[:, 2], quads[:, 3] = cages, cages[nxt], rims[nxt], rims
+    area_vec = 0.5 * _cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
     area = np.linalg.norm(area_vec, axis=1)
     normals = area_vec / np.where(area > 0, area, 1)[:, None]
     # the channel's axis point at this quad's height: outward is away from it
@@ -144,7 +155,8 @@ def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     normals[flip] *= -1
     quad_face = vert_face.copy()
     good = area > 1e-12 * float(np.max(cells.hi - cells.lo)) ** 2
-    quads, normals, quad_face = quads[good], normals[good], quad_face[good]
+    if not good.all():
+        quads, normals, quad_face = quads[good], normals[good], quad_face[good]
 
     # pieces: pores (one plane per cage face), then channels (cage end, rim end, sides)
     n = cells.n
@@ -173,17 +185,19 @@ def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     planes = np.concatenate([pore_planes, ch_planes])
     piece_start = np.concatenate([pore_start, pore_start[-1] + ch_start[1:]])
 
-    cell_of_vertex = cells.face_cell[vert_face]
+    # bounds of each face's vertices (a face's vertices are consecutive, three or more), then of
+    # each cell's faces (grouped by a stable sort): minima and maxima, exact in any order
+    first = start[:-1]
+    cage_lo, cage_hi = np.minimum.reduceat(cages, first), np.maximum.reduceat(cages, first)
+    ch_lo = np.minimum(cage_lo, np.minimum.reduceat(rims, first))
+    ch_hi = np.maximum(cage_hi, np.maximum.reduceat(rims, first))
     pore_lo = np.full((n, 3), np.inf)
     pore_hi = np.full((n, 3), -np.inf)
-    np.minimum.at(pore_lo, cell_of_vertex, cages)
-    np.maximum.at(pore_hi, cell_of_vertex, cages)
-    both = np.concatenate([cages, rims])
-    both_face = np.concatenate([vert_face, vert_face])
-    ch_lo = np.full((nf, 3), np.inf)
-    ch_hi = np.full((nf, 3), -np.inf)
-    np.minimum.at(ch_lo, both_face, both)
-    np.maximum.at(ch_hi, both_face, both)
+    if nf:
+        by_cell = cells.face_cell[order]
+        group = np.flatnonzero(np.r_[True, by_cell[1:] != by_cell[:-1]])
+        pore_lo[by_cell[group]] = np.minimum.reduceat(cage_lo[order], group)
+        pore_hi[by_cell[group]] = np.maximum.reduceat(cage_hi[order], group)
     return Skeleton(cells=cells, sf=sf, sv=sv, rims=rims, cages=cages, quads=quads,
                     quad_normals=normals, quad_face=quad_face, piece_start=piece_start,
                     planes=planes, piece_lo=np.concatenate([pore_lo, ch_lo]),

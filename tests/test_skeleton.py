@@ -108,3 +108,21 @@ def test_skeleton_near_a_band_is_the_whole_skeletons_part_there():
     pores = np.nonzero(keep)[0]
     np.testing.assert_array_equal(part.piece_lo[:len(pores)], whole.piece_lo[pores])
     np.testing.assert_array_equal(source.quad_areas(chunk=7), quad_areas(whole))
+
+
+def test_pieces_boxes_bound_their_vertices(cube_cells):
+    # the oracle: each pore's box from its cage vertices and each channel's from its cage and
+    # rim vertices, gathered one by one in a plain loop
+    cells = cube_cells
+    sk = scaled_skeleton(cells, 0.6, 0.8)
+    start = cells.face_start
+    lo = np.full((cells.n + len(cells.face_cell), 3), np.inf)
+    hi = -lo
+    for f in range(len(cells.face_cell)):
+        for v in range(start[f], start[f + 1]):
+            c = cells.face_cell[f]
+            lo[c], hi[c] = np.minimum(lo[c], sk.cages[v]), np.maximum(hi[c], sk.cages[v])
+            for p in (sk.cages[v], sk.rims[v]):
+                lo[cells.n + f], hi[cells.n + f] = np.minimum(lo[cells.n + f], p), np.maximum(hi[cells.n + f], p)
+    np.testing.assert_array_equal(sk.piece_lo, lo)
+    np.testing.assert_array_equal(sk.piece_hi, hi)
