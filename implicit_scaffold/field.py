@@ -178,16 +178,17 @@ def solve_level(field: np.ndarray, patient: np.ndarray, porosity: float) -> floa
         The level, mm.
     """
     if field.dtype == np.float32 and field.shape == patient.shape:
-        bits, inside = _flat_views(field, patient)
-        n = int(np.count_nonzero(inside))
+        from .tiles import order_pair_sampled
+
+        n = int(np.count_nonzero(patient))
         if n == 0:
             raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")
         solid = solid_voxels(n, porosity)
         if 0 < solid < n:
-            pair = _order_pair_sampled(bits, inside, solid - 1, n)
-            if pair is None:
-                pair = _order_pair(field, patient, _order_histogram(field, patient)[1], solid - 1)
-            return level_between(*pair)
+            # a misled sample (rare) leaves the ranks to the partition below
+            pair = order_pair_sampled(field, patient, solid - 1, n)
+            if pair is not None:
+                return level_between(*pair)
     values = field[patient]
     n = values.size
     if n == 0:
@@ -199,134 +200,6 @@ def solve_level(field: np.ndarray, patient: np.ndarray, porosity: float) -> floa
         return float(values.max()) + 1e-6
     part = np.partition(values, (solid - 1, solid))
     return level_between(float(part[solid - 1]), float(part[solid]))
-
-
-_SELECT = None
-
-
-def _select_kernels():
-    """The two passes of an exact selection over float32 voxels (numba, built on first use).
-
-    A float32's bits, with the sign bit flipped on positives and all bits flipped on
-    negatives, order as the floats do; the top 16 bits of that key are the histogram's bins.
-    """
-    global _SELECT
-    if _SELECT is not None:
-        return _SELECT
-    import numba as nb
-
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def histogram(bits, inside, hist):  # pragma: no cover - compiled
-        n = 0
-        for i in range(bits.size):
-            if inside[i]:
-                b = bits[i]
-                key = ~b if b & np.uint32(0x80000000) else b | np.uint32(0x80000000)
-                hist[key >> np.uint32(16)] += 1
-                n += 1
-        return n
-
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def gather(bits, inside, lo_bin, hi_bin, out):  # pragma: no cover - compiled
-        j = 0
-        for i in range(bits.size):
-            if inside[i]:
-                b = bits[i]
-                key = ~b if b & np.uint32(0x80000000) else b | np.uint32(0x80000000)
-                top = key >> np.uint32(16)
-                if top >= lo_bin and top <= hi_bin:
-                    out[j] = key
-                    j += 1
-        return j
-
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def bracket(bits, inside, lo_key, hi_key, out):  # pragma: no cover - compiled
-        # the count of keys below lo_key, and the keys in [lo_key, hi_key] (as many as fit)
-        below = 0
-        j = 0
-        for i in range(bits.size):
-            if inside[i]:
-                b = bits[i]
-                key = ~b if b & np.uint32(0x80000000) else b | np.uint32(0x80000000)
-                if key < lo_key:
-                    below += 1
-                elif key <= hi_key:
-                    if j < out.size:
-                        out[j] = key
-                    j += 1
-        return below, j
-
-    _SELECT = (histogram, gather, bracket)
-    return _SELECT
-
-
-def _keys(values: np.ndarray) -> np.ndarray:
-    """The order keys (uint32) of float32 values (:func:`_select_kernels`)."""
-    b = np.asarray(values, np.float32).view(np.uint32)
-    return np.where(b & np.uint32(0x80000000), ~b, b | np.uint32(0x80000000)).astype(np.uint32)
-
-
-def _floats(keys: np.ndarray) -> np.ndarray:
-    """The float32 values of order keys (the inverse of :func:`_keys`)."""
-    keys = np.asarray(keys, np.uint32)
-    return np.where(keys & np.uint32(0x80000000), keys & np.uint32(0x7FFFFFFF), ~keys).astype(np.uint32).view(np.float32)
-
-
-#: every how many voxels :func:`_order_pair_sampled` samples to bracket a rank
-_SAMPLE_STRIDE = 61
-
-
-def _order_pair_sampled(bits: np.ndarray, inside: np.ndarray, rank: int, n: int):
-    """The order statistics `rank` and ``rank + 1`` (from 0) of the float32 values (`bits`) where
-    `inside` (``n`` of them), in one pass: a sample of every 61st voxel brackets the rank by
-    values well beyond its sampling error, and the pass counts the values below the bracket
-    and keeps those in it. None when the bracket misses the ranks (then two passes do it)."""
-    sample = bits[::_SAMPLE_STRIDE][inside[::_SAMPLE_STRIDE].view(np.bool_)]
-    m = len(sample)
-    if m < 100:
-        return None
-    keys = np.sort(_keys(sample.view(np.float32)))
-    # the sample's rank of the target, +- 6 standard deviations of a binomial count (and 2 more)
-    centre = (rank + 0.5) / n * m
-    spread = 6 * math.sqrt(max(centre * (1 - centre / m), 1.0)) + 2
-    lo_key = keys[max(int(centre - spread), 0)] if centre - spread > 0 else np.uint32(0)
-    hi_key = keys[min(int(centre + spread) + 1, m - 1)] if centre + spread < m - 1 else np.uint32(0xFFFFFFFF)
-    room = int(4 * (spread + 2) * n / m) + 1024
-    out = np.empty(room, np.uint32)
-    below, count = _select_kernels()[2](bits, inside, np.uint32(lo_key), np.uint32(hi_key), out)
-    r = rank - int(below)
-    if count > room or r < 0 or r + 1 >= count:
-        return None
-    part = np.partition(out[:count], (r, r + 1))[r:r + 2]
-    below_value, above_value = _floats(part)
-    return float(below_value), float(above_value)
-
-
-def _flat_views(field: np.ndarray, inside: np.ndarray):
-    bits = np.ascontiguousarray(field).reshape(-1).view(np.uint32)
-    return bits, np.ascontiguousarray(inside, np.bool_).reshape(-1).view(np.uint8)
-
-
-def _order_histogram(field: np.ndarray, inside: np.ndarray) -> tuple[int, np.ndarray]:
-    """The count of `field`'s float32 values where `inside`, and their histogram by the top 16
-    bits of their order key (:func:`_select_kernels`)."""
-    hist = np.zeros(1 << 16, np.int64)
-    return int(_select_kernels()[0](*_flat_views(field, inside), hist)), hist
-
-
-def _order_pair(field: np.ndarray, inside: np.ndarray, hist: np.ndarray, rank: int) -> tuple[float, float]:
-    """The order statistics `rank` and ``rank + 1`` (from 0) of `field`'s float32 values where
-    `inside`: ``np.partition(field[inside], (rank, rank + 1))`` at those ranks, from one more pass
-    that keeps only the values of their histogram bins."""
-    cum = np.cumsum(hist)
-    lo_bin, hi_bin = (int(np.searchsorted(cum, r, side="right")) for r in (rank, rank + 1))
-    before = int(cum[lo_bin - 1]) if lo_bin else 0
-    keys = np.empty(int(cum[hi_bin]) - before, np.uint32)
-    got = _select_kernels()[1](*_flat_views(field, inside), np.uint32(lo_bin), np.uint32(hi_bin), keys)
-    assert got == len(keys)
-    r = rank - before
-    below, above = _floats(np.partition(keys, (r, r + 1))[r:r + 2])
-    return float(below), float(above)
 
 
 def scaffold_field(lattice: np.ndarray, patient_sdf: np.ndarray, *, level: float = 0.0,

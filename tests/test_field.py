@@ -30,9 +30,9 @@ def test_solve_level_is_midway_between_the_sorted_values(kind, shape):
              "sample misled": lambda: rng.normal(size=shape)}[kind]().astype(np.float32)
     if kind == "sample misled":
         # the voxels the sample reads hold values far above the others: its bracket misses
-        from implicit_scaffold.field import _SAMPLE_STRIDE
+        from implicit_scaffold.tiles import SAMPLE_STRIDE
 
-        field.reshape(-1)[::_SAMPLE_STRIDE] = 100.0
+        field.reshape(-1)[::SAMPLE_STRIDE] = 100.0
     inside = rng.random(shape) < 0.7
     values = np.sort(field[inside])
     for p in (0.01, 0.3, 0.8, 0.99):
