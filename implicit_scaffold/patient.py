@@ -88,13 +88,8 @@ class Box(_Analytic):
     def sdf_axes(self, x, y, z):
         half = self.hi / 2
         q = [np.abs(c - m) - m for c, m in zip((x, y, z), half)]
-        # in place where the result is a full grid (two of its temporaries instead of five);
-        # the same operations in the same order
-        outside = (np.maximum(q[0], 0) ** 2 + np.maximum(q[1], 0) ** 2) + np.maximum(q[2], 0) ** 2
-        np.sqrt(outside, out=outside)
-        inner = np.maximum(np.maximum(q[0], q[1]), q[2])
-        np.minimum(inner, 0, out=inner)
-        return np.add(outside, inner, out=outside if outside.shape == inner.shape else None)
+        outside = np.sqrt(sum(np.maximum(c, 0) ** 2 for c in q))
+        return outside + np.minimum(np.maximum(np.maximum(q[0], q[1]), q[2]), 0)
 
 
 @nb.njit(cache=True, nogil=True, boundscheck=False)
