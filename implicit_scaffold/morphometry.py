@@ -215,15 +215,11 @@ def _squared_edt(phase: np.ndarray) -> np.ndarray:
     """Squared distance (voxels², exact integers) from each phase voxel to the nearest non-phase voxel centre.
 
     Voxels beyond the array count as phase (the caller pads with non-phase where the
-    outside must bound the spheres).
+    outside must bound the spheres). Compiled, on every core (:func:`.volume_kernels.squared_distance`).
     """
-    import edt
+    from .volume_kernels import squared_distance
 
-    d2 = edt.edtsq(np.ascontiguousarray(phase, dtype=np.uint8), black_border=False, parallel=count())
-    # sums of squared integers, exact in float32 below 2^24; rounded half up in place (one
-    # temporary fewer than np.rint) before the cast, against any last-bit error
-    d2 += np.float32(0.5)
-    return d2.astype(np.int32)
+    return squared_distance(phase)
 
 
 def _maximal_sphere_tables(vmax: int):

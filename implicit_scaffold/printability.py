@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ScaffoldError
-from .pieces import label_pieces
+from .pieces import label_pieces, label_sizes
 
 #: cells need windows of about 100 um to grow in (the issue's figure; Karageorgiou & Kaplan 2005)
 INFILTRATION_MM = 0.1
@@ -272,17 +272,22 @@ def _flood_kernel():
 
 @functools.lru_cache(maxsize=None)
 def _local_kernels():
-    """Compiled neighbourhood tests (numba), built on first use and cached on disk:
+    """Compiled neighbourhood tests (numba), built on first use and cached on disk, on every
+    core (:func:`.threads.by_rows`):
     ``peaks(d2, where, out)`` marks the voxels of `where` with ``d2 > 0`` that no voxel of their
     3x3x3 neighbourhood exceeds (the grid's faces repeated outward, as ``maximum_filter``'s
-    ``mode="nearest"``); ``near(r2, rho2, offsets, out)`` marks the voxels with ``r2 > 0`` that
-    lie within one of `offsets` of a voxel with ``r2 >= rho2`` (inside the grid)."""
+    ``mode="nearest"``); ``reach_planes(r2, c2, b, near)`` then ``reach_rows(r2, near, c2, b, out)``
+    mark the voxels with ``r2 > 0`` less than ``sqrt(c2)`` from a voxel with ``r2 >= c2`` (inside
+    the grid; ``b``, the window, at least the largest whole distance under it), by the squared
+    distance within each plane (capped at ``c2``), then across the planes."""
     import numba as nb
 
-    @nb.njit(cache=True, boundscheck=False)
-    def peaks(d2, where, out):  # pragma: no cover - compiled
+    from .threads import by_rows
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def peaks_rows(d2, where, out, lo, hi):  # pragma: no cover - compiled
         nx, ny, nz = d2.shape
-        for i in range(nx):
+        for i in range(lo, hi):
             for j in range(ny):
                 for k in range(nz):
                     v = d2[i, j, k]
@@ -301,28 +306,68 @@ def _local_kernels():
                             break
                     out[i, j, k] = top
 
-    @nb.njit(cache=True, boundscheck=False)
-    def near(r2, rho2, offsets, out):  # pragma: no cover - compiled
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def reach_planes(r2, c2, b, near, lo, hi):  # pragma: no cover - compiled
+        # planes i in [lo, hi): near[i, j, k] = the least of c2 and the squared distance within
+        # the plane i to a centre (r2 >= c2) no more than b voxels away along each axis: along k
+        # by two sweeps of each row, then along j by a window of 2b + 1 rows added whole
         nx, ny, nz = r2.shape
-        for i in range(nx):
+        g = np.empty((ny, nz), np.int32)
+        acc = np.empty(nz, np.int32)
+        for i in range(lo, hi):
+            for j in range(ny):
+                last = -nz - b - 1
+                for k in range(nz):
+                    if r2[i, j, k] >= c2:
+                        last = k
+                    g[j, k] = k - last
+                nxt = 2 * nz + b + 1
+                for k in range(nz - 1, -1, -1):
+                    if r2[i, j, k] >= c2:
+                        nxt = k
+                    a = min(g[j, k], nxt - k)
+                    g[j, k] = a * a if a <= b else c2
             for j in range(ny):
                 for k in range(nz):
-                    if r2[i, j, k] <= 0:
-                        continue
-                    if r2[i, j, k] >= rho2:
-                        out[i, j, k] = True
-                        continue
-                    for t in range(offsets.shape[0]):
-                        a, b, c = i + offsets[t, 0], j + offsets[t, 1], k + offsets[t, 2]
-                        if 0 <= a < nx and 0 <= b < ny and 0 <= c < nz and r2[a, b, c] >= rho2:
-                            out[i, j, k] = True
-                            break
+                    acc[k] = g[j, k]
+                for d in range(1, b + 1):
+                    dd = d * d
+                    if j - d >= 0:
+                        for k in range(nz):
+                            acc[k] = min(acc[k], g[j - d, k] + dd)
+                    if j + d < ny:
+                        for k in range(nz):
+                            acc[k] = min(acc[k], g[j + d, k] + dd)
+                for k in range(nz):
+                    near[i, j, k] = min(acc[k], c2)
 
-    return peaks, near
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def reach_rows(r2, near, c2, b, out, lo, hi):  # pragma: no cover - compiled
+        # planes i in [lo, hi): out = void (r2 > 0) nearer than c2 to a centre, across the planes
+        nx, ny, nz = r2.shape
+        acc = np.empty(nz, np.int32)
+        for i in range(lo, hi):
+            for j in range(ny):
+                for k in range(nz):
+                    acc[k] = near[i, j, k]
+                for d in range(1, b + 1):
+                    dd = d * d
+                    if i - d >= 0:
+                        for k in range(nz):
+                            acc[k] = min(acc[k], near[i - d, j, k] + dd)
+                    if i + d < nx:
+                        for k in range(nz):
+                            acc[k] = min(acc[k], near[i + d, j, k] + dd)
+                for k in range(nz):
+                    out[i, j, k] = acc[k] < c2 and r2[i, j, k] > 0
+
+    return by_rows(peaks_rows), by_rows(reach_planes), by_rows(reach_rows)
 
 
-#: below this radius (voxels) a sphere's reach is found by its stencil, above by a distance transform
-STENCIL_RHO = 3.0
+#: up to this radius (voxels) a sphere's reach is found by windows of 2 r + 1 rows along each axis
+#: (about 4 r adds per voxel, in order in memory), beyond it by a distance transform of its centres
+#: (a fixed cost, about 0.9 s on 402³ on two cores, which a window of 20 voxels costs too)
+WINDOW_RHO = 20.0
 
 
 def throat_radius(solid, voxel: float):
@@ -361,28 +406,30 @@ def reached_by(r2, diameter_mm: float, voxel: float) -> np.ndarray:
     held by a larger sphere is held by one of this size too (slid along towards it), so one
     distance transform of the allowed centres answers for every sphere at least this large.
     """
-    import edt
-
     rho = 0.5 * (float(diameter_mm) / float(voxel) - 1.0)  # voxels, centre to voxel centre
-    void = r2 > 0
     if rho <= 0:
-        return void
-    if rho <= STENCIL_RHO:
-        # a small sphere: the offsets nearer than rho, tried voxel by voxel (the distance
-        # transform below reads the same set, far2 < rho^2, over the whole grid)
-        span = int(math.ceil(rho))
-        grid = np.mgrid[-span:span + 1, -span:span + 1, -span:span + 1].reshape(3, -1).T
-        offsets = np.ascontiguousarray(grid[(grid ** 2).sum(axis=1) < rho * rho], np.int64)
-        out = np.zeros(r2.shape, bool)
-        _local_kernels()[1](np.ascontiguousarray(r2), rho * rho, offsets, out)
-        return out
-    centres = r2 >= rho * rho
-    if not centres.any():
-        return np.zeros(r2.shape, bool)
-    from .threads import count
+        return r2 > 0
+    return _reach(np.ascontiguousarray(r2), rho)
 
-    far2 = edt.edtsq(np.ascontiguousarray(~centres, dtype=np.uint8), black_border=False, parallel=count())
-    return void & (far2 < rho * rho)
+
+def _reach(r2, rho: float) -> np.ndarray:
+    """Void (``r2 > 0``) nearer than `rho` voxels to a centre where ``r2 >= rho**2``: exact."""
+    c2 = math.ceil(rho * rho)  # integer squared distances: d2 < rho^2 iff d2 < c2, r2 >= rho^2 iff r2 >= c2
+    if r2.size == 0 or int(r2.max()) < c2:
+        return np.zeros(r2.shape, bool)  # no centre
+    if rho > WINDOW_RHO:
+        from .morphometry import _squared_edt
+
+        centres = r2 >= c2
+        return (r2 > 0) & (_squared_edt(~centres) < c2)
+    # a centre nearer than rho lies less than rho away along each axis: windows of b voxels hold it
+    b = math.isqrt(c2 - 1)
+    _, planes, rows = _local_kernels()
+    near = np.empty(r2.shape, np.int16 if c2 + b * b < 2 ** 15 else np.int32)
+    planes(r2, c2, b, near)
+    out = np.empty(r2.shape, bool)
+    rows(r2, near, c2, b, out)
+    return out
 
 
 def pore_throats(d2, r2, void_in, voxel: float) -> tuple[np.ndarray, np.ndarray]:
@@ -415,7 +462,7 @@ def weighted_quantile(values, weights, q: float) -> float:
 def pieces(mask) -> tuple[int, np.ndarray]:
     """6-connected pieces of `mask`: count and the voxel count of each."""
     labels, n = label_pieces(mask)
-    return int(n), np.bincount(labels.ravel())[1:]
+    return int(n), label_sizes(labels, n)[1:]
 
 
 def overhang_shares(field, grid, limit_deg: float, *, level: float = 0.0) -> dict:
@@ -660,9 +707,9 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     thick = local_thickness(solid, h)
     # counted per sphere radius, as certificate_by_slabs counts its slabs: the same figures by construction
     thinnest, below = _thinnest(ThicknessTally(h).add(thick, solid), profile.min_strut_mm)
-    thick[solid] += np.float32(h)
     for m, (a, i) in zip(maps, planes):
-        m[(np.take(thick, i, axis=a) < profile.min_strut_mm) & (m == SECTION_SOLID)] = SECTION_THIN
+        # lengths to the voxels' boundaries, as the tally's: a voxel more than the spheres
+        m[(np.take(thick, i, axis=a) + np.float32(h) < profile.min_strut_mm) & (m == SECTION_SOLID)] = SECTION_THIN
     del thick
 
     clock.mark("thickness")
@@ -686,7 +733,7 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     sealed = void_in & (r2 == 0)
     sealed_n, sealed_sizes = pieces(sealed)
     solid_labels, solid_n = label_pieces(solid)
-    solid_sizes = np.bincount(solid_labels.ravel())[1:]
+    solid_sizes = label_sizes(solid_labels, solid_n)[1:]
     floating = np.sort(solid_sizes)[:-1] if solid_n > 1 else np.zeros(0, np.int64)
     for m, (a, i) in zip(maps, planes):
         m[np.take(sealed, i, axis=a)] = SECTION_SEALED
@@ -961,10 +1008,9 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
     holds every centre that counts. `visit(x0, void, r2, reached)` sees each slab's owned
     planes. Returns the :class:`ThroatTally` and, per diameter, the reached voxels of the void.
     """
-    import edt
     from scipy import ndimage
 
-    from .threads import count
+    from .morphometry import _squared_edt
 
     nx = int(grid.shape[0])
     plane = int(grid.shape[1]) * int(grid.shape[2])
@@ -992,8 +1038,7 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
             if rho > 0:
                 allowed = r2w >= rho * rho
                 if allowed.any():
-                    far2 = edt.edtsq(np.ascontiguousarray(~allowed, dtype=np.uint8), black_border=False,
-                                     parallel=count())[own]
+                    far2 = _squared_edt(~allowed)[own]
                     inside = inside & (far2 < rho * rho)
                     del far2
                 else:

@@ -12,6 +12,10 @@ replace (which stay in :mod:`~implicit_scaffold.patient_volume` as their oracles
   return_indices=True)``, 2.8x as slow on a 170³ crop (0.76 s against 0.27 s on two busy
   cores). Where two feature voxels are equally near, either may be chosen (SciPy's choice is
   not the same).
+- :func:`squared_distance`: the exact squared Euclidean distance transform in integers, by the
+  same two stages (each plane, then across planes) with Meijster's integer envelopes; it
+  replaces the ``edt`` package's ``edtsq``, which took 1.7-2.1 s on a 402³ scaffold's void on two
+  cores against 0.9 s (the morphometry's and the print certificate's distances).
 - ``gauss_k``, ``gauss_j``, ``gauss_i``: the unbiased Gaussian (``G - sigma²/2 ΔG``) in three
   separable passes, each 1-D Gaussian and its second derivative shared between the terms
   (SciPy's 12 one-axis filters, single-threaded, took 0.35-0.45 s of a 170³ crop's load).
@@ -167,6 +171,104 @@ def _feature_transform(feat, h0, h1, h2):
     over_rows(_feature_planes, feat.shape[0], feat, h1, h2, fj, fk)
     over_rows(_feature_columns, feat.shape[1], h0, h1, h2, fi, fj, fk)
     return fi, fj, fk
+
+
+#: a squared distance that stands for "no site" in :func:`squared_distance`'s envelopes: larger than
+#: any squared distance in a grid of int32 indices, small enough that sums of two stay in int64
+_FAR = np.int64(1) << 40
+_INT32_MAX = np.int64(np.iinfo(np.int32).max)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _lower_envelope(f, n, s, t, out):  # pragma: no cover - compiled
+    # out[u] = min over q of (u - q)^2 + f[q], in integers (Meijster, Roerdink & Hesselink 2000):
+    # s holds the envelope's sites, t where each starts; f[q] >= _FAR stands for no site
+    m = 0
+    s[0] = 0
+    t[0] = 0
+    for u in range(1, n):
+        fu = f[u]
+        while m >= 0:
+            a = t[m] - s[m]
+            b = t[m] - u
+            if a * a + f[s[m]] > b * b + fu:
+                m -= 1
+            else:
+                break
+        if m < 0:
+            m = 0
+            s[0] = u
+            t[0] = 0
+        else:
+            q = s[m]
+            # the first u' where u's parabola lies below q's (floor division: exact)
+            w = 1 + (u * u - q * q + fu - f[q]) // (2 * (u - q))
+            if w < n:
+                m += 1
+                s[m] = u
+                t[m] = w
+    for u in range(n - 1, -1, -1):
+        q = s[m]
+        out[u] = (u - q) * (u - q) + f[q]
+        if u == t[m]:
+            m -= 1
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _squared_distance_planes(phase, d2, lo, hi):  # pragma: no cover - compiled
+    # planes i in [lo, hi): the squared distance within the plane, along k (two sweeps of each
+    # row) then along j (each column's envelope); the plane stays in cache between the two
+    n0, n1, n2 = phase.shape
+    g = np.empty((n1, n2), np.int64)
+    f = np.empty(n1, np.int64)
+    r = np.empty(n1, np.int64)
+    s = np.empty(n1, np.int64)
+    t = np.empty(n1, np.int64)
+    for i in range(lo, hi):
+        for j in range(n1):
+            last = -_FAR
+            for k in range(n2):
+                if phase[i, j, k] == 0:
+                    last = k
+                g[j, k] = k - last
+            nxt = _FAR
+            for k in range(n2 - 1, -1, -1):
+                if phase[i, j, k] == 0:
+                    nxt = k
+                a = min(g[j, k], nxt - k)
+                g[j, k] = a * a if a < n2 else _FAR
+        for k in range(n2):
+            for j in range(n1):
+                f[j] = g[j, k]
+            _lower_envelope(f, n1, s, t, r)
+            for j in range(n1):
+                d2[i, j, k] = min(r[j], _INT32_MAX)
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
+def _squared_distance_columns(d2, lo, hi):  # pragma: no cover - compiled
+    # planes j in [lo, hi): along i, each column's envelope of the planes' squared distances,
+    # a plane j at a time copied to a contiguous buffer (the columns are strided)
+    n0, n1, n2 = d2.shape
+    b = np.empty((n0, n2), np.int64)
+    f = np.empty(n0, np.int64)
+    r = np.empty(n0, np.int64)
+    s = np.empty(n0, np.int64)
+    t = np.empty(n0, np.int64)
+    for j in range(lo, hi):
+        for i in range(n0):
+            for k in range(n2):
+                v = np.int64(d2[i, j, k])
+                b[i, k] = _FAR if v == _INT32_MAX else v
+        for k in range(n2):
+            for i in range(n0):
+                f[i] = b[i, k]
+            _lower_envelope(f, n0, s, t, r)
+            for i in range(n0):
+                b[i, k] = r[i]
+        for i in range(n0):
+            for k in range(n2):
+                d2[i, j, k] = min(b[i, k], _INT32_MAX)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -815,3 +917,27 @@ def feature_transform(features: np.ndarray, spacing) -> tuple[np.ndarray, np.nda
     """
     h = [float(v) for v in spacing]
     return _feature_transform(np.ascontiguousarray(features, bool), h[0], h[1], h[2])
+
+
+def squared_distance(phase: np.ndarray) -> np.ndarray:
+    """Squared Euclidean distance (voxels², exact integers) from each voxel of `phase` to the
+    nearest voxel centre outside it; 0 outside the phase.
+
+    Voxels beyond the array count as phase (a phase that fills a row reaches past its ends).
+    Where no voxel of the grid lies outside the phase, the value is int32's largest.
+
+    Parameters
+    ----------
+    phase : (n0, n1, n2) bool ndarray
+
+    Returns
+    -------
+    (n0, n1, n2) int32 ndarray
+    """
+    phase = np.ascontiguousarray(phase, bool)
+    d2 = np.empty(phase.shape, np.int32)
+    if phase.size == 0:
+        return d2
+    over_rows(_squared_distance_planes, phase.shape[0], phase.view(np.uint8), d2)
+    over_rows(_squared_distance_columns, phase.shape[1], d2)
+    return d2

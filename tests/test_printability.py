@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
+from implicit_scaffold import printability
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.grid import Grid
 from implicit_scaffold.printability import (certificate, overhang_shares, printer_profile, profiles,
@@ -36,9 +37,8 @@ def _hollow_box(n=90, hole=None, wall=0.3):
 
 def brute_force_throat(solid):
     """For every radius, the void whose distance allows it, flooded from the grid's faces (6-connected)."""
-    from implicit_scaffold.morphometry import _squared_edt
-
-    d2 = _squared_edt(~solid)
+    # SciPy's distance transform: beyond the array is void, as the outside of the scaffold
+    d2 = np.rint(ndimage.distance_transform_edt(~solid) ** 2).astype(np.int32)
     out = np.zeros_like(d2)
     six = ndimage.generate_binary_structure(3, 1)
     for v in np.unique(d2[d2 > 0]):
@@ -66,12 +66,18 @@ def test_throat_flood_equals_brute_force_sphere_percolation(seed, threshold):
     from scipy.spatial import cKDTree
 
     idx = np.argwhere(np.ones(solid.shape, bool))
-    for diameter in (2.0 * H, 4.0 * H, 6.0 * H):
+    # the last sphere just fits the widest throat (so some centres allow it)
+    for diameter in (2.0 * H, 4.0 * H, 6.0 * H, 8.0 * H, (2.0 * math.sqrt(want.max()) + 0.4) * H):
         rho = 0.5 * (diameter / H - 1.0)
         centres = np.argwhere(want >= rho * rho)
-        dist = cKDTree(centres).query(idx)[0] if len(centres) else np.full(len(idx), np.inf)
+        assert len(centres) > 0
+        dist = cKDTree(centres).query(idx)[0]
         near = (dist < rho).reshape(solid.shape)
         assert np.array_equal(reached_by(r2, diameter, H), near & (want > 0)), diameter
+        # beyond the windows' radius the distance transform of the centres answers: the same voxels
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(printability, "WINDOW_RHO", 0.0)
+            assert np.array_equal(reached_by(r2, diameter, H), near & (want > 0)), diameter
 
 
 def test_rod_thickness_within_a_voxel():

@@ -11,6 +11,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from implicit_scaffold import patient_volume as pv
 from implicit_scaffold import volume_kernels as vk
@@ -249,3 +250,25 @@ def test_fast_load_agrees_with_the_reference(tmp_path):
     # differ; a twentieth of a voxel bounds both
     assert np.abs(s_fast - s_ref)[near].max() < 0.05 * h.max()
     assert np.mean((s_fast < 0) != (s_ref < 0)) < 1e-3
+
+
+@pytest.mark.parametrize("shape, share", [((13, 9, 11), 0.9), ((1, 17, 5), 0.7), ((21, 2, 19), 0.97),
+                                          ((30, 31, 29), 0.999)])
+def test_squared_distance_is_scipys(shape, share):
+    """Exact integers, SciPy's Euclidean distance transform squared: random phases with long
+    runs (a phase that fills whole rows and planes), odd and thin sizes. Beyond the array is
+    phase: SciPy sees the array alone, as the kernels do."""
+    rng = np.random.default_rng(len(shape) + shape[0])
+    phase = rng.random(shape) < share
+    phase.flat[rng.integers(phase.size)] = False
+    want = np.rint(ndimage.distance_transform_edt(phase) ** 2).astype(np.int64)
+    got = vk.squared_distance(phase)
+    assert got.dtype == np.int32
+    assert np.array_equal(got, want)
+    assert want.max() > 3
+
+
+def test_squared_distance_with_no_voxel_outside_the_phase():
+    """No voxel to be near: int32's largest everywhere (SciPy and edt give infinities)."""
+    assert (vk.squared_distance(np.ones((4, 3, 5), bool)) == np.iinfo(np.int32).max).all()
+    assert (vk.squared_distance(np.zeros((4, 3, 5), bool)) == 0).all()
