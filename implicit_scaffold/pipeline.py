@@ -328,15 +328,14 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
 
     graded = _graded_density(params, patient, ct, prog)
     n = graded.density.count if graded else _seed_count(params, patient)
-    _plan_before_cells(run, params, patient, n, graded is not None)
+    if _plan_before_cells(run, params, patient, n, graded is not None) is not None and repair:
+        raise run.whole_grid_refusal(Grid.covering(patient.lo, patient.hi, params.voxel), "--repair")
     built = _seeds_and_cells(params, patient, n, graded, run, prog)
     grid = Grid.covering(patient.lo, patient.hi,
                          params.voxel if params.voxel is not None else _default_voxel(built.wall, _box_volume(patient)))
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
     if repair and slab_voxels is not None:
-        raise ScaffoldError(f"--repair needs the whole grid in memory, and a grid of {grid.shape[0]}x{grid.shape[1]}x"
-                            f"{grid.shape[2]} voxels runs in slabs within --max-memory; raise --max-memory or use a "
-                            "larger --voxel")
+        raise run.whole_grid_refusal(grid, "--repair")
     # the field: one driver for every size, over one slab held in memory when the whole grid
     # fits (slab_voxels None), else over slabs kept on disk; then the outputs
     return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
@@ -409,12 +408,13 @@ def _seed_count(params: Params, patient) -> int:
     return max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * volume)))
 
 
-def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool) -> None:
+def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool) -> int | None:
     """Refuse, before the cells, a run that cannot fit: the grid's plan (when the voxel is given)
-    and the cells' own memory."""
+    and the cells' own memory. Returns the plan's slab voxels (None: the whole grid, or no voxel given)."""
     from .cells import check_seed_memory
     from .memory import process_memory
 
+    planned = None
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
         from .tiles import blend_halo
@@ -424,12 +424,14 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
         # spans), estimated
         span = (_seed_volume(params, patient) / n) ** (1 / 3)
         halo = blend_halo(params.voxel, params.blend if params.blend is not None else (1 - params.sv) * span)
-        run.plan(Grid.covering(patient.lo, patient.hi, params.voxel), halo=halo if params.style == "paper" else 0,
-                 reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
-                 slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
+        planned = run.plan(Grid.covering(patient.lo, patient.hi, params.voxel),
+                           halo=halo if params.style == "paper" else 0,
+                           reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
+                           slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
                       available=min(run.max_memory - process_memory(), available_memory()),
                       chunked=params.seeds_in == "box" and not graded, seeds_given=params.seeds is not None)
+    return planned
 
 
 @dataclass(frozen=True)
@@ -914,6 +916,16 @@ class _RunPlan:
         self.run_bytes, self.max_memory, self.tiled = run_bytes, max_memory, tiled
         self.params, self.patient, self.out_path, self.slices = params, patient, out_path, slices
 
+    def whole_grid_refusal(self, grid: Grid, what: str) -> ScaffoldError:
+        """The one-line refusal of a stage that needs the whole grid in memory, naming the budget
+        the last :meth:`plan` found it needs."""
+        from .memory import format_size
+
+        return ScaffoldError(
+            f"{what} needs the whole grid in memory: a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} "
+            f"voxels needs about {format_size(self.whole_bytes)} but --max-memory is {format_size(self.max_memory)}: "
+            f"pass --max-memory {format_size(SMALLEST_MARGIN * self.whole_bytes)} or more, or use a larger --voxel")
+
     @property
     def forced_voxels(self) -> int | None:
         """The voxels per slab asked for by ``tiled=<int>``, else None."""
@@ -941,6 +953,7 @@ class _RunPlan:
 
         held = release() + STAGE_RESERVE
         whole = grid.memory_estimate(self.run_bytes) + held + int(reserve)
+        self.whole_bytes = whole
         held += int(reserve) - int(slab_share)
         per_voxel = SLAB_BYTES_PER_VOXEL + 2 * int(slab_share) / grid.size
         if self.tiled is False or (self.tiled is None and whole <= self.max_memory):

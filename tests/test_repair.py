@@ -108,3 +108,26 @@ def test_generate_repair_reports_what_changed_and_needs_a_printer(tmp_path):
     # the certificate, measured on its own after the repair, finds more of the void drained
     assert (r.report["print_check"]["void_reached_by_drain_share"]
             > plain.report["print_check"]["void_reached_by_drain_share"])
+
+
+def test_repair_of_a_grid_past_the_budget_is_refused_at_once_naming_one_that_works():
+    """--repair needs the whole grid: past --max-memory it is refused before the cells, in one
+    line that names a budget; that budget then runs the repair on the whole grid."""
+    import re
+
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.pipeline import generate
+
+    kw = dict(size=3, seeds=40, voxel=0.015, porosity=0.75, printer="custom:min_strut=0.1,min_throat=0.1,drain=0.2",
+              mesh=False, morphometry=False)
+    # the budget that slabs of the 202^3 grid need beside what this process holds, as the
+    # planner names it: room for slabs, not for the whole grid
+    with pytest.raises(ScaffoldError, match="even in slabs") as err:
+        generate(repair=True, max_memory="100M", **kw)
+    small = re.search(r"pass --max-memory (\S+) or more", str(err.value)).group(1)
+    with pytest.raises(ScaffoldError, match="--repair needs the whole grid in memory") as err:
+        generate(repair=True, max_memory=small, **kw)
+    assert "\n" not in str(err.value)
+    named = re.search(r"pass --max-memory (\S+) or more", str(err.value)).group(1)
+    r = generate(repair=True, max_memory=named, **kw)
+    assert "repair" in r.report and r.field is not None and r.field.shape == (202, 202, 202)
