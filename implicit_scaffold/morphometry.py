@@ -200,7 +200,32 @@ def compiled_kernels():
                   pieces=nslab)
         return out
 
-    _KERNELS = (ridge, paint)
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def tally_rows(thickness, phase, two_h, piece_of, counts, lo, hi):  # pragma: no cover - compiled
+        # counts[p, v]: the phase voxels of planes [lo, hi) (piece p) whose thickness is
+        # 2 h sqrt(v), v recovered as ThicknessTally's NumPy formula does (float64, squared,
+        # rounded half to even)
+        nx, ny, nz = thickness.shape
+        row = counts[piece_of[lo]]
+        for i in range(lo, hi):
+            for j in range(ny):
+                for k in range(nz):
+                    if phase[i, j, k]:
+                        r = np.float64(thickness[i, j, k]) / two_h
+                        row[np.int64(np.rint(r * r))] += 1
+
+    def tally(thickness, phase, two_h, vmax):
+        # one row of counts per piece of planes: integer sums, the same whatever the threads
+        nx = thickness.shape[0]
+        pieces = max(1, min(nx, 4 * count()))
+        piece_of = np.zeros(nx, np.int64)
+        for p in range(pieces):
+            piece_of[nx * p // pieces] = p
+        counts = np.zeros((pieces, vmax + 1), np.int64)
+        over_rows(tally_rows, nx, thickness, phase, two_h, piece_of, counts, pieces=pieces)
+        return counts.sum(axis=0)
+
+    _KERNELS = (ridge, paint, tally)
     return _KERNELS
 
 
@@ -285,7 +310,7 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     del padded
     vmax = int(d2.max())
     need, isq = _maximal_sphere_tables(vmax)
-    ridge, paint = compiled_kernels()
+    ridge, paint, _ = compiled_kernels()
     keep = ridge(d2, need)
     ci, cj, ck = np.nonzero(keep)
     del keep
@@ -300,6 +325,11 @@ def local_thickness(phase, voxel: float) -> np.ndarray:
     nslab = max(1, min(nx, 4 * count()))
     paint(phase, ci[order], cj[order], ck[order], v[order], isq, nslab, out, 2.0 * h)
     return out
+
+
+#: thickness maps up to this squared sphere radius (voxels², a radius of 3,162 voxels) are counted by
+#: a compiled pass, one row of counts per piece of planes; beyond, by NumPy
+TALLY_COMPILED_VMAX = 10_000_000
 
 
 class ThicknessTally:
@@ -321,16 +351,31 @@ class ThicknessTally:
 
     def add(self, thickness, phase) -> "ThicknessTally":
         """Count the phase voxels of a local-thickness map (a slab's owned planes)."""
-        t = np.asarray(thickness)[np.asarray(phase, bool)].astype(np.float64)
-        if t.size:
-            v = np.rint((t / (2 * self.voxel)) ** 2).astype(np.int64)
-            c = np.bincount(v)
+        thickness = np.asarray(thickness)
+        phase = np.asarray(phase, bool)
+        top = float(thickness.max()) if thickness.size else 0.0
+        vmax = int(np.rint((top / (2 * self.voxel)) ** 2)) if math.isfinite(top) and top > 0 else 0
+        if thickness.ndim != 3 or thickness.dtype != np.float32 or vmax > TALLY_COMPILED_VMAX:
+            c = self._counts_numpy(thickness, phase)
+        elif not thickness.size:
+            c = np.zeros(0, np.int64)
+        else:
+            # one compiled pass on every core, without the gathered copy (0.2-0.3 s a phase on 252^3)
+            c = compiled_kernels()[2](np.ascontiguousarray(thickness), np.ascontiguousarray(phase),
+                                      2 * self.voxel, vmax)
+        if c.size:
             if len(c) > len(self.counts):
                 c[:len(self.counts)] += self.counts
                 self.counts = c
             else:
                 self.counts[:len(c)] += c
         return self
+
+    def _counts_numpy(self, thickness, phase) -> np.ndarray:
+        t = thickness[phase].astype(np.float64)
+        if not t.size:
+            return np.zeros(0, np.int64)
+        return np.bincount(np.rint((t / (2 * self.voxel)) ** 2).astype(np.int64))
 
     @property
     def max_voxels(self) -> float:

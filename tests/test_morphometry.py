@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from implicit_scaffold import morphometry as M
 from implicit_scaffold.errors import ScaffoldError
@@ -86,6 +87,23 @@ def test_thickness_stats_histogram_counts_every_voxel():
     vals = t[phase].astype(np.float64)
     assert st["mean"] == pytest.approx(vals.mean(), rel=1e-9) and st["sd"] == pytest.approx(vals.std(), rel=1e-9)
     assert st["sd"] > 0 and st["max"] == pytest.approx(vals.max())
+
+
+def test_thickness_tally_counts_each_squared_radius_as_numpy_does():
+    """The compiled count per squared radius against NumPy's over the gathered values (rounded
+    half to even in float64): a local-thickness map, a slab of it (a view), and arbitrary float32
+    values that are not of the 2 h sqrt(v) form."""
+    rng = np.random.default_rng(11)
+    phase = ndimage.gaussian_filter(rng.random((31, 27, 29)), 1.5) > 0.5
+    h = 0.05
+    t = M.local_thickness(phase, h)
+    noise = (rng.random(phase.shape) * 3.0).astype(np.float32)
+    for tmap, ph in ((t, phase), (t[7:19], phase[7:19]), (noise, phase), (t, ~phase)):
+        want = np.bincount(np.rint((tmap[ph].astype(np.float64) / (2 * h)) ** 2).astype(np.int64))
+        got = M.ThicknessTally(h).add(tmap, ph).counts
+        n = max(len(want), len(got))
+        assert np.array_equal(np.pad(got, (0, n - len(got))), np.pad(want, (0, n - len(want))))
+        assert got.sum() == np.count_nonzero(ph)
 
 
 @pytest.mark.parametrize("shape, chi", [
