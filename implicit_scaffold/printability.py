@@ -413,8 +413,8 @@ def reached_by(r2, diameter_mm: float, voxel: float) -> np.ndarray:
 
     Its centre can be where ``r2`` allows its radius (to the voxels' boundaries, as the
     certificate's other lengths); it then holds the voxels nearer than that radius. A voxel
-    held by a larger sphere is held by one of this size too (slid along towards it), so one
-    distance transform of the allowed centres answers for every sphere at least this large.
+    held by a larger sphere is held by one of this size too (slid along towards it), so the
+    allowed centres' reach (:func:`_reach`) answers for every sphere at least this large.
     """
     rho = 0.5 * (float(diameter_mm) / float(voxel) - 1.0)  # voxels, centre to voxel centre
     if rho <= 0:
@@ -1037,15 +1037,11 @@ def _flood_by_slabs(d2s: _IntPlanes, grid, max_voxels: int, folder) -> tuple[_In
 def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameters, visit=None, progress=None):
     """Pore throats and the void that spheres of each of `diameters` reach, slab by slab.
 
-    The pore centres' 3x3x3 maximum reads one plane of halo; :func:`reached_by`'s distance
+    The pore centres' 3x3x3 maximum (:func:`_pore_centres`) reads one plane of halo; :func:`reached_by`'s distance
     to the allowed centres matters only below ``rho``, so a halo of ``ceil(rho)`` planes
     holds every centre that counts. `visit(x0, void, r2, reached)` sees each slab's owned
     planes. Returns the :class:`ThroatTally` and, per diameter, the reached voxels of the void.
     """
-    from scipy import ndimage
-
-    from .morphometry import _squared_edt
-
     nx = int(grid.shape[0])
     plane = int(grid.shape[1]) * int(grid.shape[2])
     rhos = [0.5 * (float(d) / h - 1.0) for d in diameters]
@@ -1061,22 +1057,18 @@ def _pores_by_slabs(d2s, r2s, void_of, grid, h: float, max_voxels: int, diameter
         # the maximum filter on the owned planes and one beside: at the grid's faces the
         # window ends there too, and "nearest" repeats the same plane as on the whole grid
         a, b = max(x0 - 1, lo) - lo, min(x1 + 1, hi) - lo
-        peak = ndimage.maximum_filter(d2w[a:b], size=3, mode="nearest")[x0 - lo - a:x1 - lo - a]
+        around = np.ascontiguousarray(d2w[a:b])
+        peak = _pore_centres(around, around > 0)[x0 - lo - a:x1 - lo - a]
         d2, r2 = d2w[own], r2w[own]
-        centres = (d2 > 0) & void & (peak == d2)
-        del peak
+        centres = void & peak
+        del peak, around
         pores.add(r2[centres], d2[centres])
         reached = []
         for t, rho in enumerate(rhos):
             inside = r2 > 0
             if rho > 0:
-                allowed = r2w >= rho * rho
-                if allowed.any():
-                    far2 = _squared_edt(~allowed)[own]
-                    inside = inside & (far2 < rho * rho)
-                    del far2
-                else:
-                    inside = np.zeros(r2.shape, bool)
+                # the halo holds every centre within rho of the owned planes: the whole grid's reach there
+                inside = _reach(np.ascontiguousarray(r2w), rho)[own]
             counts[t] += int(np.count_nonzero(inside & void))
             reached.append(inside)
         if visit is not None:

@@ -215,15 +215,27 @@ def _lower_envelope(f, n, s, t, out):  # pragma: no cover - compiled
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
+def _envelope_columns(b):  # pragma: no cover - compiled
+    # each column of the buffer b (n, m) replaced by its lower envelope, in place
+    n = b.shape[0]
+    f = np.empty(n, np.int64)
+    r = np.empty(n, np.int64)
+    s = np.empty(n, np.int64)
+    t = np.empty(n, np.int64)
+    for k in range(b.shape[1]):
+        for u in range(n):
+            f[u] = b[u, k]
+        _lower_envelope(f, n, s, t, r)
+        for u in range(n):
+            b[u, k] = r[u]
+
+
+@nb.njit(cache=True, boundscheck=False, nogil=True)
 def _squared_distance_planes(phase, d2, lo, hi):  # pragma: no cover - compiled
     # planes i in [lo, hi): the squared distance within the plane, along k (two sweeps of each
     # row) then along j (each column's envelope); the plane stays in cache between the two
     n0, n1, n2 = phase.shape
     g = np.empty((n1, n2), np.int64)
-    f = np.empty(n1, np.int64)
-    r = np.empty(n1, np.int64)
-    s = np.empty(n1, np.int64)
-    t = np.empty(n1, np.int64)
     for i in range(lo, hi):
         for j in range(n1):
             last = -_FAR
@@ -237,12 +249,10 @@ def _squared_distance_planes(phase, d2, lo, hi):  # pragma: no cover - compiled
                     nxt = k
                 a = min(g[j, k], nxt - k)
                 g[j, k] = a * a if a < n2 else _FAR
-        for k in range(n2):
-            for j in range(n1):
-                f[j] = g[j, k]
-            _lower_envelope(f, n1, s, t, r)
-            for j in range(n1):
-                d2[i, j, k] = min(r[j], _INT32_MAX)
+        _envelope_columns(g)
+        for j in range(n1):
+            for k in range(n2):
+                d2[i, j, k] = min(g[j, k], _INT32_MAX)
 
 
 @nb.njit(cache=True, boundscheck=False, nogil=True)
@@ -251,21 +261,12 @@ def _squared_distance_columns(d2, lo, hi):  # pragma: no cover - compiled
     # a plane j at a time copied to a contiguous buffer (the columns are strided)
     n0, n1, n2 = d2.shape
     b = np.empty((n0, n2), np.int64)
-    f = np.empty(n0, np.int64)
-    r = np.empty(n0, np.int64)
-    s = np.empty(n0, np.int64)
-    t = np.empty(n0, np.int64)
     for j in range(lo, hi):
         for i in range(n0):
             for k in range(n2):
                 v = np.int64(d2[i, j, k])
                 b[i, k] = _FAR if v == _INT32_MAX else v
-        for k in range(n2):
-            for i in range(n0):
-                f[i] = b[i, k]
-            _lower_envelope(f, n0, s, t, r)
-            for i in range(n0):
-                b[i, k] = r[i]
+        _envelope_columns(b)
         for i in range(n0):
             for k in range(n2):
                 d2[i, j, k] = min(b[i, k], _INT32_MAX)
