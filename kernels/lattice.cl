@@ -199,23 +199,65 @@ __kernel void quad_bin_fill(BIN_ARGS, __global const int *dmin_bits, __global co
     }
 }
 
+// (d, q) before (e, r) in the lists' order: by distance, then by index
+#define BIN_BEFORE(d, q, e, r) ((d) < (e) || ((d) == (e) && (q) < (r)))
+
+// Move entry `root` down the max-heap of the n entries k[0..n), it[0..n).
+inline void bin_sift(__global float *k, __global int *it, int root, const int n)
+{
+    const float d = k[root];
+    const int q = it[root];
+    for (;;) {
+        int child = 2 * root + 1;
+        if (child >= n) break;
+        if (child + 1 < n && BIN_BEFORE(k[child], it[child], k[child + 1], it[child + 1])) ++child;
+        if (!BIN_BEFORE(d, q, k[child], it[child])) break;
+        k[root] = k[child];
+        it[root] = it[child];
+        root = child;
+    }
+    k[root] = d;
+    it[root] = q;
+}
+
+// Insertion sort for short lists; heapsort beyond, since a block's list grows
+// with the cube of the block's width in pores (thousands of quads at a few voxels
+// per pore) and insertion sort's n^2 then outweighed the voxel loop. Both give
+// the one order of the distinct (d_q, index) pairs.
+#define BIN_SORT_SHORT 32
+
 __kernel void bin_sort(__global const int *offsets, __global const int *fill,
                             __global int *items, __global float *keys, const int n_blocks)
 {
     const int b = (int)get_global_id(0);
     if (b >= n_blocks) return;
     const int o = offsets[b], n = fill[b];
-    for (int k = 1; k < n; ++k) {
-        const float d = keys[o + k];
-        const int q = items[o + k];
-        int j = k;
-        while (j > 0 && (keys[o + j - 1] > d || (keys[o + j - 1] == d && items[o + j - 1] > q))) {
-            keys[o + j] = keys[o + j - 1];
-            items[o + j] = items[o + j - 1];
+    __global float *k = keys + o;
+    __global int *it = items + o;
+    if (n > BIN_SORT_SHORT) {
+        for (int root = n / 2 - 1; root >= 0; --root) bin_sift(k, it, root, n);
+        for (int end = n - 1; end > 0; --end) {
+            const float d = k[end];
+            const int q = it[end];
+            k[end] = k[0];
+            it[end] = it[0];
+            k[0] = d;
+            it[0] = q;
+            bin_sift(k, it, 0, end);
+        }
+        return;
+    }
+    for (int i = 1; i < n; ++i) {
+        const float d = k[i];
+        const int q = it[i];
+        int j = i;
+        while (j > 0 && BIN_BEFORE(d, q, k[j - 1], it[j - 1])) {
+            k[j] = k[j - 1];
+            it[j] = it[j - 1];
             --j;
         }
-        keys[o + j] = d;
-        items[o + j] = q;
+        k[j] = d;
+        it[j] = q;
     }
 }
 

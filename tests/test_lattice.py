@@ -185,3 +185,38 @@ def test_quads_packed_in_chunks_are_packed_the_same(monkeypatch, small_cells):
     np.testing.assert_allclose(whole.data[:, 2, :3], sk.quad_normals, atol=1e-6)
     q0 = sk.quads[:, 0] - np.array([0.1, -0.2, 0.3])
     np.testing.assert_allclose(np.einsum("ij,ij->i", whole.data[:, 2, :3], q0) + whole.data[:, 2, 3], 0, atol=1e-5)
+
+
+def test_long_block_lists_are_sorted_and_the_field_exact(small_cells):
+    # a coarse voxel makes blocks of 2 mm, several pores wide: lists of hundreds of
+    # quads, past the kernel's insertion sort, that the voxel loop's early stop
+    # trusts to be in order
+    import pyopencl as cl
+
+    from implicit_scaffold import opencl
+    from implicit_scaffold.lattice import _pack_paper, bin_on_device
+
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    grid = _grid(small_cells, 0.25)
+    cutoff = 0.6
+    packed = _pack_paper(sk, grid)
+    offsets, counts, items, keys = bin_on_device("quad", packed.quad_buffer, packed.quads.lo,
+                                                 packed.quads.hi, grid, cutoff=cutoff)
+    _, queue = opencl.context()
+    host = {}
+    for name, buf, dtype in [("offsets", offsets, np.int32), ("counts", counts, np.int32),
+                             ("items", items, np.int32), ("keys", keys, np.float32)]:
+        host[name] = np.empty(buf.size // 4, dtype)
+        cl.enqueue_copy(queue, host[name], buf, is_blocking=True)
+    lengths = host["counts"]
+    assert lengths.max() > 200
+    for b in np.nonzero(lengths)[0]:
+        o, n = host["offsets"][b], lengths[b]
+        k, q = host["keys"][o:o + n], host["items"][o:o + n]
+        order = np.lexsort((q, k))
+        np.testing.assert_array_equal(order, np.arange(n))
+        assert len(np.unique(q)) == n
+    field = lattice_sdf(sk, grid, cutoff=cutoff)
+    idx = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
+    ref = lattice_sdf_reference(sk, grid.indices_to_points(idx), cutoff=cutoff)
+    np.testing.assert_allclose(field.reshape(-1), ref, atol=TOL)
