@@ -816,7 +816,8 @@ def _grade_line(g: dict) -> str:
 
 def _memory_line(r: dict) -> str:
     tiled = r.get("tiled")
-    how = (f"tiled in {tiled['slabs']} slabs of up to {tiled['planes_per_slab']} planes within "
+    how = (f"tiled in {tiled['slabs']} slab{'s' if tiled['slabs'] != 1 else ''} of up to "
+           f"{tiled['planes_per_slab']} planes within "
            f"{tiled['max_memory_mb'] / 1024:.1f} GiB" + (f" on {tiled['scheduler']}" if tiled["scheduler"] else "")
            if tiled else "whole grid in memory")
     return f"  memory: {how}; peak {r['peak_memory_mb'] / 1024:.2f} GiB"

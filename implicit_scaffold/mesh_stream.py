@@ -393,17 +393,10 @@ def _surface_pieces(faces: np.ndarray, nverts: int) -> tuple[int, np.ndarray]:
     Returns
     -------
     (int, (nverts,) int64 ndarray)
-        How many, and each vertex's.
+        How many, and each vertex's, numbered in order of each piece's least vertex.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
-    a = np.concatenate([faces[:, 0], faces[:, 1]])
-    b = np.concatenate([faces[:, 1], faces[:, 2]])
-    graph = coo_matrix((np.ones(len(a), np.int8), (a, b)), shape=(nverts, nverts)).tocsr()
-    del a, b
-    count, labels = connected_components(graph, directed=False)
-    return int(count), labels.astype(np.int64, copy=False)
+    labels, count = compiled_kernels()["vertex_pieces"](faces, nverts)
+    return int(count), labels
 
 
 def _write_slab(verts, faces, x0: int, grid, place: _Place, target: _Target,

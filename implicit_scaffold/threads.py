@@ -14,6 +14,7 @@ threads.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import threading
 from collections import deque
@@ -46,12 +47,36 @@ def _pool(size: int) -> ThreadPoolExecutor:
         return _POOL
 
 
+#: a thread count set by :func:`limited`, else None
+_LIMIT: int | None = None
+
+
 def count() -> int:
-    """The number of threads for compiled loops: numba's (``numba.set_num_threads``, else
-    ``NUMBA_NUM_THREADS`` when it is set, else the CPUs this process may run on)."""
+    """The number of threads for compiled loops: :func:`limited`'s, else ``NUMBA_NUM_THREADS``
+    when it is set, else the CPUs this process may run on.
+
+    numba's own ``get_num_threads`` is not asked: it starts numba's threading layer, TBB's
+    workers where TBB is installed (the Intel OpenCL runtime brings it), whose fork handler
+    then prints "Unable to join threads to shut down before fork()" on standard output each
+    time the mesh workers are forked; no kernel here uses that layer.
+    """
+    if _LIMIT is not None:
+        return _LIMIT
     import numba
 
-    return max(1, int(numba.get_num_threads()))
+    return max(1, int(numba.config.NUMBA_NUM_THREADS))
+
+
+@contextlib.contextmanager
+def limited(n: int):
+    """Compiled loops on at most `n` threads within the block (``n >= 1``)."""
+    global _LIMIT
+    old = _LIMIT
+    _LIMIT = max(1, int(n))
+    try:
+        yield
+    finally:
+        _LIMIT = old
 
 
 def over_rows(kernel, n: int, *args, pieces: int | None = None) -> None:
@@ -109,6 +134,21 @@ def by_rows(kernel):
 
     run.__name__ = run.__qualname__ = kernel.__name__.removeprefix("_").removesuffix("_rows")
     return run
+
+
+def submit(fn, *args):
+    """``fn(*args)`` on the thread pool, as a future (called at once, in this thread, when
+    there is one thread)."""
+    from concurrent.futures import Future
+
+    if count() == 1:
+        done: Future = Future()
+        try:
+            done.set_result(fn(*args))
+        except BaseException as exc:  # noqa: BLE001 - handed to the caller through the future
+            done.set_exception(exc)
+        return done
+    return _pool(count()).submit(fn, *args)
 
 
 def imap(fn, items, *, ahead: int | None = None):

@@ -426,6 +426,65 @@ def test_3mf_round_trips_and_is_deflated(small_mesh, tmp_path):
     np.testing.assert_allclose(v, np.asarray(small_mesh.vertices), rtol=1e-8, atol=1e-12)
 
 
+def _python_rows(fmt, rows):
+    return b"".join((fmt % tuple(r)).encode("ascii") for r in rows.tolist())
+
+
+def test_compiled_rows_are_pythons_percent_format():
+    from implicit_scaffold.mesh_writers import _formatted
+
+    rng = np.random.default_rng(5)
+    special = [0.0, -0.0, 1.0, 0.1, 1.5, 2.5, 0.5, 100.0, 1e-5, 1e-4, 9.9999999995e-5, 0.000123456789,
+               123456789.0, 1234567890.0, 999999999.5, 99999999.5, 99999999.95, 1e8, 1e9, 1e-9, 1e22, 1e-22,
+               1e300, 1e-300, 5e-324, np.nan, np.inf, -np.inf, 1.0000000005, 7.0000000005, 3.14159265358979]
+    values = np.concatenate([
+        special,
+        10.0 ** rng.uniform(-14, 14, 60000) * rng.choice([-1, 1], 60000),  # every notation %g picks
+        [round(x, int(d)) for x, d in zip(rng.uniform(-50, 50, 30000), rng.integers(0, 10, 30000))],  # short decimals
+        rng.uniform(0, 20, 30000).astype(np.float32),  # float32 grid coordinates, as the meshes hold
+    ])
+    values = np.concatenate([values, np.zeros(-len(values) % 3)]).reshape(-1, 3)
+    fmt = '<vertex x="%.9g" y="%.9g" z="%.9g"/>\n'
+    # pieces of 1000 rows: the kernel's chunks and Python's per-row formatting of what it cannot decide
+    assert b"".join(_formatted(fmt, values, chunk=1000)) == _python_rows(fmt, values)
+    ints = rng.integers(-10 ** 12, 10 ** 12, (20000, 3))
+    ints[0] = [0, -1, 9]
+    assert b"".join(_formatted("f %d %d %d\n", ints, chunk=999)) == _python_rows("f %d %d %d\n", ints)
+
+
+def test_3mf_deflated_in_pieces_is_one_stream_the_same_on_any_threads(small_mesh, tmp_path, monkeypatch):
+    import zlib
+
+    from implicit_scaffold import mesh_writers
+    from implicit_scaffold.threads import limited
+
+    # pieces of 5000 bytes: the small mesh's model is deflated in dozens of them
+    monkeypatch.setattr(mesh_writers, "DEFLATE_PIECE", 5000)
+    every = write_mesh(small_mesh, tmp_path / "every.3mf").read_bytes()
+    with limited(1):
+        one = write_mesh(small_mesh, tmp_path / "one.3mf").read_bytes()
+    assert every == one
+    with zipfile.ZipFile(tmp_path / "every.3mf") as z:
+        info = z.getinfo("3D/3dmodel.model")
+        assert z.testzip() is None  # the CRC of what the pieces inflate to
+        with z.open(info) as f:
+            model = f.read()
+    assert info.file_size > 20 * 5000
+    # what one inflate of the raw stream gives: the model as Python formats it
+    v = np.asarray(small_mesh.vertices, np.float64)
+    f = np.asarray(small_mesh.faces, np.int64)
+    vertices = _python_rows('<vertex x="%.9g" y="%.9g" z="%.9g"/>\n', v)
+    triangles = _python_rows('<triangle v1="%d" v2="%d" v3="%d"/>\n', f)
+    assert model.index(b"<vertices>\n" + vertices + b"</vertices>") < model.index(
+        b"<triangles>\n" + triangles + b"</triangles>")
+    with open(tmp_path / "every.3mf", "rb") as fh:
+        fh.seek(info.header_offset + 26)
+        name, extra = np.frombuffer(fh.read(4), "<u2")
+        fh.seek(info.header_offset + 30 + int(name) + int(extra))
+        raw = fh.read(info.compress_size)
+    assert zlib.decompress(raw, -15) == model
+
+
 @pytest.mark.parametrize("ext", MESH_FORMATS)
 def test_formats_from_a_ply_a_block_at_a_time_are_write_mesh_bytes(small_mesh, tmp_path, ext):
     from implicit_scaffold.mesh_writers import write_mesh_from_ply

@@ -587,3 +587,24 @@ def test_bodies_are_counted_across_slabs_as_on_the_whole_mesh(tmp_path, workers)
     assert s["bodies"] == 3
     streamed = trimesh.load(tmp_path / "m.ply", process=False)
     assert sum(m.volume > 0 for m in streamed.split(only_watertight=True)) == 3
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_surface_pieces_number_as_scipy_does(seed):
+    # random triangles over shuffled vertex numbers (many pieces, some vertices in no
+    # triangle), against scipy's connected components of the edge graph
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    from implicit_scaffold.mesh_stream import _surface_pieces
+
+    rng = np.random.default_rng(seed)
+    nverts = 3000
+    faces = rng.integers(0, nverts, (1200, 3)).astype(np.int32)
+    a = np.concatenate([faces[:, 0], faces[:, 1]])
+    b = np.concatenate([faces[:, 1], faces[:, 2]])
+    expect_count, expect = connected_components(
+        coo_matrix((np.ones(len(a)), (a, b)), shape=(nverts, nverts)), directed=False)
+    count, labels = _surface_pieces(faces, nverts)
+    assert 100 < count == expect_count
+    np.testing.assert_array_equal(labels, expect)

@@ -252,19 +252,15 @@ def test_voxelize_open_mesh_is_refused():
 
 
 def test_same_result_on_one_thread_and_all():
-    import numba
+    from implicit_scaffold.threads import limited
 
     rng = np.random.default_rng(3)
     from scipy import ndimage
 
     phase = ndimage.gaussian_filter(rng.normal(size=(40, 36, 30)), 2.5) > 0
     every = M.local_thickness(phase, 0.1)
-    old = numba.get_num_threads()
-    try:
-        numba.set_num_threads(1)
+    with limited(1):
         one = M.local_thickness(phase, 0.1)
-    finally:
-        numba.set_num_threads(old)
     assert np.array_equal(every, one)
 
 

@@ -42,15 +42,11 @@ def test_pieces_run_on_more_than_one_thread():
 
 
 def test_one_thread_takes_the_rows_at_once():
-    import numba
+    from implicit_scaffold.threads import limited
 
-    old = numba.get_num_threads()
     calls = []
-    try:
-        numba.set_num_threads(1)
+    with limited(1):
         over_rows(lambda lo, hi: calls.append((lo, hi)), 10)
-    finally:
-        numba.set_num_threads(old)
     assert calls == [(0, 10)]
 
 
