@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import ScaffoldError
+from .files import PiecewiseDeflate
 from .grid import Grid
 
 #: extensions :func:`write_volume` writes (``.nii.gz`` is matched as a whole)
@@ -197,6 +198,8 @@ def _itk_header(grid: Grid, ext: str, dtype) -> bytes:
     return head.replace(size + "\n", "CompressedDataSize = {size}\n").encode("latin-1")
 
 
+#: zlib's level for the compressed volumes (SimpleITK's), deflated in pieces on every core
+VOLUME_DEFLATE_LEVEL = 6
 #: the 10 bytes zlib's gzip writer (SimpleITK's) starts a file with: no name, time 0, Unix
 _GZIP_HEADER = b"\x1f\x8b\x08\x00\x00\x00\x00\x00\x00\x03"
 
@@ -216,10 +219,16 @@ def _stream_itk(blocks, grid: Grid, tmp: Path, ext: str, dtype) -> None:
             side = tmp.with_name(tmp.name + ".data")
             try:
                 with open(side, "w+b") as data:
-                    pack = zlib.compressobj(6)
+                    # a zlib stream: its two header bytes (level 6's), the deflate, Adler-32
+                    data.write(b"\x78\x9c")
+                    pack = PiecewiseDeflate(VOLUME_DEFLATE_LEVEL)
+                    check = 1
                     for block in blocks:
-                        data.write(pack.compress(memoryview(block.reshape(-1).view(np.uint8))))
+                        chunk = memoryview(block.reshape(-1).view(np.uint8))
+                        check = zlib.adler32(chunk, check)
+                        data.write(pack.compress(chunk))
                     data.write(pack.flush())
+                    data.write(struct.pack(">I", check))
                     size = data.tell()
                     fh.write(header.replace(b"{size}", str(size).encode()))
                     data.seek(0)
@@ -229,7 +238,7 @@ def _stream_itk(blocks, grid: Grid, tmp: Path, ext: str, dtype) -> None:
                     os.remove(side)
         else:
             # .nii.gz compresses the header with the data; .nrrd's header stays text
-            pack = zlib.compressobj(6, zlib.DEFLATED, -15)
+            pack = PiecewiseDeflate(VOLUME_DEFLATE_LEVEL)
             crc, length = 0, 0
             if ext == ".nrrd":
                 fh.write(header)

@@ -16,11 +16,78 @@ import numpy as np
 
 from .errors import ScaffoldError
 
-__all__ = ["atomic_path", "check_format", "check_writable", "folder_of", "new_temp", "remove_quietly",
+__all__ = ["PiecewiseDeflate", "atomic_path", "check_format", "check_writable", "folder_of", "new_temp", "remove_quietly",
            "write_field", "write_json"]
 
 #: planes of about this many voxels are converted and written at a time (.npy)
 WRITE_VOXELS = 1 << 18
+
+
+#: bytes of a stream deflated as one piece (on one thread)
+DEFLATE_PIECE = 1 << 22
+_WINDOW = 1 << 15
+
+
+def _deflate_piece(data: bytes, zdict: bytes, level: int, final: bool) -> bytes:
+    import zlib
+
+    c = (zlib.compressobj(level, zlib.DEFLATED, -15, zdict=zdict) if zdict
+         else zlib.compressobj(level, zlib.DEFLATED, -15))
+    return c.compress(data) + c.flush(zlib.Z_FINISH if final else zlib.Z_SYNC_FLUSH)
+
+
+class PiecewiseDeflate:
+    """A raw deflate stream made of fixed pieces deflated on the thread pool (pigz's scheme).
+
+    The data are cut every :data:`DEFLATE_PIECE` bytes; each piece is deflated with the
+    previous piece's last 32 KiB as its dictionary and ends on a sync flush, the last on
+    the stream's end, so the pieces joined are one valid deflate stream. The cuts depend on
+    the data alone, so the bytes are the same whatever the threads. zlib frees the
+    interpreter while it deflates, so the pieces run on every core. It has the ``compress``
+    and ``flush`` of a ``zlib.compressobj(level, zlib.DEFLATED, -15)``, which
+    :mod:`zipfile` calls too.
+
+    Parameters
+    ----------
+    level : int
+        zlib's compression level, 1 (fastest) to 9.
+    """
+
+    def __init__(self, level: int):
+        from collections import deque
+
+        self.level = int(level)
+        self.buffer = bytearray()
+        self.tail = b""
+        self.pending = deque()
+
+    def _submit(self, data: bytes, final: bool) -> None:
+        from .threads import submit
+
+        zdict, self.tail = self.tail, data[-_WINDOW:]
+        self.pending.append(submit(_deflate_piece, data, zdict, self.level, final))
+
+    def compress(self, data) -> bytes:
+        """Deflate more data; returns the stream's bytes finished so far (maybe none)."""
+        from .threads import count
+
+        self.buffer += data
+        done = []
+        while len(self.buffer) >= DEFLATE_PIECE:
+            self._submit(bytes(self.buffer[:DEFLATE_PIECE]), False)
+            del self.buffer[:DEFLATE_PIECE]
+            # at most twice the threads' pieces in flight: bounded memory
+            while len(self.pending) > 2 * count():
+                done.append(self.pending.popleft().result())
+        return b"".join(done)
+
+    def flush(self) -> bytes:
+        """The rest of the stream, to its end."""
+        self._submit(bytes(self.buffer), True)
+        self.buffer = bytearray()
+        done = [job.result() for job in self.pending]
+        self.pending.clear()
+        return b"".join(done)
 
 
 def folder_of(path) -> Path:

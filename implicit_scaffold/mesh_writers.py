@@ -11,16 +11,15 @@ Units are mm.
 from __future__ import annotations
 
 import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 from .errors import ScaffoldError
-from .files import atomic_path, check_format
+from .files import PiecewiseDeflate, atomic_path, check_format
 from .formats import MESH_WRITERS as MESH_FORMATS
 from .mesh import _NO_MEASURES, _NO_NUMBERS, FACE_CHUNK, compiled_kernels
-from .threads import count, imap, submit
+from .threads import imap
 
 __all__ = ["MESH_FORMATS", "STL_HEADER", "ply_header", "stl_buffer", "stl_chunk", "write_mesh", "write_mesh_from_ply"]
 
@@ -361,56 +360,6 @@ def _zip_entry(name: str) -> zipfile.ZipInfo:
 #: deflate level of a 3MF's model: zlib's 4 deflates the XML about three times as fast as
 #: its default 6, for a file about 5 % larger (the default cube: 61.4 MB against 58.2 MB)
 DEFLATE_LEVEL = 4
-#: bytes of text deflated as one piece (on one thread)
-DEFLATE_PIECE = 1 << 22
-_WINDOW = 1 << 15
-
-
-def _deflate_piece(data: bytes, zdict: bytes, level: int, final: bool) -> bytes:
-    c = (zlib.compressobj(level, zlib.DEFLATED, -15, zdict=zdict) if zdict
-         else zlib.compressobj(level, zlib.DEFLATED, -15))
-    return c.compress(data) + c.flush(zlib.Z_FINISH if final else zlib.Z_SYNC_FLUSH)
-
-
-class _PiecewiseDeflate:
-    """A raw deflate stream made of fixed pieces deflated on the thread pool (pigz's scheme).
-
-    The text is cut every :data:`DEFLATE_PIECE` bytes; each piece is deflated with the
-    previous piece's last 32 KiB as its dictionary and ends on a sync flush, the last on
-    the stream's end, so the pieces joined are one valid deflate stream. The cuts depend on
-    the text alone, so the bytes are the same whatever the threads. zlib frees the
-    interpreter while it deflates, so the pieces run on every core. It has the ``compress``
-    and ``flush`` of a ``zlib.compressobj``, which :mod:`zipfile` calls.
-    """
-
-    def __init__(self, level: int = DEFLATE_LEVEL):
-        from collections import deque
-
-        self.level = level
-        self.buffer = bytearray()
-        self.tail = b""
-        self.pending = deque()
-
-    def _submit(self, data: bytes, final: bool) -> None:
-        zdict, self.tail = self.tail, data[-_WINDOW:]
-        self.pending.append(submit(_deflate_piece, data, zdict, self.level, final))
-
-    def compress(self, data) -> bytes:
-        self.buffer += data
-        done = []
-        while len(self.buffer) >= DEFLATE_PIECE:
-            self._submit(bytes(self.buffer[:DEFLATE_PIECE]), False)
-            del self.buffer[:DEFLATE_PIECE]
-            while len(self.pending) > 2 * count():
-                done.append(self.pending.popleft().result())
-        return b"".join(done)
-
-    def flush(self) -> bytes:
-        self._submit(bytes(self.buffer), True)
-        self.buffer = bytearray()
-        done = [job.result() for job in self.pending]
-        self.pending.clear()
-        return b"".join(done)
 
 
 def _write_3mf(vertices, faces, fh) -> None:
@@ -436,7 +385,7 @@ def _write_3mf_blocks(nverts: int, nfaces: int, vertex_blocks, face_blocks, fh) 
             # zipfile's own deflate runs on one thread; the writer's compressor is the one
             # attribute it calls (compress, then flush), in every Python since 3.6
             if hasattr(f, "_compressor"):
-                f._compressor = _PiecewiseDeflate()
+                f._compressor = PiecewiseDeflate(DEFLATE_LEVEL)
             f.write(head)
             for block in vertex_blocks:
                 for text in _formatted('<vertex x="%.9g" y="%.9g" z="%.9g"/>\n', block):

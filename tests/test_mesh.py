@@ -455,11 +455,11 @@ def test_compiled_rows_are_pythons_percent_format():
 def test_3mf_deflated_in_pieces_is_one_stream_the_same_on_any_threads(small_mesh, tmp_path, monkeypatch):
     import zlib
 
-    from implicit_scaffold import mesh_writers
+    from implicit_scaffold import files
     from implicit_scaffold.threads import limited
 
     # pieces of 5000 bytes: the small mesh's model is deflated in dozens of them
-    monkeypatch.setattr(mesh_writers, "DEFLATE_PIECE", 5000)
+    monkeypatch.setattr(files, "DEFLATE_PIECE", 5000)
     every = write_mesh(small_mesh, tmp_path / "every.3mf").read_bytes()
     with limited(1):
         one = write_mesh(small_mesh, tmp_path / "one.3mf").read_bytes()
