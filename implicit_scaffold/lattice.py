@@ -235,7 +235,58 @@ def _slack(grid: Grid, *boxes) -> float:
     return 64 * _ulps(extent, 1)
 
 
-def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_range=None):
+def blocks_beyond(patient_planes: np.ndarray, grid: Grid, x_range, *, reach: float, halo: int = 0) -> np.ndarray:
+    """The blocks of planes `x_range` whose lattice values cannot change the scaffold.
+
+    The scaffold is ``max(lattice - level, patient)`` (smoothed within the smooth cut's
+    width), and the lattice, clamped at its cut-off ``c``, lies in ``[-c, c]``, as does the
+    level. Wherever the patient's distance is at least ``2 c`` plus the smooth cut, the
+    scaffold is the patient's distance whatever the lattice's value, bit for bit. A block
+    all of whose voxels, and every voxel within `halo` of them (the blend's reach), lie that
+    far outside the patient is skipped: its lists stay empty, so the kernels make nothing
+    there (a value within the cut-off).
+
+    Parameters
+    ----------
+    patient_planes : (x1 - x0, ny, nz) ndarray, mm
+        The patient's signed distance on the planes of `x_range`.
+    grid : Grid
+    x_range : (x0, x1)
+    reach : float, mm
+        The patient distance from which the lattice does not count.
+    halo : int
+        Voxels beyond a block whose values its values change (the blend's).
+
+    Returns
+    -------
+    (b1 - b0, by, bz) bool ndarray
+        Per block of :func:`_block_range`, True where the block can be skipped.
+    """
+    x0, x1 = _check_range(grid, x_range)
+    b0, b1 = _block_range(grid, x_range)
+    by, bz = block_counts(grid, BLOCK)[1:]
+    ny, nz = grid.shape[1:]
+    # voxels beyond the planes or the grid do not count: they are never stored
+    near = np.zeros(((b1 - b0) * BLOCK, by * BLOCK, bz * BLOCK), bool)
+    np.less(patient_planes, reach, out=near[x0 - b0 * BLOCK:x1 - b0 * BLOCK, :ny, :nz])
+    near_block = near.reshape(b1 - b0, BLOCK, by, BLOCK, bz, BLOCK).any(axis=(1, 3, 5))
+    del near
+    grow = -(-int(halo) // BLOCK)
+    if grow:
+        from scipy import ndimage
+
+        near_block = ndimage.binary_dilation(near_block, np.ones((2 * grow + 1,) * 3, bool))
+    return ~near_block
+
+
+def _skip_buffer(skip, n_blocks: int):
+    flags = np.zeros(n_blocks, np.uint8) if skip is None else np.ascontiguousarray(skip, np.uint8).reshape(-1)
+    if flags.size != n_blocks:
+        raise ValueError(f"skip holds {flags.size} blocks, the planes {n_blocks}")
+    return opencl.to_device(flags, np.uint8)
+
+
+def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_range=None, skip=None):
     """Bin primitives into blocks of voxels and sort each block's list, on the device.
 
     ``kind`` is ``"quad"`` (lists cut to the quads that can be nearest for some
@@ -255,6 +306,8 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_ran
     x_range : (x0, x1), optional
         Bin only the blocks that hold these planes (all by default); block ``b``
         below counts from the first of them.
+    skip : (bx, by, bz) bool ndarray, optional
+        Blocks that get no primitive (:func:`blocks_beyond`).
 
     Returns
     -------
@@ -274,7 +327,7 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_ran
     boxes = np.zeros((max(m, 1), 2, 4), np.float32)
     boxes[:m, 0, :3] = lo
     boxes[:m, 1, :3] = hi
-    common = [buffer, opencl.to_device(boxes.reshape(-1, 4)), np.int32(m), np.int32(b0),
+    common = [buffer, opencl.to_device(boxes.reshape(-1, 4)), np.int32(m), _skip_buffer(skip, n_blocks), np.int32(b0),
               np.int32(bx), np.int32(by), np.int32(bz), np.float32(grid.spacing),
               np.float32(cutoff), np.float32(_slack(grid, lo, hi))]
     rw = cl.mem_flags.READ_WRITE | cl.mem_flags.COPY_HOST_PTR
@@ -304,7 +357,7 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_ran
 
 
 def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: int | None = None,
-                progress: Callable[[int, int], None] | None = None, x_range=None) -> np.ndarray:
+                progress: Callable[[int, int], None] | None = None, x_range=None, skip=None) -> np.ndarray:
     """Signed distance to the paper's lattice surface on `grid`, negative in the solid.
 
     Parameters
@@ -320,6 +373,9 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     x_range : (x0, x1), optional
         Only the planes ``x0 <= i < x1`` of `grid` (a slab of a tiled run): the same
         bits as those planes of the whole grid, for a fraction of the memory.
+    skip : (bx, by, bz) bool ndarray, optional
+        Blocks of those planes left out (:func:`blocks_beyond`): their values are
+        ``-cutoff``, the rest's unchanged.
 
     Returns
     -------
@@ -332,8 +388,10 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
     plists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=grid.spacing * 1e-3,
                        block_range=_block_range(grid, x_range))
+    if skip is not None:
+        plists = _without(plists, np.asarray(skip, bool).reshape(-1))
     qoffsets, qcounts, qitems, qkeys = bin_on_device("quad", packed.quad_buffer, quads.lo, quads.hi, grid,
-                                                     cutoff=cutoff, x_range=x_range)
+                                                     cutoff=cutoff, x_range=x_range, skip=skip)
     kernel = opencl.kernel("lattice", "lattice_paper", BLOCK=BLOCK)
     buffers = [qoffsets, qcounts, qitems, qkeys, packed.quad_buffer,
                opencl.to_device(plists.offsets, np.int32), opencl.to_device(plists.items, np.int32),
@@ -351,9 +409,21 @@ def lattice_sdf(skeleton: Skeleton, grid: Grid, *, cutoff: float, tile_blocks: i
                         tile_blocks=tile_blocks, progress=progress, x_range=x_range)
 
 
+def _without(lists, skip: np.ndarray):
+    """Block lists with the `skip` blocks' emptied."""
+    from .blocks import BlockLists
+
+    lengths = lists.lengths()
+    keep = np.where(skip, 0, lengths)
+    offsets = np.zeros(len(lengths) + 1, np.int64)
+    np.cumsum(keep, out=offsets[1:])
+    items = lists.items[np.repeat(~skip, lengths)]
+    return BlockLists(lists.block, lists.counts, offsets.astype(np.int32), items)
+
+
 def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
                  tile_blocks: int | None = None,
-                 progress: Callable[[int, int], None] | None = None, x_range=None) -> np.ndarray:
+                 progress: Callable[[int, int], None] | None = None, x_range=None, skip=None) -> np.ndarray:
     """Smooth-minimum distance to the struts' axes on `grid`.
 
     ``F = -k ln Σ_i exp(-d_i / k)`` over the edges with ``d_i < cutoff`` (the plain
@@ -373,6 +443,8 @@ def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
     progress : callable(done, total), optional
     x_range : (x0, x1), optional
         Only these planes of `grid`, as :func:`lattice_sdf`.
+    skip : (bx, by, bz) bool ndarray, optional
+        Blocks left out, as :func:`lattice_sdf` (their values are ``cutoff``).
 
     Returns
     -------
@@ -388,7 +460,7 @@ def struts_field(edges: np.ndarray, grid: Grid, *, cutoff: float, blend: float,
     data[:, 1, :3] = ab
     buffer = opencl.to_device(data.reshape(-1, 4))
     offsets, counts, items, keys = bin_on_device("seg", buffer, seg.min(axis=1), seg.max(axis=1), grid,
-                                                 cutoff=cutoff, x_range=x_range)
+                                                 cutoff=cutoff, x_range=x_range, skip=skip)
     kernel = opencl.kernel("lattice", "lattice_struts", BLOCK=BLOCK)
     return _launch_rows(kernel, grid, [offsets, counts, items, keys, buffer],
                         [np.float32(cutoff), np.float32(blend),

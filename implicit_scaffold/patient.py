@@ -221,6 +221,14 @@ def clamp_far_field(patient, reach: float):
     return patient if clamp is None else clamp(reach)
 
 
+def far_clamp(patient, grid: Grid) -> float:
+    """The distance (mm) from which `patient`'s distance on `grid` may be clamped (a mesh's far
+    field, :func:`clamp_far_field`): a voxel that far out is at least that far from the
+    patient. Infinity for a patient whose distance is exact everywhere."""
+    clamp = getattr(patient, "far_clamp", None)
+    return float("inf") if clamp is None else float(clamp(grid))
+
+
 def cut_halfspaces(clip=None, cut_planes=None) -> np.ndarray:
     """The half-spaces ``n . x <= d`` (unit ``n``) that keep what a surgeon keeps.
 
@@ -362,6 +370,11 @@ class CutPatient:
         """Signed distance on `grid` (the planes `x_range` only, if given), float32, mm,
         negative inside what is kept."""
         return self._sdf_on(grid, x_range)
+
+    def far_clamp(self, grid: Grid) -> float:
+        """The base's (:func:`far_clamp`): the cut planes' distances are exact, and a voxel at
+        least that far from the base or from the planes is that far from what is kept."""
+        return far_clamp(self.base, grid)
 
     def clamp_far_field(self, reach: float) -> "CutPatient":
         """This cut of the base patient with the base's far field clamped (:func:`clamp_far_field`)."""

@@ -689,6 +689,13 @@ class MeshPatient:
         out.far_reach = float(reach)
         return out
 
+    def far_clamp(self, grid: Grid) -> float:
+        """The distance (mm) at which :meth:`sdf_grid` on `grid` clamps the far field (as the
+        float32 it writes); infinity without a clamp."""
+        if self.far_reach is None:
+            return float("inf")
+        return float(np.float32(self.far_reach + BAND_VOXELS * grid.spacing))
+
     #: mm beyond the exact band up to which the distance is exact and clamped beyond
     #: (:meth:`clamp_far_field`); None: exact near the surface and a feature transform
     #: of the whole grid farther out

@@ -72,6 +72,9 @@ class SlabWork:
     cutoff : float, mm
     k : float, mm
         Blend width (paper: Gaussian support; struts: smooth-minimum width).
+    smooth_cut : float, mm
+        The smooth cut's width: with the cut-off, how far outside the patient the lattice
+        still counts (:func:`~implicit_scaffold.lattice.blocks_beyond`).
     """
 
     style: str
@@ -81,6 +84,7 @@ class SlabWork:
     grid: Grid
     cutoff: float
     k: float
+    smooth_cut: float = 0.0
 
     @property
     def halo(self) -> int:
@@ -97,20 +101,36 @@ def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarra
     lattice : (x1 - x0, ny, nz) float32 ndarray, mm
     patient : (x1 - x0, ny, nz) float32 ndarray, mm
     """
-    from .lattice import lattice_sdf, struts_field
-    from .patient import patient_sdf
+    from .lattice import blocks_beyond, lattice_sdf, struts_field
+    from .patient import far_clamp, patient_sdf
 
     grid = work.grid
+    # the lattice and the level lie within the cut-off: beyond twice it (and the smooth cut)
+    # outside the patient the scaffold is the patient's distance, so those blocks are skipped.
+    # A mesh's clamped far field is only a sign there: from its clamp on, the scaffold is void
+    # whatever the lattice (its values there, all at or above the clamp, are read by no stage)
+    clamp = far_clamp(work.patient, grid)
+    reach = min(2 * work.cutoff + work.smooth_cut + 2 * grid.spacing, clamp)
     if work.style == "paper":
+        s_p = patient_sdf(work.patient, grid, (slab.h0, slab.h1))
+        skip = blocks_beyond(s_p, grid, (slab.h0, slab.h1), reach=reach, halo=work.halo)
+        s_p = np.ascontiguousarray(s_p[slab.owned])
         skeleton = work.skeleton
         if hasattr(skeleton, "near"):
             skeleton = skeleton.near(*_band(grid, (slab.h0, slab.h1), work.cutoff))
-        base = lattice_sdf(skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1))
+        base = lattice_sdf(skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1), skip=skip)
         del skeleton
         base = np.ascontiguousarray(blend_field(base, grid.spacing, work.k)[slab.owned])
     else:
-        base = struts_field(work.edges, grid, cutoff=work.cutoff, blend=work.k, x_range=(slab.x0, slab.x1))
-    return slab, base, patient_sdf(work.patient, grid, (slab.x0, slab.x1))
+        s_p = patient_sdf(work.patient, grid, (slab.x0, slab.x1))
+        skip = blocks_beyond(s_p, grid, (slab.x0, slab.x1), reach=reach)
+        base = struts_field(work.edges, grid, cutoff=work.cutoff, blend=work.k, x_range=(slab.x0, slab.x1),
+                            skip=skip)
+    if np.isfinite(clamp):
+        # from the clamp on, the lattice is one value below any level (the scaffold there is the
+        # clamp, exactly): the same bits whichever blocks a slab or the whole grid skipped
+        np.putmask(base, s_p >= np.float32(clamp), np.float32(-work.cutoff))
+    return slab, base, s_p
 
 
 def _band(grid: Grid, x_range, cutoff: float) -> tuple[float, float]:
@@ -418,7 +438,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     plan = level_field = None
     try:
         for _ in range(6):
-            work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k))
+            work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k), float(smooth_cut))
             nx = int(grid.shape[0])
             slabs = [Slab(0, nx, 0, nx)] if in_memory else plan_slabs(grid.shape, max_voxels=max_voxels,
                                                                       halo=work.halo)

@@ -154,7 +154,8 @@ inline float quad_point_dist2(__global const float4 *q, float3 c)
 
 // The blocks that primitive `q` (WORDS float4 from `prims`, bounding box in
 // `boxes`) can matter to, grown by the cut-off; d is the distance from the
-// block's centre c to the primitive, by DIST2(primitive, c).
+// block's centre c to the primitive, by DIST2(primitive, c). Blocks whose `skip`
+// is set get no primitive: their values cannot change the scaffold.
 #define PRIM_BLOCKS_BEGIN(WORDS, DIST2)                                           \
     const int q = (int)get_global_id(0);                                          \
     if (q >= n_prims) return;                                                     \
@@ -169,12 +170,14 @@ inline float quad_point_dist2(__global const float4 *q, float3 c)
     for (int by = y0; by <= y1; ++by)                                             \
     for (int bz = z0; bz <= z1; ++bz) {                                           \
         const int b = ((bx - block_x0) * blocks_y + by) * blocks_z + bz;          \
+        if (skip[b]) continue;                                                    \
         const float3 c = ((float3)((float)(bx * BLOCK), (float)(by * BLOCK), (float)(bz * BLOCK)) \
                           + 0.5f * (BLOCK - 1)) * h;                              \
         const float d = sqrt(DIST2(prim, c));
 
 #define BIN_ARGS                                                                  \
     __global const float4 *prims, __global const float4 *boxes, const int n_prims, \
+    __global const uchar *skip,                                                   \
     const int block_x0, const int blocks_x, const int blocks_y, const int blocks_z, \
     const float h, const float cutoff, const float slack
 

@@ -220,3 +220,21 @@ def test_long_block_lists_are_sorted_and_the_field_exact(small_cells):
     idx = np.stack(np.meshgrid(*[np.arange(s) for s in grid.shape], indexing="ij"), -1).reshape(-1, 3)
     ref = lattice_sdf_reference(sk, grid.indices_to_points(idx), cutoff=cutoff)
     np.testing.assert_allclose(field.reshape(-1), ref, atol=TOL)
+
+
+def test_skipped_blocks_leave_every_other_block_bit_for_bit(small_cells):
+    # blocks skipped (a pattern over x, y and z) get no primitive: -cutoff (paper) or cutoff
+    # (struts) there, and every voxel of the other blocks the bits of the full field
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    edges = voronoi_edges(small_cells)
+    grid = _grid(small_cells, 0.05)
+    blocks = tuple(-(-n // 8) for n in grid.shape)
+    skip = np.zeros(blocks, bool)
+    skip[::2, 1::2, ::3] = True
+    mask = skip.repeat(8, 0).repeat(8, 1).repeat(8, 2)[:grid.shape[0], :grid.shape[1], :grid.shape[2]]
+    for full, part, fill in [
+            (lattice_sdf(sk, grid, cutoff=0.15), lattice_sdf(sk, grid, cutoff=0.15, skip=skip), -0.15),
+            (struts_field(edges, grid, cutoff=0.3, blend=0.05),
+             struts_field(edges, grid, cutoff=0.3, blend=0.05, skip=skip), 0.3)]:
+        assert np.array_equal(full[~mask], part[~mask])
+        assert np.all(part[mask] == np.float32(fill)) and np.any(full[mask] != np.float32(fill))

@@ -369,3 +369,61 @@ def test_a_tiled_mesh_meets_the_porosity_target_as_the_whole_grids_does(tmp_path
         assert rep["porosity_printed"] == pytest.approx(1 - volume / 27.0, abs=1e-5)
     assert tiled["porosity_printed"] == pytest.approx(whole["porosity_printed"], abs=1e-6)
     assert tiled["porosity_voxel"] == pytest.approx(whole["porosity_voxel"], abs=1e-6)
+
+
+@pytest.mark.parametrize("style, cut", [("paper", {}), ("paper", dict(smooth_cut=0.1, skin=0.08)),
+                                        ("struts", {})])
+@pytest.mark.parametrize("kind", ["sphere", "two balls"])
+def test_blocks_far_outside_the_patient_are_skipped_with_the_same_results(tmp_path, monkeypatch, style, cut,
+                                                                          kind):
+    # the lattice's blocks far outside the patient are skipped: the field is the one computed
+    # in full (for a mesh, whose far field is clamped, the same up to the clamp and the same
+    # sign beyond it), the mesh the same bytes, and slabs give the whole grid's bytes
+    import trimesh
+
+    import implicit_scaffold.lattice as lattice_mod
+    from implicit_scaffold.patient import clamp_far_field, far_clamp
+    from implicit_scaffold.patient_mesh import MeshPatient
+
+    real = lattice_mod.blocks_beyond
+    skipped = []
+
+    def counted(*a, **k):
+        skip = real(*a, **k)
+        skipped.append(int(skip.sum()))
+        return skip
+
+    if kind == "sphere":
+        # small pores in a sphere: its box's corners lie beyond the lattice's reach
+        kw = dict(shape="sphere", size=4.0, pore_size=0.3, porosity=0.75, voxel=0.05, seed=3)
+    else:
+        # two balls at opposite corners of their box (a bone in two pieces)
+        balls = [trimesh.creation.icosphere(subdivisions=3, radius=0.8) for _ in range(2)]
+        both = trimesh.util.concatenate([balls[0].apply_translation([0.8] * 3),
+                                         balls[1].apply_translation([3.0] * 3)])
+        kw = dict(MESH, patient=MeshPatient(np.asarray(both.vertices), np.asarray(both.faces), name="two balls"),
+                  porosity=0.6)
+    kw.update(style=style, **cut)
+    monkeypatch.setattr(lattice_mod, "blocks_beyond", counted)
+    fast = generate(output=tmp_path / "fast.stl", morphometry=False, **kw)
+    blocks = np.prod([-(-n // 8) for n in fast.grid.shape])
+    assert sum(skipped) > (0.5 if kind == "two balls" else 0.02) * blocks
+    monkeypatch.setattr(lattice_mod, "blocks_beyond", lambda *a, **k: np.zeros_like(real(*a, **k)))
+    full = generate(output=tmp_path / "full.stl", morphometry=False, **kw)
+    assert (tmp_path / "fast.stl").read_bytes() == (tmp_path / "full.stl").read_bytes()
+    if kind == "sphere":
+        assert np.array_equal(fast.field, full.field)
+    else:
+        # the run clamps the mesh's far field beyond its skin and smooth-cut widths
+        clamp = far_clamp(clamp_far_field(kw["patient"], cut.get("skin", 0) + cut.get("smooth_cut", 0)), fast.grid)
+        assert np.isfinite(clamp)
+        below = full.field < np.float32(clamp)
+        assert np.array_equal(fast.field < 0, full.field < 0)
+        assert np.array_equal(fast.field[below], full.field[below]) and below.mean() > 0.02
+    # in slabs too
+    plane = fast.grid.shape[1] * fast.grid.shape[2]
+    monkeypatch.setattr(lattice_mod, "blocks_beyond", counted)
+    generate(output=tmp_path / "whole.npy", mesh=False, morphometry=False, **kw)
+    rep = generate(output=tmp_path / "slabs.npy", mesh=False, morphometry=False, tiled=(9 + 16) * plane, **kw).report
+    assert rep["tiled"]["slabs"] > 2
+    assert (tmp_path / "slabs.npy").read_bytes() == (tmp_path / "whole.npy").read_bytes()
