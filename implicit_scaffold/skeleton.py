@@ -113,6 +113,28 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def _channel_quads(cells: Cells, sf: float, sv: float):
+    """Every face vertex's channel-side quad (cage, next cage, next rim, rim), before the
+    skeleton orients it: ``(vert_face, rims, cages, quads, area vectors, areas)``, mm and mm²."""
+    start = cells.face_start
+    vert_face = np.repeat(np.arange(len(cells.face_cell)), np.diff(start))
+    F = cells.face_vertices
+    g_f = cells.face_centroids[vert_face]
+    g_c = cells.centroids[cells.face_cell][vert_face]
+    rims = g_f + sf * (F - g_f)
+    cages = g_c + sv * (F - g_c)
+    nxt = _next_in_polygon(start)
+    quads = np.empty((len(F), 4, 3))
+    quads[:, 0], quads[:, 1], quads[:, 2], quads[:, 3] = cages, cages[nxt], rims[nxt], rims
+    area_vec = 0.5 * _cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
+    return vert_face, rims, cages, quads, area_vec, np.linalg.norm(area_vec, axis=1)
+
+
+def _kept_quads(cells: Cells, area: np.ndarray) -> np.ndarray:
+    """The quads the skeleton keeps: those not collapsed to a segment or a point."""
+    return area > 1e-12 * float(np.max(cells.hi - cells.lo)) ** 2
+
+
 def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     """Build rims, cages, rails, the channels' side quads and the void's pieces.
 
@@ -130,19 +152,7 @@ def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     sv = check_scale("sv", sv)
     start = cells.face_start
     nf = len(cells.face_cell)
-    counts = np.diff(start)
-    vert_face = np.repeat(np.arange(nf), counts)
-    F = cells.face_vertices
-    g_f = cells.face_centroids[vert_face]
-    g_c = cells.centroids[cells.face_cell][vert_face]
-    rims = g_f + sf * (F - g_f)
-    cages = g_c + sv * (F - g_c)
-
-    nxt = _next_in_polygon(start)
-    quads = np.empty((len(F), 4, 3))
-    quads[:, 0], quads[:, 1], quads[:, 2], quads[:, 3] = cages, cages[nxt], rims[nxt], rims
-    area_vec = 0.5 * _cross(quads[:, 2] - quads[:, 0], quads[:, 3] - quads[:, 1])
-    area = np.linalg.norm(area_vec, axis=1)
+    vert_face, rims, cages, quads, area_vec, area = _channel_quads(cells, sf, sv)
     normals = area_vec / np.where(area > 0, area, 1)[:, None]
     # the channel's axis point at this quad's height: outward is away from it
     fn = cells.face_normals[vert_face]
@@ -154,7 +164,7 @@ def scaled_skeleton(cells: Cells, sf: float, sv: float) -> Skeleton:
     quads[flip] = quads[flip][:, ::-1]
     normals[flip] *= -1
     quad_face = vert_face.copy()
-    good = area > 1e-12 * float(np.max(cells.hi - cells.lo)) ** 2
+    good = _kept_quads(cells, area)
     if not good.all():
         quads, normals, quad_face = quads[good], normals[good], quad_face[good]
 
@@ -340,7 +350,11 @@ class SkeletonSource:
         for c0 in range(0, n, chunk):
             keep = np.zeros(n, bool)
             keep[c0:c0 + chunk] = True
-            out.append(quad_areas(scaled_skeleton(self.cells.subset(keep), self.sf, self.sv)))
+            # only the quads: the areas quad_areas gives on the whole skeleton, bit for bit (an
+            # orientation flip negates the cross product, a halving is exact), for a fifth of the work
+            part = self.cells.subset(keep)
+            area = _channel_quads(part, self.sf, self.sv)[5]
+            out.append(area[_kept_quads(part, area)])
         return np.concatenate(out) if out else np.zeros(0)
 
 

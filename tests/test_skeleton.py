@@ -126,3 +126,4 @@ def test_pieces_boxes_bound_their_vertices(cube_cells):
                 lo[cells.n + f], hi[cells.n + f] = np.minimum(lo[cells.n + f], p), np.maximum(hi[cells.n + f], p)
     np.testing.assert_array_equal(sk.piece_lo, lo)
     np.testing.assert_array_equal(sk.piece_hi, hi)
+
