@@ -223,13 +223,14 @@ def _polygon_properties(vertices: np.ndarray, start: np.ndarray):
     # fan triangles from each polygon's first vertex
     first = vertices[start[:-1]][poly]
     tri = np.cross(a - first, b - first) / 2
-    vec = np.zeros((len(counts), 3))
-    np.add.at(vec, poly, tri)
+    k = len(counts)
+    # sums in vertex order per polygon (bincount adds as np.add.at does, 5x faster)
+    vec = np.stack([np.bincount(poly, weights=tri[:, j], minlength=k) for j in range(3)], axis=1)
     areas = np.linalg.norm(vec, axis=1)
     normals = vec / np.where(areas > 0, areas, 1)[:, None]
     w = np.einsum("ij,ij->i", tri, normals[poly])
-    cen = np.zeros((len(counts), 3))
-    np.add.at(cen, poly, w[:, None] * (first + a + b) / 3)
+    part = w[:, None] * (first + a + b) / 3
+    cen = np.stack([np.bincount(poly, weights=part[:, j], minlength=k) for j in range(3)], axis=1)
     centroids = cen / np.where(areas > 0, areas, 1)[:, None]
     return normals, areas, centroids
 
@@ -325,7 +326,7 @@ def _flatten(raw) -> dict:
             "neighbor": np.maximum(np.asarray(neighbor, dtype=np.int64), -1)}
 
 
-def _voro_cells(seeds, lo, hi, radii) -> dict:
+def _voro_cells(seeds, lo, hi, radii, *, chunked: bool = True) -> dict:
     """Every seed's cell by voro++, as :func:`_flatten`'s arrays over all seeds (in id order),
     with ``kept`` (bool per seed): the seeds that have a (non-empty) cell.
 
@@ -335,8 +336,9 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
     no seed beyond the margin cuts them (:func:`_chunk_settled`). A chunk that fails is
     computed again with twice the margin, up to :data:`MAX_CHUNK_REACH` chunks' seeds;
     beyond, every cell is built at once (seeds drawn only in a patient leave cells at its
-    surface that reach the box's walls, cut by seeds anywhere along the surface). The chunks depend on the
-    seeds alone, never on the memory, so the same seeds always give the same cells.
+    surface that reach the box's walls, cut by seeds anywhere along the surface: on the L1 vertebra's
+    101,776 seeds the chunks tried first took a third of the time, which `chunked` False saves). The chunks
+    depend on the seeds alone, never on the memory, so the same seeds always give the same cells.
     """
     import pyvoro2
 
@@ -355,7 +357,7 @@ def _voro_cells(seeds, lo, hi, radii) -> dict:
             raw = [c for c in raw if c["faces"] and c["volume"] > 0]
         return [_flatten(raw)]
 
-    if n <= CHUNK_SEEDS:
+    if n <= CHUNK_SEEDS or not chunked:
         parts = at_once()
     else:
         from scipy.spatial import cKDTree
@@ -449,7 +451,7 @@ def _chunk_settled(raw, seeds, radii, tree, reach_lo: float, reach_hi: float) ->
     return True
 
 
-def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
+def voronoi_cells(seeds, lo, hi, *, radii=None, chunked: bool = True) -> Cells:
     """The Voronoi cells of `seeds`, clipped to the box ``[lo, hi]``.
 
     Parameters
@@ -463,6 +465,10 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
         the same constant to every weight changes nothing). Seeds with an empty cell
         are left out of the result (see ``Cells.seed_index``). Without, the plain
         Voronoi cells.
+    chunked : bool
+        Try chunks of :data:`CHUNK_SEEDS` seeds first (seeds that fill their box: less
+        memory); False builds every cell at once, as seeds drawn in a patient end up
+        anyway, without the chunks tried first. The cells are the same either way.
 
     Returns
     -------
@@ -480,7 +486,7 @@ def voronoi_cells(seeds, lo, hi, *, radii=None) -> Cells:
     if weighted:
         radii = check_radii(radii, n)
     with _collector_paused():
-        flat = _voro_cells(seeds, lo, hi, radii)
+        flat = _voro_cells(seeds, lo, hi, radii, chunked=chunked)
     seed_index = renumber = None
     if weighted:
         # voro++ leaves out the seeds whose power cell is empty: the others are renumbered 0..n'-1

@@ -486,8 +486,11 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
             with prog.stage("relax", f"{params.relax} Lloyd iterations"):
                 seeds = grading.lloyd_relax(seeds, graded.density, params.relax)
         with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
+            # seeds drawn in a patient leave cells at its surface that no chunk settles, and the
+            # memory check counted them built at once
             cells = voronoi_cells(seeds, lo, hi,
-                                  radii=grading.power_radii(graded.density, seeds) if weighted else None)
+                                  radii=grading.power_radii(graded.density, seeds) if weighted else None,
+                                  chunked=params.seeds_in == "box" and graded is None)
         if not solving:
             break
         inside = sample(coarse, coarse_grid, cells.seeds) < 0

@@ -248,3 +248,8 @@ def test_cells_that_no_chunk_settles_are_built_at_once(monkeypatch):
     assert len(sizes) >= 3 and sizes[0] < sizes[1] < len(seeds) and sizes[-1] == len(seeds)
     np.testing.assert_array_equal(chunked.volumes, once.volumes)
     np.testing.assert_array_equal(chunked.face_vertices, once.face_vertices)
+    # asked not to try chunks (seeds drawn in a patient): one run, the same cells
+    sizes.clear()
+    direct = C.voronoi_cells(seeds, [0, 0, 0], [10, 10, 10], chunked=False)
+    assert sizes == [len(seeds)]
+    np.testing.assert_array_equal(direct.face_vertices, once.face_vertices)
