@@ -140,7 +140,7 @@ def _formatted(fmt: str, rows: np.ndarray, chunk: int = 1 << 16):
 
     `fmt` holds three fields, all ``%.9g`` (float rows) or all ``%d`` (integer rows), and
     plain text between them. A compiled loop writes the text, the same bytes as Python's
-    ``fmt % row`` (a twentieth of its time, which was most of a 3MF's); a ``%.9g`` value
+    ``fmt % row`` (2.6 M rows of vertices: 0.53 s against 1.75 s, in chunks on the thread pool); a ``%.9g`` value
     whose rounding the loop cannot decide (within 2e-6 of a half in its ninth digit, or
     beyond the magnitudes it handles) is formatted by Python.
     """
