@@ -530,7 +530,8 @@ def compiled_kernels():
     Each gives the bits its NumPy formula gives (the same float64 operations in the same
     order; no fast-math, so no fused multiply-adds), without the temporaries.
     """
-    global _KERNELS
+    # helpers called by other kernels are module globals, not closure cells (see tiles._key_kernels)
+    global _KERNELS, _edge_at
     if _KERNELS is not None:
         return _KERNELS
     import numba as nb
@@ -654,7 +655,7 @@ def compiled_kernels():
         return False
 
     @nb.njit(cache=True, boundscheck=False, nogil=True, inline="always")
-    def edge_at(faces, plane, f, c):  # pragma: no cover - compiled
+    def _edge_at(faces, plane, f, c):  # pragma: no cover - compiled
         # edge c of face f, u -> v, and the grid plane (1 or 2) both its ends lie on, else 0
         u = faces[f, c]
         v = faces[f, (c + 1) % 3]
@@ -674,7 +675,7 @@ def compiled_kernels():
         aside = np.zeros(3, np.int64)
         for f in range(nf):
             for c in range(3):
-                u, v, p = edge_at(faces, plane, f, c)
+                u, v, p = _edge_at(faces, plane, f, c)
                 if p:
                     aside[p] += 1
                 else:
@@ -688,7 +689,7 @@ def compiled_kernels():
         aside[:] = 0
         for f in range(nf):
             for c in range(3):
-                u, v, p = edge_at(faces, plane, f, c)
+                u, v, p = _edge_at(faces, plane, f, c)
                 if p:
                     rows = first if p == 1 else last
                     rows[aside[p], 0] = u
@@ -799,6 +800,73 @@ def compiled_kernels():
         return watertight, winding, label, count
 
     @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def closed_fans(faces, nverts):  # pragma: no cover - compiled
+        # Whether every vertex's triangles make one closed, consistently wound fan, from each
+        # vertex's own list of (next, previous) corners: an edge u-a is used by the triangles
+        # at u that name a as their next corner (u -> a) or as their previous one (a -> u),
+        # so "each once" at every vertex is edge_check's test, and walking from a triangle to
+        # the one whose previous corner is its next corner must visit the whole list. All the
+        # reads are local to a vertex's list, unlike closed_pieces' reverse-edge lookups and
+        # union-find; where it holds, two triangles joined by a vertex are joined by edges,
+        # so vertex_pieces gives the pieces. False at the first vertex that fails (or a
+        # triangle naming a vertex twice): closed_pieces then decides.
+        nf = faces.shape[0]
+        start = np.zeros(nverts + 1, np.int64)
+        for f in range(nf):
+            a = faces[f, 0]
+            b = faces[f, 1]
+            c = faces[f, 2]
+            if a == b or b == c or c == a:
+                return False
+            start[a + 1] += 1
+            start[b + 1] += 1
+            start[c + 1] += 1
+        for u in range(nverts):
+            start[u + 1] += start[u]
+        fill = start[:-1].copy()
+        nxt = np.empty(start[nverts], faces.dtype)
+        prv = np.empty(start[nverts], faces.dtype)
+        for f in range(nf):
+            for c in range(3):
+                u = faces[f, c]
+                nxt[fill[u]] = faces[f, (c + 1) % 3]
+                prv[fill[u]] = faces[f, (c + 2) % 3]
+                fill[u] += 1
+        for u in range(nverts):
+            s = start[u]
+            e = start[u + 1]
+            for i in range(s, e):
+                a = nxt[i]
+                b = prv[i]
+                outs_a = ins_a = outs_b = ins_b = 0
+                for j in range(s, e):
+                    if nxt[j] == a:
+                        outs_a += 1
+                    if prv[j] == a:
+                        ins_a += 1
+                    if nxt[j] == b:
+                        outs_b += 1
+                    if prv[j] == b:
+                        ins_b += 1
+                if outs_a != 1 or ins_a != 1 or outs_b != 1 or ins_b != 1:
+                    return False
+            if e > s:
+                i = s
+                steps = 0
+                while True:
+                    a = nxt[i]
+                    for j in range(s, e):
+                        if prv[j] == a:
+                            i = j
+                            break
+                    steps += 1
+                    if i == s:
+                        break
+                if steps != e - s:
+                    return False
+        return True
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
     def vertex_pieces(faces, nverts):  # pragma: no cover - compiled
         # the vertices joined by the triangles' edges (a union-find rooted at each piece's
         # least vertex): (label (V,) numbered in order of each piece's least vertex, count),
@@ -860,7 +928,8 @@ def compiled_kernels():
         return flux, area
 
     _KERNELS = {"x_flux": x_flux, "triangles": triangles, "ply_faces": ply_faces, "has_duplicates": has_duplicates,
-                "edge_check": edge_check, "closed_pieces": closed_pieces, "vertex_pieces": vertex_pieces}
+                "edge_check": edge_check, "closed_pieces": closed_pieces, "closed_fans": closed_fans,
+                "vertex_pieces": vertex_pieces}
     return _KERNELS
 
 
@@ -920,10 +989,13 @@ def mesh_summary(mesh) -> dict:
 
     Notes
     -----
-    A closed, consistently wound surface (marching cubes' usual output) is checked and split
-    into pieces by one compiled pass: each vertex's outgoing edges are listed, each edge meets
-    its one reverse use, and the two triangles are joined (a union-find), in linear time and
-    about 64 bytes per triangle. Any other surface takes the general path: one sort of the
+    A closed, consistently wound surface whose pieces share no vertex (marching cubes' usual
+    output) is checked by one compiled pass over each vertex's own triangles (each edge at the
+    vertex used once each way, the triangles one fan) and split into pieces by a union-find
+    over the vertices: 0.41 s and 0.06 s for the default cube's 5.2 M triangles. Where that
+    fails, a second pass lists each vertex's outgoing edges, meets each edge with its one
+    reverse use and joins the two triangles (a union-find over the faces; 1.2 s there), in
+    linear time and about 64 bytes per triangle. Any other surface takes the general path: one sort of the
     ``3F`` edges and a sparse connected-components pass. Its edge arrays are int32 when the
     counts allow, and the edges are sorted as packed int64 keys when those fit (meshes up to
     a few million vertices), else by a stable argsort; both give the same order. Its peak
@@ -940,8 +1012,15 @@ def mesh_summary(mesh) -> dict:
                 "volume_mm3": 0.0, "surface_area_mm2": 0.0, "bodies": 0}
 
     nv = len(vertices)
-    watertight, winding_consistent, label, ncomp = compiled_kernels()["closed_pieces"](faces, nv)
-    if watertight and winding_consistent:  # the usual answer: every piece is closed
+    kernels = compiled_kernels()
+    if kernels["closed_fans"](faces, nv):  # the usual answer: closed, and its pieces meet at no vertex
+        vertex_label, ncomp = kernels["vertex_pieces"](faces, nv)
+        label = vertex_label[faces[:, 0]]
+        del vertex_label
+        watertight = winding_consistent = True
+    else:
+        watertight, winding_consistent, label, ncomp = kernels["closed_pieces"](faces, nv)
+    if watertight and winding_consistent:  # every piece is closed
         area, vol = face_measures(vertices, faces)
         comp_vol = np.bincount(label, weights=vol, minlength=ncomp)
         return {"triangles": int(nf), "watertight": True, "winding_consistent": True,

@@ -178,7 +178,8 @@ _TEXT_KERNELS = None
 def _text_kernels():
     """The compiled row formatters (numba, cached on disk): ``(float rows, integer rows)``,
     each ``kernel(rows, r0, r1, literal, bounds, out) -> (bytes written, row stopped at)``."""
-    global _TEXT_KERNELS
+    # helpers called by other kernels are module globals, not closure cells (see tiles._key_kernels)
+    global _TEXT_KERNELS, _put_int, _put_text, _put_g9
     if _TEXT_KERNELS is not None:
         return _TEXT_KERNELS
     import math
@@ -188,7 +189,7 @@ def _text_kernels():
     pow10 = np.array([10.0 ** k for k in range(23)])  # exact in float64
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def put_int(v, out, pos):  # pragma: no cover - compiled
+    def _put_int(v, out, pos):  # pragma: no cover - compiled
         if v < 0:
             out[pos] = 45
             pos += 1
@@ -204,7 +205,7 @@ def _text_kernels():
         return pos + n
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def put_g9(x, out, pos, pow10, digits):  # pragma: no cover - compiled
+    def _put_g9(x, out, pos, pow10, digits):  # pragma: no cover - compiled
         # Python's '%.9g' % x, or -1 when the ninth digit's rounding is not certain. m is
         # x scaled to nine integer digits by one exact power of ten: one rounding, so within
         # 1.2e-7 of the true value, and the round to nearest is certain unless m lies
@@ -283,10 +284,10 @@ def _text_kernels():
         if a < 10:
             out[pos] = 48
             pos += 1
-        return put_int(a, out, pos)
+        return _put_int(a, out, pos)
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def put_text(literal, bounds, j, out, pos):  # pragma: no cover - compiled
+    def _put_text(literal, bounds, j, out, pos):  # pragma: no cover - compiled
         for i in range(bounds[j], bounds[j + 1]):
             out[pos] = literal[i]
             pos += 1
@@ -298,22 +299,22 @@ def _text_kernels():
         digits = np.empty(9, np.int64)
         for r in range(r0, r1):
             start = pos
-            pos = put_text(literal, bounds, 0, out, pos)
+            pos = _put_text(literal, bounds, 0, out, pos)
             for c in range(3):
-                pos = put_g9(rows[r, c], out, pos, pow10, digits)
+                pos = _put_g9(rows[r, c], out, pos, pow10, digits)
                 if pos < 0:
                     return start, r
-                pos = put_text(literal, bounds, c + 1, out, pos)
+                pos = _put_text(literal, bounds, c + 1, out, pos)
         return pos, r1
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def int_rows(rows, r0, r1, literal, bounds, out):  # pragma: no cover - compiled
         pos = 0
         for r in range(r0, r1):
-            pos = put_text(literal, bounds, 0, out, pos)
+            pos = _put_text(literal, bounds, 0, out, pos)
             for c in range(3):
-                pos = put_int(rows[r, c], out, pos)
-                pos = put_text(literal, bounds, c + 1, out, pos)
+                pos = _put_int(rows[r, c], out, pos)
+                pos = _put_text(literal, bounds, c + 1, out, pos)
         return pos, r1
 
     _TEXT_KERNELS = (float_rows, int_rows)

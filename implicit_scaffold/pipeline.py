@@ -1258,12 +1258,23 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
             # written (the two overlap well on 2 cores: compiled loops and file writes that
             # release the interpreter); the field is final from here on
             metrics_job = _Beside(measure, s < 0, h, region=inside, surface=False)
-        with prog.stage("mesh summary"):
-            _mesh_report(report, mesh_summary(result.mesh), patient)
-    if metrics_job is not None and printer is None and run.slices is None and out_path is not None:
-        with prog.stage("write"):
-            write_outputs(result, out_path)
-        written = True
+        if metrics_job is not None and printer is None and run.slices is None and out_path is not None:
+            from .files import atomic_path
+
+            # the file does not depend on the summary: written beside it (the write is mostly
+            # the kernel copying pages, the summary a compiled loop; both release the interpreter)
+            with atomic_path(out_path) as tmp:
+                write_job = _Beside(write_outputs, result, tmp)
+                try:
+                    with prog.stage("mesh summary"):
+                        _mesh_report(report, mesh_summary(result.mesh), patient)
+                finally:
+                    with prog.stage("write"):
+                        write_job.result()  # waited for even when interrupted: then tmp is removed
+            written = True
+        else:
+            with prog.stage("mesh summary"):
+                _mesh_report(report, mesh_summary(result.mesh), patient)
     if morphometry:
         from .morphometry import morphometry as measure, surface_measures
 

@@ -126,10 +126,12 @@ def _flood_kernels():
     ``flood(d2, r2)`` from all six faces, ``flood_faces(d2, r2, low_x, high_x)`` from the
     y and z faces and only the x faces asked for (a slab's x faces inside the grid are not
     the grid's: their planes come from the neighbours, as part of the marker ``r2``)."""
+    # helpers called by other kernels are module globals, not closure cells (see tiles._key_kernels)
+    global _flood_spread, _flood_scan
     import numba as nb
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def spread(d2, r2, queue, qh, qt):  # pragma: no cover - compiled
+    def _flood_spread(d2, r2, queue, qh, qt):  # pragma: no cover - compiled
         # the FIFO: each queued voxel raises its face neighbours that it can (min of its value
         # and theirs under d2), and queues those it raised; False if the ring overflowed
         nx, ny, nz = d2.shape
@@ -190,10 +192,10 @@ def _flood_kernels():
                     if d2[i, j, k] > 0:
                         queue[qt] = (i * ny + j) * nz + k
                         qt += 1
-        return spread(d2, r2, queue, 0, qt)
+        return _flood_spread(d2, r2, queue, 0, qt)
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def scan(d2, r2, si, sj, sk, queue):  # pragma: no cover - compiled
+    def _flood_scan(d2, r2, si, sj, sk, queue):  # pragma: no cover - compiled
         # one raster scan in the direction (si, sj, sk) (each +1 or -1): every void voxel takes
         # the largest of its three neighbours behind it in the scan, under its own d2. With a
         # queue, the voxels that could raise a neighbour behind them (the scan has passed it) are
@@ -249,12 +251,12 @@ def _flood_kernels():
                             or j == 0 or k == 0 or j == ny - 1 or k == nz - 1):
                         r2[i, j, k] = d2[i, j, k]
         none = np.empty(0, np.int64)
-        scan(d2, r2, 1, 1, 1, none)
-        scan(d2, r2, -1, -1, -1, none)
-        scan(d2, r2, -1, 1, 1, none)
+        _flood_scan(d2, r2, 1, 1, 1, none)
+        _flood_scan(d2, r2, -1, -1, -1, none)
+        _flood_scan(d2, r2, -1, 1, 1, none)
         queue = np.empty(nx * ny * nz + 1, np.int64)
-        qt = scan(d2, r2, 1, -1, -1, queue)
-        return spread(d2, r2, queue, 0, qt)
+        qt = _flood_scan(d2, r2, 1, -1, -1, queue)
+        return _flood_spread(d2, r2, queue, 0, qt)
 
     def flood(d2, r2):
         # both halves along x at once, each from its own faces of the grid, then what crosses

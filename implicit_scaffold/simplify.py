@@ -230,7 +230,8 @@ _KERNELS = None
 
 def _kernels():
     """The compiled loops of :func:`surface_deviation` (numba), built on first use and cached on disk."""
-    global _KERNELS
+    # a helper called by another kernel is a module global, not a closure cell (see tiles._key_kernels)
+    global _KERNELS, _dist2
     if _KERNELS is not None:
         return _KERNELS
     import numba as nb
@@ -249,7 +250,7 @@ def _kernels():
                         n += 1
 
     @nb.njit(cache=True, nogil=True)
-    def dist2(p, t):  # pragma: no cover - compiled
+    def _dist2(p, t):  # pragma: no cover - compiled
         # the closest point of triangle t (3, 3) to p by its Voronoi regions (Ericson, 5.1.5)
         ax, ay, az = t[0, 0], t[0, 1], t[0, 2]
         abx, aby, abz = t[1, 0] - ax, t[1, 1] - ay, t[1, 2] - az
@@ -299,7 +300,7 @@ def _kernels():
         for i in range(lo, hi):
             best = np.inf
             for j in range(start[i], stop[i]):
-                d = dist2(points[i], tri[ids[j]])
+                d = _dist2(points[i], tri[ids[j]])
                 if d < best:
                     best = d
             if best <= reach2:

@@ -106,13 +106,16 @@ _KEY_KERNELS = None
 
 def _key_kernels():
     """Compiled (numba) histograms of the ordered keys of float32 values under a mask."""
-    global _KEY_KERNELS
+    # the helpers are module globals, not closure cells: numba keys its disk cache on a
+    # closure's cells, and a dispatcher pickles differently in every process (a fresh
+    # compile each run)
+    global _KEY_KERNELS, _ordered_key
     if _KEY_KERNELS is not None:
         return _KEY_KERNELS
     import numba as nb
 
     @nb.njit(cache=True, boundscheck=False)
-    def key(bits):  # pragma: no cover - compiled
+    def _ordered_key(bits):  # pragma: no cover - compiled
         # float32 bits as uint32 keys in the same order (negative numbers reversed, -0 < +0)
         return ~bits if bits >> np.uint32(31) else bits | np.uint32(0x80000000)
 
@@ -121,7 +124,7 @@ def _key_kernels():
         n = 0
         for i in range(bits.size):
             if mask[i]:
-                high[key(bits[i]) >> np.uint32(16)] += 1
+                high[_ordered_key(bits[i]) >> np.uint32(16)] += 1
                 n += 1
         return n
 
@@ -129,7 +132,7 @@ def _key_kernels():
     def count_low(bits, mask, tops, lows):  # pragma: no cover - compiled
         for i in range(bits.size):
             if mask[i]:
-                k = key(bits[i])
+                k = _ordered_key(bits[i])
                 t = k >> np.uint32(16)
                 for j in range(tops.size):
                     if tops[j] == t:
@@ -138,13 +141,13 @@ def _key_kernels():
     @nb.njit(cache=True, boundscheck=False)
     def count_high_groups(bits, group, high):  # pragma: no cover - compiled
         for i in range(bits.size):
-            high[group[i], key(bits[i]) >> np.uint32(16)] += 1
+            high[group[i], _ordered_key(bits[i]) >> np.uint32(16)] += 1
 
     @nb.njit(cache=True, boundscheck=False)
     def count_low_groups(bits, group, tops, lows):  # pragma: no cover - compiled
         for i in range(bits.size):
             g = group[i]
-            k = key(bits[i])
+            k = _ordered_key(bits[i])
             t = k >> np.uint32(16)
             for j in range(tops.shape[1]):
                 if tops[g, j] == t:
@@ -157,7 +160,7 @@ def _key_kernels():
         j = 0
         for i in range(bits.size):
             if mask[i]:
-                k = key(bits[i])
+                k = _ordered_key(bits[i])
                 if k < lo_key:
                     below += 1
                 elif k <= hi_key:

@@ -268,6 +268,49 @@ def test_edge_checks_match_brute_force_on_every_path(sphere, monkeypatch, width,
     assert s["bodies"] == 1 and s["watertight"] and s["winding_consistent"]
 
 
+def _octahedron(centre, r=1.0):
+    v = np.array([[r, 0, 0], [-r, 0, 0], [0, r, 0], [0, -r, 0], [0, 0, r], [0, 0, -r]], float) + centre
+    f = [[0, 2, 4], [2, 1, 4], [1, 3, 4], [3, 0, 4], [2, 0, 5], [1, 2, 5], [3, 1, 5], [0, 3, 5]]
+    return v, np.array(f)
+
+
+def test_pieces_meeting_at_a_vertex_are_two_bodies():
+    # two closed octahedra sharing one vertex (the first's +x tip is the second's -x tip): every
+    # edge is used once each way, yet the shared vertex's triangles make two fans, so the pieces
+    # joined by vertices (one) are not the pieces joined by edges (two)
+    v1, f1 = _octahedron(np.zeros(3))
+    v2, f2 = _octahedron(np.array([2.0, 0.0, 0.0]))
+    f2 = np.where(f2 == 1, 0, np.where(f2 > 1, f2 + 5, f2 + 6))  # its -x tip (1) is vertex 0
+    vertices = np.vstack([v1, v2[[0, 2, 3, 4, 5]]])
+    faces = np.vstack([f1, f2])
+    # the second's least x is the shared tip, at x = 1
+    assert vertices[faces[8:]][..., 0].min() == 1.0 and np.count_nonzero(faces[8:] == 0) == 4
+    m = trimesh.Trimesh(vertices, faces, process=False)
+    watertight, winding, bad = brute_force_edges(faces)
+    assert watertight and winding and bad == 0
+    comps = trimesh.graph.connected_components(m.face_adjacency, nodes=np.arange(len(faces)))
+    assert len(comps) == 2
+    assert not mesh_mod.compiled_kernels()["closed_fans"](faces, len(vertices))
+    s = mesh_summary(m)
+    assert s["watertight"] and s["winding_consistent"] and s["bodies"] == 2
+    np.testing.assert_allclose(s["volume_mm3"], 2 * 4 / 3, rtol=1e-12)  # an octahedron of radius 1: 4/3
+
+
+def test_closed_fans_against_brute_force(sphere):
+    # the fast check says yes exactly for closed, consistently wound surfaces with one fan per vertex
+    m = sphere[0]
+    f = np.asarray(m.faces, dtype=np.int64)
+    flipped = f.copy()
+    flipped[::97] = flipped[::97, ::-1]
+    rng = np.random.default_rng(3)
+    fans = mesh_mod.compiled_kernels()["closed_fans"]
+    for faces, manifold in [(f, True), (f[3:], False), (flipped, False), (np.vstack([f, f[:4]]), False),
+                            (rng.integers(0, 40, (60, 3)), False), (f[:, ::-1].copy(), True)]:
+        watertight, winding, _ = brute_force_edges(faces)
+        assert (watertight and winding) == manifold
+        assert fans(faces, len(m.vertices)) == manifold
+
+
 def test_values_exactly_at_the_level():
     # A box whose faces pass through voxel centres: exact zeros on all six faces.
     h = 0.25
