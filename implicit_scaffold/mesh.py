@@ -531,7 +531,7 @@ def compiled_kernels():
     order; no fast-math, so no fused multiply-adds), without the temporaries.
     """
     # helpers called by other kernels are module globals, not closure cells (see tiles._key_kernels)
-    global _KERNELS, _edge_at
+    global _KERNELS, _edge_at, _corner_start
     if _KERNELS is not None:
         return _KERNELS
     import numba as nb
@@ -725,18 +725,25 @@ def compiled_kernels():
         return watertight, winding, first, last
 
     @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def _corner_start(faces, nverts):  # pragma: no cover - compiled
+        # where each vertex's list of its triangles' corners starts (a counting sort's offsets;
+        # start[nverts] is 3F)
+        start = np.zeros(nverts + 1, np.int64)
+        for f in range(faces.shape[0]):
+            for c in range(3):
+                start[faces[f, c] + 1] += 1
+        for u in range(nverts):
+            start[u + 1] += start[u]
+        return start
+
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
     def closed_pieces(faces, nverts):  # pragma: no cover - compiled
         # edge_check's test, and on the way the triangles joined across each edge's two uses
         # (a union-find over the faces): the pieces of a closed, consistently wound surface
         # in linear time. Returns (watertight, winding, label (F,) in order of first face, count);
         # the labels are meaningful only when both flags hold.
         nf = faces.shape[0]
-        start = np.zeros(nverts + 1, np.int64)
-        for f in range(nf):
-            for c in range(3):
-                start[faces[f, c] + 1] += 1
-        for u in range(nverts):
-            start[u + 1] += start[u]
+        start = _corner_start(faces, nverts)
         fill = start[:-1].copy()
         adj = np.empty(start[nverts], faces.dtype)
         owner = np.empty(start[nverts], np.int64)
@@ -811,22 +818,13 @@ def compiled_kernels():
         # so vertex_pieces gives the pieces. False at the first vertex that fails (or a
         # triangle naming a vertex twice): closed_pieces then decides.
         nf = faces.shape[0]
-        start = np.zeros(nverts + 1, np.int64)
-        for f in range(nf):
-            a = faces[f, 0]
-            b = faces[f, 1]
-            c = faces[f, 2]
-            if a == b or b == c or c == a:
-                return False
-            start[a + 1] += 1
-            start[b + 1] += 1
-            start[c + 1] += 1
-        for u in range(nverts):
-            start[u + 1] += start[u]
+        start = _corner_start(faces, nverts)
         fill = start[:-1].copy()
         nxt = np.empty(start[nverts], faces.dtype)
         prv = np.empty(start[nverts], faces.dtype)
         for f in range(nf):
+            if faces[f, 0] == faces[f, 1] or faces[f, 1] == faces[f, 2] or faces[f, 2] == faces[f, 0]:
+                return False
             for c in range(3):
                 u = faces[f, c]
                 nxt[fill[u]] = faces[f, (c + 1) % 3]
