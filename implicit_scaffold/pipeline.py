@@ -590,18 +590,17 @@ def _import_mesh_libraries() -> None:
     from vtkmodules import vtkFiltersCore  # noqa: F401
 
 
-def _metrics_fit_beside(result: Result, tolerance: float, max_memory: int) -> bool:
-    """Whether the voxel measures may run beside the mesh summary and write: their arrays
-    and the summary's together within `max_memory`, and nothing else compiled and parallel
-    (the simplification) in between."""
+def _metrics_fit_beside(grid: Grid, triangles: int, tolerance: float, max_memory: int) -> bool:
+    """Whether the voxel measures may run beside the mesh (its second pass), its summary and
+    write: their arrays and a mesh of `triangles` together within `max_memory`, and nothing else
+    compiled and parallel (the simplification) in between."""
     from .grid import MORPHOMETRY_BYTES_PER_VOXEL
     from .memory import process_memory
     from .mesh_stream import MESH_BYTES_PER_TRIANGLE
 
     if tolerance > 0:
         return False
-    need = (process_memory() + MORPHOMETRY_BYTES_PER_VOXEL * result.grid.size
-            + MESH_BYTES_PER_TRIANGLE * len(result.mesh.faces))
+    need = process_memory() + MORPHOMETRY_BYTES_PER_VOXEL * grid.size + MESH_BYTES_PER_TRIANGLE * triangles
     return need <= max_memory
 
 
@@ -1242,22 +1241,30 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
             result.mesh = mesh_field(s, grid, check=False)
         # the volume alone decides on a correction; the full summary is of the final mesh
         step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
+        tolerance = _tolerance(params, h)
+
+        def measure_beside(triangles):
+            from .morphometry import morphometry as measure
+
+            # the voxel measures run in a second thread while the mesh is made again, summed
+            # up and written (they overlap well on 2 cores: compiled loops and file writes that
+            # release the interpreter); the field is final from here on
+            if morphometry and _metrics_fit_beside(grid, triangles, tolerance, run.max_memory):
+                return _Beside(measure, s < 0, h, region=inside, surface=False)
+            return None
+
         if step is not None:
+            triangles = len(result.mesh.faces)  # the second mesh's is about the same
             result.mesh = None  # its memory, before the second mesh
             _correct(tf, step, report, params, grid, prog, one_piece)
+            metrics_job = measure_beside(triangles)
             with prog.stage("mesh", "again, at the corrected level"):
                 result.mesh = mesh_field(s, grid, check=False)
-        tolerance = _tolerance(params, h)
         if tolerance > 0:
             result.mesh, report["simplification"], simplify_warnings = _simplify(
                 result.mesh, tolerance, h, float(patient.volume), prog, run.max_memory)
-        if morphometry and _metrics_fit_beside(result, tolerance, run.max_memory):
-            from .morphometry import morphometry as measure
-
-            # the voxel measures run in a second thread while the mesh is summed up and
-            # written (the two overlap well on 2 cores: compiled loops and file writes that
-            # release the interpreter); the field is final from here on
-            metrics_job = _Beside(measure, s < 0, h, region=inside, surface=False)
+        if metrics_job is None:
+            metrics_job = measure_beside(len(result.mesh.faces))
         if metrics_job is not None and printer is None and run.slices is None and out_path is not None:
             from .files import atomic_path
 
