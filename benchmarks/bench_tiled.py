@@ -22,12 +22,16 @@
 
 Every run is a fresh process (its peak resident memory is its own), on this machine's
 OpenCL device; the figures are medians of --runs runs. Outputs go to a temporary folder
-and are removed after each run. With --write the table goes to benchmarks/scaling.md too
-(with the date, the command and the load average), replacing what was there.
+and are removed after each run. With --write, benchmarks/scaling.md gets this run's table
+(with the date, the command and the load average) above the earlier runs' tables, and at its
+top the whole table: every run's newest row, with when and by which command it was measured.
+``--only '' --write`` measures nothing and writes the whole table again from the runs there.
 """
 from __future__ import annotations
 
 import argparse
+import re
+import shlex
 import sys
 from pathlib import Path
 
@@ -36,6 +40,9 @@ from _common import DATA, median_runs, table  # noqa: E402
 
 FIGURE = Path(__file__).resolve().parent / "figures" / "scaling.png"
 SCALING = Path(__file__).resolve().parent / "scaling.md"
+TITLE = "How time and memory grow (issues 5 and 12)"
+#: the heading above the runs' own tables, newest first
+RUNS = "## Every run's table, newest first"
 
 RUN = """
 import os, shutil, tempfile, threading, time
@@ -115,7 +122,7 @@ def main(argv=None) -> int:
     ap.add_argument("--folder", default=None, help="where the outputs are written (a temporary folder)")
     ap.add_argument("--write", action="store_true", help="write the table to benchmarks/scaling.md")
     args = ap.parse_args(argv)
-    only = set(args.only.split(","))
+    only = set(filter(None, args.only.split(",")))
     rows, cache = [], {}
 
     def run(name, options, kind="stl", patient=(None, {})):
@@ -189,23 +196,74 @@ def main(argv=None) -> int:
     return 0
 
 
+#: a run's table in scaling.md: the line that says when and how, then the table below it
+WRITTEN = re.compile(r"^Written by `(?P<command>[^`]+)` on (?P<date>\d{4}-\d\d-\d\d \d\d:\d\d) UTC")
+#: the whole table's own columns beside HEADER's
+WHEN = ["measured (UTC)", "command"]
+
+
+def _history(text: str) -> list[tuple[str, str, list[str]]]:
+    """Every row the script wrote to scaling.md before: ``(date, command, cells)``, from each run's
+    table (the one under its "Written by" line, with this script's HEADER)."""
+    found, date, command = [], None, None
+    for line in text.splitlines():
+        m = WRITTEN.match(line)
+        if m:
+            date, command = m["date"], m["command"]
+            continue
+        if date is None or not line.startswith("|"):
+            if line.startswith("#"):
+                date = None  # a heading ends the run's block (the whole table has no "Written by")
+            continue
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if len(cells) == len(HEADER) and cells != HEADER and not set("".join(cells)) <= set("-"):
+            found.append((date, command, cells))
+    return found
+
+
+def whole_table(text: str) -> str:
+    """The newest row of every run in `text` (scaling.md's runs), one table, with when and how each
+    was measured; runs in the order they were first measured."""
+    newest, order = {}, []
+    for date, command, cells in _history(text):
+        name = cells[0]
+        if name not in newest:
+            order.append(name)
+        if name not in newest or date >= newest[name][0]:
+            newest[name] = (date, command, cells)
+    rows = [newest[n][2] + [newest[n][0], f"`{newest[n][1]}`"] for n in order]
+    return table(rows, HEADER + WHEN)
+
+
 def _write(rows, argv) -> None:
-    """benchmarks/scaling.md: this run's table, its date, command and load."""
+    """benchmarks/scaling.md: the whole table (every run's newest row, with its date and command),
+    then this run's table with its date, command and load, then the runs before it."""
     import datetime
     import os
 
     load = ", ".join(f"{v:.1f}" for v in os.getloadavg())
-    command = "python benchmarks/bench_tiled.py " + " ".join(argv if argv is not None else sys.argv[1:])
-    text = (f"# How time and memory grow (issues 5 and 12)\n\nWritten by `{command}` on "
-            f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, on this project's 2-core machine; "
-            f"load average at the end {load}. Each row is the median of the runs asked for, each run a fresh "
-            "process; peaks are resident memory, of the run alone and of the run with its mesh workers "
-            "(proportional set sizes summed, each page once). Runs without `max_memory` use the default "
-            "budget (4 GiB).\n\n" + table(rows, HEADER) + "\n")
-    if SCALING.exists():
-        # the rows not measured again stay below, as they were written (each table says when and how)
-        text += "\n## Earlier runs\n\n" + SCALING.read_text().replace("# ", "### ", 1)
-    SCALING.write_text(text)
+    command = shlex.join(["python", "benchmarks/bench_tiled.py", *(argv if argv is not None else sys.argv[1:])])
+    old = SCALING.read_text() if SCALING.exists() else ""
+    # the runs' tables as they were written (each says when and how), without the old whole table
+    if RUNS in old:
+        body = old[old.index(RUNS) + len(RUNS):]
+    else:
+        body = re.sub(r"(?m)^## Earlier runs\n+", "", re.sub(r"(?m)^# How", "### How", old))
+    if rows:
+        body = (f"### {TITLE}\n\nWritten by `{command}` on "
+                f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, on this project's 2-core "
+                f"machine; load average at the end {load}. Each row is the median of the runs asked for, each run "
+                "a fresh process; peaks are resident memory, of the run alone and of the run with its mesh workers "
+                "(proportional set sizes summed, each page once). Runs without `max_memory` use the default "
+                "budget (4 GiB).\n\n" + table(rows, HEADER) + "\n\n" + body.lstrip("\n"))
+    runs = RUNS + "\n\n" + body.lstrip("\n")
+    text = (f"# {TITLE}\n\nWritten by `{command}` from the runs below: every run's newest row, with the "
+            "time it was measured (UTC) and the command that measured it. Each run is a fresh process on this "
+            "project's 2-core machine; the runs' own paragraphs say how many runs each median took and the load "
+            "at the time.\n\n" + whole_table(runs) + "\n\n" + runs)
+    tmp = SCALING.with_suffix(".md.tmp")
+    tmp.write_text(text)
+    tmp.replace(SCALING)
     print(f"wrote {SCALING}")
 
 
