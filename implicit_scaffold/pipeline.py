@@ -980,11 +980,12 @@ class _RunPlan:
         # what the process holds once the patient has run (its compiled code loaded, e.g. numba's)
         held = release() + STAGE_RESERVE + int(reserve) - int(slab_share)
         # worker processes (--workers) each hold a slab of the lattice pass at once, and their own
-        # runtime beside what they share with this process; this process then holds no slab (the
-        # workers write theirs to disk), and the later passes run here once the workers are gone
+        # runtime and packed primitives (each packs them for its device queue) beside what they
+        # share with this process; this process then holds no slab (the workers write theirs to
+        # disk), and the later passes run here once the workers are gone
         n = self.workers
         if n > 1:
-            held += n * WORKER_RESERVE
+            held += n * (WORKER_RESERVE + int(reserve) - int(slab_share))
         from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
         plane = grid.shape[1] * grid.shape[2]
