@@ -40,6 +40,7 @@ Worker processes (:class:`Processes`)
 """
 from __future__ import annotations
 
+import collections
 import contextlib
 import gc
 import itertools
@@ -195,24 +196,21 @@ class DaskCluster:
             return self.client.submit(fn, shared, item, pure=False)
 
         first = [submit(item) for item in itertools.islice(items, 2 * self.workers)]
-        if ordered:
-            queue = list(first)
-            while queue:
-                future = queue.pop(0)
-                result = future.result()
-                future.release()
-                nxt = next(items, None)
-                if nxt is not None:
-                    queue.append(submit(nxt))
-                yield result
-            return
-        done = as_completed(first)
-        for future in done:
+        # in item order: the oldest future first; else whichever finishes first
+        queue = collections.deque(first) if ordered else as_completed(first)
+        take = queue.popleft if ordered else queue.__next__
+        add = queue.append if ordered else queue.add
+        end = object()
+        while True:
+            try:
+                future = take()
+            except (IndexError, StopIteration):
+                return
             result = future.result()
             future.release()
-            nxt = next(items, None)
-            if nxt is not None:
-                done.add(submit(nxt))
+            nxt = next(items, end)
+            if nxt is not end:
+                add(submit(nxt))
             yield result
 
     def close(self) -> None:

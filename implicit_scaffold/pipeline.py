@@ -1163,8 +1163,8 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     if out_path is not None:
         report["file_size_bytes"] = out_path.stat().st_size
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
-    if report.get("mesh_workers", 1) > 1:
-        # the mesh stage's worker processes: the largest one's peak (two run at once)
+    if report.get("mesh_workers", 1) > 1 or ((report.get("tiled") or {}).get("workers") or 1) > 1:
+        # the lattice's or the mesh stage's worker processes: the largest one's peak
         report["peak_memory_workers_mb"] = round(peak_memory(children=True) / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}

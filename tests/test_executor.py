@@ -202,31 +202,3 @@ def test_a_budget_counts_every_workers_slab_and_runtime(tmp_path):
     assert done["tiled"]["workers"] == 3 and done["tiled"]["slabs"] >= 3
     assert not [p for p in tmp_path.iterdir() if p.name not in ("a.npy", "a.json")]
 
-
-def test_an_interrupt_in_the_workers_pass_leaves_no_file_and_no_worker(tmp_path, monkeypatch):
-    import tempfile
-
-    from implicit_scaffold.tiles import StreamQuantile
-
-    scratch = tmp_path / "scratch"
-    scratch.mkdir()
-    monkeypatch.setattr(tempfile, "tempdir", str(scratch))
-    calls = []
-    real = StreamQuantile.merge
-
-    def interrupted(self, *a):
-        # this process adds the workers' counts as they come: Ctrl-C lands here mid-pass
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real(self, *a)
-
-    monkeypatch.setattr(StreamQuantile, "merge", interrupted)
-    out = tmp_path / "out" / "s.nii"
-    out.parent.mkdir()
-    with pytest.raises(KeyboardInterrupt):
-        generate(output=out, mesh=False, morphometry=False, tiled=20 * 42 * 42, workers=2, **TINY)
-    assert len(calls) == 2
-    assert not list(out.parent.iterdir())   # no output, no report, no temporary file
-    assert not list(scratch.iterdir())      # no field left on disk
-    assert _no_workers_left()
