@@ -363,6 +363,10 @@ def _add_build_options(g) -> None:
                          "bytes; a budget too small is refused before the work, naming one that would do")
     rg.add_argument("--scheduler", default=None, metavar="ADDRESS",
                     help="run the slabs on a dask.distributed scheduler (tcp://host:8786); same bytes out")
+    rg.add_argument("--workers", type=int, default=1, metavar="N",
+                    help="run the slabs' lattice passes in N local worker processes (the run goes in slabs, at "
+                         "least one per worker); their memory counts against --max-memory; same bytes out "
+                         "(default 1: this process)")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
 
@@ -412,7 +416,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
         from .grade import load_ct
 
         graded["ct"] = load_ct(source)
-    tiling = {"max_memory": args.max_memory, "scheduler": args.scheduler}
+    tiling = {"max_memory": args.max_memory, "scheduler": args.scheduler, "workers": args.workers}
     if args.scheduler is not None:
         tiling["tiled"] = True  # the slabs are what the cluster runs
     return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
@@ -819,6 +823,7 @@ def _memory_line(r: dict) -> str:
     how = (f"tiled in {tiled['slabs']} slab{'s' if tiled['slabs'] != 1 else ''} of up to "
            f"{tiled['planes_per_slab']} planes within "
            f"{tiled['max_memory_mb'] / 1024:.1f} GiB" + (f" on {tiled['scheduler']}" if tiled["scheduler"] else "")
+           + (f" in {tiled['workers']} worker processes" if (tiled.get("workers") or 1) > 1 else "")
            if tiled else "whole grid in memory")
     return f"  memory: {how}; peak {r['peak_memory_mb'] / 1024:.2f} GiB"
 

@@ -43,18 +43,14 @@ the file gets the bytes one process writes, and it adds the slabs' sums in order
 from __future__ import annotations
 
 import contextlib
-import gc
 import os
-import pickle
-import signal
 import tempfile
-import threading
-import traceback
 from dataclasses import dataclass
 
 import numpy as np
 
 from .errors import ScaffoldError
+from .executor import InProcess, Processes, free_cpus, start_method
 from .memory import available_memory
 from .files import atomic_path, check_writable, folder_of, new_temp, remove_quietly
 from .mesh import (FACE_CHUNK, TIE_ROUNDS, break_face_ties, check_level, check_meshable, compiled_kernels,
@@ -214,7 +210,7 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         # a second slab in flight only where it fits in the memory free now (a safety net:
         # the caller sizes max_voxels with MESH_SLAB_BYTES_PER_VOXEL)
         workers = _MAX_WORKERS if (spec is not None and len(slabs) > 1 and nx * ny * nz >= _PARALLEL_MIN_VOXELS
-                                   and _free_cpus() >= _MAX_WORKERS
+                                   and free_cpus() >= _MAX_WORKERS
                                    and available_memory() > MESH_SLAB_BYTES_PER_VOXEL * int(max_voxels)) else 1
     elif workers > 1 and spec is None:
         raise ScaffoldError("slabs can be meshed in worker processes only from a FieldFile (or an ArraySlabs "
@@ -240,19 +236,26 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
         _write_at(out, b"\0" * _PLY_HEADER_SIZE if ply else STL_HEADER + b"\0" * 4, 0)
         target = _Target(out_path=str(tmp), faces_path=faces_path, out=out, faces=faces if ply else None, ply=ply)
         if workers > 1:
-            pool = stack.enter_context(_Pool(workers, spec, level, target))
-            pool.run(slabs, stitch, progress)
+            if start_method() == "fork":
+                # loaded once here, the workers share scikit-image's and the kernels' code
+                # pages with this process instead of loading (or compiling) their own
+                from skimage.measure import marching_cubes  # noqa: F401
+                compiled_kernels()
+            job = _SlabJob(spec, level, _Target(str(tmp), faces_path, None, None, ply))
+            executor = Processes(workers, name="implicit_scaffold-mesh")
         else:
-            for done, slab in enumerate(slabs, start=1):
-                held = _mesh_slab(source, slab.x0, slab.x1, level)
-                if held is None:
-                    stitch.skip()
-                else:
-                    verts, faces_, meshed, labels = held
-                    del held
-                    place = stitch.add(meshed)
-                    stitch.measured(*_write_slab(verts, faces_, slab.x0, grid, place, target, labels))
-                    del verts, faces_, labels
+            job, executor = _SlabJob(source, level, target), InProcess()
+
+        def place(meshed):
+            # in slab order: number the slab's vertices, check the plane it shares with the last
+            if meshed is None:
+                return stitch.skip()
+            return stitch.add(meshed)
+
+        with contextlib.closing(executor.map(_mesh_task, slabs, job, answer=place)) as results:
+            for done, sums in enumerate(results, start=1):
+                if sums is not None:
+                    stitch.measured(*sums)  # in slab order, so that the totals do not depend on the workers
                 if progress is not None:
                     progress(done, len(slabs))
         stitch.finish()
@@ -585,231 +588,55 @@ class _Stitch:
         self.winding_consistent &= bool(np.all(backward[pair] != backward[pair + 1]))
 
 
-# ----------------------------------------------------------------------------- worker processes
+# ----------------------------------------------------------------------------- the slab task
 
 
-def _free_cpus() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
+@dataclass(frozen=True)
+class _SlabJob:
+    """What every slab's meshing needs: the field source (or, for a worker process, how to
+    open its own: :func:`_worker_source`), the level and the output."""
 
-
-def _start_method() -> str:
-    """fork where there is one (no re-import of the caller's script, nothing to pickle), else spawn."""
-    import multiprocessing
-
-    return "fork" if "fork" in multiprocessing.get_all_start_methods() else "spawn"
+    source: object
+    level: float
+    target: _Target
 
 
 def _worker_source(source):
     """How a worker process gets `source`, or None when it cannot."""
     if isinstance(source, FieldFile):
         return ("file", source.path, source.grid)  # its own reader: a shared one shares the offset
-    if type(source) is ArraySlabs and _start_method() == "fork":
-        return ("inherit", source)
+    if type(source) is ArraySlabs and start_method() == "fork":
+        return source  # inherited
     return None
 
 
-def _worker(conn, spec, level: float, target: _Target) -> None:  # pragma: no cover - runs in a worker
-    """A worker process: mesh the slabs sent, write each where the parent says."""
-    # Ctrl-C reaches the whole process group; the parent stops the workers
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    _die_with_parent()
-    source = FieldFile.open_readonly(spec[1], spec[2]) if spec[0] == "file" else spec[1]
-    out = os.open(target.out_path, os.O_WRONLY)
-    faces = os.open(target.faces_path, os.O_WRONLY) if target.faces_path else None
-    mine = _Target(target.out_path, target.faces_path, out, faces, target.ply)
+def _mesh_task(job: _SlabJob, slab):
+    """Mesh one slab, ask the parent where its records go (its :class:`_Meshed`, or None for
+    no surface, answered with a :class:`_Place`), write them there; its sums
+    (:func:`_write_slab`) or None. A generator: see :mod:`.executor`'s ``answer``."""
+    source = job.source
+    if isinstance(source, tuple):
+        source = FieldFile.open_readonly(source[1], source[2])
     try:
-        while True:
-            task = conn.recv()
-            if task is None:
-                return
-            x0, x1 = task
-            try:
-                held = _mesh_slab(source, x0, x1, level)
-                conn.send(("meshed", None if held is None else held[2]))
-                if held is None:
-                    continue
-                verts, faces_, _, labels = held
-                del held
-                place = conn.recv()
-                if place is None:
-                    return
-                conn.send(("written", _write_slab(verts, faces_, x0, source.grid, place, mine, labels)))
-                del verts, faces_, labels
-            except Exception as exc:  # noqa: BLE001 - handed to the parent, which raises it in slab order
-                conn.send(("error", _portable(exc)))
-    except (EOFError, BrokenPipeError):
-        return  # the parent is gone
-    finally:
-        os.close(out)
-        if faces is not None:
-            os.close(faces)
-        if spec[0] == "file":
-            source.close()
-
-
-def _die_with_parent() -> None:  # pragma: no cover - runs in a worker
-    """Where Linux allows, have the kernel kill this worker when its parent dies (killed,
-    say), so that no worker is left meshing for nobody."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None, use_errno=True).prctl(1, int(signal.SIGKILL))  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        return
-
-
-def _portable(exc: BaseException) -> BaseException:
-    """`exc` if it pickles and says enough, else a RuntimeError carrying its traceback."""
-    if isinstance(exc, (ScaffoldError, OSError, MemoryError)):
+        held = _mesh_slab(source, slab.x0, slab.x1, job.level)
+        place = yield None if held is None else held[2]
+        if held is None:
+            return None
+        verts, faces_, _, labels = held
+        del held
+        target = job.target
+        if target.out is not None:
+            return _write_slab(verts, faces_, slab.x0, source.grid, place, target, labels)
+        # a worker process: its own descriptors, opened by path
+        out = os.open(target.out_path, os.O_WRONLY)
+        faces = os.open(target.faces_path, os.O_WRONLY) if target.faces_path else None
         try:
-            pickle.dumps(exc)
-            return exc
-        except Exception:  # noqa: BLE001 - any pickling failure: fall back to the text
-            pass
-    return RuntimeError("a meshing worker process failed:\n" + "".join(traceback.format_exception(exc)))
-
-
-@contextlib.contextmanager
-def _sigint_ignored():
-    """Ignore Ctrl-C while workers start, so that they inherit that and leave it to the parent."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    old = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, old)
-
-
-class _Pool:
-    """Worker processes, one slab each at most; stopped (killed if need be) on leaving."""
-
-    def __init__(self, n: int, spec, level: float, target: _Target):
-        import multiprocessing
-
-        ctx = multiprocessing.get_context(_start_method())
-        if ctx.get_start_method() == "fork":
-            # loaded once here, the workers share scikit-image's and the kernels' code
-            # pages with this process instead of loading (or compiling) their own
-            from skimage.measure import marching_cubes  # noqa: F401
-            compiled_kernels()
-        self.procs = []
-        self.conns = []
-        self._ok = False
-        # what the parent's objects hold is not copied into the workers by their collector
-        gc.freeze()
-        try:
-            for _ in range(n):
-                mine, theirs = ctx.Pipe()
-                proc = ctx.Process(target=_worker, args=(theirs, spec, level, target), daemon=True,
-                                   name="implicit_scaffold-mesh")
-                with _sigint_ignored():
-                    proc.start()
-                theirs.close()
-                self.procs.append(proc)
-                self.conns.append(mine)
-        except BaseException:
-            self.close(kill=True)
-            raise
+            return _write_slab(verts, faces_, slab.x0, source.grid, place,
+                               _Target(target.out_path, target.faces_path, out, faces, target.ply), labels)
         finally:
-            gc.unfreeze()
-
-    def __enter__(self):
-        return self
-
-    def __exit__(self, kind, exc, tb):
-        self.close(kill=not self._ok)
-
-    def close(self, *, kill: bool) -> None:
-        """Stop the workers: ask them to finish (or kill them, after an error or Ctrl-C), and wait."""
-        for conn in self.conns:
-            if not kill:
-                with contextlib.suppress(OSError):
-                    conn.send(None)
-        for proc in self.procs:
-            if kill and proc.is_alive():
-                proc.kill()
-            proc.join(timeout=None if kill else 60)
-            if proc.is_alive():  # pragma: no cover - a worker that would not finish
-                proc.kill()
-                proc.join()
-        for conn in self.conns:
-            conn.close()
-        self.procs = []
-        self.conns = []
-
-    def _receive(self, w: int):
-        try:
-            return self.conns[w].recv()
-        except (EOFError, OSError):
-            code = self.procs[w].exitcode
-            self.procs[w].join(timeout=5)
-            code = self.procs[w].exitcode if code is None else code
-            why = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-            raise ScaffoldError(f"a meshing worker process stopped ({why}; the system may have run out of "
-                                "memory): lower --max-memory or use a larger --voxel") from None
-
-    def run(self, slabs, stitch: _Stitch, progress) -> None:
-        """Mesh `slabs` in the workers; stitch, place and count them in slab order."""
-        from multiprocessing.connection import wait
-
-        total = len(slabs)
-        holder: dict[int, int] = {}        # slab -> worker meshing it
-        meshed: dict[int, object] = {}     # slab -> its _Meshed (or None), waiting for its turn
-        written: dict[int, tuple] = {}     # slab -> its (area, volume) sums
-        errors: dict[int, BaseException] = {}
-        busy: dict[int, int] = {}          # worker -> slab
-        dispatched = placed = done = 0
-
-        def dispatch(w: int) -> None:
-            nonlocal dispatched
-            if dispatched < total:
-                self.conns[w].send((slabs[dispatched].x0, slabs[dispatched].x1))
-                busy[w] = dispatched
-                holder[dispatched] = w
-                dispatched += 1
-
-        for w in range(len(self.procs)):
-            dispatch(w)
-        while done < total:
-            for conn in wait([self.conns[w] for w in busy]):
-                w = self.conns.index(conn)
-                kind, payload = self._receive(w)
-                slab = busy[w]
-                if kind == "error":
-                    errors[slab] = payload
-                elif kind == "meshed":
-                    meshed[slab] = payload
-                    if payload is None:  # no surface: the worker is free
-                        written[slab] = None
-                        del busy[w]
-                        dispatch(w)
-                else:
-                    written[slab] = payload
-                    del busy[w]
-                    dispatch(w)
-            # in slab order: the first error, then numbering and places as soon as known
-            while placed < total and (placed in meshed or placed in errors):
-                if placed in errors:
-                    raise errors[placed]
-                m = meshed.pop(placed)
-                if m is None:
-                    stitch.skip()
-                else:
-                    self.conns[holder[placed]].send(stitch.add(m))
-                placed += 1
-            for slab in sorted(errors):
-                if slab < placed:  # failed while writing
-                    raise errors[slab]
-            while done < total and done in written:
-                sums = written.pop(done)
-                if sums is not None:
-                    stitch.measured(*sums)
-                done += 1
-                if progress is not None:
-                    progress(done, total)
-        self._ok = True
+            os.close(out)
+            if faces is not None:
+                os.close(faces)
+    finally:
+        if source is not job.source:
+            source.close()

@@ -14,6 +14,7 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError, positive_mm
+from .executor import check_workers
 from .field import check_porosity, sample
 from .grid import Grid, run_bytes_per_voxel
 from .memory import available_memory, check_memory
@@ -220,6 +221,7 @@ def _report_stats(values) -> dict:
 
 def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
              morphometry: bool = True, max_memory=None, tiled: bool | int | None = None, scheduler=None,
+             workers: int = 1,
              slices: dict | None = None, ct=None, printer=None, repair: bool = False,
              shape: str = Params.shape, size=Params.size, seeds: int | None = Params.seeds,
              pore_size: float = Params.pore_size, porosity: float | None = Params.porosity,
@@ -259,6 +261,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         An int forces it with slabs of at most that many voxels (halo included).
     scheduler : str or distributed.Client, optional
         Run the tiled lattice passes on this dask.distributed scheduler (same bytes out).
+    workers : int
+        Run the lattice passes in slabs (at least one per worker, unless `tiled` gives their
+        size) in this many local worker processes (:class:`.executor.Processes`; same bytes out). Their memory counts against
+        `max_memory`: the slabs are planned so that every worker's slab fits beside this
+        process; ``report["tiled"]["workers"]`` says how many ran.
     slices : dict, optional
         Write printer slices: ``{"out_dir": ..., "pixel": mm or None, "layer": mm or None}``;
         the stack's geometry lands in ``result.report["slices"]``.
@@ -305,6 +312,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
         # time and memory then follow the bone's volume, not its bounding box's
         params = replace(params, seeds_in="box" if patient is None else "patient")
     out_path = _checked_output(output, mesh)
+    if check_workers(workers, scheduler) > 1:
+        # the workers run slabs: a run given them goes in slabs (at least one per worker)
+        if tiled is False:
+            raise ScaffoldError("workers run the slabs of a tiled run; drop tiled=False or workers")
+        tiled = True if tiled is None else tiled
     if patient is None:
         patient = primitive(params.shape, params.size)
     # everything that can be checked before the work starts is checked now
@@ -316,7 +328,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     # and computed slab by slab, the same on the whole grid as in slabs
     fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
     run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry), int(budget(max_memory)), tiled, params,
-                   fine_patient, out_path, slices)
+                   fine_patient, out_path, slices, workers=workers)
     prog = Progress(verbose)
     if mesh:
         # the mesh stages' libraries load while the cells and the lattice are computed (about
@@ -914,8 +926,10 @@ SMALLEST_MARGIN = 1.1
 class _RunPlan:
     """Whole grid or slabs: decided from the memory bound, checked before the work starts."""
 
-    def __init__(self, run_bytes: int, max_memory: int, tiled, params: Params, patient, out_path, slices):
+    def __init__(self, run_bytes: int, max_memory: int, tiled, params: Params, patient, out_path, slices,
+                 workers: int = 1):
         self.run_bytes, self.max_memory, self.tiled = run_bytes, max_memory, tiled
+        self.workers = int(workers)  # local processes for the lattice pass of a run in slabs
         self.params, self.patient, self.out_path, self.slices = params, patient, out_path, slices
 
     def whole_grid_refusal(self, grid: Grid, what: str) -> ScaffoldError:
@@ -950,7 +964,7 @@ class _RunPlan:
         the most crowded one fits.
         """
         from .memory import format_size, release
-        from .tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, check_disk
+        from .tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, WORKER_RESERVE, check_disk
         from .tiles import plan_slabs
 
         held = release() + STAGE_RESERVE
@@ -965,10 +979,17 @@ class _RunPlan:
         self.patient.sdf_grid(grid, x_range=(0, 1))  # a patient that cannot be tiled says so now
         # what the process holds once the patient has run (its compiled code loaded, e.g. numba's)
         held = release() + STAGE_RESERVE + int(reserve) - int(slab_share)
+        # worker processes (--workers) each hold a slab of the lattice pass at once, and their own
+        # runtime and packed primitives (each packs them for its device queue) beside what they
+        # share with this process; this process then holds no slab (the workers write theirs to
+        # disk), and the later passes run here once the workers are gone
+        n = self.workers
+        if n > 1:
+            held += n * (WORKER_RESERVE + int(reserve) - int(slab_share))
         from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
         plane = grid.shape[1] * grid.shape[2]
-        thinnest = int((1 + 2 * halo) * plane * per_voxel)
+        thinnest = int((1 + 2 * halo) * plane * per_voxel * n)
         if ext in MESH_FORMATS:
             thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
         smallest = held + thinnest
@@ -976,12 +997,17 @@ class _RunPlan:
             raise ScaffoldError(
                 f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
                 f"{format_size(smallest)} of memory even in slabs (its thinnest slab beside "
-                f"{held / 2**30:.2f} GiB of cells, skeleton and libraries) but --max-memory is "
+                f"{held / 2**30:.2f} GiB of cells, skeleton and libraries"
+                + (f", in each of {n} workers" if n > 1 else "") + ") but --max-memory is "
                 f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * smallest)} "
                 "or more"
                 + (f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
-                   " mm)" if self.max_memory > held else ""))
-        voxels = self.forced_voxels or max(1, int((self.max_memory - held) // per_voxel))
+                   " mm)" if self.max_memory > held else "")
+                + (", or fewer --workers" if n > 1 else ""))
+        voxels = self.forced_voxels or max(1, int((self.max_memory - held) // (per_voxel * n)))
+        if n > 1 and not self.forced_voxels:
+            # a slab for every worker at least
+            voxels = min(voxels, (-(-int(grid.shape[0]) // n) + 2 * halo) * plane)
         if slab_bytes is not None and not self.forced_voxels:
             voxels = self._thin_for(grid, halo, held, slab_bytes, voxels)
         plan_slabs(grid.shape, max_voxels=max(voxels, (1 + 2 * halo) * plane), halo=halo)
@@ -999,6 +1025,7 @@ class _RunPlan:
         while True:
             slabs = plan_slabs(grid.shape, max_voxels=(planes + 2 * halo) * plane, halo=halo)
             worst = max((s.h1 - s.h0) * plane * SLAB_BYTES_PER_VOXEL + slab_bytes(s.h0, s.h1) for s in slabs)
+            worst *= self.workers  # as many slabs at once as workers (held counts their runtimes)
             if held + worst <= self.max_memory:
                 return (planes + 2 * halo) * plane
             if planes == 1:
@@ -1060,12 +1087,13 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     PrinterProfile to certify what was built for.
     """
     from .patient import SHAPES
-    from .tiled import runner_for, sample_slabs, tiled_scaffold
+    from .executor import executor_for
+    from .tiled import sample_slabs, tiled_scaffold
 
     in_memory = slab_voxels is None
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
-    runner = runner_for(None if in_memory else scheduler)
+    executor = executor_for(workers=1 if in_memory else run.workers, scheduler=None if in_memory else scheduler)
     printed, calibration = _printed_kind(params, mesh, run.slices, graded=grade is not None), {}
     search = None
     if printed is not None:
@@ -1083,13 +1111,13 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     try:
         tf = tiled_scaffold(style=params.style, skeleton=skeleton, edges=edges, patient=run.patient, grid=grid,
                             porosity=params.porosity, k=k, cutoff=cutoff, next_cutoff=next_cutoff,
-                            remove_fragments=params.remove_fragments, max_voxels=slab_voxels, runner=runner,
+                            remove_fragments=params.remove_fragments, max_voxels=slab_voxels, executor=executor,
                             patient_pieces=not one_piece, fill_sealed_voids=params.fill_sealed_voids,
                             printed=search, prog=prog, skin=params.skin, smooth_cut=params.smooth_cut,
                             grade=None if grade is None or (params.porosity is None and grade[0].kind != "ct")
                             else grade[0], in_memory=in_memory)
     finally:
-        runner.close()
+        executor.close()
     try:
         cells_in = (sample(tf.patient.field, grid, cells.seeds) if in_memory
                     else sample_slabs(tf.patient, grid, cells.seeds)) < 0
@@ -1115,7 +1143,8 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
             report["tiled"] = {"slabs": len(tf.slabs), "planes_per_slab": max(sl.x1 - sl.x0 for sl in tf.slabs),
                                "max_memory_mb": round(run.max_memory / 2**20, 1),
                                "scheduler": None if scheduler is None else str(getattr(scheduler, "scheduler",
-                                                                                         scheduler))}
+                                                                                         scheduler)),
+                               "workers": min(run.workers, len(tf.slabs)) if scheduler is None else None}
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
         if repair:
@@ -1134,8 +1163,8 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     if out_path is not None:
         report["file_size_bytes"] = out_path.stat().st_size
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
-    if report.get("mesh_workers", 1) > 1:
-        # the mesh stage's worker processes: the largest one's peak (two run at once)
+    if report.get("mesh_workers", 1) > 1 or ((report.get("tiled") or {}).get("workers") or 1) > 1:
+        # the lattice's or the mesh stage's worker processes: the largest one's peak
         report["peak_memory_workers_mb"] = round(peak_memory(children=True) / 2**20, 1)
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}

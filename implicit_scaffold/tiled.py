@@ -6,8 +6,8 @@ is cut into slabs along x (:func:`~implicit_scaffold.tiles.plan_slabs`). Each sl
 for its own planes plus the halo the blend reads, in the whole grid's frame, so every
 value is the one the whole-grid run computes, bit for bit. The passes:
 
-1. lattice, blend and patient field of each slab (the heavy part; on Dask workers when
-   a scheduler is given), kept in two raw files on disk (:class:`~.tiles.FieldFile`) or arrays,
+1. lattice, blend and patient field of each slab (the heavy part; in local worker
+   processes or on Dask workers when asked: :mod:`.executor`), kept in two raw files on disk (:class:`~.tiles.FieldFile`) or arrays,
    while the patient's voxels are counted and their lattice values histogrammed;
 2. the exact order statistics that give the surface offset (:class:`~.tiles.StreamQuantile`);
 3. the scaffold field ``max(lattice - level, patient)`` of each slab, with its solid
@@ -20,7 +20,7 @@ which read it slab by slab too.
 """
 from __future__ import annotations
 
-import itertools
+import contextlib
 import shutil
 import tempfile
 from dataclasses import dataclass
@@ -29,6 +29,7 @@ from typing import Any, Callable
 import numpy as np
 
 from .errors import ScaffoldError
+from .executor import InProcess, Processes
 from .field import blend_field, level_between, scaffold_field, solid_voxels, void_mask
 from .grid import Grid
 from .memory import release
@@ -43,6 +44,12 @@ SLAB_BYTES_PER_VOXEL = 48
 #: prism (measured: 190 MiB from the skeleton to the mesh stage of a 400-seed cube at
 #: 0.04 mm with the freed heap returned between stages), rounded up
 STAGE_RESERVE = 256 * 2**20
+#: bytes each worker process of the lattice pass (``--workers``) holds beside its slab and its
+#: packed primitives: what it does not share with the parent it was forked from (the OpenCL
+#: queue's state, the pages of the parent's heap it writes). Measured as the workers' PSS:
+#: 65 MiB at most for slabs of 33 planes of 161 x 161 (1.0 M voxels, 50 MB at
+#: SLAB_BYTES_PER_VOXEL) of a 4 mm cube at 0.025 mm, so about 15 MiB; rounded up
+WORKER_RESERVE = 64 * 2**20
 #: bytes on disk per voxel while a tiled run goes: the scaffold and patient fields
 DISK_BYTES_PER_VOXEL = 8
 
@@ -143,71 +150,6 @@ def _band(grid: Grid, x_range, cutoff: float) -> tuple[float, float]:
     return x0 + b0 * grid.spacing - margin, x0 + b1 * grid.spacing + margin
 
 
-class LocalRunner:
-    """Runs the slabs one after the other in this process."""
-
-    workers = 1
-
-    def map(self, fn: Callable, work, items):
-        for item in items:
-            yield fn(work, item)
-
-    def close(self) -> None:
-        pass
-
-
-class DaskRunner:
-    """Runs the slabs on a dask.distributed cluster; results come back as they finish.
-
-    Parameters
-    ----------
-    scheduler : str or distributed.Client
-        A scheduler's address (``tcp://host:8786``), or a client already connected.
-    """
-
-    def __init__(self, scheduler):
-        try:
-            from distributed import Client
-        except ImportError:
-            raise ScaffoldError("--scheduler needs dask.distributed: pip install 'implicit_scaffold[cluster]'") \
-                from None
-        if isinstance(scheduler, Client):
-            self.client, self._own = scheduler, False
-        else:
-            try:
-                self.client, self._own = Client(str(scheduler), timeout="10s"), True
-            except (OSError, TimeoutError) as exc:
-                raise ScaffoldError(f"cannot reach the Dask scheduler at {scheduler}: {exc}; "
-                                    "check the address (tcp://host:8786) and that the scheduler runs") from None
-        self.workers = max(1, len(self.client.scheduler_info().get("workers", {})))
-
-    def map(self, fn: Callable, work, items):
-        from distributed import as_completed
-
-        shared = self.client.scatter(work, broadcast=True)
-        items = iter(items)
-        # a few slabs in flight per worker: enough to keep them busy, few enough to bound
-        # what waits on the client
-        queue = as_completed([self.client.submit(fn, shared, item, pure=False)
-                              for item in itertools.islice(items, 2 * self.workers)])
-        for future in queue:
-            result = future.result()
-            future.release()
-            nxt = next(items, None)
-            if nxt is not None:
-                queue.add(self.client.submit(fn, shared, nxt, pure=False))
-            yield result
-
-    def close(self) -> None:
-        if self._own:
-            self.client.close()
-
-
-def runner_for(scheduler) -> LocalRunner | DaskRunner:
-    """This process (no scheduler) or a Dask cluster."""
-    return LocalRunner() if scheduler is None else DaskRunner(scheduler)
-
-
 @dataclass
 class TiledField:
     """The finished scaffold field, in its slab store, and what its passes counted.
@@ -264,33 +206,97 @@ class TiledField:
         self.patient.close()
 
 
-def _pass_lattice(work: SlabWork, slabs, runner, field: FieldFile, patient: FieldFile, progress, count=True):
+@dataclass(frozen=True)
+class _Stores:
+    """Where a worker process writes its slab's fields: the two field files, by path."""
+
+    field: str
+    patient: str
+
+
+@dataclass
+class _SlabCounts:
+    """What pass 1 counts on one slab (small: sent back by a worker in place of its fields).
+
+    Attributes
+    ----------
+    slab : Slab
+    fields : (lattice, patient) float32 ndarrays, or None once written to the stores
+    n_inside : int
+        The patient's voxels.
+    high : (65536,) int64 ndarray or None
+        The quantile's pass-1 histogram of the lattice over them (:meth:`~.tiles.StreamQuantile.merge`).
+    lo, hi : float, mm
+        The lattice's range over them.
+    box : ((3,) int ndarray, (3,) int ndarray) or None
+        The bounds of the patient's voxels (indices, inclusive).
+    """
+
+    slab: Slab
+    fields: tuple | None
+    n_inside: int
+    high: np.ndarray | None
+    lo: float
+    hi: float
+    box: Any
+
+
+def _lattice_slab(job: tuple, slab: Slab) -> _SlabCounts:
+    """Pass 1 on one slab, wherever it runs: its fields and counts. `job` is ``(work, count,
+    stores)``; with `stores` (a local worker process) the fields are written there, else sent back."""
+    work, count, stores = job
+    slab, base, s_p = slab_fields(work, slab)
+    inside = s_p < 0
+    n_inside, high, lo, hi = int(np.count_nonzero(inside)), None, np.inf, -np.inf
+    if count and n_inside:
+        part = StreamQuantile()
+        part.count(base, inside)
+        high, n_inside = part.high, part.n
+        lo = float(np.min(base, where=inside, initial=np.inf))
+        hi = float(np.max(base, where=inside, initial=-np.inf))
+    box = _union_box(None, inside, slab.x0)
+    del inside
+    fields = (base, s_p)
+    if stores is not None:
+        for path, planes in zip((stores.field, stores.patient), fields):
+            with FieldFile.attach(path, work.grid, write=True) as store:
+                store.write(slab.x0, planes)
+        del base, s_p, fields
+        fields = None
+        release()  # what the slab's kernels and temporaries left in the worker's heap
+    return _SlabCounts(slab, fields, n_inside, high, lo, hi, box)
+
+
+def _pass_lattice(work: SlabWork, slabs, executor, field: FieldFile, patient: FieldFile, progress, count=True):
     """Pass 1; returns the quantile's first pass, the patient's voxel count, its values' range
     (with `count` False, for one slab held in memory, only the voxel count: the level is then
     found on the arrays themselves), and the bounds ``(lo, hi)`` of the patient's voxels (indices,
-    inclusive; None without any)."""
+    inclusive; None without any).
+
+    The slabs run on `executor` and are taken as they finish: every count is a sum, a
+    minimum or a maximum, the same in any order. Local worker processes write their slabs'
+    fields into the files themselves; this process, or a cluster's workers, hand them back.
+    """
     quantile = StreamQuantile()
     n_inside, lo, hi = 0, np.inf, -np.inf
     box = None
-    for done, (slab, base, s_p) in enumerate(runner.map(slab_fields, work, slabs), 1):
-        inside = s_p < 0
-        box = _union_box(box, inside, slab.x0)
-        if not count:
-            n_inside += int(np.count_nonzero(inside))
-        else:
-            found = quantile.n
-            quantile.count(base, inside)
-            if quantile.n > found:
-                n_inside += quantile.n - found
-                lo = min(lo, float(np.min(base, where=inside, initial=np.inf)))
-                hi = max(hi, float(np.max(base, where=inside, initial=-np.inf)))
-        field.write(slab.x0, base)
-        patient.write(slab.x0, s_p)
-        del base, s_p, inside
-        if len(slabs) > 1:
-            release()  # what the slab's kernels and temporaries left in the heap, before the next
-        if progress is not None:
-            progress(done, len(slabs))
+    stores = _Stores(field.path, patient.path) if isinstance(executor, Processes) else None
+    with contextlib.closing(executor.map(_lattice_slab, slabs, (work, count, stores), ordered=False)) as results:
+        for done, got in enumerate(results, 1):
+            n_inside += got.n_inside
+            if got.high is not None:
+                quantile.merge(got.high, got.n_inside)
+            lo, hi = min(lo, got.lo), max(hi, got.hi)
+            if got.box is not None:
+                box = got.box if box is None else (np.minimum(box[0], got.box[0]), np.maximum(box[1], got.box[1]))
+            if got.fields is not None:
+                field.write(got.slab.x0, got.fields[0])
+                patient.write(got.slab.x0, got.fields[1])
+            del got
+            if len(slabs) > 1:
+                release()  # what the slab's kernels and temporaries left in the heap, before the next
+            if progress is not None:
+                progress(done, len(slabs))
     return quantile, n_inside, lo, hi, box
 
 
@@ -371,7 +377,7 @@ def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patien
 
 def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity: float | None, k: float,
                    cutoff: float, next_cutoff: Callable[[float, float], float | None], remove_fragments: bool,
-                   max_voxels: int, runner=None, prog=None, fill_sealed_voids: bool = True,
+                   max_voxels: int, executor=None, prog=None, fill_sealed_voids: bool = True,
                    printed=None, skin: float = 0.0, smooth_cut: float = 0.0,
                    patient_pieces: bool = True, grade=None, in_memory: bool = False) -> TiledField:
     """The scaffold's field on `grid`, slab by slab: the one driver of every run's field.
@@ -398,7 +404,9 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     remove_fragments : bool
     max_voxels : int
         Voxels a slab may hold, halo included.
-    runner : LocalRunner or DaskRunner, optional
+    executor : InProcess, Processes or DaskCluster, optional
+        Where pass 1 runs its slabs (:mod:`.executor`); this process by default, and always
+        for one slab held in memory. The field is the same bits wherever they run.
     prog : Progress, optional
     fill_sealed_voids : bool
         Fill the void pieces that do not reach the outside (always counted).
@@ -428,7 +436,8 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
     from .progress import Progress
 
     prog = prog or Progress(False)
-    runner = runner or LocalRunner()
+    if in_memory or executor is None:
+        executor = InProcess()  # one slab held in memory: nothing to share, nothing to send
     if in_memory:
         field, patient_file = ArraySlabs(None, grid, views=True), ArraySlabs(None, grid, views=True)
         max_voxels = None  # the graded passes read the arrays in their own chunks
@@ -444,7 +453,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
                                                                       halo=work.halo)
             with prog.stage("lattice", f"{grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels in "
                                        f"{len(slabs)} slab{'' if len(slabs) == 1 else 's'}"):
-                quantile, n_inside, lo, hi, box = _pass_lattice(work, slabs, runner, field, patient_file,
+                quantile, n_inside, lo, hi, box = _pass_lattice(work, slabs, executor, field, patient_file,
                                                            prog.bar("lattice"), count=not in_memory)
             if n_inside == 0:
                 raise ScaffoldError("the patient covers no voxel of the grid; use a smaller --voxel")

@@ -232,6 +232,13 @@ class StreamQuantile:
         bits, mask = _flat_bits(values, where)
         self.n += int(_key_kernels()[0](bits, mask, self.high))
 
+    def merge(self, high: np.ndarray, n: int) -> None:
+        """Pass 1: add another :class:`StreamQuantile`'s counts (its ``high`` and ``n``), as
+        :meth:`count` would have added its values: counts add in any order, so slabs counted
+        in worker processes give the same histogram as slabs counted here."""
+        self.high += high
+        self.n += int(n)
+
     def select(self, *ranks: int) -> None:
         """Fix the 0-based ranks wanted (after pass 1, before pass 2)."""
         for r in ranks:
@@ -695,19 +702,26 @@ class FieldFile:
         return out
 
     @classmethod
-    def open_readonly(cls, path, grid) -> "FieldFile":
-        """An existing field file (another :class:`FieldFile`'s ``.path``), for reading only.
+    def attach(cls, path, grid, *, write: bool = False) -> "FieldFile":
+        """An existing field file (another :class:`FieldFile`'s ``.path``), for reading, or
+        for writing planes too (`write`).
 
-        For a process that reads planes the writer's process keeps: closing it (or leaving
-        its ``with`` block) closes the reader and keeps the file, which is its writer's.
+        For a process that reads or fills planes of the file another process keeps (a worker
+        of :mod:`.executor`): closing it (or leaving its ``with`` block) closes this handle and
+        keeps the file, which is its creator's to remove.
         """
         self = cls.__new__(cls)
         self.grid = grid
         self._plane = int(grid.shape[1]) * int(grid.shape[2])
         self.path = str(path)
-        self._fh = open(self.path, "rb", buffering=0)
-        self.close = self._fh.close  # shadows close(): the file is the writer's to remove
+        self._fh = open(self.path, "r+b" if write else "rb", buffering=0)
+        self.close = self._fh.close  # shadows close(): the file is the creator's to remove
         return self
+
+    @classmethod
+    def open_readonly(cls, path, grid) -> "FieldFile":
+        """:meth:`attach` for reading only."""
+        return cls.attach(path, grid)
 
     def close(self) -> None:
         """Remove the file."""

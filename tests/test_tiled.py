@@ -72,14 +72,21 @@ def test_a_dask_cluster_gives_the_same_bytes(tmp_path):
     assert tiled == whole
 
 
-def test_an_interrupted_tiled_run_leaves_nothing(tmp_path, monkeypatch):
+@pytest.mark.parametrize("workers", [1, 2])
+def test_an_interrupted_tiled_run_leaves_nothing(tmp_path, monkeypatch, workers):
+    import multiprocessing
+
     import implicit_scaffold.tiled as tiled_mod
+    from implicit_scaffold.tiles import StreamQuantile
 
     scratch = tmp_path / "scratch"
     scratch.mkdir()
     monkeypatch.setattr(tempfile, "tempdir", str(scratch))
     calls = []
-    real = tiled_mod.scaffold_field
+    # one process: Ctrl-C lands in the scaffold pass; two workers: in this process while they
+    # run the lattice pass (it adds their slabs' counts as they come)
+    owner, name = (tiled_mod, "scaffold_field") if workers == 1 else (StreamQuantile, "merge")
+    real = getattr(owner, name)
 
     def interrupted(*args, **kwargs):
         calls.append(1)
@@ -87,14 +94,15 @@ def test_an_interrupted_tiled_run_leaves_nothing(tmp_path, monkeypatch):
             raise KeyboardInterrupt
         return real(*args, **kwargs)
 
-    monkeypatch.setattr(tiled_mod, "scaffold_field", interrupted)
+    monkeypatch.setattr(owner, name, interrupted)
     out = tmp_path / "out" / "s.npy"
     out.parent.mkdir()
     with pytest.raises(KeyboardInterrupt):
-        generate(output=out, mesh=False, morphometry=False, tiled=10 * PLANE, **SMALL)
+        generate(output=out, mesh=False, morphometry=False, tiled=10 * PLANE, workers=workers, **SMALL)
     assert len(calls) == 3
     assert not list(out.parent.iterdir())   # no output, no report, no temporary file
     assert not list(scratch.iterdir())      # no field left on disk
+    assert multiprocessing.active_children() == []  # no worker left
 
 
 @pytest.mark.parametrize("text, expected", [("4G", 4 * 2**30), ("3.5GB", int(3.5 * 2**30)),
