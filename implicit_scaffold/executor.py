@@ -128,12 +128,19 @@ class Processes:
         The processes' name (as ``ps`` and the error messages show it).
     window : int, optional
         Items in flight or waiting to be taken, at most; by default twice the workers.
+    method : {"fork", "spawn"}, optional
+        How the workers start; by default :func:`start_method`. Work that runs OpenCL kernels
+        needs ``spawn``: a runtime's own threads do not survive a fork, so a forked child that
+        launches a kernel on its parent's context may hang (Intel's CPU runtime happened to
+        cope; nothing promises it, nor PoCL).
     """
 
-    def __init__(self, workers: int, *, name: str = "implicit_scaffold-worker", window: int | None = None):
+    def __init__(self, workers: int, *, name: str = "implicit_scaffold-worker", window: int | None = None,
+                 method: str | None = None):
         self.workers = check_workers(workers)
         self.name = name
         self.window = max(self.workers, int(window or 2 * self.workers))
+        self.method = method or start_method()
 
     def map(self, fn: Callable, items: Iterable, shared=None, *, ordered: bool = True,
             answer: Callable | None = None) -> Iterator:
@@ -143,7 +150,7 @@ class Processes:
         items = list(items)
         if not items:
             return
-        pool = _Pool(min(self.workers, len(items)), fn, shared, self.name)
+        pool = _Pool(min(self.workers, len(items)), fn, shared, self.name, self.method)
         ok = False
         try:
             yield from pool.run(items, ordered, answer, self.window)
@@ -234,8 +241,9 @@ def check_workers(workers, scheduler=None) -> int:
     return int(workers)
 
 
-def executor_for(*, workers: int = 1, scheduler=None) -> InProcess | Processes | DaskCluster:
-    """This process (1 worker, no scheduler), `workers` local processes, or a Dask cluster.
+def executor_for(*, workers: int = 1, scheduler=None, method: str | None = None) -> InProcess | Processes | DaskCluster:
+    """This process (1 worker, no scheduler), `workers` local processes (started by `method`, see
+    :class:`Processes`), or a Dask cluster.
 
     Raises
     ------
@@ -245,7 +253,7 @@ def executor_for(*, workers: int = 1, scheduler=None) -> InProcess | Processes |
     workers = check_workers(workers, scheduler)
     if scheduler is not None:
         return DaskCluster(scheduler)
-    return InProcess() if workers == 1 else Processes(workers)
+    return InProcess() if workers == 1 else Processes(workers, method=method)
 
 
 # ----------------------------------------------------------------------------- worker processes
@@ -313,13 +321,37 @@ def _sigint_ignored():
         signal.signal(signal.SIGINT, old)
 
 
+@contextlib.contextmanager
+def _main_not_rerun(method: str):
+    """While a ``spawn`` worker starts, hide the caller's main module from multiprocessing.
+
+    A spawned child runs the parent's main script again (as ``__mp_main__``) before it
+    unpickles its target, so a user's script that calls :func:`~implicit_scaffold.generate`
+    without an ``if __name__ == "__main__":`` guard would start the run again in every worker
+    (where multiprocessing refuses it, and the parent would wait on workers that never
+    answer). The workers' functions and data are this package's, which the child imports by
+    name, so the main script is not needed there.
+    """
+    import sys
+
+    main = sys.modules.get("__main__")
+    if method != "spawn" or main is None:
+        yield
+        return
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
+
+
 class _Pool:
     """Worker processes for one map; stopped (killed if need be) by :meth:`close`."""
 
-    def __init__(self, n: int, fn: Callable, shared, name: str):
+    def __init__(self, n: int, fn: Callable, shared, name: str, method: str):
         import multiprocessing
 
-        ctx = multiprocessing.get_context(start_method())
+        ctx = multiprocessing.get_context(method)
         self.procs = []
         self.conns = []
         # what the parent's objects hold is not copied into the workers by their collector
@@ -328,7 +360,7 @@ class _Pool:
             for _ in range(n):
                 mine, theirs = ctx.Pipe()
                 proc = ctx.Process(target=_worker, args=(theirs, fn, shared), daemon=True, name=name)
-                with _sigint_ignored():
+                with _sigint_ignored(), _main_not_rerun(method):
                     proc.start()
                 theirs.close()
                 self.procs.append(proc)

@@ -1093,7 +1093,10 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     in_memory = slab_voxels is None
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
     k, cutoff, next_cutoff = _lattice_plan(params, skeleton, edges, grid, box_volume, wall_p10, window_p25)
-    executor = executor_for(workers=1 if in_memory else run.workers, scheduler=None if in_memory else scheduler)
+    # the lattice's workers launch OpenCL kernels: started afresh, not forked from this process,
+    # whose OpenCL runtime already runs threads of its own
+    executor = executor_for(workers=1 if in_memory else run.workers, scheduler=None if in_memory else scheduler,
+                            method="spawn")
     printed, calibration = _printed_kind(params, mesh, run.slices, graded=grade is not None), {}
     search = None
     if printed is not None:

@@ -45,11 +45,11 @@ SLAB_BYTES_PER_VOXEL = 48
 #: 0.04 mm with the freed heap returned between stages), rounded up
 STAGE_RESERVE = 256 * 2**20
 #: bytes each worker process of the lattice pass (``--workers``) holds beside its slab and its
-#: packed primitives: what it does not share with the parent it was forked from (the OpenCL
-#: queue's state, the pages of the parent's heap it writes). Measured as the workers' PSS:
-#: 65 MiB at most for slabs of 33 planes of 161 x 161 (1.0 M voxels, 50 MB at
-#: SLAB_BYTES_PER_VOXEL) of a 4 mm cube at 0.025 mm, so about 15 MiB; rounded up
-WORKER_RESERVE = 64 * 2**20
+#: packed primitives: a fresh interpreter (the workers are spawned, not forked: an OpenCL runtime's
+#: threads do not survive a fork) with NumPy, PyOpenCL, its context and the compiled kernels.
+#: Measured as the workers' PSS: 166.5 MiB at most for slabs of 32 planes of 161 x 161 (0.8 M
+#: voxels, 40 MB at SLAB_BYTES_PER_VOXEL) of a 4 mm cube at 0.025 mm, so about 127 MiB; rounded up
+WORKER_RESERVE = 160 * 2**20
 #: bytes on disk per voxel while a tiled run goes: the scaffold and patient fields
 DISK_BYTES_PER_VOXEL = 8
 

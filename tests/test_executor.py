@@ -202,3 +202,26 @@ def test_a_budget_counts_every_workers_slab_and_runtime(tmp_path):
     assert done["tiled"]["workers"] == 3 and done["tiled"]["slabs"] >= 3
     assert not [p for p in tmp_path.iterdir() if p.name not in ("a.npy", "a.json")]
 
+
+
+def test_spawned_workers_do_not_run_an_unguarded_script_again(tmp_path):
+    # the lattice's workers are spawned (an OpenCL runtime's threads do not survive a fork); a
+    # spawned child runs the parent's main script again unless it is hidden, so a user's script
+    # without an ``if __name__ == "__main__":`` guard would start the run in every worker. The
+    # oracle: the same script's field, run in one process.
+    import subprocess
+    import sys
+
+    script = tmp_path / "unguarded.py"
+    script.write_text(
+        "import sys, numpy as np\n"
+        "from implicit_scaffold import generate\n"
+        "workers = int(sys.argv[1])\n"
+        "r = generate(size=2, voxel=0.1, seeds=30, workers=workers, tiled=4000, mesh=False, morphometry=False)\n"
+        "assert r.report['tiled']['workers'] == workers\n"
+        "np.save(sys.argv[2], np.asarray(r.field))\n")
+    for workers in (1, 2):
+        done = subprocess.run([sys.executable, str(script), str(workers), str(tmp_path / f"f{workers}.npy")],
+                              cwd=tmp_path, capture_output=True, text=True, timeout=240)
+        assert done.returncode == 0, done.stderr[-2000:]
+    assert np.load(tmp_path / "f1.npy").tobytes() == np.load(tmp_path / "f2.npy").tobytes()
