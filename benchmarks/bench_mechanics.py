@@ -242,11 +242,9 @@ def coarsen(size: float) -> None:
     """The moduli at the run's voxel, at half of it, and sampled from the finer field at coarser voxels."""
     coarse = run_isolated(COARSEN.format(size=size, voxel=None, sample=None), timeout=3600)
     h = coarse["voxel"]
-    rows = [coarse]
-    for f in (1.0, 1.5, 2.0):
-        rows.append(run_isolated(COARSEN.format(size=size, voxel=h / 2, sample=None if f == 1 else round(f * h, 6)),
-                                 timeout=3600))
-    ref = rows[1]
+    ref = run_isolated(COARSEN.format(size=size, voxel=h / 2, sample=None), timeout=3600)
+    rows = [coarse, ref] + [run_isolated(COARSEN.format(size=size, voxel=h / 2, sample=round(f * h, 6)), timeout=3600)
+                            for f in (1.0, 1.5, 2.0)]
     out = []
     for r in rows:
         how = "generated" if r["sample"] == r["voxel"] else f"sampled from the {r['voxel']:.4g} mm field"

@@ -871,23 +871,24 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: --preconditioners multigrid`` and ``... --memory 64 --memory-solves measure
 #: --preconditioners multigrid,fft`` on 2026-12-04 (MiB above the start):
 #:
-#: ============  =====  ===========  =========  ==========  =========  ==========
-#: grid          solid  multigrid    multigrid  fft         estimate   estimate
-#:                      periodic     kinematic  periodic    mg per.    mg kin.
-#: ============  =====  ===========  =========  ==========  =========  ==========
-#: 48^3          0.3    314.4        326.9 (h)              343        382
-#: 48^3          0.6    352.8        370.7 (h)              381        420
-#: 64^3          0.3    596.0        674.1      431.8       648        734
-#: 64^3          0.6    678.2        759.7      568.1       738        824
-#: ============  =====  ===========  =========  ==========  =========  ==========
+#: ======  =====  ================  ================  =============  =============
+#: grid    solid  multigrid per.    multigrid kin.    fft per.       fft kin.
+#:                measured (est.)   measured (est.)   meas. (est.)   meas. (est.)
+#: ======  =====  ================  ================  =============  =============
+#: 48^3    0.3    314.4 (343)       326.9 h (382)
+#: 48^3    0.6    352.8 (381)       370.7 h (420)
+#: 64^3    0.3    596.0 (648)       674.1 (734)       431.8 (437)    498.3 (511)
+#: 64^3    0.6    678.2 (738)       759.7 (824)       568.1 (580)    643.8 (654)
+#: ======  =====  ================  ================  =============  =============
 #:
-#: ((h): homogenization alone; the FFT one, 563 and 705 estimated.) Per solid voxel that is the
-#: per-solid part plus the per-node part over the solid fraction: about 7,200-8,800 bytes at 30 %
-#: solid, 4,100-4,600 at 60 %. The 128^3 Voronoi scaffold of the README's benchmark (30 % solid,
+#: (h: homogenization alone. The FFT preconditioner's fit has one grid size; its fixed part is
+#: the multigrid's.) Per solid voxel, the multigrid's is the per-solid part plus the per-node
+#: part over the solid fraction (and the fixed part): 7,000 (periodic) to 7,900 (kinematic) bytes
+#: at 30 % solid, 4,100 to 4,500 at 60 %. The 128^3 Voronoi scaffold of the README's benchmark (30 % solid,
 #: periodic, commit 625c5f4) peaked 7,120 bytes per solid voxel above its start; this gives 7,230.
 SOLVE_FIXED_BYTES = {"multigrid": 120 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 1750, "kinematic": 2000},
-                        "fft": {"periodic": 1200, "kinematic": 1450}}
+                        "fft": {"periodic": 700, "kinematic": 950}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 1200, "fft": 1900}
 #: the sampled field (float32) and the solid (bool) of a solve, per voxel of its grid
 SAMPLE_BYTES_PER_VOXEL = 5
@@ -958,8 +959,9 @@ def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE
     centres (:func:`~.field.sample`: the nearest edge value beyond the grid). At the field's
     own voxel, the values are the field's own. A batch of the new grid's planes reads only
     the field's planes around it, so the whole field is never held (a slab run's field is a
-    memmap of its store on disk); every value depends on its eight neighbours only, so the
-    result is the same whatever the batches and whether the field is an array or a memmap.
+    memmap of its store on disk); every value is computed from its eight neighbours and its
+    weights from the whole grid's coordinates, so the bits are the same whatever the batches
+    and whether the field is an array or a memmap.
 
     Parameters
     ----------
@@ -978,7 +980,6 @@ def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE
     out_grid : Grid
         The grid of `values`.
     """
-    from .field import sample
     from .grid import Grid
 
     lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
@@ -995,24 +996,35 @@ def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE
     corner = np.asarray(grid.origin) + (lo - 0.5) * h0
     out_grid = Grid.covering(corner, corner + (hi - lo) * h0, float(voxel), pad=0)
     values = np.empty(out_grid.shape, np.float32)
-    axes = out_grid.axes()
-
-    def reach(a, coords):
-        """The field's planes along axis `a` that the trilinear values at `coords` read."""
-        f = (coords - grid.origin[a]) / h0
-        return (int(np.clip(np.floor(f.min()), 0, grid.shape[a] - 1)),
-                int(np.clip(np.floor(f.max()) + 2, 1, grid.shape[a])))
-
-    (y0, y1), (z0, z1) = reach(1, axes[1]), reach(2, axes[2])
-    per_plane = 4 * (y1 - y0) * (z1 - z0) * max(1.0, float(voxel) / h0) + 80 * out_grid.shape[1] * out_grid.shape[2]
+    # per axis, the field's plane below each new centre and the weight of the one above, from the
+    # whole grid's coordinates: a value's arithmetic is its own whatever the batch it falls in
+    # (field.sample's map_coordinates on a batch would take coordinates relative to the batch,
+    # whose rounding moves with it), so an array and a slab store give the same bits
+    low, weight = [], []
+    for a, coords in enumerate(out_grid.axes()):
+        f = np.clip((coords - grid.origin[a]) / h0, 0, grid.shape[a] - 1)
+        i0 = np.minimum(np.floor(f).astype(np.int64), max(grid.shape[a] - 2, 0))
+        low.append(i0)
+        weight.append(f - i0)
+    (y0, y1), (z0, z1) = [(int(low[a][0]), min(int(low[a][-1]) + 2, grid.shape[a])) for a in (1, 2)]
+    iy, iz = low[1] - y0, low[2] - z0
+    jy, jz = np.minimum(iy + 1, y1 - y0 - 1), np.minimum(iz + 1, z1 - z0 - 1)
+    wy, wz = weight[1][None, :, None], weight[2][None, None, :]
+    # a batch of new planes reads its field planes (float32) and holds two interpolated stages (float64)
+    per_plane = 4 * (y1 - y0) * (z1 - z0) * max(1.0, float(voxel) / h0) + 8 * out_grid.shape[1] * (2 * (z1 - z0) + out_grid.shape[2])
     rows = max(1, int(chunk_bytes // per_plane))
     for c0 in range(0, out_grid.shape[0], rows):
         c1 = min(c0 + rows, out_grid.shape[0])
-        x0, x1 = reach(0, axes[0][c0:c1])
+        x0, x1 = int(low[0][c0]), min(int(low[0][c1 - 1]) + 2, grid.shape[0])
         part = np.asarray(field[x0:x1, y0:y1, z0:z1], np.float32)
-        local = Grid((grid.origin[0] + x0 * h0, grid.origin[1] + y0 * h0, grid.origin[2] + z0 * h0), h0, part.shape)
-        points = out_grid.points((c0, 0, 0), (c1,) + out_grid.shape[1:])
-        values[c0:c1] = sample(part, local, points).reshape((c1 - c0,) + out_grid.shape[1:])
+        ix = low[0][c0:c1] - x0
+        jx = np.minimum(ix + 1, x1 - x0 - 1)
+        wx = weight[0][c0:c1, None, None]
+        along_x = (1 - wx) * part[ix] + wx * part[jx]
+        del part
+        along_y = (1 - wy) * along_x[:, iy] + wy * along_x[:, jy]
+        del along_x
+        values[c0:c1] = (1 - wz) * along_y[:, :, iz] + wz * along_y[:, :, jz]
     return values, out_grid
 
 

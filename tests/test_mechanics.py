@@ -385,3 +385,182 @@ def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
     assert mech["boundary_conditions"].startswith("kinematic")  # a cylinder is not a box sample
     assert 0 < mech["compression"]["apparent_modulus_gpa"] < 3.6
     assert "mechanics: PEEK" in cap.out
+    # the small run's own voxel fits the default budget: the report names it and why
+    assert mech["voxel"]["voxel_mm"] == mech["voxel"]["source_voxel_mm"] == 0.1 == mech["solver"]["voxel_mm"]
+    assert "the run's own voxel" in mech["voxel"]["note"] and "note: mechanics voxel 0.1 mm" in cap.out
+
+
+# ----------------------------------------------------------------------------- the mechanics voxel and its memory
+
+
+def trilinear(field, origin, h, points):
+    """Brute-force trilinear values of `field` (voxel centres at origin + i h) at `points` (m, 3) mm,
+    the index clamped to the grid (the edge value beyond it): the oracle of the sampler."""
+    idx = np.clip((np.asarray(points, float) - origin) / h, 0, np.array(field.shape) - 1)
+    i0 = np.minimum(np.floor(idx).astype(int), np.maximum(np.array(field.shape) - 2, 0))
+    t = idx - i0
+    out = np.zeros(len(points))
+    for corner in m.CORNERS:
+        w = np.prod(np.where(corner == 1, t, 1 - t), axis=1)
+        j = np.minimum(i0 + corner, np.array(field.shape) - 1)
+        out += w * field[j[:, 0], j[:, 1], j[:, 2]]
+    return out
+
+
+def test_the_sampled_field_is_the_trilinear_field_and_the_same_from_disk(tmp_path):
+    from implicit_scaffold.grid import Grid
+
+    rng = np.random.default_rng(5)
+    field = rng.standard_normal((19, 14, 17)).astype(np.float32)  # odd sizes
+    grid = Grid((0.3, -0.2, 1.1), 0.05, field.shape)
+    lo, hi = np.array([2, 1, 3]), np.array([18, 14, 15])
+    np.save(tmp_path / "f.npy", field)
+    disk = np.load(tmp_path / "f.npy", mmap_mode="r")
+    for voxel in (0.05, 0.0731, 0.12):
+        values, g = m.sample_field(field, grid, lo, hi, voxel)
+        assert g.spacing == voxel
+        # the new grid covers the box of the voxels [lo, hi): its first and last centres within half a voxel
+        box_lo = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
+        box_hi = np.asarray(grid.origin) + (hi - 0.5) * grid.spacing
+        assert np.all(g.lo <= box_lo + 1e-12) and np.all(g.hi >= box_hi - 1e-12)
+        assert np.all(g.hi - g.lo < box_hi - box_lo + voxel)
+        ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, g.points()).reshape(g.shape)
+        # float32 values interpolated in float64: a few float32 ulps
+        assert np.abs(values - ref).max() <= 1e-6 * np.abs(field).max()
+        if voxel == 0.05:  # the field's own voxel: its own values, bit for bit
+            assert np.array_equal(values, field[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
+        # read from the file a plane or so at a time: the same bits as from the array at once
+        small, _ = m.sample_field(disk, grid, lo, hi, voxel, chunk_bytes=2000)
+        assert np.array_equal(small, values)
+
+
+def test_solid_box_is_the_box_of_the_negative_voxels():
+    rng = np.random.default_rng(2)
+    field = np.ones((23, 9, 12), np.float32)
+    pick = rng.integers(0, [23, 9, 12], size=(7, 3))
+    pick[0] = (4, 1, 2)
+    field[tuple(pick.T)] = -1.0
+    lo, hi, count = m.solid_box(field, chunk_bytes=3 * 9 * 12 * 5)  # three planes at a time
+    idx = np.array(np.nonzero(field < 0))
+    assert count == idx.shape[1]
+    assert np.array_equal(lo, idx.min(axis=1)) and np.array_equal(hi, idx.max(axis=1) + 1)
+    assert m.solid_box(np.ones((3, 3, 3), np.float32))[2] == 0
+
+
+@pytest.fixture(scope="module")
+def slab_and_whole():
+    """The same small cube built whole and forced into slabs of 3 planes (a read-only memmap of its field)."""
+    from implicit_scaffold.pipeline import generate
+
+    kw = dict(size=1.2, pore_size=0.6, porosity=0.6, voxel=0.08, seed=2, mesh=False, morphometry=False)
+    whole = generate(tiled=False, **kw)
+    slabs = generate(tiled=3 * whole.grid.shape[1] * whole.grid.shape[2], **kw)
+    assert slabs.tiled is not None and isinstance(slabs.field, np.memmap)
+    return whole, slabs
+
+
+@pytest.mark.parametrize("voxel", [None, 0.11])
+def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, voxel, recwarn):
+    from implicit_scaffold.cli import _generate_mechanics, build_parser
+
+    whole, slabs = slab_and_whole
+    assert np.array_equal(np.asarray(slabs.field), whole.field)  # the same field, so the same solid
+    argv = ["generate", "-o", "x.npy", "--mechanics", "-q"] + ([] if voxel is None else ["--mechanics-voxel", str(voxel)])
+    args = build_parser().parse_args(argv)
+    a, _, ha = _generate_mechanics(whole, TI, args)
+    b, _, hb = _generate_mechanics(slabs, TI, args)
+    assert ha == hb == (whole.grid.spacing if voxel is None else voxel)
+    assert a["voxel"]["voxel_mm"] == ha and a["voxel"]["source_voxel_mm"] == whole.grid.spacing
+    # the same solid gives the same solve: the tensor and the modulus bit for bit
+    assert a["stiffness_tensor_gpa"] == b["stiffness_tensor_gpa"]
+    assert a["compression"] == b["compression"]
+    # the independent oracle of the solid: the whole field sampled by brute force at the solve's voxel
+    lo, hi, _ = m.solid_box(whole.field)
+    values, g = m.sample_field(whole.field, whole.grid, lo, hi, ha)
+    ref = trilinear(whole.field.astype(float), np.asarray(whole.grid.origin), whole.grid.spacing, g.points())
+    clear = np.abs(ref) > 1e-5  # away from the surface the sign cannot depend on round-off
+    assert np.array_equal((values.ravel() < 0)[clear], (ref < 0)[clear])
+    assert a["solid_fraction"] == pytest.approx(m.crop(values < 0).mean(), abs=1e-12)
+
+
+def _held():
+    from implicit_scaffold.memory import release
+
+    return release()
+
+
+def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_works(tmp_path, capsys, monkeypatch):
+    import json
+    import re
+
+    from implicit_scaffold.memory import parse_memory
+
+    g = (np.arange(16) + 0.5) / 16 * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    src = tmp_path / "gyroid.npy"
+    np.save(src, (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32))
+    out = tmp_path / "r.json"
+    code, cap = _run(["mechanics", src, "--voxel", 0.1, "-o", out, "-q"], capsys)  # libraries loaded, kernels built
+    assert code == 0, cap.err
+    whole = json.loads(out.read_text())
+    first = whole["voxel"]
+    assert first["voxel_mm"] == 0.1 and "own voxel" in first["note"]
+    # room for the solve's fixed part and a third of the rest: the 0.1 mm solve asked for is refused
+    # before anything is solved, naming a budget and a coarser voxel
+    solved = []
+    monkeypatch.setattr(m, "measure", lambda *a, **k: solved.append(1) or pytest.fail("solved"))
+    need = first["memory_estimate_bytes"]
+    fixed = m.SOLVE_FIXED_BYTES["multigrid"]
+    small = f"{(_held() + fixed + (need - fixed) // 3) // 2**20}M"
+    argv = ["mechanics", src, "--voxel", 0.1, "--max-memory", small, "-o", out, "-q"]
+    code, cap = _run(argv + ["--mechanics-voxel", 0.1], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and not solved
+    named = re.search(r"use --max-memory (\S+) or --mechanics-voxel (\S+)$", cap.err.strip())
+    assert named, cap.err
+    monkeypatch.undo()
+    budget, voxel = named.group(1), float(named.group(2))
+    assert parse_memory(budget) > parse_memory(small) and voxel > 0.1
+    # the named budget solves at 0.1 mm
+    code, cap = _run(argv[:-3] + ["--mechanics-voxel", 0.1, "--max-memory", budget, "-o", out, "-q"], capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    assert r["voxel"]["voxel_mm"] == 0.1 and r["solver"]["voxel_mm"] == 0.1
+    assert r["stiffness_tensor_gpa"] == whole["stiffness_tensor_gpa"]  # the budget changes nothing else
+    # and the named voxel fits the small budget
+    code, cap = _run(argv + ["--mechanics-voxel", voxel], capsys)
+    assert code == 0, cap.err
+    assert json.loads(out.read_text())["voxel"]["voxel_mm"] == voxel
+
+
+def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys):
+    import json
+
+    from implicit_scaffold.memory import parse_memory
+
+    g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    src = tmp_path / "gyroid.npy"
+    field = (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32)
+    np.save(src, field)
+    out = tmp_path / "r.json"
+    # the budget: what is held, the solve's fixed part, and a third of the variable part at the own voxel
+    lo, hi, count = m.solid_box(field)
+    fixed = m.SOLVE_FIXED_BYTES["multigrid"]
+    own = m.sample_memory(hi - lo, count, 0.05, 0.05)
+    budget = f"{(_held() + fixed + (own - fixed) // 3) // 2**20}M"
+    code, cap = _run(["mechanics", src, "--voxel", 0.05, "--max-memory", budget, "-o", out], capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    h = r["voxel"]["voxel_mm"]
+    # about 3^(1/3) = 1.44 times coarser, on a grid that covers the sample
+    assert 1.2 * 0.05 < h < 2 * 0.05 and r["voxel"]["source_voxel_mm"] == 0.05
+    assert "finest voxel whose solve fits" in r["voxel"]["note"] and r["voxel"]["note"] in r["notes"]
+    assert r["solver"]["voxel_mm"] == h
+    assert f"voxel {h:.4g} mm" in cap.out and "finest voxel" in cap.out
+    assert r["voxel"]["memory_estimate_bytes"] < parse_memory(budget)
+    # the sampled solid is the brute-force trilinear one: its solid fraction within the crop
+    lo, hi, _ = m.solid_box(field)
+    values, grid = m.sample_field(field, __import__("implicit_scaffold.grid", fromlist=["Grid"]).Grid(
+        (0.0, 0.0, 0.0), 0.05, field.shape), lo, hi, h)
+    ref = trilinear(field.astype(float), np.zeros(3), 0.05, grid.points()).reshape(grid.shape) < 0
+    assert r["solid_fraction"] == pytest.approx(m.crop(ref).mean(), abs=2e-3)
