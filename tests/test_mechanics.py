@@ -475,12 +475,27 @@ def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, v
     assert a["stiffness_tensor_gpa"] == b["stiffness_tensor_gpa"]
     assert a["compression"] == b["compression"]
     # the independent oracle of the solid: the whole field sampled by brute force at the solve's voxel
-    lo, hi, _ = m.solid_box(whole.field)
-    values, g = m.sample_field(whole.field, whole.grid, lo, hi, ha)
-    ref = trilinear(whole.field.astype(float), np.asarray(whole.grid.origin), whole.grid.spacing, g.points())
-    clear = np.abs(ref) > 1e-5  # away from the surface the sign cannot depend on round-off
-    assert np.array_equal((values.ravel() < 0)[clear], (ref < 0)[clear])
-    assert a["solid_fraction"] == pytest.approx(m.crop(values < 0).mean(), abs=1e-12)
+    sample = m.solid_for_solve(whole.field, whole.grid, voxel=voxel)
+    assert np.array_equal(sample.solid, oracle_solid(whole.field, whole.grid, ha))
+    assert a["solid_fraction"] == sample.solid.mean()
+
+
+def oracle_solid(field, grid, h):
+    """The solid at voxel `h` by brute force: trilinear values at the centres of the grid of voxel `h`
+    over the box of the solid voxels; below the level that keeps the solid volume (at a coarser voxel);
+    cropped to its solid voxels."""
+    idx = np.array(np.nonzero(field < 0))
+    lo, hi = idx.min(axis=1), idx.max(axis=1) + 1
+    if h == grid.spacing:
+        return m.crop(field[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] < 0)
+    corner = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
+    shape = np.ceil((hi - lo) * grid.spacing / h - 1e-9).astype(int)
+    first = corner + ((hi - lo) * grid.spacing - (shape - 1) * h) / 2  # the new grid centred on the box
+    axes = [first[a] + np.arange(shape[a]) * h for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, points).reshape(shape)
+    k = int(np.rint(idx.shape[1] * (grid.spacing / h) ** 3))
+    return m.crop(ref <= np.sort(ref.ravel())[k - 1])
 
 
 def _held():
@@ -558,9 +573,8 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     assert r["solver"]["voxel_mm"] == h
     assert f"voxel {h:.4g} mm" in cap.out and "finest voxel" in cap.out
     assert r["voxel"]["memory_estimate_bytes"] < parse_memory(budget)
-    # the sampled solid is the brute-force trilinear one: its solid fraction within the crop
-    lo, hi, _ = m.solid_box(field)
-    values, grid = m.sample_field(field, __import__("implicit_scaffold.grid", fromlist=["Grid"]).Grid(
-        (0.0, 0.0, 0.0), 0.05, field.shape), lo, hi, h)
-    ref = trilinear(field.astype(float), np.zeros(3), 0.05, grid.points()).reshape(grid.shape) < 0
-    assert r["solid_fraction"] == pytest.approx(m.crop(ref).mean(), abs=2e-3)
+    # the solid solved is the brute-force one: its solid fraction
+    from implicit_scaffold.grid import Grid
+
+    assert r["solid_fraction"] == pytest.approx(oracle_solid(field, Grid((0.0, 0.0, 0.0), 0.05, field.shape), h).mean(),
+                                                abs=1e-12)
