@@ -268,7 +268,11 @@ def _measure_sample(sample, mat, args, boundary: str):
 
     report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis="xyz".index(args.axis),
                            backend="opencl", origin=sample.origin, progress=_solver_progress(args))
-    report["voxel"] = sample.report
+    from .memory import peak_memory
+
+    # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
+    # part of it unless the build before peaked higher)
+    report["voxel"] = {**sample.report, "process_peak_bytes": peak_memory()}
     report["notes"].append(sample.report["note"])
     if sample.report["warning"]:
         from .errors import ScaffoldWarning
