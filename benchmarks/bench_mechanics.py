@@ -248,7 +248,8 @@ def coarsen(size: float) -> None:
     out = []
     for r in rows:
         how = "generated" if r["sample"] == r["voxel"] else f"sampled from the {r['voxel']:.4g} mm field"
-        out.append([f"{r['sample']:.4g}", how, f"{r['wall'] / r['sample']:.2f}", r["grid"], f"{r['solid_fraction']:.4f}",
+        out.append([f"{r['sample']:.4g}", how, f"{r['wall'] / r['sample']:.2f}", r["grid"],
+                    f"{r['solid_fraction']:.4f}",
                     f"{r['compression_gpa']:.4g} ({100 * (r['compression_gpa'] / ref['compression_gpa'] - 1):+.1f} %)",
                     f"{r['Ez_gpa']:.4g} ({100 * (r['Ez_gpa'] / ref['Ez_gpa'] - 1):+.1f} %)",
                     f"{r['Ex_gpa']:.4g} ({100 * (r['Ex_gpa'] / ref['Ex_gpa'] - 1):+.1f} %)"])

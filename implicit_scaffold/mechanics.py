@@ -893,6 +893,14 @@ SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 1200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
 #: of a solve, per voxel of its grid
 SAMPLE_BYTES_PER_VOXEL = 9
+#: what a refusal's budget and voxel leave beside the estimate: 8 MiB and this share of what the
+#: process holds, which moves by some MiB from one run to the next (heap fragments, library pages)
+HELD_MARGIN_SHARE = 0.02
+
+
+def held_margin(held: int) -> int:
+    """Bytes a refusal's budget and voxel leave beside the estimate when the process holds `held`."""
+    return int(8 * 2**20 + HELD_MARGIN_SHARE * held)
 #: the field a scan or a sampling pass reads at once (bytes): a few planes of a large grid
 SAMPLE_CHUNK_BYTES = 64 * 2**20
 #: Voxels across the median Voronoi wall (the report's ``wall_thickness_mm``): generate's own
@@ -1019,7 +1027,8 @@ def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE
     jy, jz = np.minimum(iy + 1, y1 - y0 - 1), np.minimum(iz + 1, z1 - z0 - 1)
     wy, wz = weight[1][None, :, None], weight[2][None, None, :]
     # a batch of new planes reads its field planes (float32) and holds two interpolated stages (float64)
-    per_plane = 4 * (y1 - y0) * (z1 - z0) * max(1.0, float(voxel) / h0) + 8 * out_grid.shape[1] * (2 * (z1 - z0) + out_grid.shape[2])
+    per_plane = (4 * (y1 - y0) * (z1 - z0) * max(1.0, float(voxel) / h0)
+                 + 8 * out_grid.shape[1] * (2 * (z1 - z0) + out_grid.shape[2]))
     rows = max(1, int(chunk_bytes // per_plane))
     for c0 in range(0, out_grid.shape[0], rows):
         c1 = min(c0 + rows, out_grid.shape[0])
@@ -1125,7 +1134,8 @@ def _refusal(h: float, need: int, held: int, total: int, fit: float | None, opti
     from .memory import format_size
 
     return (f"the mechanics solve at {h:.4g} mm needs about {format_size(need)} beside the {format_size(held)} "
-            f"held, over --max-memory {format_size(total)}{why}; use --max-memory {format_size(held + need)}"
+            f"held, over --max-memory {format_size(total)}{why}; use --max-memory "
+            f"{format_size(held + need + held_margin(held))}"
             + (f" or {option} {fit:.4g}" if fit is not None else ""))
 
 
@@ -1160,7 +1170,8 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
     count = int(np.count_nonzero(solid))
     need = solve_memory(solid.shape, count, boundary=bc, preconditioner=preconditioner)
     if need > total - held:
-        fit = finest_voxel(solid.shape, count, h, total - held, boundary=bc, preconditioner=preconditioner)
+        fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
+                           preconditioner=preconditioner)
         raise ScaffoldError(_refusal(h, need, held, total, fit, option))
     return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
             "note": f"mechanics voxel {h:.4g} mm: the sample's own voxel: its solve fits the budget",
@@ -1169,7 +1180,7 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
 
 def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None, wall: float | None = None,
                     boundary: str = "auto", preconditioner: str = "multigrid",
-                    option: str = "--mechanics-voxel") -> SolveSample:
+                    option: str = "--mechanics-voxel", source: str = "run") -> SolveSample:
     """The solid a solve runs on: at `voxel`, or at the finest voxel whose solve fits the budget.
 
     The memory is checked before anything is sampled or solved: the budget (``--max-memory``)
@@ -1191,6 +1202,8 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
         For the estimate (``auto`` counts the kinematic grid, one node more per axis).
     option : str
         The option that sets the voxel, as the refusal names it.
+    source : str
+        What the field is, as the note names it ("run", "field").
 
     Raises
     ------
@@ -1214,7 +1227,9 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     def need(h):
         return sample_memory(n, count, h0, h, boundary=bc, preconditioner=preconditioner)
 
-    fit = finest_voxel(n, count, h0, allowance, boundary=bc, preconditioner=preconditioner)
+    # the run's own voxel when it fits; else the finest that fits with the margin (a refusal names it)
+    fit = h0 if need(h0) <= allowance else finest_voxel(n, count, h0, allowance - held_margin(held), boundary=bc,
+                                                        preconditioner=preconditioner)
 
     def refuse(h, why=""):
         raise ScaffoldError(_refusal(h, need(h), held, total, fit, option, why))
@@ -1226,7 +1241,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
             refuse(h)
         why = f"the voxel asked for ({option})"
     elif fit == h0:
-        h, why = h0, f"the {'run' if option == '--mechanics-voxel' else 'sample'}'s own voxel: its solve fits the budget"
+        h, why = h0, f"the {source}'s own voxel: its solve fits the budget"
     else:
         floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
         if fit is None or (floor is not None and fit > floor):
@@ -1235,8 +1250,8 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
                    f" (the finest voxel that fits, {fit:.4g} mm, leaves fewer than {MIN_VOXELS_PER_WALL:g} "
                    f"voxels across the {wall:.3g} mm median wall)")
         h = fit
-        why = (f"the finest voxel whose solve fits --max-memory {format_size(total)} (the run's "
-               f"{h0:.4g} mm would need about {format_size(held + need(h0))})")
+        why = (f"the finest voxel whose solve fits --max-memory {format_size(total)} (the {source}'s "
+               f"{h0:.4g} mm would need about {format_size(held + need(h0) + held_margin(held))})")
     for _ in range(8):
         values, sampled = sample_field(field, grid, lo, hi, h)
         level = keep_volume(values, count * (h0 / h) ** 3) if h != h0 else np.float32(0)
@@ -1256,12 +1271,13 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     if converged is not None and h > converged * (1 + 1e-9):
         # coarser than the run and than generate's default voxel: the moduli move by more than a few %
         warning = (f"the mechanics voxel {h:.4g} mm leaves {wall / h:.1f} voxels across the {wall:.3g} mm median "
-                   f"wall, fewer than generate's {CONVERGED_VOXELS_PER_WALL:g} (a 1.6 mm cube sampled at 2: 10-16 % off, "
-                   f"at 4: 2-8 %); --max-memory {format_size(held + need(converged))} solves at {converged:.4g} mm")
+                   f"wall, fewer than generate's {CONVERGED_VOXELS_PER_WALL:g} (a 1.6 mm cube sampled at 2: "
+                   f"10-16 % off, at 4: 2-8 %); --max-memory {format_size(held + need(converged) + held_margin(held))} "
+                   f"solves at {converged:.4g} mm")
     note = f"mechanics voxel {h:.4g} mm: {why}"
     if h != h0:
         note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "
-                 f"it keeps the run's solid volume")
+                 f"it keeps the {source}'s solid volume")
     report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
               "memory_estimate_bytes": int(estimate), "max_memory_bytes": int(total)}
     return SolveSample(solid, h, origin, report)
@@ -1308,7 +1324,7 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)
         try:
             return solid_for_solve(sample.field, grid, max_memory=max_memory, voxel=mechanics_voxel,
-                                   boundary=boundary, option="--mechanics-voxel"), sample.kind
+                                   boundary=boundary, source="field"), sample.kind
         except ScaffoldError as exc:
             if "no solid voxel" in str(exc):
                 raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load") from None

@@ -465,8 +465,8 @@ def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, v
 
     whole, slabs = slab_and_whole
     assert np.array_equal(np.asarray(slabs.field), whole.field)  # the same field, so the same solid
-    argv = ["generate", "-o", "x.npy", "--mechanics", "-q"] + ([] if voxel is None else ["--mechanics-voxel", str(voxel)])
-    args = build_parser().parse_args(argv)
+    argv = ["generate", "-o", "x.npy", "--mechanics", "-q"]
+    args = build_parser().parse_args(argv + ([] if voxel is None else ["--mechanics-voxel", str(voxel)]))
     a, _, ha = _generate_mechanics(whole, TI, args)
     b, _, hb = _generate_mechanics(slabs, TI, args)
     assert ha == hb == (whole.grid.spacing if voxel is None else voxel)
@@ -518,7 +518,7 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
 
     from implicit_scaffold.memory import parse_memory
 
-    g = (np.arange(16) + 0.5) / 16 * 2 * np.pi
+    g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
     x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
     src = tmp_path / "gyroid.npy"
     np.save(src, (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32))
@@ -528,13 +528,13 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     whole = json.loads(out.read_text())
     first = whole["voxel"]
     assert first["voxel_mm"] == 0.1 and "own voxel" in first["note"]
-    # room for the solve's fixed part and a third of the rest: the 0.1 mm solve asked for is refused
+    # room for the solve's fixed part, the margin and a third of the rest: the 0.1 mm solve asked for is refused
     # before anything is solved, naming a budget and a coarser voxel
     solved = []
     monkeypatch.setattr(m, "measure", lambda *a, **k: solved.append(1) or pytest.fail("solved"))
     need = first["memory_estimate_bytes"]
     fixed = m.SOLVE_FIXED_BYTES["multigrid"]
-    small = f"{(_held() + fixed + (need - fixed) // 3) // 2**20}M"
+    small = f"{(_held() + fixed + m.held_margin(_held()) + (need - fixed) // 3) // 2**20}M"
     argv = ["mechanics", src, "--voxel", 0.1, "--max-memory", small, "-o", out, "-q"]
     code, cap = _run(argv + ["--mechanics-voxel", 0.1], capsys)
     assert code == 2 and cap.err.count("\n") == 1 and not solved
@@ -566,11 +566,11 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     field = (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32)
     np.save(src, field)
     out = tmp_path / "r.json"
-    # the budget: what is held, the solve's fixed part, and a third of the variable part at the own voxel
+    # the budget: what is held, the solve's fixed part, the margin, and a third of the variable part at the own voxel
     lo, hi, count = m.solid_box(field)
     fixed = m.SOLVE_FIXED_BYTES["multigrid"]
     own = m.sample_memory(hi - lo, count, 0.05, 0.05)
-    budget = f"{(_held() + fixed + (own - fixed) // 3) // 2**20}M"
+    budget = f"{(_held() + fixed + m.held_margin(_held()) + (own - fixed) // 3) // 2**20}M"
     code, cap = _run(["mechanics", src, "--voxel", 0.05, "--max-memory", budget, "-o", out], capsys)
     assert code == 0, cap.err
     r = json.loads(out.read_text())
@@ -592,3 +592,21 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     # within a few voxels: the gyroid's symmetry ties values at the level, which float32 and float64 break apart
     ref = oracle_solid(field, Grid((0.0, 0.0, 0.0), 0.05, field.shape), h)
     assert r["solid_fraction"] == pytest.approx(ref.mean(), abs=4 / ref.size)
+
+
+def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_voxel():
+    from implicit_scaffold.memory import parse_memory
+
+    solid = np.zeros((40, 40, 40), bool)
+    solid[:, :, 5:30] = True  # 40,000 solid voxels on a 41^3 kinematic node grid
+    need = m.solve_memory(solid.shape, int(solid.sum()), boundary="kinematic")
+    held = _held()
+    small = held + m.SOLVE_FIXED_BYTES["multigrid"] + m.held_margin(_held()) + (need - m.SOLVE_FIXED_BYTES["multigrid"]) // 3
+    with pytest.raises(ScaffoldError, match=r"use --max-memory (\S+) or --voxel (\S+)$") as err:
+        m.check_solve(solid, 0.1, max_memory=small)
+    budget = err.value.args[0].split("use --max-memory ")[1].split()[0]
+    voxel = float(err.value.args[0].rsplit(" ", 1)[1])
+    # the budget named holds the estimate beside what is held; the voxel named is coarser
+    assert parse_memory(budget) >= held + need + m.held_margin(_held()) and voxel > 0.1
+    report = m.check_solve(solid, 0.1, max_memory=parse_memory(budget) + 2**20)
+    assert report["voxel_mm"] == 0.1 and report["memory_estimate_bytes"] == need
