@@ -1236,7 +1236,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
 
     warning = None
     if voxel is not None:
-        h = positive_mm("mechanics voxel", voxel)
+        h = positive_mm("mechanics-voxel", voxel, example="0.05")
         if need(h) > allowance:
             refuse(h)
         why = f"the voxel asked for ({option})"

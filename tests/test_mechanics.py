@@ -258,6 +258,8 @@ def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys
     ("plates", ["--voxel", "0.1", "--axis", "z"], "does not connect the two platens"),
     ("block", ["--voxel", "0.1", "--material", "steel"], "unknown material"),
     ("block", ["--voxel", "0.1", "--E", "2", "--nu", "0.5"], "--nu"),
+    ("block", ["--voxel", "0.1", "--mechanics-voxel", "-1"], "--mechanics-voxel must be a positive"),
+    ("block", ["--voxel", "0.1", "--max-memory", "lots"], "--max-memory must be a size"),
 ])
 def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
     solid = np.zeros((6, 6, 9), bool)
