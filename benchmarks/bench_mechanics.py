@@ -139,6 +139,52 @@ _out = {{'voxel': r.grid.spacing, 'grid': 'x'.join(map(str, solid.shape)), 'soli
 """
 
 
+MEMORY = """
+import numpy as np
+from implicit_scaffold import mechanics as M
+from implicit_scaffold.memory import peak_memory, release
+n, phi = {n!r}, {phi!r}
+g = (np.arange(n) + 0.5) / n * 2 * np.pi
+x, y, z = np.meshgrid(g, g, g, indexing='ij', sparse=True)
+f = np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x)  # a gyroid: one connected solid
+solid = f < np.quantile(f, phi)
+del f, x, y, z
+mat = M.material('ti64')
+M.measure(np.ones((4, 4, 5), bool), 0.05, mat, boundary={boundary!r}, backend='opencl',
+          preconditioner={preconditioner!r})  # the kernels built and the libraries loaded outside the count
+before = release()
+if {what!r} == 'compress':
+    M.compress(solid, 0.05, mat, axis=2, tol=1e-6, backend='opencl', preconditioner={preconditioner!r})
+elif {what!r} == 'homogenize':
+    M.homogenize(solid, 0.05, mat, boundary={boundary!r}, tol=1e-6, backend='opencl',
+                 preconditioner={preconditioner!r})
+else:
+    M.measure(solid, 0.05, mat, boundary={boundary!r}, backend='opencl', preconditioner={preconditioner!r})
+peak = peak_memory()
+nodes = int(np.prod([s + (0 if {boundary!r} == 'periodic' else 1) for s in solid.shape]))
+_out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'solve_bytes': peak - before,
+         'estimate': M.solve_memory(solid.shape, int(solid.sum()), boundary={boundary!r},
+                                    preconditioner={preconditioner!r})}}
+"""
+
+
+COARSEN = """
+import numpy as np
+import implicit_scaffold
+from implicit_scaffold import mechanics as M
+r = implicit_scaffold.generate(size={size!r}, voxel={voxel!r}, pore_size=0.6, porosity=0.7, seed=0, mesh=False,
+                               morphometry=False)
+s = M.solid_for_solve(r.field, r.grid, voxel={sample!r}, boundary='periodic', max_memory='16G')
+mat = M.material('ti64')
+c = M.compress(s.solid, s.voxel, mat, axis=2, tol=1e-6, backend='opencl')
+hom = M.homogenize(s.solid, s.voxel, mat, boundary='periodic', tol=1e-6, backend='opencl')
+e = M.engineering_constants(hom.stiffness)['youngs_modulus_gpa']
+_out = {{'voxel': r.grid.spacing, 'sample': s.voxel, 'wall': r.report['wall_thickness_mm']['median'],
+         'grid': 'x'.join(map(str, s.solid.shape)), 'solid_fraction': float(s.solid.mean()),
+         'compression_gpa': c.apparent_modulus_gpa, 'Ez_gpa': e['z'], 'Ex_gpa': e['x']}}
+"""
+
+
 FEMUR_BUILD = """
 import numpy as np
 import implicit_scaffold
@@ -192,6 +238,47 @@ def femur(tmp: Path, tol: float, maxiter: int, preconditioner: str) -> None:
                        "peak MiB", "voxels off the load path", "verdict (box figure)"]))
 
 
+def coarsen(size: float) -> None:
+    """The moduli at the run's voxel, at half of it, and sampled from the finer field at coarser voxels."""
+    coarse = run_isolated(COARSEN.format(size=size, voxel=None, sample=None), timeout=3600)
+    h = coarse["voxel"]
+    ref = run_isolated(COARSEN.format(size=size, voxel=h / 2, sample=None), timeout=3600)
+    rows = [coarse, ref] + [run_isolated(COARSEN.format(size=size, voxel=h / 2, sample=round(f * h, 6)), timeout=3600)
+                            for f in (1.0, 1.5, 2.0)]
+    out = []
+    for r in rows:
+        how = "generated" if r["sample"] == r["voxel"] else f"sampled from the {r['voxel']:.4g} mm field"
+        out.append([f"{r['sample']:.4g}", how, f"{r['wall'] / r['sample']:.2f}", r["grid"],
+                    f"{r['solid_fraction']:.4f}",
+                    f"{r['compression_gpa']:.4g} ({100 * (r['compression_gpa'] / ref['compression_gpa'] - 1):+.1f} %)",
+                    f"{r['Ez_gpa']:.4g} ({100 * (r['Ez_gpa'] / ref['Ez_gpa'] - 1):+.1f} %)",
+                    f"{r['Ex_gpa']:.4g} ({100 * (r['Ex_gpa'] / ref['Ex_gpa'] - 1):+.1f} %)"])
+    print()
+    print(table(out, ["voxel mm", "solid from", "voxels across median wall", "grid", "solid",
+                      "platens E_z GPa (vs h/2)", "periodic E_z GPa", "periodic E_x GPa"]))
+
+
+def memory(sizes, preconditioners, solves) -> None:
+    """The solver's own memory on small gyroids, beside the estimate ``mechanics.solve_memory`` checks."""
+    rows = []
+    for pc in preconditioners:
+        for boundary in ("periodic", "kinematic"):
+            for what in solves:
+                for n in sizes:
+                    for phi in (0.3, 0.6):
+                        if what == "compress" and boundary == "kinematic":
+                            continue  # compression has its own boundary: the periodic rows are it
+                        r = run_isolated(MEMORY.format(n=n, phi=phi, boundary=boundary, preconditioner=pc,
+                                                       what=what), timeout=600)
+                        rows.append([pc, boundary if what != "compress" else "platens", what, f"{n}^3",
+                                     f"{r['solid_voxels'] / n ** 3:.2f}", r["solid_voxels"], r["nodes"],
+                                     f"{r['solve_bytes'] / 2 ** 20:.1f}", f"{r['solve_bytes'] / r['solid_voxels']:.0f}",
+                                     f"{r['estimate'] / 2 ** 20:.1f}", f"{r['estimate'] / r['solve_bytes']:.2f}"])
+                        print(" | ".join(map(str, rows[-1])), file=sys.stderr, flush=True)
+    print(table(rows, ["preconditioner", "boundary", "solve", "grid", "solid", "solid voxels", "nodes",
+                       "peak above start MiB", "B/solid voxel", "estimate MiB", "estimate/measured"]))
+
+
 def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "paper", pore: float = 0.6,
           seed: int = 0) -> tuple[Path, dict]:
     out = tmp / f"solid_{style}_{n}_{porosity}.npy"
@@ -215,6 +302,16 @@ def main(argv=None) -> int:
     ap.add_argument("--mugrid", action="store_true")
     ap.add_argument("--convergence", action="store_true",
                     help="a 2 mm cube at generate's default voxel and at half of it")
+    ap.add_argument("--coarsen", type=float, default=None, metavar="MM",
+                    help="a MM cube at generate's default voxel h and at h/2, and the h/2 field sampled at h, "
+                         "1.5 h and 2 h (the mechanics voxel of a run whose solve does not fit)")
+    ap.add_argument("--memory", type=int, nargs="*", default=None, metavar="N",
+                    help="the solver's memory: peak above the process's resident set before it, per node and per "
+                         "solid voxel, of compression and homogenization of N^3 gyroids (solid fractions 0.3, 0.6), "
+                         "in fresh processes, beside mechanics.solve_memory's estimate")
+    ap.add_argument("--memory-solves", default="compress,homogenize,measure",
+                    help="--memory's solves: compress (one load case), homogenize (six), measure (both, as the "
+                         "commands run them)")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
     ap.add_argument("--femur-maxiter", type=int, default=5000,
@@ -291,6 +388,10 @@ def main(argv=None) -> int:
                            "CG its (hom, comp)"]))
         for key in ("compression_gpa", "Ez_gpa", "Ex_gpa"):
             print(f"  {key}: h -> h/2 changes by {100 * (coarse[key] / fine[key] - 1):+.2f} %")
+    if args.coarsen:
+        coarsen(args.coarsen)
+    if args.memory:
+        memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","))
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0

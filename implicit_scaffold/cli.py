@@ -126,6 +126,9 @@ def build_parser() -> argparse.ArgumentParser:
                            f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, or a folder of .tif slices) or a .npy field "
                            "(negative = solid)")
     _add_mechanics_options(me)
+    me.add_argument("--max-memory", default=None, metavar="SIZE",
+                    help="memory the solve may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
+                         "less); checked before the solve, a refusal names the budget and the voxel that would do")
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
     me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
@@ -175,6 +178,10 @@ def _add_mechanics_options(p) -> None:
     mg.add_argument("--boundary", choices=["auto", "periodic", "kinematic"], default="auto",
                     help="homogenization: periodic (a box sample), kinematic (a shaped one); auto tells them apart")
     mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
+    mg.add_argument("--mechanics-voxel", type=float, default=None, metavar="MM",
+                    help="the solve's voxel, sampled (trilinear) from the signed distance (generate's, or a .npy "
+                         "field's); default: the field's own voxel when the solve fits --max-memory, else the "
+                         "finest voxel that fits (the report's mechanics.voxel says which and why)")
 
 
 def _mechanics_setup(args):
@@ -219,7 +226,7 @@ def _solver_progress(args, every: float = 5.0):
 
 
 def _mechanics(args) -> int:
-    from .mechanics import load_sample, measure
+    from .mechanics import load_sample
 
     t0 = time.perf_counter()
     mat = _mechanics_setup(args)
@@ -231,9 +238,10 @@ def _mechanics(args) -> int:
                 from .files import check_writable
 
                 check_writable(path, formats=fmt)
-    solid, h, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing)
-    report, comp = measure(solid, h, mat, boundary=args.boundary, axis="xyz".index(args.axis), backend="opencl",
-                           progress=_solver_progress(args))
+    sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
+                               max_memory=args.max_memory, boundary=args.boundary)
+    solid, h = sample.solid, sample.voxel
+    report, comp = _measure_sample(sample, mat, args, args.boundary)
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .files import write_json
@@ -254,22 +262,49 @@ def _mechanics(args) -> int:
     return 0
 
 
-def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
-    """Measure what generate built; the report's ``mechanics`` section."""
-    from .mechanics import crop, measure
+def _measure_sample(sample, mat, args, boundary: str):
+    """`measure` on a :class:`~.mechanics.SolveSample`; the report says which voxel and why, and warns."""
+    from .mechanics import measure
 
-    if result.tiled is not None:
-        raise ScaffoldError("--mechanics needs the whole field in memory, and this run was tiled; "
-                            "raise --max-memory or use a larger --voxel")
-    h = float(result.grid.spacing)
-    solid = crop(result.field < 0) if (result.field < 0).any() else result.field < 0
+    report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis="xyz".index(args.axis),
+                           backend="opencl", origin=sample.origin, progress=_solver_progress(args))
+    from .memory import peak_memory
+
+    # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
+    # part of it unless the build before peaked higher)
+    report["voxel"] = {**sample.report, "process_peak_bytes": peak_memory()}
+    report["notes"].append(sample.report["note"])
+    if sample.report["warning"]:
+        from .errors import ScaffoldWarning
+
+        report["notes"].append(sample.report["warning"])
+        warnings.warn(sample.report["warning"], ScaffoldWarning, stacklevel=2)
+    return report, comp
+
+
+def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
+    """Measure what generate built (in memory or in slabs on disk); the report's ``mechanics`` section.
+
+    The solid comes from the field at the mechanics voxel (:func:`~.mechanics.solid_for_solve`),
+    a few planes at a time, so a slab run's field on disk is never held whole; its solve's
+    memory is checked against --max-memory before it starts.
+    """
+    import numpy as np
+
+    from .mechanics import solid_box, solid_for_solve
+
     boundary = args.boundary
     if boundary == "auto" and result.patient_sdf is not None:
         # a box patient is a box sample (periodic); any other shape is not (kinematic)
-        boundary = "periodic" if crop(result.patient_sdf < 0).all() else "kinematic"
-    mech, comp = measure(solid, h, mat, boundary=boundary, axis="xyz".index(args.axis), backend="opencl",
-                         progress=_solver_progress(args))
-    return mech, comp, h
+        lo, hi, count = solid_box(result.patient_sdf)
+        boundary = "periodic" if count and count == int(np.prod(hi - lo)) else "kinematic"
+    wall = (result.report.get("wall_thickness_mm") or {}).get("median")
+    sample = solid_for_solve(result.field, result.grid, max_memory=args.max_memory, voxel=args.mechanics_voxel,
+                             wall=wall, boundary=boundary)
+    mech, comp = _measure_sample(sample, mat, args, boundary)
+    if sample.report["warning"]:
+        result.report.setdefault("warnings", []).append(sample.report["warning"])
+    return mech, comp, sample.voxel
 
 
 def _add_build_options(g) -> None:
@@ -559,6 +594,8 @@ def _generate(args) -> int:
     if args.report is not None:
         _check_report(args.report)
     mat = _mechanics_setup(args) if args.mechanics else None
+    if args.mechanics_voxel is not None and not args.mechanics:
+        raise ScaffoldError("--mechanics-voxel sets the voxel of --mechanics' solve; add --mechanics or drop it")
     result = _build(args, output=args.output)
     comp = None
     if args.mechanics:

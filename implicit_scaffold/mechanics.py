@@ -855,11 +855,443 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     return report, comp
 
 
+# ----------------------------------------------------------------------------- memory and the voxel of a solve
+
+
+#: What :func:`measure` holds at its peak over what the process held before it. Its peak is
+#: the homogenization's: six load cases as one block (the platen compression before it, one
+#: case, peaks lower: 118 MiB against 314 MiB on the 48^3 gyroid below). A fixed part (the
+#: multigrid's compiled kernels loaded from numba's cache, the device's program), a part per
+#: node of the solve's grid (the CG's and the cycle's full-grid vectors of the six cases, void
+#: nodes included; a kinematic sample also keeps ``u = E x`` at every node, on a grid one node
+#: longer per axis) and a part per solid voxel (the element connectivity, the six cases'
+#: element displacements for the periodic right-hand side). Fitted and rounded up, from
+#: fresh-process peaks (VmHWM above the resident set before the solve) of gyroids (OpenCL
+#: operator, CG to 1e-6), ``python benchmarks/bench_mechanics.py --sizes --memory 32 48
+#: --preconditioners multigrid`` and ``... --memory 64 --memory-solves measure
+#: --preconditioners multigrid,fft`` on 2026-12-04 (MiB above the start):
+#:
+#: ======  =====  ================  ================  =============  =============
+#: grid    solid  multigrid per.    multigrid kin.    fft per.       fft kin.
+#:                measured (est.)   measured (est.)   meas. (est.)   meas. (est.)
+#: ======  =====  ================  ================  =============  =============
+#: 48^3    0.3    314.4 (343)       326.9 h (382)
+#: 48^3    0.6    352.8 (381)       370.7 h (420)
+#: 64^3    0.3    596.0 (648)       674.1 (734)       431.8 (437)    498.3 (511)
+#: 64^3    0.6    678.2 (738)       759.7 (824)       568.1 (580)    643.8 (654)
+#: ======  =====  ================  ================  =============  =============
+#:
+#: (h: homogenization alone. The FFT preconditioner's fit has one grid size; its fixed part is
+#: the multigrid's.) Per solid voxel, the multigrid's is the per-solid part plus the per-node
+#: part over the solid fraction (and the fixed part): 7,000 (periodic) to 7,900 (kinematic) bytes
+#: at 30 % solid, 4,100 to 4,500 at 60 %. The 128^3 Voronoi scaffold of the README's benchmark (30 % solid,
+#: periodic, commit 625c5f4) peaked 7,120 bytes per solid voxel above its start; this gives 7,230.
+SOLVE_FIXED_BYTES = {"multigrid": 120 * 2**20, "fft": 120 * 2**20}
+SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 1750, "kinematic": 2000},
+                        "fft": {"periodic": 700, "kinematic": 950}}
+SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 1200, "fft": 1900}
+#: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
+#: of a solve, per voxel of its grid
+SAMPLE_BYTES_PER_VOXEL = 9
+#: what a refusal's budget and voxel leave beside the estimate: 8 MiB and this share of what the
+#: process holds, which moves by some MiB from one run to the next (heap fragments, library pages)
+HELD_MARGIN_SHARE = 0.02
+
+
+def held_margin(held: int) -> int:
+    """Bytes a refusal's budget and voxel leave beside the estimate when the process holds `held`."""
+    return int(8 * 2**20 + HELD_MARGIN_SHARE * held)
+#: the field a scan or a sampling pass reads at once (bytes): a few planes of a large grid
+SAMPLE_CHUNK_BYTES = 64 * 2**20
+#: Voxels across the median Voronoi wall (the report's ``wall_thickness_mm``): generate's own
+#: default voxel (``pipeline.VOXELS_PER_WALL``). Coarser, the report warns. Measured on a 1.6 mm
+#: cube, 0.6 mm pores, porosity 0.7, Ti-6Al-4V (``python benchmarks/bench_mechanics.py --sizes
+#: --coarsen 1.6``), against the cube built at half the voxel (8 across): built at 4 across,
+#: the platens' modulus -3.8 % (periodic Ez -6.3 %, Ex -8.8 %: the issue's 3 % is not met at
+#: generate's default voxel); the finer field sampled at 4 across (solid volume kept), -2.1 %
+#: (-4.8, -7.6); at 2.67 across, +1.5 % (-3.2, -7.4); at 2 across, -12.9 % (-9.7, -16.2).
+CONVERGED_VOXELS_PER_WALL = 4.0
+#: below this many voxels across the median wall the default voxel refuses instead of coarsening
+#: (the 2-across sample above was 10-16 % off)
+MIN_VOXELS_PER_WALL = 2.5
+
+
+def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid") -> int:
+    """Bytes :func:`measure` holds at its peak over what the process held before it (an estimate).
+
+    Parameters
+    ----------
+    shape : (3,) ints
+        The sample's voxels (a kinematic or platen sample's node grid has one more per axis).
+    solid_voxels : int
+    boundary : {"periodic", "kinematic"}
+    preconditioner : {"multigrid", "fft"}
+
+    Returns
+    -------
+    int, bytes
+        :data:`SOLVE_FIXED_BYTES` plus :data:`SOLVE_BYTES_PER_NODE` per node and
+        :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel.
+    """
+    nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
+    return int(SOLVE_FIXED_BYTES[preconditioner] + SOLVE_BYTES_PER_NODE[preconditioner][boundary] * nodes
+               + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * int(solid_voxels))
+
+
+def solid_box(field, *, level: float = 0.0, chunk_bytes: int = SAMPLE_CHUNK_BYTES):
+    """The bounding box and count of a field's solid voxels (below `level`), read a few planes at a time.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float ndarray or numpy.memmap, mm
+    level : float, mm
+
+    Returns
+    -------
+    lo, hi : (3,) int ndarray, or None when nothing is solid
+        The box ``[lo, hi)`` in voxel indices.
+    count : int
+    """
+    nx, ny, nz = field.shape
+    rows = max(1, int(chunk_bytes) // (5 * ny * nz))  # the planes read (float32) and their mask
+    lo, hi, count = np.array(field.shape), np.zeros(3, np.int64), 0
+    for x0 in range(0, nx, rows):
+        solid = np.asarray(field[x0:x0 + rows]) < level
+        found = int(np.count_nonzero(solid))
+        if not found:
+            continue
+        count += found
+        for a, axes in enumerate(((1, 2), (0, 2), (0, 1))):
+            idx = np.flatnonzero(solid.any(axis=axes)) + (x0 if a == 0 else 0)
+            lo[a], hi[a] = min(lo[a], idx[0]), max(hi[a], idx[-1] + 1)
+    return (lo, hi, count) if count else (None, None, 0)
+
+
+def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE_CHUNK_BYTES):
+    """A field over the voxels ``[lo, hi)`` of its grid, at another voxel, read a few planes at a time.
+
+    The grid of voxel `voxel` that covers the box of those voxels, centred on it
+    (:meth:`~.grid.Grid.covering`), gets the field's trilinear value at each of its voxel
+    centres (:func:`~.field.sample`: the nearest edge value beyond the grid). At the field's
+    own voxel, the values are the field's own. A batch of the new grid's planes reads only
+    the field's planes around it, so the whole field is never held (a slab run's field is a
+    memmap of its store on disk); every value is computed from its eight neighbours and its
+    weights from the whole grid's coordinates, so the bits are the same whatever the batches
+    and whether the field is an array or a memmap.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float ndarray or numpy.memmap, mm
+    grid : Grid
+        The field's grid.
+    lo, hi : (3,) ints
+        The box of the field's voxels to cover, ``[lo, hi)``.
+    voxel : float, mm
+    chunk_bytes : int
+        About what a batch reads and makes.
+
+    Returns
+    -------
+    values : (m1, m2, m3) float32 ndarray, mm
+    out_grid : Grid
+        The grid of `values`.
+    """
+    from .grid import Grid
+
+    lo, hi = np.asarray(lo, np.int64), np.asarray(hi, np.int64)
+    h0 = float(grid.spacing)
+    if float(voxel) == h0:
+        out_grid = Grid(tuple(float(grid.origin[a] + lo[a] * h0) for a in range(3)), h0,
+                        tuple(int(v) for v in hi - lo))
+        values = np.empty(out_grid.shape, np.float32)
+        rows = max(1, int(chunk_bytes) // (4 * int(np.prod(out_grid.shape[1:]))))
+        for x0 in range(0, out_grid.shape[0], rows):
+            x1 = min(x0 + rows, out_grid.shape[0])
+            values[x0:x1] = field[lo[0] + x0:lo[0] + x1, lo[1]:hi[1], lo[2]:hi[2]]
+        return values, out_grid
+    corner = np.asarray(grid.origin) + (lo - 0.5) * h0
+    out_grid = Grid.covering(corner, corner + (hi - lo) * h0, float(voxel), pad=0)
+    values = np.empty(out_grid.shape, np.float32)
+    # per axis, the field's plane below each new centre and the weight of the one above, from the
+    # whole grid's coordinates: a value's arithmetic is its own whatever the batch it falls in
+    # (field.sample's map_coordinates on a batch would take coordinates relative to the batch,
+    # whose rounding moves with it), so an array and a slab store give the same bits
+    low, weight = [], []
+    for a, coords in enumerate(out_grid.axes()):
+        f = np.clip((coords - grid.origin[a]) / h0, 0, grid.shape[a] - 1)
+        i0 = np.minimum(np.floor(f).astype(np.int64), max(grid.shape[a] - 2, 0))
+        low.append(i0)
+        weight.append(f - i0)
+    (y0, y1), (z0, z1) = [(int(low[a][0]), min(int(low[a][-1]) + 2, grid.shape[a])) for a in (1, 2)]
+    iy, iz = low[1] - y0, low[2] - z0
+    jy, jz = np.minimum(iy + 1, y1 - y0 - 1), np.minimum(iz + 1, z1 - z0 - 1)
+    wy, wz = weight[1][None, :, None], weight[2][None, None, :]
+    # a batch of new planes reads its field planes (float32) and holds two interpolated stages (float64)
+    per_plane = (4 * (y1 - y0) * (z1 - z0) * max(1.0, float(voxel) / h0)
+                 + 8 * out_grid.shape[1] * (2 * (z1 - z0) + out_grid.shape[2]))
+    rows = max(1, int(chunk_bytes // per_plane))
+    for c0 in range(0, out_grid.shape[0], rows):
+        c1 = min(c0 + rows, out_grid.shape[0])
+        x0, x1 = int(low[0][c0]), min(int(low[0][c1 - 1]) + 2, grid.shape[0])
+        part = np.asarray(field[x0:x1, y0:y1, z0:z1], np.float32)
+        ix = low[0][c0:c1] - x0
+        jx = np.minimum(ix + 1, x1 - x0 - 1)
+        wx = weight[0][c0:c1, None, None]
+        along_x = (1 - wx) * part[ix] + wx * part[jx]
+        del part
+        along_y = (1 - wy) * along_x[:, iy] + wy * along_x[:, jy]
+        del along_x
+        values[c0:c1] = (1 - wz) * along_y[:, :, iz] + wz * along_y[:, :, jz]
+    return values, out_grid
+
+
+@dataclass
+class SolveSample:
+    """The solid a solve runs on, at the voxel chosen for it, and why that voxel.
+
+    Attributes
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+        Cropped to its solid voxels' box.
+    voxel : float, mm
+    origin : (3,) floats, mm
+        The centre of ``solid[0, 0, 0]``.
+    report : dict
+        The ``voxel`` entry of the report's ``mechanics`` section: ``voxel_mm``, ``source_voxel_mm``,
+        ``note``, ``warning`` (None or a sentence), ``memory_estimate_bytes``, ``max_memory_bytes``.
+    """
+
+    solid: np.ndarray
+    voxel: float
+    origin: tuple
+    report: dict
+
+
+def keep_volume(values: np.ndarray, solid_voxels: float) -> np.float32:
+    """The level below which `solid_voxels` of `values` lie (rounded to a whole voxel, at least one).
+
+    A field sampled at a coarser voxel loses thin walls where no coarse centre falls in them (on a
+    Voronoi scaffold at 0.049 mm sampled from its 0.024 mm field: solid 0.2915 against 0.3001
+    built at 0.049 mm, ``bench_mechanics.py --coarsen 1.6``); as the run meets its porosity by
+    offsetting the surface, the sample keeps the run's solid volume by its own offset.
+
+    Returns
+    -------
+    numpy.float32, mm
+        The smallest float32 above the ``k``-th smallest value: ``values < level`` holds ``k``
+        voxels (ties aside).
+    """
+    k = int(np.clip(np.rint(solid_voxels), 1, values.size))
+    kth = np.partition(values.ravel(), k - 1)[k - 1]
+    return np.nextafter(np.float32(kth), np.float32(np.inf))
+
+
+def _round_up(h: float) -> float:
+    """`h` rounded up to three significant digits (a voxel a report can print)."""
+    step = 10.0 ** (np.floor(np.log10(h)) - 2)
+    return float(np.round(np.ceil(h / step - 1e-9) * step, 12))
+
+
+def _shape_at(n, h0: float, h: float) -> tuple:
+    """The voxels of the grid of voxel `h` over a box of `n` voxels of `h0` (:meth:`Grid.covering`'s rule)."""
+    return tuple(int(max(np.ceil(int(k) * h0 / h - 1e-9), 1)) for k in n)
+
+
+def sample_memory(n, solid_voxels: int, h0: float, h: float, *, boundary: str = "kinematic",
+                  preconditioner: str = "multigrid") -> int:
+    """Bytes a solve at voxel `h` of a box of `n` voxels of `h0` holding `solid_voxels` needs (an estimate):
+    :func:`solve_memory` and the sampled grid, the solid fraction taken to hold at `h`."""
+    shape = _shape_at(n, h0, h)
+    cells = int(np.prod(shape, dtype=np.int64))
+    solid = solid_voxels if h == h0 else int(np.ceil(solid_voxels / np.prod(n, dtype=np.float64) * cells))
+    return solve_memory(shape, solid, boundary=boundary, preconditioner=preconditioner) + SAMPLE_BYTES_PER_VOXEL * cells
+
+
+def finest_voxel(n, solid_voxels: int, h0: float, allowance: float, *, boundary: str = "kinematic",
+                 preconditioner: str = "multigrid") -> float | None:
+    """The finest voxel, `h0` or coarser (three significant digits), whose solve fits `allowance` bytes
+    (:func:`sample_memory`); None when not even a grid two voxels long fits."""
+    def need(h):
+        return sample_memory(n, solid_voxels, h0, h, boundary=boundary, preconditioner=preconditioner)
+
+    if need(h0) <= allowance:
+        return h0
+    room = allowance - SOLVE_FIXED_BYTES[preconditioner]
+    if room <= 0:
+        return None
+    # the variable part falls as h^-3: start there, then step up to what the rounding of the grid leaves
+    h = _round_up(h0 * max(1.0, ((need(h0) - SOLVE_FIXED_BYTES[preconditioner]) / room) ** (1 / 3)))
+    longest = max(int(k) for k in n) * h0
+    while need(h) > allowance:
+        if h > longest / 2:
+            return None
+        h = _round_up(h * 1.02)
+    return h
+
+
+def _refusal(h: float, need: int, held: int, total: int, fit: float | None, option: str, why: str = "") -> str:
+    """The one line that refuses a solve: what it needs, the budget that would do, the voxel that would fit."""
+    from .memory import format_size
+
+    return (f"the mechanics solve at {h:.4g} mm needs about {format_size(need)} beside the {format_size(held)} "
+            f"held, over --max-memory {format_size(total)}{why}; use --max-memory "
+            f"{format_size(held + need + held_margin(held))}"
+            + (f" or {option} {fit:.4g}" if fit is not None else ""))
+
+
+def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", preconditioner: str = "multigrid",
+                option: str = "--voxel") -> dict:
+    """Check, before the solve, that a solid held as voxels (a mesh's or a volume's) can be solved in the budget.
+
+    Parameters
+    ----------
+    solid : (n1, n2, n3) bool ndarray
+    h : float, mm
+    max_memory : str or int, optional
+    boundary, preconditioner : as :func:`solid_for_solve`
+    option : str
+        The option that sets the sample's voxel, as the refusal names it.
+
+    Returns
+    -------
+    dict
+        The ``voxel`` entry of the report (as :class:`SolveSample`'s).
+
+    Raises
+    ------
+    ScaffoldError
+        The solve does not fit: one line naming the ``--max-memory`` that would do and the voxel that would fit.
+    """
+    from .memory import budget, release
+
+    total = budget(max_memory)
+    held = release()
+    bc = "kinematic" if boundary == "auto" else boundary
+    count = int(np.count_nonzero(solid))
+    need = solve_memory(solid.shape, count, boundary=bc, preconditioner=preconditioner)
+    if need > total - held:
+        fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
+                           preconditioner=preconditioner)
+        raise ScaffoldError(_refusal(h, need, held, total, fit, option))
+    return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
+            "note": f"mechanics voxel {h:.4g} mm: the sample's own voxel: its solve fits the budget",
+            "memory_estimate_bytes": int(need), "max_memory_bytes": int(total)}
+
+
+def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None, wall: float | None = None,
+                    boundary: str = "auto", preconditioner: str = "multigrid",
+                    option: str = "--mechanics-voxel", source: str = "run") -> SolveSample:
+    """The solid a solve runs on: at `voxel`, or at the finest voxel whose solve fits the budget.
+
+    The memory is checked before anything is sampled or solved: the budget (``--max-memory``)
+    less what the process holds now must hold :func:`solve_memory` and the sampled grid.
+
+    Parameters
+    ----------
+    field : (nx, ny, nz) float ndarray or numpy.memmap, mm
+        A signed distance, negative in the solid (a slab run's on disk).
+    grid : Grid
+    max_memory : str or int, optional
+        The budget (:func:`~.memory.budget`; default 4 GiB or 80 % of the free memory).
+    voxel : float, mm, optional
+        The solve's voxel; default: the field's own when its solve fits, else the finest that fits.
+    wall : float, mm, optional
+        The median wall thickness: the default refuses to coarsen to fewer than
+        :data:`MIN_VOXELS_PER_WALL` voxels across it, and warns below :data:`CONVERGED_VOXELS_PER_WALL`.
+    boundary : {"auto", "periodic", "kinematic"}
+        For the estimate (``auto`` counts the kinematic grid, one node more per axis).
+    option : str
+        The option that sets the voxel, as the refusal names it.
+    source : str
+        What the field is, as the note names it ("run", "field").
+
+    Raises
+    ------
+    ScaffoldError
+        No solid; or the solve at `voxel` (or at the finest voxel the default allows) does not fit:
+        one line naming the ``--max-memory`` that would do and the voxel that would fit.
+    """
+    from .errors import positive_mm
+    from .memory import budget, format_size, release
+
+    total = budget(max_memory)
+    held = release()
+    allowance = total - held
+    lo, hi, count = solid_box(field)
+    if count == 0:
+        raise ScaffoldError("the scaffold holds no solid voxel: nothing carries load")
+    h0 = float(grid.spacing)
+    n = hi - lo
+    bc = "kinematic" if boundary == "auto" else boundary
+
+    def need(h):
+        return sample_memory(n, count, h0, h, boundary=bc, preconditioner=preconditioner)
+
+    # the run's own voxel when it fits; else the finest that fits with the margin (a refusal names it)
+    fit = h0 if need(h0) <= allowance else finest_voxel(n, count, h0, allowance - held_margin(held), boundary=bc,
+                                                        preconditioner=preconditioner)
+
+    def refuse(h, why=""):
+        raise ScaffoldError(_refusal(h, need(h), held, total, fit, option, why))
+
+    warning = None
+    if voxel is not None:
+        h = positive_mm("mechanics-voxel", voxel, example="0.05")
+        if need(h) > allowance:
+            refuse(h)
+        why = f"the voxel asked for ({option})"
+    elif fit == h0:
+        h, why = h0, f"the {source}'s own voxel: its solve fits the budget"
+    else:
+        floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
+        if fit is None or (floor is not None and fit > floor):
+            target = h0 if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
+            refuse(target, "" if fit is None else
+                   f" (the finest voxel that fits, {fit:.4g} mm, leaves fewer than {MIN_VOXELS_PER_WALL:g} "
+                   f"voxels across the {wall:.3g} mm median wall)")
+        h = fit
+        why = (f"the finest voxel whose solve fits --max-memory {format_size(total)} (the {source}'s "
+               f"{h0:.4g} mm would need about {format_size(held + need(h0) + held_margin(held))})")
+    for _ in range(8):
+        values, sampled = sample_field(field, grid, lo, hi, h)
+        level = keep_volume(values, count * (h0 / h) ** 3) if h != h0 else np.float32(0)
+        box_lo, box_hi, solid_count = solid_box(values, level=level)
+        if not solid_count:
+            raise ScaffoldError(f"at the mechanics voxel {h:.4g} mm no voxel centre lies in the solid; use a finer "
+                                f"{option}")
+        solid = np.ascontiguousarray(values[tuple(slice(a, b) for a, b in zip(box_lo, box_hi))] < level)
+        del values
+        origin = tuple(float(sampled.origin[a] + box_lo[a] * h) for a in range(3))
+        estimate = solve_memory(solid.shape, solid_count, boundary=bc, preconditioner=preconditioner)
+        # the estimate took the solid fraction of the field's voxels; the sampled one may hold more
+        if voxel is not None or h == h0 or estimate + solid.size <= allowance:
+            break
+        h = _round_up(h * 1.05)
+    converged = None if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
+    if converged is not None and h > converged * (1 + 1e-9):
+        # coarser than the run and than generate's default voxel: the moduli move by more than a few %
+        warning = (f"the mechanics voxel {h:.4g} mm leaves {wall / h:.1f} voxels across the {wall:.3g} mm median "
+                   f"wall, fewer than generate's {CONVERGED_VOXELS_PER_WALL:g} (a 1.6 mm cube sampled at 2: "
+                   f"10-16 % off, at 4: 2-8 %); --max-memory {format_size(held + need(converged) + held_margin(held))} "
+                   f"solves at {converged:.4g} mm")
+    note = f"mechanics voxel {h:.4g} mm: {why}"
+    if h != h0:
+        note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "
+                 f"it keeps the {source}'s solid volume")
+    report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
+              "memory_estimate_bytes": int(estimate), "max_memory_bytes": int(total)}
+    return SolveSample(solid, h, origin, report)
+
+
 # ----------------------------------------------------------------------------- inputs
 
 
-def load_sample(path, *, voxel: float | None = None, spacing=None) -> tuple[np.ndarray, float, str]:
-    """The solid voxels of a file, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
+def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_voxel: float | None = None,
+                max_memory=None, boundary: str = "auto") -> tuple[SolveSample, str]:
+    """The solid of a file at the voxel of its solve, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
+
+    The solve's memory is checked before anything is solved (:func:`solid_for_solve`,
+    :func:`check_solve`).
 
     Parameters
     ----------
@@ -867,24 +1299,46 @@ def load_sample(path, *, voxel: float | None = None, spacing=None) -> tuple[np.n
         A closed mesh (voxelised at `voxel`), a binary volume (solid = non-zero), or a ``.npy``
         field (solid = negative; its voxel from `voxel` or the JSON report written beside it).
     voxel, spacing : see :func:`~implicit_scaffold.morphometry.analyze_file`.
+    mechanics_voxel : float, mm, optional
+        A ``.npy`` field's solve voxel (trilinear samples of the field); default: its own voxel
+        when its solve fits `max_memory`, else the finest that fits. A mesh or a volume is
+        solved at its `voxel`.
+    max_memory : str or int, optional
+        The budget (default 4 GiB, or 80 % of the free memory when less).
+    boundary : {"auto", "periodic", "kinematic"}
 
     Returns
     -------
-    solid : (n1, n2, n3) bool ndarray
-        Cropped to the solid's bounding box (a mesh's margin layer removed).
-    h : float, mm
+    sample : SolveSample
+        The solid cropped to its solid voxels' box (a mesh's margin layer removed).
     kind : str
     """
     from pathlib import Path
 
+    from .grid import Grid
     from .morphometry import read_scaffold
 
     path = Path(path)
     sample = read_scaffold(path, voxel=voxel, spacing=spacing)
-    solid, voxel, kind = sample.solid, sample.voxel, sample.kind
+    if sample.field is not None:
+        grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)
+        try:
+            return solid_for_solve(sample.field, grid, max_memory=max_memory, voxel=mechanics_voxel,
+                                   boundary=boundary, source="field"), sample.kind
+        except ScaffoldError as exc:
+            if "no solid voxel" in str(exc):
+                raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load") from None
+            raise
+    if mechanics_voxel is not None:
+        raise ScaffoldError("--mechanics-voxel samples a .npy signed distance; a mesh or a volume is voxelised "
+                        "or resampled at --voxel")
+    solid = sample.solid
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load")
-    return crop(solid), float(voxel), kind
+    report = check_solve(solid, sample.voxel, max_memory=max_memory, boundary=boundary, option="--voxel")
+    box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(solid))
+    origin = tuple(float(sample.origin[a] + box[a].start * sample.voxel) for a in range(3))
+    return SolveSample(np.ascontiguousarray(solid[box]), float(sample.voxel), origin, report), sample.kind
 
 
 def crop(solid: np.ndarray) -> np.ndarray:

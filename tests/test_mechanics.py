@@ -258,6 +258,8 @@ def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys
     ("plates", ["--voxel", "0.1", "--axis", "z"], "does not connect the two platens"),
     ("block", ["--voxel", "0.1", "--material", "steel"], "unknown material"),
     ("block", ["--voxel", "0.1", "--E", "2", "--nu", "0.5"], "--nu"),
+    ("block", ["--voxel", "0.1", "--mechanics-voxel", "-1"], "--mechanics-voxel must be a positive"),
+    ("block", ["--voxel", "0.1", "--max-memory", "lots"], "--max-memory must be a size"),
 ])
 def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
     solid = np.zeros((6, 6, 9), bool)
@@ -385,3 +387,228 @@ def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
     assert mech["boundary_conditions"].startswith("kinematic")  # a cylinder is not a box sample
     assert 0 < mech["compression"]["apparent_modulus_gpa"] < 3.6
     assert "mechanics: PEEK" in cap.out
+    # the small run's own voxel fits the default budget: the report names it and why
+    assert mech["voxel"]["voxel_mm"] == mech["voxel"]["source_voxel_mm"] == 0.1 == mech["solver"]["voxel_mm"]
+    assert "the run's own voxel" in mech["voxel"]["note"] and "note: mechanics voxel 0.1 mm" in cap.out
+
+
+# ----------------------------------------------------------------------------- the mechanics voxel and its memory
+
+
+def trilinear(field, origin, h, points):
+    """Brute-force trilinear values of `field` (voxel centres at origin + i h) at `points` (m, 3) mm,
+    the index clamped to the grid (the edge value beyond it): the oracle of the sampler."""
+    idx = np.clip((np.asarray(points, float) - origin) / h, 0, np.array(field.shape) - 1)
+    i0 = np.minimum(np.floor(idx).astype(int), np.maximum(np.array(field.shape) - 2, 0))
+    t = idx - i0
+    out = np.zeros(len(points))
+    for corner in m.CORNERS:
+        w = np.prod(np.where(corner == 1, t, 1 - t), axis=1)
+        j = np.minimum(i0 + corner, np.array(field.shape) - 1)
+        out += w * field[j[:, 0], j[:, 1], j[:, 2]]
+    return out
+
+
+def test_the_sampled_field_is_the_trilinear_field_and_the_same_from_disk(tmp_path):
+    from implicit_scaffold.grid import Grid
+
+    rng = np.random.default_rng(5)
+    field = rng.standard_normal((19, 14, 17)).astype(np.float32)  # odd sizes
+    grid = Grid((0.3, -0.2, 1.1), 0.05, field.shape)
+    lo, hi = np.array([2, 1, 3]), np.array([18, 14, 15])
+    np.save(tmp_path / "f.npy", field)
+    disk = np.load(tmp_path / "f.npy", mmap_mode="r")
+    for voxel in (0.05, 0.0731, 0.12):
+        values, g = m.sample_field(field, grid, lo, hi, voxel)
+        assert g.spacing == voxel
+        # the new grid covers the box of the voxels [lo, hi): its first and last centres within half a voxel
+        box_lo = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
+        box_hi = np.asarray(grid.origin) + (hi - 0.5) * grid.spacing
+        assert np.all(g.lo <= box_lo + 1e-12) and np.all(g.hi >= box_hi - 1e-12)
+        assert np.all(g.hi - g.lo < box_hi - box_lo + voxel)
+        ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, g.points()).reshape(g.shape)
+        # float32 values interpolated in float64: a few float32 ulps
+        assert np.abs(values - ref).max() <= 1e-6 * np.abs(field).max()
+        if voxel == 0.05:  # the field's own voxel: its own values, bit for bit
+            assert np.array_equal(values, field[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]])
+        # read from the file a plane or so at a time: the same bits as from the array at once
+        small, _ = m.sample_field(disk, grid, lo, hi, voxel, chunk_bytes=2000)
+        assert np.array_equal(small, values)
+
+
+def test_solid_box_is_the_box_of_the_negative_voxels():
+    rng = np.random.default_rng(2)
+    field = np.ones((23, 9, 12), np.float32)
+    pick = rng.integers(0, [23, 9, 12], size=(7, 3))
+    pick[0] = (4, 1, 2)
+    field[tuple(pick.T)] = -1.0
+    lo, hi, count = m.solid_box(field, chunk_bytes=3 * 9 * 12 * 5)  # three planes at a time
+    idx = np.array(np.nonzero(field < 0))
+    assert count == idx.shape[1]
+    assert np.array_equal(lo, idx.min(axis=1)) and np.array_equal(hi, idx.max(axis=1) + 1)
+    assert m.solid_box(np.ones((3, 3, 3), np.float32))[2] == 0
+
+
+@pytest.fixture(scope="module")
+def slab_and_whole():
+    """The same small cube built whole and forced into slabs of 3 planes (a read-only memmap of its field)."""
+    from implicit_scaffold.pipeline import generate
+
+    kw = dict(size=1.2, pore_size=0.6, porosity=0.6, voxel=0.08, seed=2, mesh=False, morphometry=False)
+    whole = generate(tiled=False, **kw)
+    slabs = generate(tiled=3 * whole.grid.shape[1] * whole.grid.shape[2], **kw)
+    assert slabs.tiled is not None and isinstance(slabs.field, np.memmap)
+    return whole, slabs
+
+
+@pytest.mark.parametrize("voxel", [None, 0.11])
+def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, voxel, recwarn):
+    from implicit_scaffold.cli import _generate_mechanics, build_parser
+
+    whole, slabs = slab_and_whole
+    assert np.array_equal(np.asarray(slabs.field), whole.field)  # the same field, so the same solid
+    argv = ["generate", "-o", "x.npy", "--mechanics", "-q"]
+    args = build_parser().parse_args(argv + ([] if voxel is None else ["--mechanics-voxel", str(voxel)]))
+    a, _, ha = _generate_mechanics(whole, TI, args)
+    b, _, hb = _generate_mechanics(slabs, TI, args)
+    assert ha == hb == (whole.grid.spacing if voxel is None else voxel)
+    assert a["voxel"]["voxel_mm"] == ha and a["voxel"]["source_voxel_mm"] == whole.grid.spacing
+    wall = whole.report["wall_thickness_mm"]["median"]
+    if voxel is None:
+        assert a["voxel"]["warning"] is None
+    else:  # coarser than the run, whose voxel is finer than a quarter of the median wall: warned
+        assert wall / voxel < m.CONVERGED_VOXELS_PER_WALL
+        assert f"leaves {wall / voxel:.1f} voxels across" in a["voxel"]["warning"]
+        assert a["voxel"]["warning"] in a["notes"] and a["voxel"]["warning"] in whole.report["warnings"]
+        assert any(a["voxel"]["warning"] in str(w.message) for w in recwarn)
+    # the same solid gives the same solve: the tensor and the modulus bit for bit
+    assert a["stiffness_tensor_gpa"] == b["stiffness_tensor_gpa"]
+    assert a["compression"] == b["compression"]
+    # the independent oracle of the solid: the whole field sampled by brute force at the solve's voxel
+    sample = m.solid_for_solve(whole.field, whole.grid, voxel=voxel)
+    assert np.array_equal(sample.solid, oracle_solid(whole.field, whole.grid, ha))
+    assert a["solid_fraction"] == sample.solid.mean()
+
+
+def oracle_solid(field, grid, h):
+    """The solid at voxel `h` by brute force: trilinear values at the centres of the grid of voxel `h`
+    over the box of the solid voxels; below the level that keeps the solid volume (at a coarser voxel);
+    cropped to its solid voxels."""
+    idx = np.array(np.nonzero(field < 0))
+    lo, hi = idx.min(axis=1), idx.max(axis=1) + 1
+    if h == grid.spacing:
+        return m.crop(field[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] < 0)
+    corner = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
+    shape = np.ceil((hi - lo) * grid.spacing / h - 1e-9).astype(int)
+    first = corner + ((hi - lo) * grid.spacing - (shape - 1) * h) / 2  # the new grid centred on the box
+    axes = [first[a] + np.arange(shape[a]) * h for a in range(3)]
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, points).reshape(shape)
+    k = int(np.rint(idx.shape[1] * (grid.spacing / h) ** 3))
+    return m.crop(ref <= np.sort(ref.ravel())[k - 1])
+
+
+def _held():
+    from implicit_scaffold.memory import release
+
+    return release()
+
+
+def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_works(tmp_path, capsys, monkeypatch):
+    import json
+    import re
+
+    from implicit_scaffold.memory import parse_memory
+
+    g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    src = tmp_path / "gyroid.npy"
+    np.save(src, (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32))
+    out = tmp_path / "r.json"
+    code, cap = _run(["mechanics", src, "--voxel", 0.1, "-o", out, "-q"], capsys)  # libraries loaded, kernels built
+    assert code == 0, cap.err
+    whole = json.loads(out.read_text())
+    first = whole["voxel"]
+    assert first["voxel_mm"] == 0.1 and "own voxel" in first["note"]
+    # room for the solve's fixed part, the margin and a third of the rest: the 0.1 mm solve asked for is refused
+    # before anything is solved, naming a budget and a coarser voxel
+    solved = []
+    monkeypatch.setattr(m, "measure", lambda *a, **k: solved.append(1) or pytest.fail("solved"))
+    need = first["memory_estimate_bytes"]
+    fixed = m.SOLVE_FIXED_BYTES["multigrid"]
+    small = f"{(_held() + fixed + m.held_margin(_held()) + (need - fixed) // 3) // 2**20}M"
+    argv = ["mechanics", src, "--voxel", 0.1, "--max-memory", small, "-o", out, "-q"]
+    code, cap = _run(argv + ["--mechanics-voxel", 0.1], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and not solved
+    named = re.search(r"use --max-memory (\S+) or --mechanics-voxel (\S+)$", cap.err.strip())
+    assert named, cap.err
+    monkeypatch.undo()
+    budget, voxel = named.group(1), float(named.group(2))
+    assert parse_memory(budget) > parse_memory(small) and voxel > 0.1
+    # the named budget solves at 0.1 mm
+    code, cap = _run(argv[:-3] + ["--mechanics-voxel", 0.1, "--max-memory", budget, "-o", out, "-q"], capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    assert r["voxel"]["voxel_mm"] == 0.1 and r["solver"]["voxel_mm"] == 0.1
+    assert r["stiffness_tensor_gpa"] == whole["stiffness_tensor_gpa"]  # the budget changes nothing else
+    # and the named voxel fits the small budget
+    code, cap = _run(argv + ["--mechanics-voxel", voxel], capsys)
+    assert code == 0, cap.err
+    assert json.loads(out.read_text())["voxel"]["voxel_mm"] == voxel
+
+
+def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys):
+    import json
+
+    from implicit_scaffold.memory import parse_memory
+
+    g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    src = tmp_path / "gyroid.npy"
+    field = (np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) - 0.4).astype(np.float32)
+    np.save(src, field)
+    out = tmp_path / "r.json"
+    # the budget: what is held, the solve's fixed part, the margin, and a third of the variable part at the own voxel
+    lo, hi, count = m.solid_box(field)
+    fixed = m.SOLVE_FIXED_BYTES["multigrid"]
+    own = m.sample_memory(hi - lo, count, 0.05, 0.05)
+    budget = f"{(_held() + fixed + m.held_margin(_held()) + (own - fixed) // 3) // 2**20}M"
+    code, cap = _run(["mechanics", src, "--voxel", 0.05, "--max-memory", budget, "-o", out], capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    h = r["voxel"]["voxel_mm"]
+    # about 3^(1/3) = 1.44 times coarser, on a grid that covers the sample
+    assert 1.2 * 0.05 < h < 2 * 0.05 and r["voxel"]["source_voxel_mm"] == 0.05
+    assert "finest voxel whose solve fits" in r["voxel"]["note"] and r["voxel"]["note"] in r["notes"]
+    assert r["solver"]["voxel_mm"] == h
+    assert f"voxel {h:.4g} mm" in cap.out and "finest voxel" in cap.out
+    assert r["voxel"]["memory_estimate_bytes"] < parse_memory(budget)
+    # the solid solved is the brute-force one: its solid fraction
+    from implicit_scaffold.grid import Grid
+
+    # with walls a voxel's breadth across, coarsening would leave fewer than 2.5 voxels across them:
+    # refused before sampling, naming the budget of the run's voxel
+    with pytest.raises(ScaffoldError, match=r"fewer than 2.5 voxels across the 0.05 mm median wall.*--max-memory"):
+        m.solid_for_solve(field, Grid((0.0, 0.0, 0.0), 0.05, field.shape), max_memory=budget, wall=0.05)
+
+    # within a few voxels: the gyroid's symmetry ties values at the level, which float32 and float64 break apart
+    ref = oracle_solid(field, Grid((0.0, 0.0, 0.0), 0.05, field.shape), h)
+    assert r["solid_fraction"] == pytest.approx(ref.mean(), abs=4 / ref.size)
+
+
+def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_voxel():
+    from implicit_scaffold.memory import parse_memory
+
+    solid = np.zeros((40, 40, 40), bool)
+    solid[:, :, 5:30] = True  # 40,000 solid voxels on a 41^3 kinematic node grid
+    need = m.solve_memory(solid.shape, int(solid.sum()), boundary="kinematic")
+    held = _held()
+    small = held + m.SOLVE_FIXED_BYTES["multigrid"] + m.held_margin(_held()) + (need - m.SOLVE_FIXED_BYTES["multigrid"]) // 3
+    with pytest.raises(ScaffoldError, match=r"use --max-memory (\S+) or --voxel (\S+)$") as err:
+        m.check_solve(solid, 0.1, max_memory=small)
+    budget = err.value.args[0].split("use --max-memory ")[1].split()[0]
+    voxel = float(err.value.args[0].rsplit(" ", 1)[1])
+    # the budget named holds the estimate beside what is held; the voxel named is coarser
+    assert parse_memory(budget) >= held + need + m.held_margin(_held()) and voxel > 0.1
+    report = m.check_solve(solid, 0.1, max_memory=parse_memory(budget) + 2**20)
+    assert report["voxel_mm"] == 0.1 and report["memory_estimate_bytes"] == need
