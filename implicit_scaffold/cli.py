@@ -319,6 +319,8 @@ def _add_build_options(g) -> None:
                          "or a folder holding a DICOM series)")
     pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
     pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
+    pg.add_argument("--spacing", type=_spacing, default=None,
+                    help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z"')
     pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
                     help="units of a mesh file (default mm; a warning says when the size suggests others)")
     pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
@@ -433,10 +435,11 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
         from .patient_io import load_patient
 
         patient = load_patient(args.patient, label=args.label, threshold=args.threshold, units=args.units,
-                               clip=args.clip, cut_planes=args.cut_planes)
-    elif args.label is not None or args.threshold is not None or args.clip or args.cut_planes or args.units:
-        raise ScaffoldError("--label, --threshold, --units, --clip and --cut-planes apply to a --patient FILE; "
-                            "give one or drop them")
+                               clip=args.clip, cut_planes=args.cut_planes, spacing=args.spacing)
+    elif (args.label is not None or args.threshold is not None or args.clip or args.cut_planes or args.units
+          or args.spacing is not None):
+        raise ScaffoldError("--label, --threshold, --spacing, --units, --clip and --cut-planes apply to a "
+                            "--patient FILE; give one or drop them")
     graded = {}
     if args.grade is not None or args.calibration is not None or args.relax or args.weighted:
         graded = {"grade": args.grade, "calibration": args.calibration, "relax": args.relax,

@@ -76,3 +76,42 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
         raise ScaffoldError(f"cannot read {_name(path)} as {what}: {reason}") from None
     finally:
         sitk.ProcessObject.SetGlobalWarningDisplay(shown)
+
+
+def header_states_spacing(path, *, folder: str = "dicom") -> bool:
+    """Whether the volume at `path` states its voxel spacing (ITK reads 1 mm when it does not).
+
+    NIfTI always carries one (``pixdim``); a NRRD states it by ``space directions`` or
+    ``spacings``, a MetaImage by ``ElementSpacing`` or ``ElementSize``. A TIFF stack's resolution
+    tags are for printing, not for voxels, so a TIFF (file or folder) states none; a DICOM
+    series always does (its slices' pixel spacing and positions). `folder` says what a folder
+    holds, as in :func:`read_image`.
+    """
+    path = Path(path)
+    kind = suffix(path)
+    if kind in (".nii", ".nii.gz"):
+        return True
+    if kind in IMAGE_STACKS:
+        return False
+    if path.is_dir():
+        return folder == "dicom"
+    with open(path, "rb") as fh:
+        head = fh.read(65536).decode("latin-1", "replace").lower()
+    if kind in (".nrrd", ".nhdr"):
+        head = head.split("\n\n")[0]
+        return "space directions:" in head or "spacings:" in head
+    return "elementspacing" in head or "elementsize" in head
+
+
+def spacing_triple(spacing) -> tuple[float, float, float]:
+    """`spacing` (one or three mm) as three positive finite floats; a :class:`ScaffoldError` otherwise."""
+    import numpy as np
+
+    try:
+        step = np.broadcast_to(np.asarray(spacing, float), (3,))
+    except (TypeError, ValueError):
+        step = np.full(3, np.nan)
+    if not np.all(np.isfinite(step) & (step > 0)):
+        raise ScaffoldError(f"--spacing takes one or three positive lengths in mm, got {spacing!r}")
+    return tuple(float(v) for v in step)
+

@@ -884,7 +884,8 @@ def load_region(path):
     from .patient_io import load_patient
 
     patient = load_patient(source["file"], label=source.get("label"), threshold=source.get("threshold"),
-                           units=source.get("units"), clip=source.get("clip"), cut_planes=source.get("cut_planes"))
+                           units=source.get("units"), clip=source.get("clip"), cut_planes=source.get("cut_planes"),
+                           spacing=source.get("spacing"))
     return patient, grid, f"the patient of {path.name} ({Path(source['file']).name})"
 
 
@@ -1082,34 +1083,17 @@ def _read_mesh(path):
     return mesh
 
 
-def _header_has_spacing(path, suffix: str) -> bool:
-    """Whether the file states its voxel spacing (ITK reads 1 mm when it does not)."""
-    if suffix in (".nii", ".nii.gz"):
-        return True
-    if suffix in (".tif", ".tiff") or path.is_dir():
-        return False  # TIFF resolution tags are for printing, not for voxels
-    with open(path, "rb") as fh:
-        head = fh.read(65536).decode("latin-1", "replace").lower()
-    if suffix in (".nrrd", ".nhdr"):
-        head = head.split("\n\n")[0]
-        return "space directions:" in head or "spacings:" in head
-    return "elementspacing" in head or "elementsize" in head
-
-
 def _read_volume(path, spacing, voxel):
     import SimpleITK as sitk
 
-    from .images import read_image
+    from .images import header_states_spacing, read_image, spacing_triple
 
-    suffix = _suffix(path)
     image = read_image(path, folder="tiff")
     if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
         raise ScaffoldError(f"{path.name} is not a 3-D single-channel volume; give a binary volume")
     if spacing is not None:
-        step = np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
-        if not np.all(np.isfinite(step) & (step > 0)):
-            raise ScaffoldError(f"--spacing takes one or three positive lengths in mm, got {spacing!r}")
-    elif _header_has_spacing(path, suffix):
+        step = np.asarray(spacing_triple(spacing))
+    elif header_states_spacing(path, folder="tiff"):
         step = np.asarray(image.GetSpacing(), float)
     else:
         raise ScaffoldError(f"{path.name} states no voxel spacing; give it with --spacing (mm), "

@@ -41,7 +41,7 @@ def _kind(path: Path) -> str | None:
     return None
 
 
-def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut_planes=None):
+def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut_planes=None, spacing=None):
     """The patient in `path`, optionally cut to what a surgeon keeps.
 
     Parameters
@@ -55,6 +55,8 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
         Volume only: keep intensities at or above it (HU).
     units : {'mm', 'cm', 'm', 'um'}, optional
         Mesh only: the file's length unit (default mm; a warning names a likelier one).
+    spacing : float or (3,) floats, mm, optional
+        Volume only: the voxel spacing of a file whose header states none (required then).
     clip : (6,) sequence of float, mm, optional
         ``(xmin, ymin, zmin, xmax, ymax, zmax)``: keep the bone inside this box.
     cut_planes : (12,) sequence of float, mm, optional
@@ -88,6 +90,9 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
         if label is not None or threshold is not None:
             raise ScaffoldError(f"--label and --threshold select bone in a volume; {path.name} is a surface mesh, "
                                 "drop them")
+        if spacing is not None:
+            raise ScaffoldError(f"--spacing gives a volume's voxel size; {path.name} is a surface mesh, drop it "
+                                "(--units sets a mesh's length unit)")
         patient = load_mesh(path, units=units)
     else:
         if units is not None and units != "mm":
@@ -95,7 +100,7 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
                                 "drop --units")
         from .patient_volume import load_volume
 
-        patient = load_volume(path, label=label, threshold=threshold)
+        patient = load_volume(path, label=label, threshold=threshold, spacing=spacing)
     if len(halfspaces):
         what = " and ".join(f"{flag} {_numbers(v)}" for flag, v in (("--clip", clip), ("--cut-planes", cut_planes))
                             if v is not None)
@@ -103,7 +108,7 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
     _set(patient, "load_seconds", time.perf_counter() - t0)
     # how to load it again (analyze --region reads it from the run's report)
     _set(patient, "load_options", {"file": str(path.resolve()), "label": label, "threshold": threshold,
-                                   "units": units, "clip": None if clip is None else [float(v) for v in clip],
+                                   "units": units, "spacing": None if spacing is None else [float(v) for v in np.broadcast_to(spacing, (3,))], "clip": None if clip is None else [float(v) for v in clip],
                                    "cut_planes": None if cut_planes is None else [float(v) for v in cut_planes]})
     return patient
 

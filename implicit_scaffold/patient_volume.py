@@ -72,6 +72,13 @@ def _read_image(path: Path):
     return read_image(path, folder="dicom", what="a volume (NIfTI, NRRD, MHA/MHD or a DICOM folder)")
 
 
+def _states_spacing(path: Path) -> bool:
+    """Whether the file (or DICOM folder) at `path` states its voxel spacing (:func:`.images.header_states_spacing`)."""
+    from .images import header_states_spacing
+
+    return header_states_spacing(path, folder="dicom")
+
+
 def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
     """The bone voxels of `array` and a phrase saying how they were chosen."""
     if label is not None and threshold is not None:
@@ -640,7 +647,7 @@ class VolumePatient:
                 f"{' x '.join(f'{s:.1f}' for s in size)} mm, {self.volume:.1f} mm3")
 
 
-def load_volume(path, *, label=None, threshold=None, reference: bool = False) -> VolumePatient:
+def load_volume(path, *, label=None, threshold=None, reference: bool = False, spacing=None) -> VolumePatient:
     """Read a bone volume and build its smooth signed distance.
 
     Parameters
@@ -656,6 +663,10 @@ def load_volume(path, *, label=None, threshold=None, reference: bool = False) ->
         Build the field by the NumPy/SciPy oracles of the compiled steps (SciPy's feature
         transform, the redistance in NumPy, marching cubes' volume at two resolutions):
         10-30x slower; for tests and benchmarks.
+    spacing : float or (3,) floats, mm, optional
+        The voxel spacing of a file whose header states none (a NRRD or MetaImage without
+        one: ITK would read 1 mm voxels, and a 0.05 mm micro-CT would become a bone 20 times
+        its size); it replaces the header's.
 
     Returns
     -------
@@ -681,6 +692,13 @@ def load_volume(path, *, label=None, threshold=None, reference: bool = False) ->
         shape = "x".join(map(str, size))
         raise ScaffoldError(f"{name} is a {dim}-D image of {shape} voxels, not a volume; give a 3-D scan "
                             "(a DICOM folder holds one file per slice)")
+    if spacing is not None:
+        from .images import spacing_triple
+
+        image.SetSpacing(spacing_triple(spacing))
+    elif not _states_spacing(path):
+        raise ScaffoldError(f"{name} states no voxel spacing, so its size is unknown (ITK would read 1 mm voxels); "
+                            "give it with --spacing (mm), e.g. --spacing 0.05 or --spacing \"0.05 0.05 0.1\"")
     spacing = np.asarray(image.GetSpacing(), np.float64)
     if not (np.all(np.isfinite(spacing)) and np.all(spacing > 0)):
         raise ScaffoldError(f"{name} has voxel spacing {tuple(spacing.tolist())}; spacings must be "

@@ -329,3 +329,41 @@ def test_a_sheared_direction_is_refused(tmp_path):
     with pytest.raises(ScaffoldError) as e:
         load_volume(tmp_path / "shear.mha")
     _one_line(e, "sheared", "resample")
+
+
+@pytest.mark.parametrize("header", ["", "spacings: 0.1 0.1 0.1\n"])
+def test_a_volume_without_spacing_needs_it_given(tmp_path, header):
+    # ITK reads 1 mm voxels from a NRRD that states none: a 0.05 mm micro-CT would become a bone
+    # twenty times its size (and its cells thousands of times as many); the oracle is the
+    # header's own spacing, given once in the file and once with --spacing
+    ball = np.zeros((24, 24, 24), np.uint8)
+    i, j, k = np.ogrid[:24, :24, :24]
+    ball[(i - 11.5) ** 2 + (j - 11.5) ** 2 + (k - 11.5) ** 2 <= 8.0 ** 2] = 1
+    path = tmp_path / "ball.nrrd"
+    path.write_bytes(f"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 24 24 24\n{header}encoding: raw\n\n".encode()
+                     + np.ascontiguousarray(ball.T).tobytes())
+    if not header:
+        with pytest.raises(ScaffoldError) as excinfo:
+            load_volume(path)
+        _one_line(excinfo, "states no voxel spacing", "--spacing")
+        patient = load_volume(path, spacing=0.1)
+    else:
+        patient = load_volume(path)
+    # a ball of radius 8 voxels of 0.1 mm: about 2.14 mm3, whatever the spacing's source
+    assert patient.volume == pytest.approx(4 / 3 * math.pi * 0.8 ** 3, rel=0.05)
+    with pytest.raises(ScaffoldError):
+        load_volume(path, spacing=(0.1, -1.0, 0.1))
+
+
+def test_the_cli_takes_the_spacing_of_a_volume_patient(tmp_path, capsys):
+    from implicit_scaffold.cli import main
+
+    path = tmp_path / "ball.nrrd"
+    ball = np.zeros((16, 16, 16), np.uint8)
+    ball[4:12, 4:12, 4:12] = 1
+    path.write_bytes(b"NRRD0004\ntype: uint8\ndimension: 3\nsizes: 16 16 16\nencoding: raw\n\n"
+                     + np.ascontiguousarray(ball.T).tobytes())
+    assert main(["generate", "--patient", str(path), "-o", str(tmp_path / "x.stl"), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--spacing" in err[0]
+    assert not (tmp_path / "x.stl").exists()
