@@ -33,6 +33,25 @@ PRINTED_TOLERANCE = 0.003
 UNRESOLVED = 0.05
 #: voxels across the median wall when the voxel size is left to the tool
 VOXELS_PER_WALL = 4.0
+#: the default voxel is coarsened (to keep a run small) to no fewer voxels than this across the
+#: median wall as printed (:func:`_printed_wall`). Measured on CT labels (porosity 0.7-0.8): at
+#: 1.6 voxels the L1 label with 1.2 mm pores collapsed (below), at 1.8 (the T12 label, 0.8 mm
+#: pores, 0.198 mm voxels) and 2.0 the printed porosity met the target
+DEFAULT_MIN_VOXELS_PER_WALL = 2.0
+#: a given voxel with fewer voxels than this across the printed median wall is refused before the
+#: lattice: at 0.83-1.03 (the L1 label at 0.4-0.5 mm voxels, the DICOM CT at 0.5 mm) every wall
+#: broke into fragments and the scaffold came out empty (printed porosity 0.9999 for 0.8)
+MIN_VOXELS_PER_WALL = 1.25
+#: a scaffold whose porosity (as printed on the level's prism, else in voxels) misses the target by
+#: more than this (a fraction) collapsed: its walls broke into fragments at the voxel size, and no
+#: level brings it back. Refused before the mesh (the L1 label at 0.33 mm voxels, 1.6 across the
+#: wall: the prism printed 0.9734 for 0.80, then a level step of 0.84 mm made it a solid block).
+#: Runs that hold together meet it within a fraction of a point on the prism
+COLLAPSED = 0.10
+#: ... and only when the fragments removed hold at least this share of the solid asked for (the
+#: collapsed runs: 76-100 %; a 0.65 mm voxel on 2 mm pores lost 57 % and still printed 0.8049
+#: for 0.8; two small balls under a skin missed their target with 5 small fragments)
+BROKEN_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -208,10 +227,72 @@ def _validate_grade(p: Params, seeds, widths: dict) -> dict:
     return {"grade": grade, "calibration": calibration, "relax": relax, "weighted": weighted}
 
 
-def _default_voxel(wall: float, box_volume: float) -> float:
+def _default_voxel(wall: float, box_volume: float, printed_wall: float | None = None) -> float:
+    """The voxel when none is given: :data:`VOXELS_PER_WALL` across the median wall, coarsened to
+    at most :data:`DEFAULT_MAX_VOXELS` voxels, but never below :data:`DEFAULT_MIN_VOXELS_PER_WALL`
+    across the wall as it is printed (`printed_wall`, :func:`_printed_wall`): a large bone from
+    CT would otherwise get voxels too coarse to hold its walls (mm)."""
     h = wall / VOXELS_PER_WALL
     cap = (box_volume / DEFAULT_MAX_VOXELS) ** (1 / 3)
+    if printed_wall is not None:
+        cap = min(cap, printed_wall / DEFAULT_MIN_VOXELS_PER_WALL)
     return float(max(h, cap))
+
+
+def _printed_wall(wall: float, params: Params) -> float | None:
+    """The median wall of the paper's lattice once the surface offset meets the porosity target, mm
+    (None for struts): the walls are plates, whose solid grows with their thickness, so the
+    closed-form wall scales by ``(1 - P) / (1 - P0)``."""
+    if params.style != "paper":
+        return None
+    p0 = closed_form_porosity(params.sf, params.sv)
+    if params.porosity is None or p0 >= 1.0:
+        return wall
+    return wall * (1.0 - params.porosity) / (1.0 - p0)
+
+
+def _check_resolved(printed_wall: float | None, voxel: float) -> None:
+    """Refuse, before the lattice, a voxel that cannot hold the printed walls (module notes)."""
+    if printed_wall is not None and printed_wall / voxel < MIN_VOXELS_PER_WALL:
+        raise ScaffoldError(
+            f"--voxel {voxel:.4g} mm cannot hold the lattice: its walls, about {printed_wall:.3g} mm thick as "
+            f"printed, would be {printed_wall / voxel:.2f} voxels across and break into fragments (at least "
+            f"{MIN_VOXELS_PER_WALL:g} are needed); use --voxel {_round_down(printed_wall / 2)} or finer, or a "
+            "larger --pore-size")
+
+
+def _round_down(value: float) -> str:
+    """`value` (mm) rounded down to 2 significant digits, as a suggestion never coarser than it."""
+    digits = 1 - int(math.floor(math.log10(abs(value))))
+    return f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
+
+
+def _check_collapsed(tf, params: Params, voxel: float, printed_wall: float | None, calibration: dict) -> None:
+    """Refuse, before the mesh, a scaffold whose porosity collapsed: its walls, under-resolved,
+    broke into fragments (at least :data:`BROKEN_SHARE` of the solid asked for), whose removal
+    left nothing the level could bring to the target (within :data:`COLLAPSED`).
+
+    Where the level was searched for what is printed, that search's result on its prism tells
+    (the voxels' count may sit several points off a target the print meets, on coarse walls);
+    else the voxels' porosity.
+    """
+    if params.porosity is None or not tf.n_inside or params.porosity >= 1.0:
+        return
+    if tf.fragments_voxels < BROKEN_SHARE * tf.n_inside * (1.0 - params.porosity):
+        # the walls held together: a target missed for another reason (a skin or smooth cut on a
+        # small patient leaves too little room for the pores) is a warning on what was built
+        return
+    if calibration and calibration.get("by") and "printed_at_level" in calibration:
+        got, target = calibration["printed_at_level"], calibration["prism_target"]
+    else:
+        got, target = 1.0 - tf.solid / tf.n_inside, params.porosity
+    if abs(got - target) <= COLLAPSED:
+        return
+    finer = _round_down((printed_wall / 2) if printed_wall is not None and printed_wall / 2 < voxel else voxel / 2)
+    raise ScaffoldError(
+        f"the scaffold's porosity came out {got:.4f} for a target of {target:.4g} after {tf.fragments} solid "
+        f"fragments were removed: at {voxel:.4g} mm "
+        f"voxels its walls are too thin to hold together; use --voxel {finer} or finer, or a larger --pore-size")
 
 
 def _report_stats(values) -> dict:
@@ -343,8 +424,11 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     if _plan_before_cells(run, params, patient, n, graded is not None) is not None and repair:
         raise run.whole_grid_refusal(Grid.covering(patient.lo, patient.hi, params.voxel), "--repair")
     built = _seeds_and_cells(params, patient, n, graded, run, prog)
-    grid = Grid.covering(patient.lo, patient.hi,
-                         params.voxel if params.voxel is not None else _default_voxel(built.wall, _box_volume(patient)))
+    printed_wall = _printed_wall(built.wall, params)
+    if params.voxel is not None:
+        _check_resolved(printed_wall, params.voxel)
+    grid = Grid.covering(patient.lo, patient.hi, params.voxel if params.voxel is not None
+                         else _default_voxel(built.wall, _box_volume(patient), printed_wall))
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
     if repair and slab_voxels is not None:
         raise run.whole_grid_refusal(grid, "--repair")
@@ -352,7 +436,7 @@ def generate(*, output: str | Path | None = None, mesh: bool = True, patient=Non
     # fits (slab_voxels None), else over slabs kept on disk; then the outputs
     return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
                   built.wall_p10, built.window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
-                  seed_solve=built.tried or None, printer=printer, repair=repair,
+                  seed_solve=built.tried or None, printer=printer, repair=repair, printed_wall=printed_wall,
                   grade=(graded.field, graded.density, built.empty_power_cells) if graded else None)
 
 
@@ -700,14 +784,14 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
     return float(k), float(cutoff), next_cutoff
 
 
-def _mesh_correction(volume: float, patient, params: Params, calibration) -> float | None:
+def _mesh_correction(volume: float, patient, params: Params, calibration, voxel: float) -> float | None:
     """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`."""
     from .printed import correction
 
     if not calibration or calibration.get("by") != "mesh" or "correction" in calibration:
         return None
     printed = 1.0 - volume / float(patient.volume)
-    step = correction(printed, params.porosity, calibration)
+    step = correction(printed, params.porosity, calibration, max_step=voxel)
     if step is not None:
         calibration.update(corrected_by_mm=float(step), printed_before_correction=printed)
     return step
@@ -1076,7 +1160,8 @@ def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
 
 def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
            wall_p10, window_p25, slab_voxels: int | None, scheduler, prog, mesh: bool, out_path,
-           morphometry: bool = True, seed_solve=None, grade=None, printer=None, repair: bool = False) -> Result:
+           morphometry: bool = True, seed_solve=None, grade=None, printer=None, repair: bool = False,
+           printed_wall: float | None = None) -> Result:
     """From the cells' primitives to the outputs: the field by the one slab driver
     (:func:`.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
 
@@ -1122,6 +1207,8 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     finally:
         executor.close()
     try:
+        if grade is None:
+            _check_collapsed(tf, params, grid.spacing, printed_wall, calibration)
         cells_in = (sample(tf.patient.field, grid, cells.seeds) if in_memory
                     else sample_slabs(tf.patient, grid, cells.seeds)) < 0
         report = _base_report(params, patient, box_volume, seeds, cells, cells_in, walls, grid, k, tf.cutoff,
@@ -1272,7 +1359,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
             # mesh_summary below checks closure and winding; no need to check twice
             result.mesh = mesh_field(s, grid, check=False)
         # the volume alone decides on a correction; the full summary is of the final mesh
-        step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration)
+        step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration, h)
         tolerance = _tolerance(params, h)
 
         def measure_beside(triangles):
@@ -1365,7 +1452,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                                 patient_volume=float(patient.volume))
 
         summary, simplified, simplify_warnings = stream()
-        step = _mesh_correction(summary["volume_mm3"], patient, params, calibration)
+        step = _mesh_correction(summary["volume_mm3"], patient, params, calibration, grid.spacing)
         if step is not None:
             # the mesh measured, the level moved by one step, the fragments and sealed voids
             # cleaned again, and the mesh streamed once more
