@@ -24,3 +24,19 @@ def test_the_composed_stages_example_builds_a_closed_ball_scaffold(tmp_path, mon
     assert mesh.is_watertight
     assert 0 < mesh.volume < 4 / 3 * np.pi * 2.8 ** 3
     assert np.all(np.linalg.norm(mesh.vertices - 3.0, axis=1) < 2.8 + 0.05)
+
+
+def test_the_specs_example_builds_what_the_flat_keywords_build(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    exec(compile(_block("### From Python: typed specs"), "README.md", "exec"), {})
+    seeds, porosity, watertight = capsys.readouterr().out.split()
+    assert watertight == "True" and abs(float(porosity) - 0.7) < 0.003
+    # the oracle: the same options as flat keywords, as the README says, give the same file
+    from implicit_scaffold import generate
+
+    flat = generate(pore_size=0.8, porosity=0.7, sf=0.6, seed=2, voxel=0.08, max_memory="2G", output="flat.stl",
+                    morphometry=False, size=4.0)
+    assert (tmp_path / "cube.stl").read_bytes() == (tmp_path / "flat.stl").read_bytes()
+    assert int(seeds) == flat.report["seeds"]
+    mesh = trimesh.load(tmp_path / "cube.stl")
+    assert mesh.is_watertight and abs(1 - mesh.volume / 4.0 ** 3 - 0.7) < 0.003
