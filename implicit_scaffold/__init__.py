@@ -34,6 +34,9 @@ _PUBLIC = {
     "Grid": "grid", "lattice_sdf": "lattice", "blend_field": "field",
     # stage 6: the cut, at the level that meets a porosity
     "solve_level": "field", "scaffold_field": "field",
+    # the same stages as field nodes, evaluated plane range by plane range (slab by slab)
+    "FieldNode": "nodes", "PaperLattice": "nodes", "Struts": "nodes", "Blend": "nodes", "Patient": "nodes",
+    "SDF": "nodes", "Cut": "nodes", "evaluate": "nodes",
     # stage 7: the mesh
     "mesh_field": "mesh", "mesh_summary": "mesh", "write_mesh": "mesh_writers",
 }

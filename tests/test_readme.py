@@ -8,10 +8,11 @@ import trimesh
 README = Path(__file__).resolve().parents[1] / "README.md"
 
 
-def _block(title: str) -> str:
+def _block(title: str, nth: int = 0) -> str:
+    """The `nth` Python block after the heading or sentence `title`."""
     text = README.read_text()
     section = text[text.index(title):]
-    return re.search(r"```python\n(.*?)```", section, re.S).group(1)
+    return re.findall(r"```python\n(.*?)```", section, re.S)[nth]
 
 
 def test_the_composed_stages_example_builds_a_closed_ball_scaffold(tmp_path, monkeypatch, capsys):
@@ -24,6 +25,16 @@ def test_the_composed_stages_example_builds_a_closed_ball_scaffold(tmp_path, mon
     assert mesh.is_watertight
     assert 0 < mesh.volume < 4 / 3 * np.pi * 2.8 ** 3
     assert np.all(np.linalg.norm(mesh.vertices - 3.0, axis=1) < 2.8 + 0.05)
+
+
+def test_the_field_nodes_example_gives_the_composed_stages_field(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    names = {}
+    exec(compile(_block("### Compose the stages yourself"), "README.md", "exec"), names)
+    exec(compile(_block("### Compose the stages yourself", 1), "README.md", "exec"), names)
+    # the oracle: the stage functions called by hand in the block before
+    assert names["field"].tobytes() == names["s"].tobytes()
+    assert names["level"] == names["solve_level"](names["lattice"], names["ball"] < 0, porosity=0.7)
 
 
 def test_the_specs_example_builds_what_the_flat_keywords_build(tmp_path, monkeypatch, capsys):

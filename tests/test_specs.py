@@ -116,7 +116,8 @@ def test_the_public_names_come_from_their_stage_modules():
         implicit_scaffold.no_such_name
     # every stage function a script composes documents its parameters (numpydoc)
     for name in ("uniform_seeds", "voronoi_cells", "scaled_skeleton", "lattice_sdf", "blend_field", "solve_level",
-                 "scaffold_field", "mesh_field", "generate", "LatticeSpec", "GridSpec", "Outputs"):
+                 "scaffold_field", "mesh_field", "generate", "LatticeSpec", "GridSpec", "Outputs", "Blend", "Cut",
+                 "PaperLattice", "Struts", "evaluate"):
         doc = getattr(implicit_scaffold, name).__doc__
         assert "Parameters\n" in doc and "----------" in doc, name
 
