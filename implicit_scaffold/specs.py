@@ -45,15 +45,24 @@ def check_flag(name: str, value) -> bool:
     return bool(value)
 
 
-def check_width(name: str, value) -> float:
-    """`value` as a width >= 0 in mm (None is 0), else a :class:`ScaffoldError` naming ``--name``."""
+def check_width(name: str, value, *, hint: str = "") -> float:
+    """`value` as a width >= 0 in mm (None is 0), else a :class:`ScaffoldError` naming ``--name``
+    (`hint`, e.g. ``" (0 for sharp creases)"``, follows "a width in mm")."""
     try:
         v = float(value or 0.0)
     except (TypeError, ValueError):
-        raise ScaffoldError(f"--{name} must be a width in mm, got {value!r}") from None
+        raise ScaffoldError(f"--{name} must be a width in mm{hint}, got {value!r}") from None
     if not (math.isfinite(v) and v >= 0):
         raise ScaffoldError(f"--{name} must be a width >= 0 mm, got {value!r}")
     return v
+
+
+def _whole(name: str, value, what: str = "") -> int:
+    """`value` as an int, else a :class:`ScaffoldError`: ``--name must be a whole number{what}``."""
+    try:
+        return int(value)
+    except (TypeError, ValueError):
+        raise ScaffoldError(f"--{name} must be a whole number{what}, got {value!r}") from None
 
 
 @dataclass(frozen=True)
@@ -134,29 +143,15 @@ class LatticeSpec:
         style = str(self.style).lower()
         if style not in STYLES:
             raise ScaffoldError(f"unknown --style {self.style!r}; use paper or struts")
-        seeds = self.seeds
-        if seeds is not None:
-            try:
-                seeds = int(seeds)
-            except (TypeError, ValueError):
-                raise ScaffoldError(f"--seeds must be a whole number, got {self.seeds!r}") from None
-            if seeds < 2:
-                raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {seeds}; pass --seeds 2 or more")
+        seeds = None if self.seeds is None else _whole("seeds", self.seeds)
+        if seeds is not None and seeds < 2:
+            raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {seeds}; pass --seeds 2 or more")
         porosity = check_porosity(self.porosity)
         if style == "struts" and porosity is None:
             raise ScaffoldError("--style struts solves the strut radius from --porosity; give a target such as 0.8")
-        blend = self.blend
-        if blend is not None:
-            try:
-                blend = float(blend)
-            except (TypeError, ValueError):
-                raise ScaffoldError(f"--blend must be a width in mm (0 for sharp creases), got {self.blend!r}") from None
-            if not (math.isfinite(blend) and blend >= 0):
-                raise ScaffoldError(f"--blend must be a width >= 0 mm, got {self.blend!r}")
-        try:
-            seed = int(self.seed)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--seed must be a whole number, got {self.seed!r}") from None
+        # None: from the walls
+        blend = None if self.blend is None else check_width("blend", self.blend, hint=" (0 for sharp creases)")
+        seed = _whole("seed", self.seed)
         if seed < 0:
             raise ScaffoldError(f"--seed must be >= 0, got {seed}")
         seeds_in = None if self.seeds_in is None else str(self.seeds_in).lower()
@@ -180,10 +175,7 @@ class LatticeSpec:
 
         grade = check_grade(self.grade)
         calibration = parse_calibration(self.calibration)
-        try:
-            relax = int(self.relax or 0)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--relax must be a whole number of Lloyd iterations, got {self.relax!r}") from None
+        relax = _whole("relax", self.relax or 0, " of Lloyd iterations")
         if relax < 0:
             raise ScaffoldError(f"--relax must be >= 0 Lloyd iterations, got {relax}")
         weighted = check_flag("weighted", self.weighted)
