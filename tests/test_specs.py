@@ -127,3 +127,16 @@ def test_grid_spec_voxel_is_the_grids(tmp_path):
                  outputs=Outputs(mesh=False, morphometry=False))
     assert r.grid.spacing == 0.125 and r.report["voxel_mm"] == 0.125
     assert np.isclose(r.report["porosity_voxel"], 1 - np.count_nonzero(r.field < 0) / np.count_nonzero(r.patient_sdf < 0))
+
+
+def test_every_spec_field_is_a_flat_keyword_of_generate():
+    import inspect
+
+    from implicit_scaffold.specs import FLAT_KEYWORDS
+
+    # a spec field generate does not take as a keyword (or one it takes but no spec has)
+    # would make the two ways of calling it differ
+    unset = {name for name, p in inspect.signature(generate).parameters.items()
+             if repr(p.default) == "<the spec's default>"}
+    assert unset == FLAT_KEYWORDS
+    assert len(FLAT_KEYWORDS) == sum(len(dataclasses.fields(c)) for c in (LatticeSpec, GridSpec, Outputs))
