@@ -424,8 +424,20 @@ def _check_report(path) -> None:
 def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     """Run the pipeline with the build options of `args` (generate and slice share them)."""
     from .pipeline import generate
+    from .specs import GridSpec, LatticeSpec, Outputs
 
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
+    # the specs check every option now, before a patient or a CT is read
+    lattice = LatticeSpec(style=args.style, seeds=args.seeds, pore_size=args.pore_size, seed_rule=args.seed_rule,
+                          seeds_in=args.seeds_in, porosity=porosity, sf=args.sf, sv=args.sv, blend=args.blend,
+                          seed=args.seed, remove_fragments=not args.keep_fragments,
+                          fill_sealed_voids=not args.keep_sealed_voids, grade=args.grade,
+                          calibration=args.calibration, relax=args.relax, weighted=args.weighted)
+    # the slabs are what a cluster runs
+    grid = GridSpec(voxel=args.voxel, max_memory=args.max_memory, tiled=True if args.scheduler is not None else None,
+                    workers=args.workers, scheduler=args.scheduler)
+    outputs = Outputs(output, mesh=mesh, morphometry=morphometry, slices=slices, printer=args.printer,
+                      repair=getattr(args, "repair", False), tolerance=getattr(args, "tolerance", None))
     patient = None
     if args.patient is not None:
         from .files import check_writable
@@ -440,10 +452,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
           or args.spacing is not None):
         raise ScaffoldError("--label, --threshold, --spacing, --units, --clip and --cut-planes apply to a "
                             "--patient FILE; give one or drop them")
-    graded = {}
-    if args.grade is not None or args.calibration is not None or args.relax or args.weighted:
-        graded = {"grade": args.grade, "calibration": args.calibration, "relax": args.relax,
-                  "weighted": args.weighted}
+    ct = None
     if args.calibration is not None:
         from .patient_io import VOLUME_EXTENSIONS
 
@@ -453,18 +462,9 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                                 ".nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
         from .grade import load_ct
 
-        graded["ct"] = load_ct(source)
-    tiling = {"max_memory": args.max_memory, "scheduler": args.scheduler, "workers": args.workers}
-    if args.scheduler is not None:
-        tiling["tiled"] = True  # the slabs are what the cluster runs
-    return generate(output=output, mesh=mesh, morphometry=morphometry, verbose=not args.quiet, patient=patient,
-                    slices=slices, printer=args.printer, repair=getattr(args, "repair", False), **tiling,
-                    shape=args.shape, size=args.size, seeds_in=args.seeds_in, seed_rule=args.seed_rule,
-                    skin=args.skin,
-                    smooth_cut=args.smooth_cut, seeds=args.seeds, pore_size=args.pore_size, porosity=porosity,
-                    sf=args.sf, sv=args.sv, style=args.style, blend=args.blend, voxel=args.voxel, seed=args.seed,
-                    remove_fragments=not args.keep_fragments, fill_sealed_voids=not args.keep_sealed_voids,
-                    **graded, tolerance=getattr(args, "tolerance", None))
+        ct = load_ct(source)
+    return generate(lattice=lattice, grid=grid, outputs=outputs, patient=patient, shape=args.shape, size=args.size,
+                    skin=args.skin, smooth_cut=args.smooth_cut, ct=ct, verbose=not args.quiet)
 
 
 def _repair_lines(rep: dict) -> list[str]:

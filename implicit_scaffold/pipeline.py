@@ -6,24 +6,23 @@ chooses defaults, calls the stages in order and gathers the report.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field as dc_field, replace
+from dataclasses import asdict, dataclass, field as dc_field, fields, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from . import __version__, opencl
-from .errors import ScaffoldError, positive_mm
-from .executor import check_workers
-from .field import check_porosity, sample
+from .errors import ScaffoldError
+from .field import sample
 from .grid import Grid, run_bytes_per_voxel
 from .memory import available_memory, check_memory
 from .progress import Progress
-from .seeds import SEED_RULES
-from .skeleton import check_scale, closed_form_porosity, quad_areas
+from .skeleton import closed_form_porosity, quad_areas
+from .specs import (FLAT_KEYWORDS, STYLES, GridSpec, LatticeSpec, Outputs, check_width,  # noqa: F401
+                    output_format, specs_from)
 
-STYLES = ("paper", "struts")
-from .formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS, match  # noqa: E402
+from .formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS  # noqa: E402
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
@@ -56,39 +55,37 @@ BROKEN_SHARE = 0.5
 
 @dataclass(frozen=True)
 class Params:
-    """Validated options of one run (units mm)."""
+    """Validated options of one run (units mm), as the stages read them: a :class:`LatticeSpec`'s
+    fields (whose meaning and defaults they are), the :class:`GridSpec`'s voxel, the
+    :class:`Outputs`' tolerance, and the patient's built-in shape, skin and smooth cut.
+
+    :func:`generate` builds it from the specs; the report's parameters are its fields.
+    """
 
     shape: str = "box"
     size: Any = 10.0
-    seeds: int | None = None
-    pore_size: float = 0.6
-    porosity: float | None = 0.8
-    sf: float = 0.75
-    sv: float = 0.75
-    style: str = "paper"
-    blend: float | None = None
-    voxel: float | None = None
-    seed: int = 0
-    remove_fragments: bool = True
-    #: fill the void pieces that do not reach the outside (closed cavities in the print)
-    fill_sealed_voids: bool = True
-    #: where the seeds are drawn: "box" (the paper) or "patient" (plus one cell); None: the patient
-    #: when one is given to :func:`generate`, the box for the built-in shapes (which fill it anyway)
-    seeds_in: str | None = None
-    #: the seed count from --pore-size: "pore-size" solves it so that the measured mean pore size
-    #: (polyhedron-sphere) is the target; "paper" is the paper's n = V P / (pi Dp^3 / 6)
-    seed_rule: str = "pore-size"
+    seeds: int | None = LatticeSpec.seeds
+    pore_size: float = LatticeSpec.pore_size
+    porosity: float | None = LatticeSpec.porosity
+    sf: float = LatticeSpec.sf
+    sv: float = LatticeSpec.sv
+    style: str = LatticeSpec.style
+    blend: float | None = LatticeSpec.blend
+    voxel: float | None = GridSpec.voxel
+    seed: int = LatticeSpec.seed
+    remove_fragments: bool = LatticeSpec.remove_fragments
+    fill_sealed_voids: bool = LatticeSpec.fill_sealed_voids
+    #: None until :func:`generate` resolves it: the patient when one is given, else the box
+    seeds_in: str | None = LatticeSpec.seeds_in
+    seed_rule: str = LatticeSpec.seed_rule
+    #: a solid shell this thick at the patient surface; a smooth intersection this wide
     skin: float = 0.0
     smooth_cut: float = 0.0
-    #: graded scaffolds (:mod:`.grade`): pore size by depth ("0:0.3,2:0.8") or a callable
-    #: f(x, y, z) -> mm; or a CT calibration (slope, intercept); Lloyd iterations; power
-    #: (Laguerre) cells weighted by the local cell size (:func:`.grade.power_radii`)
-    grade: Any = None
-    calibration: Any = None
-    relax: int = 0
-    weighted: bool = False
-    #: mesh simplification tolerance (mm) given to manifold3d; 0 (the default) keeps every triangle
-    tolerance: float = 0.0
+    grade: Any = LatticeSpec.grade
+    calibration: Any = LatticeSpec.calibration
+    relax: int = LatticeSpec.relax
+    weighted: bool = LatticeSpec.weighted
+    tolerance: float = Outputs.tolerance
 
 
 @dataclass
@@ -138,93 +135,24 @@ class Result:
 
 
 def validate(**options) -> Params:
-    """Check every option and return them as :class:`Params`; raise :class:`ScaffoldError` otherwise."""
+    """Check every option and return them as :class:`Params`; raise :class:`ScaffoldError` otherwise.
+
+    The options are :class:`Params`' fields; each is checked by the spec it belongs to.
+    """
     unknown = set(options) - set(Params.__dataclass_fields__)
     if unknown:
         raise ScaffoldError(f"unknown option(s): {', '.join(sorted(unknown))}")
-    p = Params(**options)
-    style = str(p.style).lower()
-    if style not in STYLES:
-        raise ScaffoldError(f"unknown --style {p.style!r}; use paper or struts")
-    seeds = p.seeds
-    if seeds is not None:
-        try:
-            seeds = int(seeds)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--seeds must be a whole number, got {p.seeds!r}") from None
-        if seeds < 2:
-            raise ScaffoldError(f"a Voronoi lattice needs at least 2 seeds, got {seeds}; pass --seeds 2 or more")
-    porosity = check_porosity(p.porosity)
-    if style == "struts" and porosity is None:
-        raise ScaffoldError("--style struts solves the strut radius from --porosity; give a target such as 0.8")
-    blend = p.blend
-    if blend is not None:
-        try:
-            blend = float(blend)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--blend must be a width in mm (0 for sharp creases), got {p.blend!r}") from None
-        if not (math.isfinite(blend) and blend >= 0):
-            raise ScaffoldError(f"--blend must be a width >= 0 mm, got {p.blend!r}")
-    try:
-        seed = int(p.seed)
-    except (TypeError, ValueError):
-        raise ScaffoldError(f"--seed must be a whole number, got {p.seed!r}") from None
-    if seed < 0:
-        raise ScaffoldError(f"--seed must be >= 0, got {seed}")
-    seeds_in = None if p.seeds_in is None else str(p.seeds_in).lower()
-    if seeds_in not in (None, "box", "patient"):
-        raise ScaffoldError(f"--seeds-in takes box or patient, got {p.seeds_in!r}")
-    seed_rule = str(p.seed_rule).lower()
-    if seed_rule not in SEED_RULES:
-        raise ScaffoldError(f"--seed-rule takes {' or '.join(SEED_RULES)}, got {p.seed_rule!r}")
-    widths = {}
-    for name in ("skin", "smooth_cut"):
-        try:
-            widths[name] = float(getattr(p, name) or 0.0)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--{name.replace('_', '-')} must be a width in mm, got {getattr(p, name)!r}") from None
-        if not (math.isfinite(widths[name]) and widths[name] >= 0):
-            raise ScaffoldError(f"--{name.replace('_', '-')} must be a width >= 0 mm, got {getattr(p, name)!r}")
-    graded = _validate_grade(p, seeds, widths)
-    from .simplify import check_tolerance
-
-    return Params(tolerance=check_tolerance(p.tolerance), shape=p.shape, size=p.size, seeds=seeds,
-                  pore_size=positive_mm("pore-size", p.pore_size, example="0.6"),
-                  porosity=porosity, sf=check_scale("sf", p.sf), sv=check_scale("sv", p.sv), style=style,
-                  blend=blend, seed=seed,
-                  voxel=None if p.voxel is None else positive_mm("voxel", p.voxel, example="0.04"),
-                  remove_fragments=bool(p.remove_fragments), fill_sealed_voids=bool(p.fill_sealed_voids),
-                  seeds_in=seeds_in, seed_rule=seed_rule, **widths, **graded)
+    lattice = LatticeSpec(**{k: v for k, v in options.items() if k in LatticeSpec.__dataclass_fields__})
+    return _params(lattice, GridSpec(voxel=options.get("voxel")),
+                   Outputs(tolerance=options.get("tolerance", Params.tolerance)),
+                   **{k: options.get(k, getattr(Params, k)) for k in ("shape", "size", "skin", "smooth_cut")})
 
 
-def _validate_grade(p: Params, seeds, widths: dict) -> dict:
-    """The graded options (``grade``, ``calibration``, ``relax``, ``weighted``) checked, or a ScaffoldError."""
-    from .grade import check_grade, parse_calibration
-
-    grade = check_grade(p.grade)
-    calibration = parse_calibration(p.calibration)
-    try:
-        relax = int(p.relax or 0)
-    except (TypeError, ValueError):
-        raise ScaffoldError(f"--relax must be a whole number of Lloyd iterations, got {p.relax!r}") from None
-    if relax < 0:
-        raise ScaffoldError(f"--relax must be >= 0 Lloyd iterations, got {relax}")
-    if p.weighted not in (True, False, None, 0, 1):
-        raise ScaffoldError(f"weighted must be True or False, got {p.weighted!r}")
-    weighted = bool(p.weighted)
-    if grade is not None and calibration is not None:
-        raise ScaffoldError("give --grade (pore size by depth) or --calibration (from the CT), not both")
-    if grade is None and calibration is None:
-        if relax:
-            raise ScaffoldError("--relax relaxes graded seeds; add --grade (e.g. --grade 0:0.6 for even pores) "
-                                "or --calibration")
-        if weighted:
-            raise ScaffoldError("--weighted weights the cells by the graded pore size; add --grade (e.g. --grade "
-                                "0:0.3,2:0.8) or --calibration")
-        return {"grade": None, "calibration": None, "relax": 0, "weighted": False}
-    if seeds is not None:
-        raise ScaffoldError("a graded scaffold takes its seed count from the pore-size field; drop --seeds")
-    return {"grade": grade, "calibration": calibration, "relax": relax, "weighted": weighted}
+def _params(lattice: LatticeSpec, grid: GridSpec, outputs: Outputs, *, shape, size, skin, smooth_cut) -> Params:
+    """The run's :class:`Params` from its (checked) specs and the patient's options."""
+    return Params(shape=shape, size=size, voxel=grid.voxel, tolerance=outputs.tolerance,
+                  skin=check_width("skin", skin), smooth_cut=check_width("smooth-cut", smooth_cut),
+                  **{f.name: getattr(lattice, f.name) for f in fields(LatticeSpec)})
 
 
 def _default_voxel(wall: float, box_volume: float, printed_wall: float | None = None) -> float:
@@ -300,100 +228,103 @@ def _report_stats(values) -> dict:
     return {"mean": float(v.mean()), "p10": float(np.percentile(v, 10)), "median": float(np.median(v))}
 
 
-def generate(*, output: str | Path | None = None, mesh: bool = True, patient=None, verbose: bool = False,
-             morphometry: bool = True, max_memory=None, tiled: bool | int | None = None, scheduler=None,
-             workers: int = 1,
-             slices: dict | None = None, ct=None, printer=None, repair: bool = False,
-             shape: str = Params.shape, size=Params.size, seeds: int | None = Params.seeds,
-             pore_size: float = Params.pore_size, porosity: float | None = Params.porosity,
-             sf: float = Params.sf, sv: float = Params.sv, style: str = Params.style,
-             blend: float | None = Params.blend, voxel: float | None = Params.voxel, seed: int = Params.seed,
-             remove_fragments: bool = Params.remove_fragments, fill_sealed_voids: bool = Params.fill_sealed_voids,
-             seeds_in: str | None = Params.seeds_in, seed_rule: str = Params.seed_rule, skin: float = Params.skin,
-             smooth_cut: float = Params.smooth_cut, grade=Params.grade, calibration=Params.calibration,
-             relax: int = Params.relax, weighted: bool = Params.weighted,
-             tolerance: float | None = Params.tolerance) -> Result:
+class _Unset:
+    """The default of generate's flat keywords: "not given", so that a keyword given beside the
+    spec it belongs to is refused (even at the spec's default value) and one left out takes the
+    spec's default."""
+
+    def __repr__(self):
+        return "<the spec's default>"
+
+
+_UNSET = _Unset()
+
+
+def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None, outputs: Outputs | None = None,
+             patient=None, shape: str = Params.shape, size=Params.size, skin: float = Params.skin,
+             smooth_cut: float = Params.smooth_cut, ct=None, verbose: bool = False,
+             output: str | Path | None = _UNSET, mesh: bool = _UNSET, morphometry: bool = _UNSET,
+             slices: dict | None = _UNSET, printer=_UNSET, repair: bool = _UNSET, tolerance: float = _UNSET,
+             voxel: float | None = _UNSET, max_memory=_UNSET, tiled: bool | int | None = _UNSET, scheduler=_UNSET,
+             workers: int = _UNSET,
+             style: str = _UNSET, seeds: int | None = _UNSET, pore_size: float = _UNSET, seed_rule: str = _UNSET,
+             seeds_in: str | None = _UNSET, porosity: float | None = _UNSET, sf: float = _UNSET, sv: float = _UNSET,
+             blend: float | None = _UNSET, seed: int = _UNSET, remove_fragments: bool = _UNSET,
+             fill_sealed_voids: bool = _UNSET, grade=_UNSET, calibration=_UNSET, relax: int = _UNSET,
+             weighted: bool = _UNSET) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
+
+    What to build is given by three specs, or by their fields as flat keywords (the same run,
+    the same bytes): ``generate(lattice=LatticeSpec(pore_size=0.5), outputs=Outputs("s.stl"))``
+    is ``generate(pore_size=0.5, output="s.stl")``. A spec left out takes its defaults and the
+    flat keywords given for it; a flat keyword beside its own spec is refused.
 
     Parameters
     ----------
-    output : str or Path, optional
-        Where to write: a mesh (``.stl``, ``.ply``, ``.obj``, ``.3mf``) or the scaffold's
-        signed distance (``.npy``); the JSON report goes beside it (``.json``).
-    mesh : bool
-        False stops after the field (no marching cubes).
+    lattice : LatticeSpec, optional
+        The lattice: style, seeds or pore size, porosity, Sf, Sv, blend, seed, grading
+        (:class:`~.specs.LatticeSpec`, whose fields are also keywords here).
+    grid : GridSpec, optional
+        The voxel and the run's layout: ``voxel``, ``max_memory``, ``tiled``, ``workers``,
+        ``scheduler`` (:class:`~.specs.GridSpec`; also keywords). Every run's field is made
+        by one slab driver (:mod:`.tiled`): a grid that fits is one slab held in memory, a
+        larger one runs in slabs kept on disk, with the same field bit for bit; one that
+        cannot fit even so is refused before the work starts, naming the budget that would
+        do. ``report["tiled"]["workers"]`` says how many worker processes ran.
+    outputs : Outputs, optional
+        What is written and measured: ``path`` (the keyword ``output``), ``mesh``,
+        ``morphometry``, ``slices``, ``printer``, ``repair``, ``tolerance``
+        (:class:`~.specs.Outputs`; also keywords). The JSON report goes beside the path; a
+        printer's certificate lands in ``report["print_check"]``, a repair's changes in
+        ``report["repair"]``, the slices' geometry in ``report["slices"]``, the mesh
+        simplification's measured error in ``report["simplification"]``.
     patient : object, optional
-        A patient geometry (see :mod:`.patient`); by default ``shape`` and ``size``.
-    verbose : bool
-        Print stage progress on stderr.
-    morphometry : bool
-        Measure the built solid's voxels (stage ``metrics``: local thickness, Conn.D,
-        interconnected porosity, fragments, BS/BV); False leaves those keys out. A run in
-        slabs measures them slab by slab (:func:`.morphometry.morphometry_by_slabs`), with
-        the whole grid's figures.
-    max_memory : int or str, optional
-        Bytes (or a size such as ``"4G"``) the run may hold; by default a safe share of
-        the free memory. Every run's field is made by one slab driver (:mod:`.tiled`): a
-        grid that fits is one slab held in memory, a larger one runs in slabs kept on disk,
-        with the same field bit for bit; one that cannot fit even so is refused before the
-        work starts, naming the budget that would do.
-    tiled : bool or int, optional
-        Force (True) or forbid (False) the tiled run; by default it is chosen by memory.
-        An int forces it with slabs of at most that many voxels (halo included).
-    scheduler : str or distributed.Client, optional
-        Run the tiled lattice passes on this dask.distributed scheduler (same bytes out).
-    workers : int
-        Run the lattice passes in slabs (at least one per worker, unless `tiled` gives their
-        size) in this many local worker processes (:class:`.executor.Processes`; same bytes out). Their memory counts against
-        `max_memory`: the slabs are planned so that every worker's slab fits beside this
-        process; ``report["tiled"]["workers"]`` says how many ran.
-    slices : dict, optional
-        Write printer slices: ``{"out_dir": ..., "pixel": mm or None, "layer": mm or None}``;
-        the stack's geometry lands in ``result.report["slices"]``.
+        A patient geometry (see :mod:`.patient`, :func:`.patient_io.load_patient`); by
+        default the built-in `shape` of `size`.
+    shape : {"box", "cylinder", "sphere"}
+    size : float or (3,) floats, mm
+        The built-in patient when `patient` is None.
+    skin : float, mm
+        A solid shell this thick at the patient surface; 0 for none.
+    smooth_cut : float, mm
+        Width of a smooth instead of sharp intersection with the patient; 0 for sharp.
     ct : CTImage or str or Path, optional
         The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
-    printer : str or PrinterProfile, optional
-        Certify what was built for this printer (:mod:`.printability`): the certificate
-        lands in ``report["print_check"]``.
-    repair : bool
-        Before the mesh, thicken the struts thinner than the printer's minimum and open the
-        throats its drain cannot pass, by local offsets of the field, keeping the porosity
-        (:mod:`.repair`); what changed lands in ``report["repair"]``. Needs `printer` and a
-        grid held in memory.
-    shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed, remove_fragments, \
-    fill_sealed_voids, seeds_in, seed_rule, skin, smooth_cut, grade, calibration, relax, weighted, tolerance
-        What to build (see :class:`Params`, whose defaults these are; mm).
-        ``tolerance`` (mm, default 0: every triangle kept) simplifies
-        the mesh by manifold3d within that tolerance (:mod:`.simplify`); the report's
-        ``simplification`` gives the distance between the surfaces and the porosity it
-        moved, as measured, and a warning says when it moved the surface more than a
-        quarter voxel or the porosity more than 0.1 points.
+    verbose : bool
+        Print stage progress on stderr.
+    output, mesh, morphometry, slices, printer, repair, tolerance, voxel, max_memory, tiled, \
+    scheduler, workers, style, seeds, pore_size, seed_rule, seeds_in, porosity, sf, sv, blend, seed, \
+    remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted
+        The specs' fields as flat keywords (``output`` is :attr:`Outputs.path`); their
+        defaults are the specs'.
 
     Returns
     -------
     Result
+
+    Raises
+    ------
+    ScaffoldError
+        A bad value, an option given both in a spec and as a keyword, or a run that cannot
+        fit in `max_memory`: one line saying what is wrong and how to fix it.
     """
+    # the flat keywords given (locals() holds the parameters here, before any other name)
+    flat = {k: v for k, v in locals().items() if k in FLAT_KEYWORDS and v is not _UNSET}
+    specs = specs_from({"lattice": lattice, "grid": grid, "outputs": outputs}, flat)
+    lattice, layout, outs = specs["lattice"], specs["grid"], specs["outputs"]
+    params = _params(lattice, layout, outs, shape=shape, size=size, skin=skin, smooth_cut=smooth_cut)
+    # from here on the run reads `params` and these (`grid` becomes the voxel grid)
+    output, mesh, morphometry, slices, printer, repair = (outs.path, outs.mesh, outs.morphometry, outs.slices,
+                                                          outs.printer, outs.repair)
+    max_memory, tiled, scheduler, workers = layout.max_memory, layout.tiled, layout.scheduler, layout.workers
+    del shape, size, skin, smooth_cut, grid
     from .patient import clamp_far_field, primitive
 
-    params = validate(shape=shape, size=size, seeds=seeds, pore_size=pore_size, porosity=porosity, sf=sf, sv=sv,
-                      style=style, blend=blend, voxel=voxel, seed=seed, remove_fragments=remove_fragments,
-                      fill_sealed_voids=fill_sealed_voids, seeds_in=seeds_in, seed_rule=seed_rule, skin=skin,
-                      smooth_cut=smooth_cut, grade=grade, calibration=calibration, relax=relax, weighted=weighted,
-                      tolerance=tolerance)
-    # from here on the run reads `params` alone
-    del shape, size, seeds, pore_size, porosity, sf, sv, style, blend, voxel, seed, skin, smooth_cut, grade
-    del remove_fragments, fill_sealed_voids, seeds_in, seed_rule, relax, tolerance
-    if printer is not None and not hasattr(printer, "min_strut_mm"):
-        from .printability import printer_profile
-
-        printer = printer_profile(printer)
-    if repair and printer is None:
-        raise ScaffoldError("--repair repairs for a printer's limits; add --printer NAME (e.g. --printer dlp-resin)")
     if params.seeds_in is None:
         # time and memory then follow the bone's volume, not its bounding box's
         params = replace(params, seeds_in="box" if patient is None else "patient")
-    out_path = _checked_output(output, mesh)
-    if check_workers(workers, scheduler) > 1:
+    out_path = _checked_output(output)
+    if workers > 1:
         # the workers run slabs: a run given them goes in slabs (at least one per worker)
         if tiled is False:
             raise ScaffoldError("workers run the slabs of a tiled run; drop tiled=False or workers")
@@ -445,18 +376,14 @@ def _box_volume(patient) -> float:
     return float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
 
 
-def _checked_output(output, mesh: bool) -> Path | None:
-    """The output's path, checked before the work starts: a known format, writable, with its report."""
+def _checked_output(output: Path | None) -> Path | None:
+    """The output's path (its format checked by :class:`Outputs`), checked writable, with its
+    report, before the work starts."""
     if output is None:
         return None
     from .files import check_writable
 
     out_path = Path(output)
-    ext = output_format(out_path)
-    if ext is None:
-        raise ScaffoldError(f"cannot write {out_path.name}: use one of {', '.join(MESH_FORMATS + FIELD_FORMATS)}")
-    if ext in MESH_FORMATS and not mesh:
-        raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
     check_writable(out_path)
     check_writable(report_path(out_path))
     return out_path
@@ -1672,11 +1599,6 @@ def _faces_near_patient(cells, coarse: np.ndarray, grid) -> np.ndarray:
     inside = sample(coarse, grid, cells.seeds) < 0
     f = interior_face_pairs(cells)
     return inside[cells.face_cell[f]] & inside[cells.face_neighbor[f]]
-
-
-def output_format(path) -> str | None:
-    """The mesh or field format that `path`'s name ends with (``.nii.gz`` as a whole), or None."""
-    return match(path, MESH_FORMATS + FIELD_FORMATS)
 
 
 def report_path(path) -> Path:

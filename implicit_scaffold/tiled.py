@@ -108,8 +108,9 @@ def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarra
     lattice : (x1 - x0, ny, nz) float32 ndarray, mm
     patient : (x1 - x0, ny, nz) float32 ndarray, mm
     """
-    from .lattice import blocks_beyond, lattice_sdf, struts_field
-    from .patient import far_clamp, patient_sdf
+    from .lattice import blocks_beyond
+    from .nodes import Blend, PaperLattice, Patient, Struts
+    from .patient import far_clamp
 
     grid = work.grid
     # the lattice and the level lie within the cut-off: beyond twice it (and the smooth cut)
@@ -119,20 +120,21 @@ def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarra
     clamp = far_clamp(work.patient, grid)
     reach = min(2 * work.cutoff + work.smooth_cut + 2 * grid.spacing, clamp)
     if work.style == "paper":
-        s_p = patient_sdf(work.patient, grid, (slab.h0, slab.h1))
-        skip = blocks_beyond(s_p, grid, (slab.h0, slab.h1), reach=reach, halo=work.halo)
-        s_p = np.ascontiguousarray(s_p[slab.owned])
         skeleton = work.skeleton
         if hasattr(skeleton, "near"):
             skeleton = skeleton.near(*_band(grid, (slab.h0, slab.h1), work.cutoff))
-        base = lattice_sdf(skeleton, grid, cutoff=work.cutoff, x_range=(slab.h0, slab.h1), skip=skip)
+        lattice = Blend(PaperLattice(skeleton, work.cutoff), work.k)
         del skeleton
-        base = np.ascontiguousarray(blend_field(base, grid.spacing, work.k)[slab.owned])
     else:
-        s_p = patient_sdf(work.patient, grid, (slab.x0, slab.x1))
-        skip = blocks_beyond(s_p, grid, (slab.x0, slab.x1), reach=reach)
-        base = struts_field(work.edges, grid, cutoff=work.cutoff, blend=work.k, x_range=(slab.x0, slab.x1),
-                            skip=skip)
+        lattice = Struts(work.edges, work.cutoff, work.k)
+    # the patient on the planes the lattice reads (the blend's halo: the slab's h0..h1, as the
+    # slabs were planned with work.halo), which decide the lattice's skipped blocks
+    reads = lattice.reads(grid, (slab.x0, slab.x1))
+    s_p = Patient(work.patient).evaluate(grid, reads)
+    skip = blocks_beyond(s_p, grid, reads, reach=reach, halo=work.halo)
+    s_p = np.ascontiguousarray(s_p[slab.x0 - reads[0]:slab.x1 - reads[0]])
+    base = lattice.evaluate(grid, (slab.x0, slab.x1), skip=skip)
+    del lattice
     if np.isfinite(clamp):
         # from the clamp on, the lattice is one value below any level (the scaffold there is the
         # clamp, exactly): the same bits whichever blocks a slab or the whole grid skipped

@@ -1,0 +1,67 @@
+"""Field nodes: the stage functions' bytes, whole or slab by slab."""
+import numpy as np
+import pytest
+
+from implicit_scaffold.cells import voronoi_cells
+from implicit_scaffold.field import blend_field, scaffold_field, solve_level
+from implicit_scaffold.grid import Grid
+from implicit_scaffold.lattice import lattice_sdf, struts_field
+from implicit_scaffold.nodes import SDF, Blend, Cut, FieldNode, PaperLattice, Patient, Struts, evaluate
+from implicit_scaffold.patient import Sphere, patient_sdf
+from implicit_scaffold.skeleton import scaled_skeleton, voronoi_edges
+
+
+@pytest.fixture(scope="module")
+def cells():
+    lo, hi = np.zeros(3), np.array([3.0, 2.6, 2.2])
+    return voronoi_cells(np.random.default_rng(4).uniform(lo, hi, (40, 3)), lo, hi)
+
+
+@pytest.fixture(scope="module")
+def grid():
+    # odd sizes, so that slabs and blocks do not divide the grid evenly
+    return Grid.covering([0, 0, 0], [3.0, 2.6, 2.2], 0.07)
+
+
+def _ball(x, y, z):
+    return np.sqrt((x - 1.5) ** 2 + (y - 1.3) ** 2 + (z - 1.1) ** 2) - 1.0
+
+
+def test_nodes_give_the_stage_functions_bytes(cells, grid):
+    # the oracle: the stage functions called by hand, as the README's composed example does
+    skeleton = scaled_skeleton(cells, sf=0.7, sv=0.7)
+    by_hand = blend_field(lattice_sdf(skeleton, grid, cutoff=0.5), grid.spacing, k=0.15)
+    lattice = Blend(PaperLattice(skeleton, cutoff=0.5), k=0.15)
+    assert isinstance(lattice, FieldNode)
+    assert evaluate(lattice, grid).tobytes() == by_hand.tobytes()
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    ball = _ball(x, y, z).astype(np.float32)
+    level = solve_level(by_hand, ball < 0, porosity=0.6)
+    expected = scaffold_field(by_hand.copy(), ball, level=level, skin=0.1, smooth_cut=0.05)
+    cut = Cut(lattice, SDF(_ball), level=level, skin=0.1, smooth_cut=0.05)
+    assert evaluate(cut, grid).tobytes() == expected.tobytes()
+    sphere = Sphere(2.0)
+    assert evaluate(Patient(sphere), grid).tobytes() == patient_sdf(sphere, grid).tobytes()
+
+
+@pytest.mark.parametrize("k", [0.0, 0.2])
+def test_slab_by_slab_is_the_whole_grid(cells, grid, k):
+    # a blend reads a halo of planes: slabs of 5 planes (fewer than the 0.2 mm blend's halo
+    # on either side is wide) must still give the whole grid's bits
+    plane = grid.shape[1] * grid.shape[2]
+    skeleton = scaled_skeleton(cells, sf=0.6, sv=0.75)
+    for node in (Blend(PaperLattice(skeleton, cutoff=0.4), k=k),
+                 Cut(Blend(PaperLattice(skeleton, cutoff=0.4), k=k), SDF(_ball), level=0.02, smooth_cut=k)):
+        halo = node.reads(grid, (20, 21))
+        assert halo == ((20 - (halo[1] - 21), halo[1]) if k else (20, 21))
+        whole = evaluate(node, grid)
+        slabs = evaluate(node, grid, max_voxels=(5 + 2 * (halo[1] - 21)) * plane)
+        assert slabs.tobytes() == whole.tobytes()
+
+
+def test_struts_node_is_the_struts_field(cells, grid):
+    edges = voronoi_edges(cells)
+    node = Struts(edges, cutoff=0.4, k=0.05)
+    expected = struts_field(edges, grid, cutoff=0.4, blend=0.05)
+    assert evaluate(node, grid).tobytes() == expected.tobytes()
+    assert evaluate(node, grid, max_voxels=7 * grid.shape[1] * grid.shape[2]).tobytes() == expected.tobytes()
