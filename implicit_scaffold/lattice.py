@@ -116,7 +116,7 @@ def _packed(owner, grid: Grid, pack):
     """``pack(owner, grid)``, computed once per owner and grid: a tiled run's slabs share it.
 
     The owner (a Skeleton) is held by a weak reference, so a new owner at a recycled
-    address is never mistaken for the old one.
+    address is never mistaken for the old one; and what was packed for it goes with it.
     """
     import weakref
 
@@ -127,7 +127,15 @@ def _packed(owner, grid: Grid, pack):
         return hit[3]
     _PACKED.pop(pack, None)
     packed = pack(owner, grid)
-    _PACKED[pack] = (weakref.ref(owner), grid, ctx, packed)
+
+    def forget(ref):
+        # a slab's own skeleton (SkeletonSource.near) dies with its slab, and no later slab can
+        # ask for its primitives: kept, they sat beside the next slab's skeleton as it was built,
+        # which the plan does not count (0.7 GiB over --max-memory on the L3 vertebra)
+        if _PACKED.get(pack, (None,))[0] is ref:
+            del _PACKED[pack]
+
+    _PACKED[pack] = (weakref.ref(owner, forget), grid, ctx, packed)
     return packed
 
 

@@ -1001,6 +1001,16 @@ class _RunPlan:
 
         plane = grid.shape[1] * grid.shape[2]
         thinnest = int((1 + 2 * halo) * plane * per_voxel * n)
+        # the primitives are not spread evenly: the most crowded slab of one plane is the thinnest
+        # that must fit (a patient's surface cells reach the box's walls and crowd every slab they
+        # cross), else a refusal names a budget that the slabs then refuse; a larger voxel does
+        # not thin it (a plane then spans more cells)
+        crowded = (n * _worst_slab(grid, halo, 1, slab_bytes)
+                   if slab_bytes is not None and not self.forced_voxels else 0)
+        fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest else
+               f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
+               " mm)" if self.max_memory > held else "")
+        thinnest = max(thinnest, crowded)
         if ext in MESH_FORMATS:
             thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
         smallest = held + thinnest
@@ -1011,10 +1021,7 @@ class _RunPlan:
                 f"{held / 2**30:.2f} GiB of cells, skeleton and libraries"
                 + (f", in each of {n} workers" if n > 1 else "") + ") but --max-memory is "
                 f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * smallest)} "
-                "or more"
-                + (f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
-                   " mm)" if self.max_memory > held else "")
-                + (", or fewer --workers" if n > 1 else ""))
+                "or more" + fix + (", or fewer --workers" if n > 1 else ""))
         voxels = self.forced_voxels or max(1, int((self.max_memory - held) // (per_voxel * n)))
         if n > 1 and not self.forced_voxels:
             # a slab for every worker at least
@@ -1028,15 +1035,12 @@ class _RunPlan:
     def _thin_for(self, grid: Grid, halo: int, held: int, slab_bytes, voxels: int) -> int:
         """The largest slab (voxels, halo included) whose every slab fits with its primitives."""
         from .memory import format_size
-        from .tiled import SLAB_BYTES_PER_VOXEL
-        from .tiles import plan_slabs
 
         plane = grid.shape[1] * grid.shape[2]
         planes = max(1, voxels // plane - 2 * halo)
         while True:
-            slabs = plan_slabs(grid.shape, max_voxels=(planes + 2 * halo) * plane, halo=halo)
-            worst = max((s.h1 - s.h0) * plane * SLAB_BYTES_PER_VOXEL + slab_bytes(s.h0, s.h1) for s in slabs)
-            worst *= self.workers  # as many slabs at once as workers (held counts their runtimes)
+            # as many slabs at once as workers (held counts their runtimes)
+            worst = self.workers * _worst_slab(grid, halo, planes, slab_bytes)
             if held + worst <= self.max_memory:
                 return (planes + 2 * halo) * plane
             if planes == 1:
@@ -1046,6 +1050,17 @@ class _RunPlan:
                     f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * (held + worst))}"
                     " or more, or use a larger --pore-size (fewer cells)")
             planes = max(1, int(planes * 0.7))
+
+
+def _worst_slab(grid: Grid, halo: int, planes: int, slab_bytes) -> int:
+    """The bytes of the most crowded slab of the lattice pass when slabs own `planes` planes:
+    its voxels and, by `slab_bytes(h0, h1)`, its primitives."""
+    from .tiled import SLAB_BYTES_PER_VOXEL
+    from .tiles import plan_slabs
+
+    plane = grid.shape[1] * grid.shape[2]
+    slabs = plan_slabs(grid.shape, max_voxels=(planes + 2 * halo) * plane, halo=halo)
+    return max((s.h1 - s.h0) * plane * SLAB_BYTES_PER_VOXEL + slab_bytes(s.h0, s.h1) for s in slabs)
 
 
 def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:

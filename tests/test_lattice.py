@@ -238,3 +238,20 @@ def test_skipped_blocks_leave_every_other_block_bit_for_bit(small_cells):
              struts_field(edges, grid, cutoff=0.3, blend=0.05, skip=skip), 0.3)]:
         assert np.array_equal(full[~mask], part[~mask])
         assert np.all(part[mask] == np.float32(fill)) and np.any(full[mask] != np.float32(fill))
+
+
+def test_what_a_slab_packed_goes_with_its_skeleton(small_cells):
+    # the slabs of one skeleton pack it once; a slab's own skeleton (SkeletonSource.near) takes
+    # its packed primitives with it, not beside the next slab's skeleton as that one is built
+    import implicit_scaffold.lattice as L
+
+    sk = scaled_skeleton(small_cells, 0.75, 0.75)
+    grid = _grid(small_cells, 0.05, shape=(45, 37, 29))
+    first = lattice_sdf(sk, grid, cutoff=0.2, x_range=(0, 9))
+    packed = L._PACKED[L._pack_paper][3]
+    second = lattice_sdf(sk, grid, cutoff=0.2, x_range=(9, 23))
+    assert L._PACKED[L._pack_paper][3] is packed
+    whole = lattice_sdf(sk, grid, cutoff=0.2)
+    assert np.array_equal(np.concatenate([first, second]), whole[:23])
+    del sk, packed
+    assert L._pack_paper not in L._PACKED
