@@ -87,6 +87,7 @@ rep = r.report
 _out = {{'seconds': seconds, 'voxels': int(__import__('numpy').prod(rep['grid_shape'])), 'seeds': rep['seeds'],
         'triangles': rep.get('triangles', 0), 'porosity_voxel': rep['porosity_voxel'],
         'porosity_mesh': rep.get('porosity_mesh', float('nan')), 'watertight': rep.get('watertight'),
+        'porosity_printed': rep.get('porosity_printed', float('nan')),
         'slabs': (rep.get('tiled') or {{}}).get('slabs', 1), 'output_mb': size / 2**20,
         'peak_tree_mb': tree['peak'] / 2**20, 'mesh_workers': rep.get('mesh_workers', 1),
         'stages': rep['timings_s'], 'strut_mean_mm': (rep.get('strut_thickness_mm') or {{}}).get('mean'),
@@ -175,8 +176,8 @@ def main(argv=None) -> int:
         m = run(f"femoral shaft at 0.02 mm -> {'STL' if kind == 'stl' else 'PNG stack'}",
                 dict(shaft, voxel=0.02), kind, patient=femur)
         print(f"femur 0.02 {kind}: {m['seconds']:.1f} s, {m['seconds'] / (m['voxels'] / 1e9):.0f} s per 10^9 "
-              f"voxels (target 160), peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4)",
-              flush=True)
+              f"voxels (target 160), peak {max(m['peak_tree_mb'], m['peak_rss_mb']) / 1024:.2f} GiB (target 4), "
+              f"printed porosity {m['porosity_printed']:.4f} (target 0.7); stages {m['stages']}", flush=True)
     if "femur-graded" in only:
         m = run("femoral shaft graded 0:0.3,2:0.8, skin 0.3 mm, at 0.03 mm -> STL",
                 dict(grade="0:0.3,2:0.8", skin=0.3, porosity=0.7, voxel=0.03), patient=femur)
