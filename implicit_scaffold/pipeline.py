@@ -1458,10 +1458,11 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE
 
     # marching cubes holds more per voxel than the field passes did, the more the denser the
-    # surface (and two slabs may be in flight); the plan kept room for its thinnest slab
+    # surface (and two slabs may be in flight); the plan kept room for its thinnest slab, which
+    # reads more planes than the lattice's slabs may hold (a CT at 0.25 mm: 19 planes, 18 planned)
     per_voxel = mesh_slab_bytes_per_voxel(field)
     thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
-    slab_voxels = run.forced_voxels or min(slab_voxels, max(thinnest, int((run.max_memory - release()) // per_voxel)))
+    slab_voxels = run.forced_voxels or max(thinnest, min(slab_voxels, int((run.max_memory - release()) // per_voxel)))
     ext = output_format(out_path)
     if tolerance <= 0 and ext in MESH_STREAMED:
         with prog.stage("mesh", "streamed to " + out_path.name):
