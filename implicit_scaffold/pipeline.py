@@ -434,9 +434,6 @@ def _seed_count(params: Params, patient) -> int:
 def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool) -> int | None:
     """Refuse, before the cells, a run that cannot fit: the grid's plan (when the voxel is given)
     and the cells' own memory. Returns the plan's slab voxels (None: the whole grid, or no voxel given)."""
-    from .cells import check_seed_memory
-    from .memory import process_memory
-
     planned = None
     if params.voxel is not None:
         from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
@@ -451,10 +448,18 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
                            halo=halo if params.style == "paper" else 0,
                            reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
                            slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
+    _check_cells_memory(run, params, n, graded)
+    return planned
+
+
+def _check_cells_memory(run: _RunPlan, params: Params, n: int, graded: bool) -> None:
+    """Refuse `n` seeds whose cells cannot be built within what --max-memory leaves (:func:`.cells.check_seed_memory`)."""
+    from .cells import check_seed_memory
+    from .memory import process_memory
+
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
                       available=min(run.max_memory - process_memory(), available_memory()),
-                      chunked=params.seeds_in == "box" and not graded, seeds_given=params.seeds is not None)
-    return planned
+                      seeds_given=params.seeds is not None)
 
 
 @dataclass(frozen=True)
@@ -505,15 +510,18 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
                                          total=params.seeds is not None)
         prog.note(f"{len(seeds)} seeds drawn in the " + ("patient and one cell's margin"
                                                          if params.seeds_in == "patient" or graded else "box"))
+        if len(seeds) > n:
+            # a patient's margin holds seeds beyond the count checked before the work started
+            # (431,627 drawn for 235,495 in the CT's thin bones): checked again before their cells
+            _check_cells_memory(run, params, len(seeds), graded is not None)
         if graded is not None and params.relax:
             with prog.stage("relax", f"{params.relax} Lloyd iterations"):
                 seeds = grading.lloyd_relax(seeds, graded.density, params.relax)
         with prog.stage("cells", "power, weighted by the pore size" if weighted else ""):
-            # seeds drawn in a patient leave cells at its surface that no chunk settles, and the
-            # memory check counted them built at once
+            # in chunks beyond CHUNK_SEEDS, wherever the seeds were drawn (the memory check counted
+            # them so): a patient's surface cells that no chunk settles are settled one by one
             cells = voronoi_cells(seeds, lo, hi,
-                                  radii=grading.power_radii(graded.density, seeds) if weighted else None,
-                                  chunked=params.seeds_in == "box" and graded is None)
+                                  radii=grading.power_radii(graded.density, seeds) if weighted else None)
         if not solving:
             break
         inside = sample(coarse, coarse_grid, cells.seeds) < 0
@@ -1464,10 +1472,11 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE
 
     # marching cubes holds more per voxel than the field passes did, the more the denser the
-    # surface (and two slabs may be in flight); the plan kept room for its thinnest slab
+    # surface (and two slabs may be in flight); the plan kept room for its thinnest slab, which
+    # reads more planes than the lattice's slabs may hold (a CT at 0.25 mm: 19 planes, 18 planned)
     per_voxel = mesh_slab_bytes_per_voxel(field)
     thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
-    slab_voxels = run.forced_voxels or min(slab_voxels, max(thinnest, int((run.max_memory - release()) // per_voxel)))
+    slab_voxels = run.forced_voxels or max(thinnest, min(slab_voxels, int((run.max_memory - release()) // per_voxel)))
     ext = output_format(out_path)
     if tolerance <= 0 and ext in MESH_STREAMED:
         with prog.stage("mesh", "streamed to " + out_path.name):

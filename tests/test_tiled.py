@@ -374,12 +374,26 @@ def slab_fields(work, slab):
     return plain(work, slab)
 tiled.slab_fields = slab_fields
 try:
-    report = generate(mesh=False, morphometry=False, **json.loads(sys.argv[1])).report
+    report = generate(**{"mesh": False, "morphometry": False, **json.loads(sys.argv[1])}).report
 except ScaffoldError as refusal:
     print(json.dumps({"refused": str(refusal)}))
 else:
     print(json.dumps({"starts": starts, "own": own, "report": report}))
 """
+
+
+def _run_fresh(output, budget, **kw):
+    """A patient-seeded sphere (seeds drawn in it, so its surface cells crowd every slab) run by
+    :data:`_SLAB_STARTS` in a fresh process: what it printed."""
+    import json
+    import subprocess
+    import sys
+
+    options = dict(shape="sphere", size=6.0, pore_size=0.3, porosity=0.7, voxel=0.1, seeds_in="patient",
+                   output=str(output), max_memory=budget, **kw)
+    done = subprocess.run([sys.executable, "-c", _SLAB_STARTS, json.dumps(options)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
 
 
 def test_a_patients_slabs_keep_the_budget_and_leave_nothing_behind(tmp_path):
@@ -394,12 +408,7 @@ def test_a_patients_slabs_keep_the_budget_and_leave_nothing_behind(tmp_path):
     import sys
 
     def run(budget):
-        options = dict(shape="sphere", size=6.0, pore_size=0.3, porosity=0.7, voxel=0.1, seeds_in="patient",
-                       output=str(tmp_path / "a.npy"), max_memory=budget)
-        done = subprocess.run([sys.executable, "-c", _SLAB_STARTS, json.dumps(options)], capture_output=True,
-                              text=True)
-        assert done.returncode == 0, done.stderr[-2000:]
-        return json.loads(done.stdout.strip().splitlines()[-1])
+        return _run_fresh(tmp_path / "a.npy", budget)
 
     # past the estimate before the cells, refused by the plan on the cells themselves
     refused = run("600M")["refused"]
@@ -412,6 +421,24 @@ def test_a_patients_slabs_keep_the_budget_and_leave_nothing_behind(tmp_path):
     # a slab's primitives are some tens of MiB here; the heap returned between slabs leaves ~0.1
     after_first = np.array(got["starts"][1:]) / 2**20
     assert np.ptp(after_first) < 4, after_first
+
+
+def test_a_budget_just_large_enough_holds_to_the_streamed_mesh(tmp_path):
+    """At the smallest budget the plan accepts (the one a refusal says is needed), the lattice's
+    slabs are thinner than the planes marching cubes reads about each slab (19): the mesh stage
+    still runs, in slabs of its own thinnest (the plan counted them), and the run keeps the budget.
+    It refused after the lattice ("one slab of the grid needs 73,036 voxels"), as a CT at 0.25 mm
+    did after 9 minutes."""
+    import re
+
+    refused = _run_fresh(tmp_path / "a.stl", "600M", mesh=True)["refused"]
+    needed = re.search(r"needs about (\d+)M", refused)
+    assert needed, refused
+    got = _run_fresh(tmp_path / "a.stl", f"{needed.group(1)}M", mesh=True)
+    report = got["report"]
+    assert report["tiled"]["slabs"] > 2 and report["tiled"]["planes_per_slab"] < 19
+    assert report["watertight"] and report["bodies"] == 1
+    assert report["peak_memory_mb"] <= int(needed.group(1)), report["peak_memory_after_stage_mb"]
 
 
 def test_a_tiled_mesh_meets_the_porosity_target_as_the_whole_grids_does(tmp_path, monkeypatch):
