@@ -31,6 +31,12 @@ def _size(text: str):
     return vals[0] if len(vals) == 1 else tuple(vals)
 
 
+def _add_spacing(g) -> None:
+    """--spacing, for every command that reads a volume (the patient's or a scaffold's)."""
+    g.add_argument("--spacing", type=_spacing, default=None,
+                   help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z"')
+
+
 def _spacing(text: str):
     parts = text.replace(",", " ").split()
     try:
@@ -164,8 +170,7 @@ def _add_scaffold_file(p, what: str) -> None:
     p.add_argument("--voxel", type=float, default=None,
                    help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
                         "resampled to it (default: the volume's own spacing)")
-    p.add_argument("--spacing", type=_spacing, default=None,
-                   help='voxel spacing of a volume whose file states none: one or three mm, "x y z"')
+    _add_spacing(p)
 
 
 def _add_mechanics_options(p) -> None:
@@ -319,8 +324,7 @@ def _add_build_options(g) -> None:
                          "or a folder holding a DICOM series)")
     pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
     pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
-    pg.add_argument("--spacing", type=_spacing, default=None,
-                    help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z"')
+    _add_spacing(pg)
     pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
                     help="units of a mesh file (default mm; a warning says when the size suggests others)")
     pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),

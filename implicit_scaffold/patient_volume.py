@@ -72,13 +72,6 @@ def _read_image(path: Path):
     return read_image(path, folder="dicom", what="a volume (NIfTI, NRRD, MHA/MHD or a DICOM folder)")
 
 
-def _states_spacing(path: Path) -> bool:
-    """Whether the file (or DICOM folder) at `path` states its voxel spacing (:func:`.images.header_states_spacing`)."""
-    from .images import header_states_spacing
-
-    return header_states_spacing(path, folder="dicom")
-
-
 def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
     """The bone voxels of `array` and a phrase saying how they were chosen."""
     if label is not None and threshold is not None:
@@ -692,11 +685,11 @@ def load_volume(path, *, label=None, threshold=None, reference: bool = False, sp
         shape = "x".join(map(str, size))
         raise ScaffoldError(f"{name} is a {dim}-D image of {shape} voxels, not a volume; give a 3-D scan "
                             "(a DICOM folder holds one file per slice)")
-    if spacing is not None:
-        from .images import spacing_triple
+    from .images import header_states_spacing, spacing_triple
 
+    if spacing is not None:
         image.SetSpacing(spacing_triple(spacing))
-    elif not _states_spacing(path):
+    elif not header_states_spacing(path, folder="dicom"):
         raise ScaffoldError(f"{name} states no voxel spacing, so its size is unknown (ITK would read 1 mm voxels); "
                             "give it with --spacing (mm), e.g. --spacing 0.05 or --spacing \"0.05 0.05 0.1\"")
     spacing = np.asarray(image.GetSpacing(), np.float64)
