@@ -24,7 +24,7 @@ from .errors import ScaffoldError  # noqa: E402
 _PUBLIC = {
     # the run end to end, its specs and its result
     "generate": "pipeline", "Result": "pipeline",
-    "LatticeSpec": "specs", "GridSpec": "specs", "Outputs": "specs",
+    "LatticeSpec": "specs", "GridSpec": "specs", "Outputs": "specs", "MechanicsSpec": "specs",
     # stage 1: patients
     "Box": "patient", "Cylinder": "patient", "Sphere": "patient", "load_patient": "patient_io",
     # stages 2-4: seeds, cells, skeleton

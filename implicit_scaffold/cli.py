@@ -215,19 +215,11 @@ def _mechanics_lines(mech: dict) -> list[str]:
     return lines
 
 
-def _solver_progress(args, every: float = 5.0):
-    """A CG progress line on stderr at most every `every` seconds (none when quiet)."""
-    if getattr(args, "quiet", False):
-        return None
-    last = [time.perf_counter()]
+def _solver_progress(args):
+    """CG progress notes on stderr (none when quiet)."""
+    from .progress import Progress
 
-    def tell(name, it, res):
-        now = time.perf_counter()
-        if now - last[0] >= every:
-            last[0] = now
-            print(f"  {name}: CG iteration {it}, residual {res:.1e}", file=sys.stderr, flush=True)
-
-    return tell
+    return Progress(not getattr(args, "quiet", False)).solver()
 
 
 def _mechanics(args) -> int:
@@ -268,48 +260,11 @@ def _mechanics(args) -> int:
 
 
 def _measure_sample(sample, mat, args, boundary: str):
-    """`measure` on a :class:`~.mechanics.SolveSample`; the report says which voxel and why, and warns."""
-    from .mechanics import measure
+    """:func:`~.mechanics.measure_sample` with the options of `args`."""
+    from .mechanics import measure_sample
 
-    report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis="xyz".index(args.axis),
-                           backend="opencl", origin=sample.origin, progress=_solver_progress(args))
-    from .memory import peak_memory
-
-    # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
-    # part of it unless the build before peaked higher)
-    report["voxel"] = {**sample.report, "process_peak_bytes": peak_memory()}
-    report["notes"].append(sample.report["note"])
-    if sample.report["warning"]:
-        from .errors import ScaffoldWarning
-
-        report["notes"].append(sample.report["warning"])
-        warnings.warn(sample.report["warning"], ScaffoldWarning, stacklevel=2)
-    return report, comp
-
-
-def _generate_mechanics(result, mat, args) -> tuple[dict, object, float]:
-    """Measure what generate built (in memory or in slabs on disk); the report's ``mechanics`` section.
-
-    The solid comes from the field at the mechanics voxel (:func:`~.mechanics.solid_for_solve`),
-    a few planes at a time, so a slab run's field on disk is never held whole; its solve's
-    memory is checked against --max-memory before it starts.
-    """
-    import numpy as np
-
-    from .mechanics import solid_box, solid_for_solve
-
-    boundary = args.boundary
-    if boundary == "auto" and result.patient_sdf is not None:
-        # a box patient is a box sample (periodic); any other shape is not (kinematic)
-        lo, hi, count = solid_box(result.patient_sdf)
-        boundary = "periodic" if count and count == int(np.prod(hi - lo)) else "kinematic"
-    wall = (result.report.get("wall_thickness_mm") or {}).get("median")
-    sample = solid_for_solve(result.field, result.grid, max_memory=args.max_memory, voxel=args.mechanics_voxel,
-                             wall=wall, boundary=boundary)
-    mech, comp = _measure_sample(sample, mat, args, boundary)
-    if sample.report["warning"]:
-        result.report.setdefault("warnings", []).append(sample.report["warning"])
-    return mech, comp, sample.voxel
+    return measure_sample(sample, mat, boundary=boundary, axis="xyz".index(args.axis),
+                          progress=_solver_progress(args))
 
 
 def _add_build_options(g) -> None:
@@ -440,8 +395,15 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     # the slabs are what a cluster runs
     grid = GridSpec(voxel=args.voxel, max_memory=args.max_memory, tiled=True if args.scheduler is not None else None,
                     workers=args.workers, scheduler=args.scheduler)
+    mechanics = None
+    if getattr(args, "mechanics", False):
+        from .specs import MechanicsSpec
+
+        mechanics = MechanicsSpec(args.material, E=args.young, nu=args.nu, voxel=args.mechanics_voxel,
+                                  boundary=args.boundary, axis=args.axis)
     outputs = Outputs(output, mesh=mesh, morphometry=morphometry, slices=slices, printer=args.printer,
-                      repair=getattr(args, "repair", False), tolerance=getattr(args, "tolerance", None))
+                      repair=getattr(args, "repair", False), tolerance=getattr(args, "tolerance", None),
+                      mechanics=mechanics)
     patient = None
     if args.patient is not None:
         from .files import check_writable
@@ -600,16 +562,10 @@ def _generate(args) -> int:
         _apply_design(args)
     if args.report is not None:
         _check_report(args.report)
-    mat = _mechanics_setup(args) if args.mechanics else None
     if args.mechanics_voxel is not None and not args.mechanics:
         raise ScaffoldError("--mechanics-voxel sets the voxel of --mechanics' solve; add --mechanics or drop it")
     result = _build(args, output=args.output)
-    comp = None
-    if args.mechanics:
-        from .files import write_json
-
-        result.report["mechanics"], comp, h = _generate_mechanics(result, mat, args)
-        write_json(result.report, result_json(args.output))
+    comp = result.compression
     if args.report is not None:
         from .report import write_run_report
 
@@ -617,6 +573,7 @@ def _generate(args) -> int:
         if comp is not None:
             from .report import strain_section_image
 
+            h = result.report["mechanics"]["voxel"]["voxel_mm"]
             extra = {"compression: von Mises strain, middle section": strain_section_image(comp, h)}
         write_run_report(result, args.report, extra_images=extra)
     if not args.quiet:

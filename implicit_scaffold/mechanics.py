@@ -1178,6 +1178,75 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
             "memory_estimate_bytes": int(need), "max_memory_bytes": int(total)}
 
 
+def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
+               wall: float | None = None, boundary: str = "auto", preconditioner: str = "multigrid",
+               option: str = "--mechanics-voxel", source: str = "run") -> tuple[float, str, int, int]:
+    """The voxel a solve of a solid sampled from a field of voxel `h0` runs at, or its refusal, decided
+    from sizes alone: :func:`solid_for_solve` decides with it after a run, and a run that will
+    measure what it builds decides with it before the build, from the grid it plans (issue 14).
+
+    Parameters
+    ----------
+    n : (3,) ints
+        The solid's box, in voxels of `h0`.
+    solid_voxels : int
+        Its solid voxels (an estimate before a build).
+    h0 : float, mm
+        The field's voxel.
+    max_memory, voxel, wall, boundary, preconditioner, option, source
+        As :func:`solid_for_solve`.
+
+    Returns
+    -------
+    h : float, mm
+    why : str
+        Why that voxel, for the report's note.
+    total, held : int, bytes
+        The budget and what the process holds now.
+
+    Raises
+    ------
+    ScaffoldError
+        The solve at `voxel`, or at the finest voxel the default allows, does not fit: one line
+        naming the ``--max-memory`` that would do and the voxel that would fit.
+    """
+    from .errors import positive_mm
+    from .memory import budget, format_size, release
+
+    total = budget(max_memory)
+    held = release()
+    allowance = total - held
+    n = tuple(int(k) for k in n)
+    count = int(solid_voxels)
+    bc = "kinematic" if boundary == "auto" else boundary
+
+    def need(h):
+        return sample_memory(n, count, h0, h, boundary=bc, preconditioner=preconditioner)
+
+    # the run's own voxel when it fits; else the finest that fits with the margin (a refusal names it)
+    fit = h0 if need(h0) <= allowance else finest_voxel(n, count, h0, allowance - held_margin(held), boundary=bc,
+                                                        preconditioner=preconditioner)
+
+    def refuse(h, why=""):
+        raise ScaffoldError(_refusal(h, need(h), held, total, fit, option, why))
+
+    if voxel is not None:
+        h = positive_mm("mechanics-voxel", voxel, example="0.05")
+        if need(h) > allowance:
+            refuse(h)
+        return h, f"the voxel asked for ({option})", total, held
+    if fit == h0:
+        return h0, f"the {source}'s own voxel: its solve fits the budget", total, held
+    floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
+    if fit is None or (floor is not None and fit > floor):
+        target = h0 if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
+        refuse(target, "" if fit is None else
+               f" (the finest voxel that fits, {fit:.4g} mm, leaves fewer than {MIN_VOXELS_PER_WALL:g} "
+               f"voxels across the {wall:.3g} mm median wall)")
+    return fit, (f"the finest voxel whose solve fits --max-memory {format_size(total)} (the {source}'s "
+                 f"{h0:.4g} mm would need about {format_size(held + need(h0) + held_margin(held))})"), total, held
+
+
 def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None, wall: float | None = None,
                     boundary: str = "auto", preconditioner: str = "multigrid",
                     option: str = "--mechanics-voxel", source: str = "run") -> SolveSample:
@@ -1211,47 +1280,22 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
         No solid; or the solve at `voxel` (or at the finest voxel the default allows) does not fit:
         one line naming the ``--max-memory`` that would do and the voxel that would fit.
     """
-    from .errors import positive_mm
-    from .memory import budget, format_size, release
+    from .memory import format_size
 
-    total = budget(max_memory)
-    held = release()
-    allowance = total - held
     lo, hi, count = solid_box(field)
     if count == 0:
         raise ScaffoldError("the scaffold holds no solid voxel: nothing carries load")
     h0 = float(grid.spacing)
     n = hi - lo
     bc = "kinematic" if boundary == "auto" else boundary
+    h, why, total, held = plan_voxel(n, count, h0, max_memory=max_memory, voxel=voxel, wall=wall, boundary=boundary,
+                                     preconditioner=preconditioner, option=option, source=source)
+    allowance = total - held
 
     def need(h):
         return sample_memory(n, count, h0, h, boundary=bc, preconditioner=preconditioner)
 
-    # the run's own voxel when it fits; else the finest that fits with the margin (a refusal names it)
-    fit = h0 if need(h0) <= allowance else finest_voxel(n, count, h0, allowance - held_margin(held), boundary=bc,
-                                                        preconditioner=preconditioner)
-
-    def refuse(h, why=""):
-        raise ScaffoldError(_refusal(h, need(h), held, total, fit, option, why))
-
     warning = None
-    if voxel is not None:
-        h = positive_mm("mechanics-voxel", voxel, example="0.05")
-        if need(h) > allowance:
-            refuse(h)
-        why = f"the voxel asked for ({option})"
-    elif fit == h0:
-        h, why = h0, f"the {source}'s own voxel: its solve fits the budget"
-    else:
-        floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
-        if fit is None or (floor is not None and fit > floor):
-            target = h0 if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
-            refuse(target, "" if fit is None else
-                   f" (the finest voxel that fits, {fit:.4g} mm, leaves fewer than {MIN_VOXELS_PER_WALL:g} "
-                   f"voxels across the {wall:.3g} mm median wall)")
-        h = fit
-        why = (f"the finest voxel whose solve fits --max-memory {format_size(total)} (the {source}'s "
-               f"{h0:.4g} mm would need about {format_size(held + need(h0) + held_margin(held))})")
     for _ in range(8):
         values, sampled = sample_field(field, grid, lo, hi, h)
         level = keep_volume(values, count * (h0 / h) ** 3) if h != h0 else np.float32(0)
@@ -1281,6 +1325,31 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
               "memory_estimate_bytes": int(estimate), "max_memory_bytes": int(total)}
     return SolveSample(solid, h, origin, report)
+
+
+def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto", axis: int = 2,
+                   progress=None) -> tuple[dict, "Compression"]:
+    """:func:`measure` on a :class:`SolveSample`: the report's ``mechanics`` section, whose ``voxel``
+    entry says which voxel and why (with the process's peak memory so far), and the compression.
+
+    A sample coarser than the converged voxel warns (:class:`~.errors.ScaffoldWarning`), and
+    its note says so too.
+    """
+    import warnings
+
+    from .errors import ScaffoldWarning
+    from .memory import peak_memory
+
+    report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis=axis, backend="opencl",
+                           origin=sample.origin, progress=progress)
+    # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
+    # part of it unless the build before peaked higher)
+    report["voxel"] = {**sample.report, "process_peak_bytes": peak_memory()}
+    report["notes"].append(sample.report["note"])
+    if sample.report["warning"]:
+        report["notes"].append(sample.report["warning"])
+        warnings.warn(sample.report["warning"], ScaffoldWarning, stacklevel=2)
+    return report, comp
 
 
 # ----------------------------------------------------------------------------- inputs

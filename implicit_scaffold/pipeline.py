@@ -130,6 +130,8 @@ class Result:
     timings: dict = dc_field(default_factory=dict)
     #: the slabs of a run kept on disk (None for one slab held in memory)
     tiled: Any = None
+    #: the platen compression of ``Outputs.mechanics`` (:class:`.mechanics.Compression`), else None
+    compression: Any = None
 
 
 
@@ -251,7 +253,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
              seeds_in: str | None = _UNSET, porosity: float | None = _UNSET, sf: float = _UNSET, sv: float = _UNSET,
              blend: float | None = _UNSET, seed: int = _UNSET, remove_fragments: bool = _UNSET,
              fill_sealed_voids: bool = _UNSET, grade=_UNSET, calibration=_UNSET, relax: int = _UNSET,
-             weighted: bool = _UNSET) -> Result:
+             weighted: bool = _UNSET, mechanics=_UNSET) -> Result:
     """Build a scaffold: seeds, cells, skeleton, lattice field, patient cut, mesh and report.
 
     What to build is given by three specs, or by their fields as flat keywords (the same run,
@@ -273,7 +275,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         do. ``report["tiled"]["workers"]`` says how many worker processes ran.
     outputs : Outputs, optional
         What is written and measured: ``path`` (the keyword ``output``), ``mesh``,
-        ``morphometry``, ``slices``, ``printer``, ``repair``, ``tolerance``
+        ``morphometry``, ``slices``, ``printer``, ``repair``, ``tolerance``, ``mechanics``
         (:class:`~.specs.Outputs`; also keywords). The JSON report goes beside the path; a
         printer's certificate lands in ``report["print_check"]``, a repair's changes in
         ``report["repair"]``, the slices' geometry in ``report["slices"]``, the mesh
@@ -294,7 +296,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         Print stage progress on stderr.
     output, mesh, morphometry, slices, printer, repair, tolerance, voxel, max_memory, tiled, \
     scheduler, workers, style, seeds, pore_size, seed_rule, seeds_in, porosity, sf, sv, blend, seed, \
-    remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted
+    remove_fragments, fill_sealed_voids, grade, calibration, relax, weighted, mechanics
         The specs' fields as flat keywords (``output`` is :attr:`Outputs.path`); their
         defaults are the specs'.
 
@@ -360,6 +362,8 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         _check_resolved(printed_wall, params.voxel)
     grid = Grid.covering(patient.lo, patient.hi, params.voxel if params.voxel is not None
                          else _default_voxel(built.wall, _box_volume(patient), printed_wall))
+    if outs.mechanics is not None:
+        _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory)
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
     if repair and slab_voxels is not None:
         raise run.whole_grid_refusal(grid, "--repair")
@@ -368,6 +372,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
                   built.wall_p10, built.window_p25, slab_voxels, scheduler, prog, mesh, out_path, morphometry,
                   seed_solve=built.tried or None, printer=printer, repair=repair, printed_wall=printed_wall,
+                  mechanics=(outs.mechanics, max_memory) if outs.mechanics is not None else None,
                   grade=(graded.field, graded.density, built.empty_power_cells) if graded else None)
 
 
@@ -1111,7 +1116,7 @@ def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
 def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, edges, seeds, walls,
            wall_p10, window_p25, slab_voxels: int | None, scheduler, prog, mesh: bool, out_path,
            morphometry: bool = True, seed_solve=None, grade=None, printer=None, repair: bool = False,
-           printed_wall: float | None = None) -> Result:
+           printed_wall: float | None = None, mechanics=None) -> Result:
     """From the cells' primitives to the outputs: the field by the one slab driver
     (:func:`.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
 
@@ -1119,7 +1124,8 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     from the arrays (:func:`_finish_in_memory`), else slab by slab from the fields on disk
     (:func:`_finish_in_slabs`); the report's keys mean the same either way. `grade` is a
     graded run's ``(GradeField, SeedDensity, empty power cells or None)``; `printer` a
-    PrinterProfile to certify what was built for.
+    PrinterProfile to certify what was built for; `mechanics` ``(MechanicsSpec, max_memory)``
+    the stiffness to measure on what was built (:func:`_measure_mechanics`).
     """
     from .patient import SHAPES
     from .executor import executor_for
@@ -1198,6 +1204,9 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
         result.skeleton, result.edges, result.timings = skeleton, edges, prog.timings
     finally:
         tf.close()
+    if mechanics is not None:
+        with prog.stage("mechanics", "voxel finite elements"):
+            _measure_mechanics(result, *mechanics, progress=prog.solver())
     from .memory import peak_memory
 
     if out_path is not None:
@@ -1213,6 +1222,48 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
 
         write_json(report, report_path(out_path))
     return result
+
+
+def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memory) -> None:
+    """Refuse, before the lattice, a run whose stiffness solve cannot fit its budget: the decision
+    :func:`_measure_mechanics` takes after the build (:func:`.mechanics.plan_voxel`), taken on the
+    planned grid with the solid it will hold, ``1 - P`` of the patient's volume (the closed-form
+    porosity without a target), and the cells' median wall."""
+    from .mechanics import plan_voxel
+    from .patient import Box
+
+    boundary = spec.boundary
+    if boundary == "auto":
+        # as _measure_mechanics will find it: a box patient is a box sample
+        boundary = "periodic" if isinstance(patient, Box) else "kinematic"
+    p = params.porosity if params.porosity is not None else closed_form_porosity(params.sf, params.sv)
+    solid = min(int(np.prod(grid.shape, dtype=np.int64)),
+                int(math.ceil((1.0 - p) * float(patient.volume) / grid.voxel_volume)))
+    plan_voxel(grid.shape, solid, grid.spacing, max_memory=max_memory, voxel=spec.voxel,
+               wall=float(np.median(walls)) if len(walls) else None, boundary=boundary)
+
+
+def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
+    """The stiffness of what was built, into ``result.report["mechanics"]`` and ``result.compression``.
+
+    The solid comes from the field at the mechanics voxel (:func:`.mechanics.solid_for_solve`),
+    a few planes at a time, so a slab run's field on disk is never held whole; the solve's memory
+    is checked against the budget before it starts.
+    """
+    from .mechanics import measure_sample, solid_box, solid_for_solve
+
+    boundary = spec.boundary
+    if boundary == "auto" and result.patient_sdf is not None:
+        # a box patient is a box sample (periodic); any other shape is not (kinematic)
+        lo, hi, count = solid_box(result.patient_sdf)
+        boundary = "periodic" if count and count == int(np.prod(hi - lo)) else "kinematic"
+    wall = (result.report.get("wall_thickness_mm") or {}).get("median")
+    sample = solid_for_solve(result.field, result.grid, max_memory=max_memory, voxel=spec.voxel, wall=wall,
+                             boundary=boundary)
+    result.report["mechanics"], result.compression = measure_sample(sample, spec.material, boundary=boundary,
+                                                                    axis="xyz".index(spec.axis), progress=progress)
+    if sample.report["warning"]:
+        result.report.setdefault("warnings", []).append(sample.report["warning"])
 
 
 def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool,

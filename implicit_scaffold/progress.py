@@ -52,6 +52,21 @@ class Progress:
         if self.enabled:
             print(f"    {text}", file=sys.stderr, flush=True)
 
+    def solver(self, every: float = 5.0):
+        """A callback ``(name, iteration, residual)`` for an iterative solve: a note at most every
+        `every` seconds (None when not enabled)."""
+        if not self.enabled:
+            return None
+        last = [time.perf_counter()]
+
+        def tell(name, it, res):
+            now = time.perf_counter()
+            if now - last[0] >= every:
+                last[0] = now
+                self.note(f"{name}: CG iteration {it}, residual {res:.1e}")
+
+        return tell
+
     def bar(self, label: str):
         """A callback ``(done, total)`` for tiled work; draws a bar with an ETA on a terminal."""
         if not self._bar_enabled:

@@ -251,6 +251,61 @@ class GridSpec:
 
 
 @dataclass(frozen=True)
+class MechanicsSpec:
+    """The stiffness a run measures on what it builds (voxel finite elements, :mod:`.mechanics`).
+
+    Its memory is checked when the run has planned its grid, before the lattice: a solve that
+    cannot fit is refused then, not after the scaffold is built and written.
+
+    Parameters
+    ----------
+    material : str or Material
+        A :data:`.mechanics.MATERIALS` key (``ti64 pcl pla peek ha tcp cocr ta``) or a
+        :class:`.mechanics.Material`; held as the Material.
+    E : float, GPa, optional
+        Young's modulus (instead of, or overriding, the material's).
+    nu : float, optional
+        Poisson's ratio, in (-1, 0.5).
+    voxel : float, mm, optional
+        The solve's voxel; by default the run's own when its solve fits the budget, else the
+        finest that fits (:func:`.mechanics.plan_voxel`).
+    boundary : {"auto", "periodic", "kinematic"}
+        The homogenization's boundary conditions (auto: periodic for a box patient).
+    axis : {"x", "y", "z"}
+        The platen compression's axis.
+
+    Raises
+    ------
+    ScaffoldError
+        An unknown material or boundary, a bad modulus, nu or voxel, in one line.
+    """
+
+    material: Any = "ti64"
+    E: float | None = None
+    nu: float | None = None
+    voxel: float | None = None
+    boundary: str = "auto"
+    axis: str = "z"
+
+    def __post_init__(self):
+        from .mechanics import Material, material
+
+        mat = self.material
+        if not isinstance(mat, Material):
+            mat = material(mat, E=self.E, nu=self.nu)
+        elif self.E is not None or self.nu is not None:
+            mat = material(None, E=self.E if self.E is not None else mat.E_gpa, nu=self.nu if self.nu is not None
+                           else mat.nu)
+        if self.boundary not in ("auto", "periodic", "kinematic"):
+            raise ScaffoldError(f"mechanics boundary must be auto, periodic or kinematic, got {self.boundary!r}")
+        if self.axis not in ("x", "y", "z"):
+            raise ScaffoldError(f"mechanics axis must be x, y or z, got {self.axis!r}")
+        voxel = None if self.voxel is None else positive_mm("mechanics-voxel", self.voxel, example="0.05")
+        _set(self, "material", mat)
+        _set(self, "voxel", voxel)
+
+
+@dataclass(frozen=True)
 class Outputs:
     """What a run writes and measures beyond the field.
 
@@ -274,6 +329,9 @@ class Outputs:
         Thicken struts and open throats to the printer's limits before the mesh (needs `printer`).
     tolerance : float, mm
         Simplify the mesh within this distance (manifold3d); 0 keeps every triangle.
+    mechanics : MechanicsSpec, optional
+        Measure the built scaffold's stiffness (``report["mechanics"]``); its solve's memory is
+        checked before the lattice.
 
     Raises
     ------
@@ -290,6 +348,7 @@ class Outputs:
     printer: Any = None
     repair: bool = False
     tolerance: float = 0.0
+    mechanics: MechanicsSpec | None = None
 
     def __post_init__(self):
         from .simplify import check_tolerance
@@ -318,6 +377,9 @@ class Outputs:
         repair = check_flag("repair", self.repair)
         if repair and printer is None:
             raise ScaffoldError("--repair repairs for a printer's limits; add --printer NAME (e.g. --printer dlp-resin)")
+        if self.mechanics is not None and not isinstance(self.mechanics, MechanicsSpec):
+            raise ScaffoldError(f"mechanics must be a MechanicsSpec, got {type(self.mechanics).__name__}; e.g. "
+                                "mechanics=MechanicsSpec(material='ti64')")
         for name, value in dict(mesh=mesh, morphometry=check_flag("morphometry", self.morphometry), printer=printer,
                                 repair=repair, tolerance=check_tolerance(self.tolerance)).items():
             _set(self, name, value)

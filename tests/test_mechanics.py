@@ -392,6 +392,61 @@ def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
     assert "the run's own voxel" in mech["voxel"]["note"] and "note: mechanics voxel 0.1 mm" in cap.out
 
 
+def test_generate_refuses_a_mechanics_solve_that_cannot_fit_before_the_lattice(tmp_path, monkeypatch):
+    from implicit_scaffold import pipeline, tiled
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.specs import MechanicsSpec
+
+    # the lattice never starts: the refusal comes from the planned grid, the cells' wall and the target
+    monkeypatch.setattr(tiled, "tiled_scaffold", lambda *a, **k: pytest.fail("the lattice ran"))
+    out = tmp_path / "s.stl"
+    with pytest.raises(ScaffoldError) as err:
+        pipeline.generate(size=1.2, pore_size=0.6, porosity=0.6, voxel=0.08, seed=2, output=out,
+                          mechanics=MechanicsSpec("pcl", voxel=0.002))
+    text = str(err.value)
+    assert "mechanics solve at 0.002 mm" in text and "--max-memory" in text and "\n" not in text
+    assert not out.exists() and not (tmp_path / "s.json").exists()
+
+
+def test_the_planned_solid_is_the_built_one_within_a_few_percent():
+    """The check before the build takes ``1 - P`` of the patient's volume as the solid: the build
+    meets P in voxels, so the built solid is that count (the oracle: the target porosity)."""
+    from implicit_scaffold.pipeline import generate
+
+    r = generate(size=1.6, pore_size=0.6, porosity=0.7, voxel=0.05, seed=4, mesh=False, morphometry=False)
+    built = int(np.count_nonzero(r.field < 0))
+    planned = (1 - 0.7) * 1.6 ** 3 / r.grid.voxel_volume
+    assert abs(built / planned - 1) < 0.02
+
+
+def test_generate_measures_what_it_builds_from_the_python_api():
+    from implicit_scaffold.pipeline import generate
+    from implicit_scaffold.specs import MechanicsSpec, Outputs
+
+    r = generate(size=1.2, pore_size=0.6, porosity=0.6, voxel=0.08, seed=2,
+                 outputs=Outputs(mesh=False, morphometry=False, mechanics=MechanicsSpec("pcl", axis="x")))
+    mech = r.report["mechanics"]
+    assert mech["material"]["name"].lower().startswith("pcl") and mech["compression"]["axis"] == "x"
+    assert r.compression is not None and "mechanics" in r.report["timings_s"]
+    # a box is a box sample; the solid measured is the run's (its own voxel fits)
+    assert mech["boundary_conditions"].startswith("periodic")
+    idx = np.array(np.nonzero(r.field < 0))
+    box = np.prod(idx.max(axis=1) + 1 - idx.min(axis=1))
+    assert mech["solid_fraction"] == pytest.approx(idx.shape[1] / box)
+
+
+def test_a_mechanics_spec_checks_its_values():
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.specs import MechanicsSpec
+
+    assert MechanicsSpec().material.name == m.material("ti64").name
+    assert MechanicsSpec("pcl", E=1.0).material.E_gpa == 1.0
+    assert MechanicsSpec(m.material("peek"), nu=0.3).material.nu == 0.3
+    for bad in (dict(material="steel"), dict(nu=0.5), dict(boundary="free"), dict(axis="w"), dict(voxel=-1)):
+        with pytest.raises(ScaffoldError):
+            MechanicsSpec(**bad)
+
+
 # ----------------------------------------------------------------------------- the mechanics voxel and its memory
 
 
@@ -463,14 +518,17 @@ def slab_and_whole():
 
 @pytest.mark.parametrize("voxel", [None, 0.11])
 def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, voxel, recwarn):
-    from implicit_scaffold.cli import _generate_mechanics, build_parser
+    from implicit_scaffold.pipeline import _measure_mechanics
+    from implicit_scaffold.specs import MechanicsSpec
 
     whole, slabs = slab_and_whole
     assert np.array_equal(np.asarray(slabs.field), whole.field)  # the same field, so the same solid
-    argv = ["generate", "-o", "x.npy", "--mechanics", "-q"]
-    args = build_parser().parse_args(argv + ([] if voxel is None else ["--mechanics-voxel", str(voxel)]))
-    a, _, ha = _generate_mechanics(whole, TI, args)
-    b, _, hb = _generate_mechanics(slabs, TI, args)
+    spec = MechanicsSpec(TI, voxel=voxel)
+    _measure_mechanics(whole, spec, None)
+    _measure_mechanics(slabs, spec, None)
+    a, b = whole.report["mechanics"], slabs.report["mechanics"]
+    ha, hb = a["voxel"]["voxel_mm"], b["voxel"]["voxel_mm"]
+    assert whole.compression is not None and slabs.compression is not None
     assert ha == hb == (whole.grid.spacing if voxel is None else voxel)
     assert a["voxel"]["voxel_mm"] == ha and a["voxel"]["source_voxel_mm"] == whole.grid.spacing
     wall = whole.report["wall_thickness_mm"]["median"]
