@@ -656,8 +656,6 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
 
     `s` and `s_p` are arrays, or a tiled run's fields on disk (read in chunks of at most `max_voxels`).
     """
-    from .grade import profiles
-
     out: dict[str, Any] = {"pore_size_target_mm": None, "seeds_in": "patient (graded)",
                            "seed_rule": "paper (graded: the paper's formula with the local pore size)",
                            "seeds_paper_rule": None}
@@ -675,14 +673,22 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
         out[key] = level_field.mean_inside
         if gfield.kind == "ct":
             out["porosity_target"] = plan.porosity_mean
+    info.update(_grade_profiles(params, gfield, s, s_p, grid, cells, max_voxels=max_voxels))
+    out["grade"] = info
+    return out
+
+
+def _grade_profiles(params: Params, gfield, s, s_p, grid: Grid, cells, max_voxels: int | None = None) -> dict:
+    """The graded report's ``profiles`` (and ``below_skin``), recounted from the fields (:func:`.grade.profiles`)."""
+    from .grade import profiles
+
     below = params.skin + params.smooth_cut
-    info["profiles"] = profiles(s, grid, cells, params.sv, gfield, s_p, max_voxels=max_voxels, below=below)
+    info = {"profiles": profiles(s, grid, cells, params.sv, gfield, s_p, max_voxels=max_voxels, below=below)}
     if below > 0:
         # the skin is solid and the smooth cut takes what it takes: the grade's porosity is
         # met by the voxels below them, which the offset's bins count
         info["below_skin"] = info["profiles"].pop("below")
-    out["grade"] = info
-    return out
+    return info
 
 
 def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float, wall_p10: float,
@@ -724,17 +730,43 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
     return float(k), float(cutoff), next_cutoff
 
 
-def _mesh_correction(volume: float, patient, params: Params, calibration, voxel: float) -> float | None:
-    """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`."""
+def _mesh_correction(volume: float, patient, params: Params, calibration, voxel: float,
+                     area: float | None = None, tf=None) -> float | None:
+    """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`.
+
+    A graded run's level is a field of depth bins, solved in voxels, with no calibration prism;
+    its target is the voxels' porosity (``calibration["target"]``) and its slope is measured on
+    the finished field `tf` (:func:`_voxel_slope`) over the step that the mesh's ``-area / volume``
+    asks for (a blended field's gradient is shorter than 1 at thin walls, where the surface moves
+    farther than the level: the area alone undershoots the slope).
+    """
     from .printed import correction
 
     if not calibration or calibration.get("by") != "mesh" or "correction" in calibration:
         return None
     printed = 1.0 - volume / float(patient.volume)
-    step = correction(printed, params.porosity, calibration, max_step=voxel)
+    if calibration.get("graded"):
+        if not area or tf is None or abs(printed - calibration["target"]) <= 0:
+            return None
+        guess = (calibration["target"] - printed) / (-float(area) / float(patient.volume))
+        calibration["slope_per_mm"] = _voxel_slope(tf, guess) or -float(area) / float(patient.volume)
+    step = correction(printed, calibration.get("target", params.porosity), calibration, max_step=voxel)
     if step is not None:
         calibration.update(corrected_by_mm=float(step), printed_before_correction=printed)
     return step
+
+
+def _voxel_slope(tf, step: float) -> float | None:
+    """d porosity / d level (per mm) of the finished field over a level step of `step` mm, in voxels:
+    the patient's voxels whose value the step carries across 0 (:func:`.tiled.shift_level` makes
+    ``max(s - step, s_P)``), over the patient's voxels and the step. None when none crosses."""
+    d, crossing = abs(float(step)), 0
+    for sl in tf.slabs:
+        s, inside = tf.field.read(sl.x0, sl.x1), tf.patient.read(sl.x0, sl.x1) < 0
+        band = ((s >= 0) & (s < d)) if step > 0 else ((s < 0) & (s >= -d))
+        crossing += int(np.count_nonzero(band & inside))
+        del s, inside, band
+    return -crossing / (tf.n_inside * d) if crossing and d > 0 else None
 
 
 #: the simplification may move the printed porosity by this much (a fraction) before a warning
@@ -1183,6 +1215,18 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
             if empty is not None:
                 report["grade"]["empty_power_cells"] = empty
             tf.level_plan = tf.level_field = None  # the mesh and metrics stages need the memory
+            if mesh and params.porosity is not None:
+                # then one step on what is printed: the whole mesh measured and the level field shifted,
+                # so that the mesh holds the porosity asked for; under a skin or a smooth cut, which take
+                # what they take whatever the level, the porosity the bins met in voxels
+                skinned = params.skin + params.smooth_cut > 0
+                calibration.update(by="mesh", graded=True,
+                                   target=float(report["porosity_voxel" if skinned else "porosity_target"]),
+                                   why="graded: the level is solved per depth bin in voxels, then moved by one "
+                                       "step for the whole mesh's porosity to meet "
+                                       + ("the voxels'" if skinned else "the target")
+                                       + ", with the slope measured on the voxels")
+                report["printed_level"] = calibration
         elif params.porosity is not None and report["printed_level"] is None:
             report["printed_level"] = {"by": None, "why": "no mesh or slices: the field meets the target in voxels"}
         if not in_memory:
@@ -1201,6 +1245,12 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
         finish = _finish_in_memory if in_memory else _finish_in_slabs
         result = finish(tf, report, run, params, patient, grid, cells, cells_in, calibration, prog, mesh,
                         out_path, morphometry, printer, one_piece=one_piece, slab_voxels=slab_voxels)
+        if grade is not None and calibration.get("corrected_by_mm") is not None:
+            # the printed step moved every bin's voxels: their profiles are recounted
+            with prog.stage("profiles", "after the printed step"):
+                fields = (tf.field.field, tf.patient.field) if in_memory else (tf.field, tf.patient)
+                report["grade"].update(_grade_profiles(params, grade[0], *fields, grid, cells,
+                                                       max_voxels=slab_voxels))
         result.skeleton, result.edges, result.timings = skeleton, edges, prog.timings
     finally:
         tf.close()
@@ -1360,7 +1410,8 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
             # mesh_summary below checks closure and winding; no need to check twice
             result.mesh = mesh_field(s, grid, check=False)
         # the volume alone decides on a correction; the full summary is of the final mesh
-        step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration, h)
+        step = _mesh_correction(mesh_volume(result.mesh), patient, params, calibration, h, area=result.mesh.area,
+                                tf=tf)
         tolerance = _tolerance(params, h)
 
         def measure_beside(triangles):
@@ -1453,7 +1504,8 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                                 patient_volume=float(patient.volume))
 
         summary, simplified, simplify_warnings = stream()
-        step = _mesh_correction(summary["volume_mm3"], patient, params, calibration, grid.spacing)
+        step = _mesh_correction(summary["volume_mm3"], patient, params, calibration, grid.spacing,
+                                area=summary["surface_area_mm2"], tf=tf)
         if step is not None:
             # the mesh measured, the level moved by one step, the fragments and sealed voids
             # cleaned again, and the mesh streamed once more
