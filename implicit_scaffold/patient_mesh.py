@@ -577,16 +577,12 @@ def clamped_distance(V, F, grid: Grid, *, reach: float, x_range=None) -> np.ndar
     lists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=reach, block_range=(b0, b1))
     cy, cz = block_counts(grid, BLOCK)[1:]
     tris = opencl.to_device(data.reshape(-1, 4))
-    shape = (x1 - x0,) + tuple(grid.shape[1:])
-    nearest = np.empty(shape, np.int32)
-    _run(opencl.kernel("patient", "triangle_nearest", BLOCK=BLOCK), grid, nearest, [],
+    out = np.empty((x1 - x0,) + tuple(grid.shape[1:]), np.float32)
+    # one pass (triangle_clamped): the nearest triangle's distance, or `reach` where none is within it
+    _run(opencl.kernel("patient", "triangle_clamped", BLOCK=BLOCK), grid, out, [],
          [opencl.to_device(lists.offsets, np.int32), opencl.to_device(lists.items, np.int32), tris],
          [np.float32(reach), np.int32(b0 * cy * cz)], x_range=(x0, x1))
-    out = np.empty(shape, np.float32)
-    _run(opencl.kernel("patient", "triangle_distance", BLOCK=BLOCK), grid, out,
-         [lambda t0, t1: nearest[t0 - x0:t1 - x0]], [tris], [], x_range=(x0, x1))
-    # no triangle within reach gives INFINITY: the clamp
-    return np.minimum(out, np.float32(reach), out=out)
+    return out
 
 
 def triangle_distance_reference(points, triangles) -> np.ndarray:

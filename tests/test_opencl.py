@@ -157,7 +157,7 @@ def test_every_kernel_builds_on_the_chosen_device():
     names = opencl.kernel_names()
     assert {"lattice", "patient"} <= set(names)
     assert {"lattice_paper", "lattice_struts", "bin_sort"} <= set(names["lattice"])
-    assert {"triangle_distance", "triangle_nearest"} <= set(names["patient"])
+    assert {"triangle_distance", "triangle_nearest", "triangle_clamped"} <= set(names["patient"])
     for source, wanted in names.items():
         built = {k.function_name for k in opencl.program(source, BLOCK=BLOCK).all_kernels()}
         assert set(wanted) <= built, source

@@ -24,3 +24,25 @@ def test_the_boxs_grid_is_the_distance_to_a_box(size, spacing, origin):
     ref = evaluate_by_slabs(grid, box.sdf_axes, max_voxels=10_000)
     assert np.array_equal(got.view(np.uint32), ref.view(np.uint32))
     assert np.array_equal(box.sdf_grid(grid, x_range=(3, 9)).view(np.uint32), ref[3:9].view(np.uint32))
+
+
+def test_a_cut_patient_takes_the_maximum_with_its_half_spaces_bit_for_bit():
+    # the compiled pass against the NumPy expression it replaces: cut_sdf_axes on broadcast axes,
+    # rounded to float32, then the maximum with the base's distance
+    from implicit_scaffold.grid import evaluate_by_slabs
+    from implicit_scaffold.patient import CutPatient, Sphere
+
+    rng = np.random.default_rng(3)
+    normals = rng.normal(size=(4, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[0] = (0, 0, 1)  # an osteotomy plane along z, as --cut-planes gives
+    hs = np.column_stack([normals, rng.uniform(0.5, 2.0, 4)])
+    cut = CutPatient(Sphere(4.0), hs)
+    grid = Grid((0.013, -0.21, 0.37), 0.071, (37, 29, 41))
+    got = cut.sdf_grid(grid)
+    base = Sphere(4.0).sdf_grid(grid)
+    want = np.maximum(base, evaluate_by_slabs(grid, cut.cut_sdf_axes, max_voxels=5000))
+    assert got.dtype == np.float32 and got.tobytes() == want.tobytes()
+    assert np.count_nonzero(base < want) > 1000  # the half-spaces cut something
+    for x0, x1 in ((0, 7), (7, 30), (30, 37)):
+        assert cut.sdf_grid(grid, x_range=(x0, x1)).tobytes() == got[x0:x1].tobytes()
