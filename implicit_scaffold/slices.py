@@ -249,8 +249,10 @@ def _png_bytes(grey: np.ndarray) -> bytes:
     from PIL import Image
 
     buf = io.BytesIO()
-    # Pillow writes no time or software chunk: the same layer gives the same bytes
-    Image.fromarray(grey, mode="L").save(buf, format="PNG", optimize=False, compress_level=6)
+    # Pillow writes no time or software chunk: the same layer gives the same bytes. zlib level 3:
+    # on the default cube's 252 x 252 layers at 0.02 mm, 1.95 ms a layer and 16,046 bytes, against
+    # 3.47 ms and 15,231 bytes at Pillow's default 6 (medians of 3 passes over 10 layers)
+    Image.fromarray(grey, mode="L").save(buf, format="PNG", optimize=False, compress_level=3)
     return buf.getvalue()
 
 
