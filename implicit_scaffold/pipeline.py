@@ -114,7 +114,12 @@ class Result:
         voxels, where only its sign matters (:meth:`.patient_mesh.MeshPatient.clamp_far_field`).
         A memmap in a tiled run, as `field`.
     mesh : trimesh.Trimesh or None
-        None without the mesh stage, and in a tiled run (its mesh is streamed to the output).
+        None without the mesh stage. A run in slabs streams its mesh to the output file, and
+        `mesh` reads that file back on first use when it fits the run's memory budget
+        (:data:`READ_BACK_BYTES_PER_TRIANGLE` a triangle beside what the process holds); when it
+        does not, or no mesh file was written, None with a warning.
+    mesh_file : Path or None
+        The mesh file a run in slabs wrote (what `mesh` reads back).
     """
 
     params: Params
@@ -126,12 +131,53 @@ class Result:
     field: np.ndarray
     patient_sdf: np.ndarray
     patient: Any
-    mesh: Any = None
     timings: dict = dc_field(default_factory=dict)
     #: the slabs of a run kept on disk (None for one slab held in memory)
     tiled: Any = None
     #: the platen compression of ``Outputs.mechanics`` (:class:`.mechanics.Compression`), else None
     compression: Any = None
+    mesh_file: Any = None
+    _mesh: Any = dc_field(default=None, repr=False)
+
+    @property
+    def mesh(self):
+        if self._mesh is None and self.mesh_file is not None:
+            self._mesh = _read_back(self.mesh_file, self.report)
+            if self._mesh is None:
+                self.mesh_file = None  # warned once
+        return self._mesh
+
+    @mesh.setter
+    def mesh(self, value):
+        self._mesh = value
+
+
+#: bytes per triangle that trimesh holds at its peak while it reads a mesh file whole (an STL of
+#: 2,277,628 triangles, the 4 mm cube at 0.02 mm: 470 by tracemalloc, 398 kept: its unmerged
+#: float64 vertices, faces and the reader's copies)
+READ_BACK_BYTES_PER_TRIANGLE = 480
+
+
+def _read_back(path: Path, report: dict):
+    """The mesh a run in slabs wrote to `path`, read whole when it fits the run's budget; else None,
+    with a warning naming the budget it needs."""
+    import warnings
+
+    from .errors import ScaffoldWarning
+    from .memory import format_size, process_memory
+
+    budget = int(round(float((report.get("tiled") or {}).get("max_memory_mb", 0)) * 2**20))
+    need = int(report.get("triangles", 0)) * READ_BACK_BYTES_PER_TRIANGLE
+    if not Path(path).is_file() or need + process_memory() > budget:
+        why = (f"{path} is gone" if not Path(path).is_file() else
+               f"its {report.get('triangles', 0):,} triangles need about {format_size(need)} beside the "
+               f"{format_size(process_memory())} held, over the run's --max-memory {format_size(budget)}")
+        warnings.warn(f"Result.mesh: the mesh of this run in slabs is not read back ({why}); read {path} in pieces "
+                      "or raise max_memory", ScaffoldWarning, stacklevel=3)
+        return None
+    import trimesh
+
+    return trimesh.load(path, process=False, force="mesh")
 
 
 
@@ -1539,7 +1585,8 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
                               for f in (tf.field, tf.patient))
     return Result(params=params, report=report, cells=cells, skeleton=None, edges=None, grid=grid,
-                  field=field_map, patient_sdf=patient_map, patient=patient, timings=prog.timings, tiled=tf.slabs)
+                  field=field_map, patient_sdf=patient_map, patient=patient, timings=prog.timings, tiled=tf.slabs,
+                  mesh_file=out_path if mesh and ext in MESH_FORMATS else None)
 
 
 #: bytes per triangle of a whole mesh read back from the streamed PLY to simplify it (float64

@@ -327,7 +327,8 @@ def write_run_report(result, path, *, extra_images: dict[str, bytes] | None = No
 
     r = result.report
     images: dict[str, bytes] = {}
-    if result.mesh is not None:
+    # a run in slabs is pictured by its sections: its mesh would be read back whole to be rendered
+    if getattr(result, "tiled", None) is None and result.mesh is not None:
         images["the scaffold"] = render_mesh(result.mesh)
         images["cut-away: the trabecular inside"] = render_mesh(result.mesh, cut=True)
     if result.field is not None:

@@ -274,3 +274,27 @@ def test_a_level_step_longer_than_a_voxel_is_no_correction():
     assert correction(0.9734, 0.80, dict(info)) == pytest.approx((0.80 - 0.9734) / -0.2383)
     assert correction(0.9734, 0.80, info, max_step=0.33) is None and "more than" in info["correction"]
     assert correction(0.8030, 0.80, {"slope_per_mm": -4.0}, max_step=0.05) == pytest.approx(0.00075)
+
+
+def test_a_run_in_slabs_gives_its_mesh_read_back_when_it_fits(tmp_path, recwarn):
+    import trimesh
+
+    from implicit_scaffold import generate
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    kw = dict(size=1.6, pore_size=0.6, porosity=0.7, voxel=0.04, seed=3, morphometry=False)
+    whole = generate(**kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    r = generate(output=tmp_path / "s.stl", tiled=24 * plane, **kw)
+    assert r.report["tiled"]["slabs"] > 1 and r.mesh_file == tmp_path / "s.stl"
+    # the mesh the slabs wrote, as trimesh reads the file: the whole-grid run's triangles, to float32
+    m = r.mesh
+    assert isinstance(m, trimesh.Trimesh) and len(m.faces) == len(whole.mesh.faces) == r.report["triangles"]
+    assert m.volume == pytest.approx(whole.mesh.volume, rel=1e-6)
+    assert r.mesh is m  # read once
+    # a budget the read-back does not fit: None, with a warning that names the triangles
+    small = generate(output=tmp_path / "t.stl", tiled=24 * plane, **kw)
+    small.report["tiled"]["max_memory_mb"] = 1
+    assert small.mesh is None
+    assert any(f"{small.report['triangles']:,} triangles" in str(w.message) for w in recwarn
+               if issubclass(w.category, ScaffoldWarning))
