@@ -144,7 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
                                     "offset follow) that meet porosity, pore size, minimum strut and stiffness "
                                     "targets, by a few builds of a representative cube; verify them over random "
                                     "seeds. Exit code 3 when the targets conflict (the output names them and the "
-                                    "nearest trade-off).")
+                                    "nearest trade-off). With --stiffness-from-ct: a scaffold graded so that its "
+                                    "local modulus follows the bone's in the patient's CT.")
     de.add_argument("--porosity", type=float, default=None,
                     help="target porosity in (0, 1) (required, except with --stiffness-from-ct)")
     de.add_argument("--pore-size", type=float, required=True,
@@ -157,7 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta (default ti64)")
     de.add_argument("--printer", default=None, metavar="NAME",
                     help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
-    de.add_argument("--seeds", type=int, default=5, help="random seeds of the verification (default 5)")
+    de.add_argument("--seeds", type=int, default=5,
+                    help="random seeds of the verification (default 5; the CT design fits on 2 seeds a porosity)")
     dg = de.add_argument_group("graded from the patient's CT (the bone's modulus, voxel by voxel)")
     dg.add_argument("--stiffness-from-ct", action="store_true",
                     help="target the bone's apparent modulus everywhere: the CT's density (--calibration) through the "
@@ -651,6 +653,7 @@ def _design_from_ct(args, t0: float) -> int:
     source = _ct_source(args.patient, "--stiffness-from-ct reads the patient's CT (--patient)")
     if args.printer is not None:
         raise ScaffoldError("--printer is not taken with --stiffness-from-ct yet; give its strut as --min-strut")
+    # the porosity is the CT's: 0.5 stands in for it where only the pore size, strut and material are checked
     check_targets(Targets(porosity=0.5, pore_size=args.pore_size, min_strut=args.min_strut, material=args.material))
     if args.scaffold is not None:
         check_writable(args.scaffold)

@@ -658,6 +658,7 @@ def design_from_ct(ct, patient, *, calibration, site: str = "pooled", pore_size:
         raise ScaffoldError("--stiffness-from-ct needs --calibration SLOPE INTERCEPT (density g/cm3 = SLOPE * HU "
                             "+ INTERCEPT)")
     solid = material_of(material)
+    # the porosity is the CT's: 0.5 stands in for it where only the pore size, strut and material are checked
     targets = check_targets(Targets(porosity=0.5, pore_size=pore_size, min_strut=min_strut, material=material))
     style = {"style": "paper", "sf": 0.75, "sv": 0.75}
     rve = representative_volume(targets, sv_min=style["sv"] * 3.0 / FIT_CELLS)
