@@ -18,8 +18,8 @@ core modulus measured by voxel FE (every voxel, CG to 1e-5) beside Morgan's modu
 ``--accuracy 20`` runs the issue's accuracy study: 20 target sets drawn with a fixed rng inside the
 feasible range (porosity 0.6-0.85, pore size 0.3-0.8 mm, the minimum strut 0.3-0.8 of the thickest the
 maps give there, the modulus within 3 % of the maps' at that porosity), each designed and checked over
-``--seeds`` seeds; it prints one row per set and the share meeting all its targets (every seed within
-the issue's tolerances). ``--stiffness-sets K`` gives a modulus target to the first K only (the FE
+``--seeds`` seeds; it prints one row per set and the share meeting all its targets within the issue's
+tolerances, on every seed and on the means over the seeds (the thinnest strut of all seeds either way). ``--stiffness-sets K`` gives a modulus target to the first K only (the FE
 solves are most of the time).
 """
 from __future__ import annotations
@@ -127,16 +127,21 @@ def study_targets(count: int, stiffness_sets: int) -> list[Targets]:
     return out
 
 
-def seeds_meet(d) -> dict:
-    """Each target met by every seed's build (the issue's tolerances)."""
+def seeds_meet(d, *, every: bool = True) -> dict:
+    """Each target met (the issue's tolerances) by every seed's build, or (`every` False) by the mean
+    over the seeds (the thinnest strut of all seeds either way)."""
     from implicit_scaffold.design import PORE_SIZE_RELATIVE, POROSITY_POINTS, STIFFNESS_RELATIVE
 
     t, a = d.targets, d.achieved
-    met = {"porosity": all(abs(v - t["porosity"]) <= POROSITY_POINTS for v in a["porosity"]["values"]),
-           "pore_size": all(abs(v / t["pore_size"] - 1) <= PORE_SIZE_RELATIVE for v in a["pore_size"]["values"]),
-           "min_strut": all(v >= t["min_strut"] for v in a["min_strut"]["values"])}
+
+    def values(key):
+        return a[key]["values"] if every else [a[key]["mean"]]
+
+    met = {"porosity": all(abs(v - t["porosity"]) <= POROSITY_POINTS for v in values("porosity")),
+           "pore_size": all(abs(v / t["pore_size"] - 1) <= PORE_SIZE_RELATIVE for v in values("pore_size")),
+           "min_strut": a["min_strut"]["min"] >= t["min_strut"]}
     if "stiffness" in t:
-        met["stiffness"] = all(abs(v / t["stiffness"] - 1) <= STIFFNESS_RELATIVE for v in a["stiffness"]["values"])
+        met["stiffness"] = all(abs(v / t["stiffness"] - 1) <= STIFFNESS_RELATIVE for v in values("stiffness"))
     return met
 
 
@@ -144,25 +149,33 @@ def accuracy_study(count: int, seeds: int, stiffness_sets: int) -> None:
     """The issue's study: `count` target sets, `seeds` seeds each; a table and the share meeting all."""
     rows, t_all = [], time.perf_counter()
     print(f"accuracy study: {count} target sets (rng {STUDY_SEED}), {seeds} seeds each, the first "
-          f"{stiffness_sets} with a modulus (Ti-6Al-4V); a target is met when every seed meets it")
+          f"{stiffness_sets} with a modulus (Ti-6Al-4V); a target is met on every seed, or on the means over them")
     print(f"{'#':>2s} {'P':>6s} {'pore':>6s} {'strut':>6s} {'E GPa':>6s} | {'builds':>6s} {'s':>6s} | "
-          f"{'P mean (min..max)':24s} {'pore mean':>9s} {'strut min':>9s} {'E mean':>7s} | met")
+          f"{'P mean (min..max)':24s} {'pore mean':>9s} {'strut min':>9s} {'E mean':>7s} {'E min..max':>13s} | "
+          f"every seed | on the means")
     for i, t in enumerate(study_targets(count, stiffness_sets)):
         t0 = time.perf_counter()
         d = design(t, seeds=seeds)
         dt = time.perf_counter() - t0
-        met = seeds_meet(d)
+        met, on_means = seeds_meet(d), seeds_meet(d, every=False)
         a = d.achieved
-        rows.append(all(met.values()))
-        e = f"{a['stiffness']['mean']:7.3f}" if "stiffness" in a else f"{'-':>7s}"
+        rows.append((all(met.values()), all(on_means.values())))
+        e = (f"{a['stiffness']['mean']:7.3f} {a['stiffness']['min']:6.3f}..{a['stiffness']['max']:<6.3f}"
+             if "stiffness" in a else f"{'-':>7s} {'-':>13s}")
         missed = [k for k, v in met.items() if not v]
+        missed_means = [k for k, v in on_means.items() if not v]
         print(f"{i:2d} {t.porosity:6.4f} {t.pore_size:6.4f} {t.min_strut:6.4f} "
               f"{t.stiffness if t.stiffness else '-':>6} | {d.representative_volume['builds']:6d} {dt:6.1f} | "
               f"{a['porosity']['mean']:.4f} ({a['porosity']['min']:.4f}..{a['porosity']['max']:.4f}) "
               f"{a['pore_size']['mean']:9.4f} {a['min_strut']['min']:9.4f} {e} | "
-              f"{'all' if not missed else 'missed ' + ','.join(missed)}", flush=True)
-    print(f"{sum(rows)} of {len(rows)} target sets met all their targets ({100 * sum(rows) / len(rows):.0f} %; the "
-          f"issue asks 90 %); {time.perf_counter() - t_all:.1f} s in all")
+              f"{'all' if not missed else 'missed ' + ','.join(missed)} | "
+              f"{'all' if not missed_means else 'missed ' + ','.join(missed_means)}", flush=True)
+    every = sum(r[0] for r in rows)
+    means = sum(r[1] for r in rows)
+    print(f"{every} of {len(rows)} target sets met all their targets on every seed ({100 * every / len(rows):.0f} %), "
+          f"{means} of {len(rows)} on the means over the seeds (porosity, pore size and modulus means, the "
+          f"thinnest strut of all seeds; {100 * means / len(rows):.0f} %); the issue asks 90 %; "
+          f"{time.perf_counter() - t_all:.1f} s in all")
 
 
 def main(argv=None) -> None:
