@@ -144,8 +144,10 @@ def build_parser() -> argparse.ArgumentParser:
                                     "offset follow) that meet porosity, pore size, minimum strut and stiffness "
                                     "targets, by a few builds of a representative cube; verify them over random "
                                     "seeds. Exit code 3 when the targets conflict (the output names them and the "
-                                    "nearest trade-off).")
-    de.add_argument("--porosity", type=float, required=True, help="target porosity in (0, 1)")
+                                    "nearest trade-off). With --stiffness-from-ct: a scaffold graded so that its "
+                                    "local modulus follows the bone's in the patient's CT.")
+    de.add_argument("--porosity", type=float, default=None,
+                    help="target porosity in (0, 1) (required, except with --stiffness-from-ct)")
     de.add_argument("--pore-size", type=float, required=True,
                     help="target mean pore size (polyhedron-sphere, as generate reports it), mm")
     de.add_argument("--min-strut", type=float, default=None,
@@ -156,7 +158,28 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta (default ti64)")
     de.add_argument("--printer", default=None, metavar="NAME",
                     help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
-    de.add_argument("--seeds", type=int, default=5, help="random seeds of the verification (default 5)")
+    de.add_argument("--seeds", type=int, default=5,
+                    help="random seeds of the verification (default 5; the CT design fits on 2 seeds a porosity)")
+    dg = de.add_argument_group("graded from the patient's CT (the bone's modulus, voxel by voxel)")
+    dg.add_argument("--stiffness-from-ct", action="store_true",
+                    help="target the bone's apparent modulus everywhere: the CT's density (--calibration) through the "
+                         "site's density-modulus law (--site; Morgan, Bayraktar & Keaveny 2003), matched by the "
+                         "porosity of the scaffold's measured modulus-porosity law; builds the graded scaffold")
+    dg.add_argument("--calibration", type=float, nargs=2, default=None, metavar=("SLOPE", "INTERCEPT"),
+                    help="density g/cm3 = SLOPE * HU + INTERCEPT (a phantom's linear calibration)")
+    dg.add_argument("--site", default="pooled", metavar="SITE",
+                    help="the density-modulus law: pooled vertebra proximal-tibia greater-trochanter femoral-neck "
+                         "(Morgan et al. 2003; default pooled)")
+    dg.add_argument("--patient", metavar="FILE", default=None,
+                    help="the patient's CT volume (.nii, .nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
+    dg.add_argument("--threshold", type=float, default=None, help="the patient: keep intensities >= HU")
+    dg.add_argument("--label", type=int, default=None, help="the patient: keep this segmentation label")
+    _add_spacing(dg)
+    dg.add_argument("--voxel", type=float, default=None,
+                    help="voxel of the graded build, mm (default: the representative cube's, pore size / 16)")
+    dg.add_argument("--scaffold", metavar="FILE", default=None,
+                    help="write the graded scaffold here, as generate -o does (default: built and measured, "
+                         "not written)")
     de.add_argument("-o", "--output", required=True, metavar="JSON", help="where to write design.json")
     de.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
@@ -420,17 +443,20 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                             "--patient FILE; give one or drop them")
     ct = None
     if args.calibration is not None:
-        from .patient_io import VOLUME_EXTENSIONS
-
-        source = args.patient
-        if source is None or not (Path(source).is_dir() or str(source).lower().endswith(VOLUME_EXTENSIONS)):
-            raise ScaffoldError("--calibration reads the CT intensities of --patient; give a CT volume (.nii, "
-                                ".nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
         from .grade import load_ct
 
-        ct = load_ct(source)
+        ct = load_ct(_ct_source(args.patient, "--calibration reads the CT intensities of --patient"))
     return generate(lattice=lattice, grid=grid, outputs=outputs, patient=patient, shape=args.shape, size=args.size,
                     skin=args.skin, smooth_cut=args.smooth_cut, ct=ct, verbose=not args.quiet)
+
+
+def _ct_source(source, what: str):
+    """`source` when it names a CT volume (a volume file or a DICOM folder); else a ScaffoldError saying `what`."""
+    from .patient_io import VOLUME_EXTENSIONS
+
+    if source is None or not (Path(source).is_dir() or str(source).lower().endswith(VOLUME_EXTENSIONS)):
+        raise ScaffoldError(f"{what}; give a CT volume (.nii, .nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
+    return source
 
 
 def _repair_lines(rep: dict) -> list[str]:
@@ -524,6 +550,18 @@ def _design(args) -> int:
     from .files import check_writable, write_json
 
     check_writable(args.output, formats=(".json",))
+    if args.stiffness_from_ct:
+        return _design_from_ct(args, t0)
+    ct_only = [name for name, given in (("--calibration", args.calibration is not None),
+                                        ("--patient", args.patient is not None), ("--site", args.site != "pooled"),
+                                        ("--scaffold", args.scaffold is not None), ("--voxel", args.voxel is not None),
+                                        ("--threshold", args.threshold is not None), ("--label", args.label is not None),
+                                        ("--spacing", args.spacing is not None)) if given]
+    if ct_only:
+        raise ScaffoldError(f"{', '.join(ct_only)} apply to a design graded from the CT; add --stiffness-from-ct "
+                            "or drop them")
+    if args.porosity is None:
+        raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
     min_strut = args.min_strut
     if args.printer is not None:
         from .printability import printer_profile
@@ -551,6 +589,61 @@ def _design(args) -> int:
             lines.append(f"    {k}: target {d.targets[k]:g}, achieved {v['mean']:.4g} ({v['min']:.4g}..{v['max']:.4g})")
         if not d.feasible:
             lines.append("  " + conflict_message(d))
+        lines.append(f"  time {time.perf_counter() - t0:.1f} s")
+        print("\n".join(lines))
+    return 0 if d.feasible else 3
+
+
+def _design_from_ct(args, t0: float) -> int:
+    """``design --stiffness-from-ct``: every input checked before the CT is read, then the design."""
+    from .design import Targets, check_targets, design_from_ct
+    from .files import check_writable, write_json
+    from .grade import load_ct, parse_calibration
+    from .mechanics import density_modulus
+    from .patient_io import load_patient
+    from .progress import Progress
+
+    if args.stiffness is not None:
+        raise ScaffoldError("--stiffness is one modulus, --stiffness-from-ct the bone's everywhere: give one")
+    if args.porosity is not None:
+        raise ScaffoldError("--stiffness-from-ct takes the porosity from the CT (the bone's modulus); drop --porosity")
+    if args.calibration is None:
+        raise ScaffoldError("--stiffness-from-ct needs --calibration SLOPE INTERCEPT (density g/cm3 = SLOPE * HU + "
+                            "INTERCEPT)")
+    calibration = parse_calibration(args.calibration)
+    density_modulus(args.site)
+    source = _ct_source(args.patient, "--stiffness-from-ct reads the patient's CT (--patient)")
+    if args.printer is not None:
+        raise ScaffoldError("--printer is not taken with --stiffness-from-ct yet; give its strut as --min-strut")
+    # the porosity is the CT's: 0.5 stands in for it where only the pore size, strut and material are checked
+    check_targets(Targets(porosity=0.5, pore_size=args.pore_size, min_strut=args.min_strut, material=args.material))
+    if args.scaffold is not None:
+        check_writable(args.scaffold)
+    patient = load_patient(source, label=args.label, threshold=args.threshold, spacing=args.spacing)
+    ct = load_ct(source)
+    prog = Progress(not args.quiet)
+    with prog.stage("design", "forward builds of a representative cube (the modulus-porosity law), then the "
+                              "graded build on the patient"):
+        d = design_from_ct(ct, patient, calibration=calibration, site=args.site, pore_size=args.pore_size,
+                           material=args.material, min_strut=args.min_strut, voxel=args.voxel,
+                           output=args.scaffold, progress=prog)
+    out = {"version": __version__, **d.to_json(), "timings_s": {"design": round(time.perf_counter() - t0, 3)}}
+    write_json(out, args.output)
+    if not args.quiet:
+        rel = d.representative_volume["modulus_porosity"]
+        lines = [f"wrote {args.output}: {'feasible' if d.feasible else 'INFEASIBLE'}",
+                 f"  bone: {d.targets['stiffness_from_ct']['law']}",
+                 f"  scaffold (measured, {d.representative_volume['builds']} forward builds): E = "
+                 f"{rel['solid_gpa']:g} * {rel['c']:.4g} (1 - P)^{rel['n']:.3f} GPa over porosity "
+                 f"{rel['porosity_range'][0]:g}..{rel['porosity_range'][1]:g}",
+                 "  graded build, per target-porosity bin: target -> measured porosity, bone -> scaffold modulus:"]
+        for row in d.achieved["porosity_by_target"]:
+            lines.append(f"    {row['porosity_target_mean']:.4f} -> {row['porosity']:.4f}, {row['bone_modulus_gpa']:.4g}"
+                         f" -> {row['scaffold_modulus_at_porosity_gpa']:.4g} GPa ({row['voxels']} voxels)")
+        for name, t in d.tradeoff.items():
+            lines.append(f"  conflict {name}: " + ", ".join(f"{k} {v}" for k, v in t.items()))
+        if args.scaffold is not None:
+            lines.append(f"  wrote {args.scaffold}")
         lines.append(f"  time {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
     return 0 if d.feasible else 3

@@ -167,20 +167,32 @@ def min_strut_p1(solid: np.ndarray, inside: np.ndarray, voxel: float) -> float:
     return float(np.percentile(thick[core], 1) + voxel)
 
 
-def apparent_modulus(solid: np.ndarray, voxel: float, material_name: str) -> float:
-    """Apparent modulus (GPa) along z between lubricated platens, at twice `voxel` (every other
-    voxel of the solid, cropped to its bounding box), CG to a relative residual of 1e-3."""
+def apparent_modulus(solid: np.ndarray, voxel: float, material_name: str, *, step: int = 2) -> float:
+    """Apparent modulus (GPa) along z between lubricated platens, at `step` times `voxel` (every
+    `step`-th voxel of the solid, cropped to its bounding box), CG to a relative residual of 1e-3.
+
+    Every other voxel (the default) halves a wall's voxels: on the paper style's walls (three
+    voxels at a sixteenth of the pore) it moves the modulus by a lot at high porosity (measured on a
+    4-cell cube of 0.5 mm pores, Ti-6Al-4V: 25.48 against 24.55 GPa at 50 %, 0.994 against 1.567 GPa
+    at 90 %), so the CT design measures at `step` 1."""
     from .mechanics import compress, crop, material
 
-    coarse = crop(solid)[::2, ::2, ::2]
+    coarse = crop(solid)[::step, ::step, ::step]
     # tol 1e-3: the modulus moves by well under 1 % below it, and the solve is the search's cost
     # (measured on a 60³ struts cube: 22 s on the OpenCL operator, 45 s on NumPy's)
-    comp = compress(coarse, 2.0 * voxel, material(material_name), axis=2, tol=1e-3, backend="opencl")
+    comp = compress(coarse, step * voxel, material(material_name), axis=2, tol=1e-3, backend="opencl")
     return float(comp.apparent_modulus_gpa)
 
 
-def forward(params: dict, targets: Targets, rve: dict, seed: int, *, stiffness: bool) -> dict:
-    """Build the representative volume with `params` and measure every target on it."""
+def forward(params: dict, targets: Targets, rve: dict, seed: int, *, stiffness: bool, modulus_step: int = 2,
+            core: bool = False) -> dict:
+    """Build the representative volume with `params` and measure every target on it (the modulus
+    at `modulus_step` times the voxel, :func:`apparent_modulus`).
+
+    With `core`, the modulus is the core's (the voxels farther than the margin from the cube's
+    faces, where the cut leaves a denser skin of solid: measured on a graded build, its first plane
+    at a cut face held 48 % solid against 16 % inside) and ``core_porosity`` is measured beside it.
+    """
     from .pipeline import generate
 
     r = generate(size=rve["size"], voxel=rve["voxel"], mesh=False, morphometry=False, seed=seed,
@@ -190,8 +202,12 @@ def forward(params: dict, targets: Targets, rve: dict, seed: int, *, stiffness: 
     out = {"porosity": float(r.report["porosity_voxel"]),
            "pore_size": float(r.report["pore_size_mm"]["mean"]),
            "min_strut": min_strut_p1(solid, inside, rve["voxel"])}
+    if core:
+        box = tuple(slice(int(ix.min()), int(ix.max()) + 1) for ix in np.nonzero(inside))
+        solid = solid[box]
+        out["core_porosity"] = float(1.0 - solid.mean())
     if stiffness:
-        out["stiffness"] = apparent_modulus(solid, rve["voxel"], targets.material)
+        out["stiffness"] = apparent_modulus(solid, rve["voxel"], targets.material, step=modulus_step)
     return out
 
 
@@ -207,7 +223,17 @@ def _next_sv(points: list[tuple[float, float]], goal: float, lo: float, hi: floa
     return s if lo < s < hi else mid
 
 
-def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int = MAX_BUILDS) -> Design:
+def _maps(maps):
+    """`maps` as a :class:`.design_maps.DesignMaps` (True: the shipped ones) or None (False or None)."""
+    if maps is None or maps is False:
+        return None
+    from .design_maps import load_maps
+
+    return load_maps() if maps is True else maps
+
+
+def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int = MAX_BUILDS,
+           maps=True) -> Design:
     """Find ``generate``'s parameters that meet `targets`, and verify them over `seeds` random seeds.
 
     Parameters
@@ -219,6 +245,9 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
         Prints one line per forward build.
     max_builds : int
         Forward builds of the search at most (the verification's are not counted).
+    maps : DesignMaps or bool
+        The first guess (:mod:`.design_maps`): True reads the shipped maps, False starts from the
+        defaults (the paper style, then the struts style at Sv 0.75).
 
     Returns
     -------
@@ -249,15 +278,18 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     def stiff_miss(m):
         return 0.0 if not want_e else m["stiffness"] / targets.stiffness - 1.0
 
-    # 1. the paper style at its defaults
+    first = _first_guess(_maps(maps), targets, strut_goal)
+    # 1. the paper style at its defaults (unless the maps put its walls well below the strut)
     paper = {"style": "paper", "sf": 0.75, "sv": 0.75}
-    m = build(paper)
-    chosen, chosen_m = (paper, m) if strut_ok(m) else (None, None)
-    # 2. else the struts style, Sv solved for the strut
+    chosen, chosen_m = None, None
+    if first["paper"]:
+        m = build(paper)
+        chosen, chosen_m = (paper, m) if strut_ok(m) else (None, None)
+    # 2. else the struts style, Sv solved for the strut (from the maps' Sv, or 0.75)
     struts_pts: list[tuple[float, float]] = []
     if chosen is None:
         hi = SV_RANGE[1]
-        sv = 0.75
+        sv = first["struts_sv"]
         while True:
             p = {"style": "struts", "sf": 0.75, "sv": round(sv, 4)}
             m = build(p)
@@ -341,6 +373,32 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
                   achieved=achieved, feasible=all(met.values()), conflicts=conflicts, tradeoff=tradeoff,
                   search=log, representative_volume={**rve, "seeds": list(range(int(seeds))), "builds": len(log)},
                   definitions=DEFINITIONS)
+
+
+#: the maps' predicted paper-style strut must reach this share of the goal for the paper style to be
+#: built first (the maps are measured on other cubes and voxels than the search's: a margin)
+MAP_PAPER_SHARE = 0.8
+
+
+def _first_guess(dm, targets: Targets, strut_goal) -> dict:
+    """Where the strut search starts: whether to build the paper style first, and the struts style's
+    first Sv. Without maps (or without a strut target): the paper style, then Sv 0.75. With them: the
+    paper style only when its mapped strut reaches :data:`MAP_PAPER_SHARE` of the goal, and the Sv
+    the struts' map gives for the goal (a little past it; the lowest searched Sv when beyond the map)."""
+    out = {"paper": True, "struts_sv": 0.75}
+    if dm is None or strut_goal is None:
+        return out
+    rel_goal = strut_goal / targets.pore_size
+    paper = dm.value("min_strut_rel", "paper", 0.75, 0.75, targets.porosity)
+    out["paper"] = paper >= MAP_PAPER_SHARE * rel_goal
+    sv = dm.sv_for("min_strut_rel", "struts", 0.75, targets.porosity, rel_goal)
+    if sv is None:
+        thickest = dm.value("min_strut_rel", "struts", 0.75, SV_RANGE[0], targets.porosity)
+        sv = SV_RANGE[0] if thickest < rel_goal else 0.75
+    else:
+        sv = sv * 0.97
+    out["struts_sv"] = round(min(max(sv, SV_RANGE[0]), 0.75), 4)
+    return out
 
 
 DEFINITIONS = {
@@ -451,10 +509,17 @@ def load_parameters(path) -> dict:
     params = data.get("parameters") if isinstance(data, dict) else None
     if not isinstance(params, dict):
         raise ScaffoldError(f"--design: {path} holds no 'parameters' object (write it with implicit-scaffold design)")
-    allowed = {"porosity", "pore_size", "seed_rule", "style", "sf", "sv", "voxel", "blend", "seeds"}
+    allowed = {"porosity", "pore_size", "seed_rule", "style", "sf", "sv", "voxel", "blend", "seeds",
+               "stiffness_from_ct"}
     unknown = set(params) - allowed
     if unknown:
         raise ScaffoldError(f"--design: unknown parameters {', '.join(sorted(unknown))} in {path}")
+    if "stiffness_from_ct" in params:
+        # the calibration chain of a design graded from the CT: generate's calibration (needs the CT as --patient)
+        from .grade import ModulusCalibration
+
+        params = dict(params)
+        params["calibration"] = ModulusCalibration.from_json(params.pop("stiffness_from_ct"))
     return params
 
 
@@ -469,3 +534,234 @@ def generate_design(path, **options):
     from .pipeline import generate
 
     return generate(**{**load_parameters(path), **options})
+
+
+# --- graded, from the patient's CT (--stiffness-from-ct) ----------------------------------
+
+#: porosities of the forward builds that fit the scaffold's modulus-porosity law: the span a
+#: graded scaffold keeps (:data:`.grade.POROSITY_RANGE`: below 0.5 the void stops being reliably
+#: interconnected, above 0.9 the struts stop carrying load), its ends and its middle
+FIT_POROSITIES = (0.5, 0.7, 0.9)
+#: random seeds built at each of them (the modulus of a few-cell cube spreads by some 5-15 % from
+#: seed to seed: measured 25.5 and 26.9 GPa at 0.5, 0.99 and 0.85 GPa at 0.9, Ti-6Al-4V, 0.5 mm pores)
+FIT_SEEDS = 2
+#: the cube of the fit holds this many cells a side (of the paper style's Sv)
+FIT_CELLS = 4
+#: a CT design is feasible when at least this share of the patient's voxels has a target modulus
+#: inside the scaffold's reach (the rest is clipped to the nearest end, and named)
+CT_FEASIBLE_SHARE = 0.99
+#: the patient's voxels are sampled for the targets' range on a grid of at most this many voxels
+CT_SAMPLE_VOXELS = 1_000_000
+#: the achieved porosity is reported in this many bins of the target porosity
+CT_BINS = 8
+
+
+def fit_modulus_porosity(porosity, modulus_gpa, solid_gpa: float):
+    """The power law ``E = E_solid c (1 - P)^n`` through measured (porosity, modulus) points, by
+    least squares on ``log E`` against ``log (1 - P)``.
+
+    Parameters
+    ----------
+    porosity : (m,) array_like
+        At least two distinct values.
+    modulus_gpa : (m,) array_like, GPa
+        Positive.
+    solid_gpa : float, GPa
+
+    Returns
+    -------
+    ModulusPorosity
+    """
+    from .grade import ModulusPorosity
+
+    p = np.asarray(porosity, np.float64)
+    e = np.asarray(modulus_gpa, np.float64)
+    if len(np.unique(p)) < 2 or np.any(e <= 0) or np.any(p >= 1):
+        raise ScaffoldError("the modulus-porosity fit needs two porosities or more below 1 with positive moduli")
+    a = np.stack([np.ones_like(p), np.log1p(-p)], axis=1)
+    (log_c, n), *_ = np.linalg.lstsq(a, np.log(e / solid_gpa), rcond=None)
+    return ModulusPorosity(float(np.exp(log_c)), float(n), float(solid_gpa), (float(p.min()), float(p.max())))
+
+
+def patient_intensities(ct, patient, max_voxels: int = CT_SAMPLE_VOXELS) -> np.ndarray:
+    """The CT's intensities (float64) at voxel centres inside `patient`, on a grid of at most
+    `max_voxels` over its bounds (at the CT's finest spacing when that fits)."""
+    from .grid import Grid
+
+    lo, hi = np.asarray(patient.lo, np.float64), np.asarray(patient.hi, np.float64)
+    h = float(np.min(np.linalg.norm(ct.affine[:, :3], axis=0)))
+    h = max(h, float(np.cbrt(np.prod(hi - lo) / max_voxels)))
+    grid = Grid.covering(lo, hi, h, pad=0)
+    inside = patient.sdf_grid(grid) < 0
+    if not inside.any():
+        raise ScaffoldError("the patient holds no voxel of the CT; check --threshold or --label")
+    return ct.sample(grid.points()[inside.ravel()])
+
+
+def design_from_ct(ct, patient, *, calibration, site: str = "pooled", pore_size: float, material: str = "ti64",
+                   min_strut: float | None = None, voxel: float | None = None, output=None, relation=None,
+                   seed: int = 0, progress=None, max_builds: int = MAX_BUILDS) -> Design:
+    """A graded scaffold whose local apparent modulus follows the bone's, from the patient's CT.
+
+    The CT's intensities give the bone's density by the linear `calibration`, the density its
+    apparent modulus by a published density-modulus law of the anatomical `site` (Morgan,
+    Bayraktar & Keaveny 2003, J Biomech 36:897-904; :data:`.mechanics.BONE_DENSITY_MODULUS`),
+    and that modulus the porosity of the scaffold whose modulus it is, through the scaffold's
+    own modulus-porosity law, measured: a power law fitted (:func:`fit_modulus_porosity`) to
+    forward builds of a representative cube at :data:`FIT_POROSITIES` (:data:`FIT_SEEDS` seeds
+    each, the apparent modulus of a platen compression at the design voxel, :func:`apparent_modulus`
+    with step 1). The graded
+    scaffold is then built on the patient by the grading machinery (:class:`.grade.ModulusCalibration`
+    as the calibration of :func:`.pipeline.generate`), with cells of mean pore size `pore_size`.
+
+    Parameters
+    ----------
+    ct : CTImage
+    patient : object
+        The patient geometry (:func:`.patient_io.load_patient`), in the CT's frame.
+    calibration : (slope, intercept)
+        Density g/cm³ = slope · HU + intercept.
+    site : str
+        A :data:`.mechanics.BONE_DENSITY_MODULUS` key.
+    pore_size : float, mm
+        Mean polyhedron-sphere pore size.
+    material : str
+        The scaffold's solid (:data:`.mechanics.MATERIALS`).
+    min_strut : float, mm, optional
+        Checked on the fit's builds at the field's most porous end.
+    voxel : float, mm, optional
+        The graded build's voxel (default: the fit cube's).
+    output : str or Path, optional
+        Where the graded build writes its mesh or field (as ``generate -o``); None: not written.
+    relation : ModulusPorosity, optional
+        A modulus-porosity law to use instead of fitting one (no forward builds).
+    seed : int
+        The graded build's random seed.
+
+    Returns
+    -------
+    Design
+        ``parameters`` for ``generate --design`` (with ``stiffness_from_ct``, the calibration
+        chain), ``achieved`` (porosity per target-porosity bin, measured on the graded build,
+        beside the bone's modulus and the scaffold law's modulus at the measured porosity),
+        ``feasible`` (at least :data:`CT_FEASIBLE_SHARE` of the patient's voxels within the
+        scaffold's reach, and the minimum strut kept).
+    """
+    from .grade import ModulusCalibration, parse_calibration
+    from .mechanics import density_modulus
+    from .mechanics import material as material_of
+    from .pipeline import generate
+
+    law = density_modulus(site)
+    cal = parse_calibration(calibration)
+    if cal is None:
+        raise ScaffoldError("--stiffness-from-ct needs --calibration SLOPE INTERCEPT (density g/cm3 = SLOPE * HU "
+                            "+ INTERCEPT)")
+    solid = material_of(material)
+    # the porosity is the CT's: 0.5 stands in for it where only the pore size, strut and material are checked
+    targets = check_targets(Targets(porosity=0.5, pore_size=pore_size, min_strut=min_strut, material=material))
+    style = {"style": "paper", "sf": 0.75, "sv": 0.75}
+    rve = representative_volume(targets, sv_min=style["sv"] * 3.0 / FIT_CELLS)
+    log: list[dict] = []
+    if relation is None:
+        for p in FIT_POROSITIES:
+            for s in range(FIT_SEEDS):
+                if len(log) >= max_builds:
+                    break
+                m = forward(style, Targets(porosity=p, pore_size=pore_size, material=material), rve, seed=s,
+                            stiffness=True, modulus_step=1, core=True)
+                log.append({"parameters": {**style, "porosity": p, "seed": s}, "measured": m})
+                if progress is not None:
+                    progress.note(f"build {len(log)}: porosity {p:g}, seed {s}: "
+                                  + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
+        relation = fit_modulus_porosity([e["measured"]["core_porosity"] for e in log],
+                                        [e["measured"]["stiffness"] for e in log], solid.E_gpa)
+    modcal = ModulusCalibration(cal.slope, cal.intercept, law=law, scaffold=relation, pore_size_mm=pore_size,
+                                sv=style["sv"])
+    # the targets over the patient, and how much of them the scaffold can reach
+    bone = law.modulus_gpa(cal.density(patient_intensities(ct, patient)))
+    p_lo, p_hi = modcal.porosity_range
+    e_lo, e_hi = float(relation.modulus_gpa(p_hi)), float(relation.modulus_gpa(p_lo))
+    stiffer, softer = float(np.mean(bone > e_hi)), float(np.mean(bone < e_lo))
+    wanted = np.clip(relation.porosity(bone), p_lo, p_hi)
+    conflicts, tradeoff = [], {}
+    if 1.0 - stiffer - softer < CT_FEASIBLE_SHARE:
+        conflicts.append("stiffness")
+        tradeoff["stiffness"] = {
+            "reachable_gpa": [e_lo, e_hi], "porosity_range": [p_lo, p_hi],
+            "bone_stiffer_share": stiffer, "bone_softer_share": softer,
+            "bone_modulus_gpa_p1_p99": [float(np.percentile(bone, 1)), float(np.percentile(bone, 99))],
+            "note": "the voxels beyond the reach get the nearest end of the porosity span"}
+    if min_strut is not None and log:
+        # the thinnest strut is at the most porous end the field uses: the fit's builds at or above it
+        above = [e for e in log if e["parameters"]["porosity"] >= float(wanted.max()) - 1e-9] or log
+        thinnest = min(e["measured"]["min_strut"] for e in above)
+        if thinnest < min_strut:
+            kept = [e["parameters"]["porosity"] for e in log if e["measured"]["min_strut"] >= min_strut]
+            conflicts.append("min_strut")
+            tradeoff["min_strut"] = {"thinnest_mm": thinnest, "at_porosity": float(wanted.max()),
+                                     "porosity_keeping_it": max(kept) if kept else None}
+    # the graded build on the patient
+    build_voxel = float(voxel) if voxel is not None else rve["voxel"]
+    if progress is not None:
+        progress.note(f"graded build on the patient at {build_voxel:.4g} mm")
+    from .formats import MESH_WRITERS
+    from .specs import output_format
+
+    r = generate(patient=patient, ct=ct, calibration=modcal, voxel=build_voxel, seed=seed, output=output,
+                 mesh=output is not None and output_format(output) in MESH_WRITERS, morphometry=False, **style)
+    achieved = ct_achieved(r, ct, modcal)
+    parameters = {**style, "pore_size": pore_size, "voxel": build_voxel, "stiffness_from_ct": modcal.to_json()}
+    return Design(parameters=parameters,
+                  targets={"stiffness_from_ct": {"site": law.site, "law": law.describe(),
+                                                 "calibration": [cal.slope, cal.intercept]},
+                           "pore_size": pore_size, "material": material,
+                           **({} if min_strut is None else {"min_strut": min_strut})},
+                  achieved=achieved, feasible=not conflicts, conflicts=conflicts, tradeoff=tradeoff, search=log,
+                  representative_volume={**rve, "builds": len(log), "seeds": list(range(FIT_SEEDS)) if log else [],
+                                         "modulus_porosity": relation.to_json(),
+                                         "fit_residual_max": _fit_residual(relation, log)},
+                  definitions={**DEFINITIONS, "stiffness": CT_STIFFNESS, "porosity_by_target": CT_DEFINITION})
+
+
+CT_STIFFNESS = ("apparent modulus of a lubricated platen compression along z of the cube's core (farther than the "
+                "margin from its faces), voxel FE at the design voxel (every voxel), CG to a relative residual of "
+                "1e-3, GPa; fitted against the core's porosity")
+CT_DEFINITION = ("the graded build's patient voxels binned by their target porosity (the CT's calibrated density, "
+                 "the site's density-modulus law, the scaffold's fitted modulus-porosity law inverted); per bin the "
+                 "measured porosity (void share of the bin's voxels), the mean target porosity, the bone's mean "
+                 "modulus and the fitted law's modulus at the measured porosity, GPa")
+
+
+def _fit_residual(relation, log: list[dict]) -> float | None:
+    """The largest relative miss of the fitted law at its own builds (None without builds)."""
+    if not log:
+        return None
+    return float(max(abs(float(relation.modulus_gpa(e["measured"]["core_porosity"])) / e["measured"]["stiffness"]
+                         - 1) for e in log))
+
+
+def ct_achieved(result, ct, modcal, bins: int = CT_BINS) -> dict:
+    """Porosity per target-porosity bin of a graded build `result` (in memory), beside the targets."""
+    grid = result.grid
+    inside = np.asarray(result.patient_sdf) < 0
+    solid = np.asarray(result.field)[inside] < 0
+    hu = ct.sample(grid.points()[inside.ravel()])
+    target = modcal.porosity(hu)
+    bone = modcal.bone_modulus(hu)
+    lo, hi = modcal.porosity_range
+    edges = np.linspace(lo, hi, bins + 1)
+    which = np.clip(np.searchsorted(edges, target, side="right") - 1, 0, bins - 1)
+    rows = []
+    for b in range(bins):
+        sel = which == b
+        n = int(np.count_nonzero(sel))
+        if n == 0:
+            continue
+        measured = 1.0 - np.count_nonzero(solid[sel]) / n
+        rows.append({"target_porosity": [float(edges[b]), float(edges[b + 1])], "voxels": n,
+                     "porosity_target_mean": float(target[sel].mean()), "porosity": float(measured),
+                     "bone_modulus_gpa": float(bone[sel].mean()),
+                     "scaffold_modulus_at_porosity_gpa": float(modcal.scaffold.modulus_gpa(measured))})
+    return {"porosity_by_target": rows, "porosity": float(result.report["porosity_voxel"]),
+            "porosity_target_mean": float(target.mean())}

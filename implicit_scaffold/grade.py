@@ -177,6 +177,116 @@ class Calibration:
         return d0 + t * (d1 - d0)
 
 
+@dataclass(frozen=True)
+class ModulusPorosity:
+    """A scaffold's apparent modulus against its porosity, measured: ``E = E_solid c (1 - P)^n``.
+
+    Fitted (least squares on the logs) to forward builds of a representative volume
+    (:func:`.design.fit_modulus_porosity`); Gibson and Ashby's scaling law in form, its
+    constants measured. Only the fitted porosity span is trusted.
+
+    Attributes
+    ----------
+    c : float
+        The relative modulus at zero porosity of the fit.
+    n : float
+        The exponent.
+    solid_gpa : float, GPa
+        The solid's Young's modulus.
+    porosity_range : (2,) tuple of float
+        The porosities built for the fit.
+    """
+
+    c: float
+    n: float
+    solid_gpa: float
+    porosity_range: tuple
+
+    def modulus_gpa(self, porosity) -> np.ndarray:
+        """Apparent modulus (GPa, float64) at `porosity`."""
+        return self.solid_gpa * self.c * (1.0 - np.asarray(porosity, np.float64)) ** self.n
+
+    def porosity(self, modulus_gpa) -> np.ndarray:
+        """The porosity whose modulus is `modulus_gpa` (the closed-form inverse; float64, not clipped)."""
+        e = np.clip(np.asarray(modulus_gpa, np.float64), 0.0, None)
+        return 1.0 - (e / (self.solid_gpa * self.c)) ** (1.0 / self.n)
+
+    def to_json(self) -> dict:
+        return {"c": self.c, "n": self.n, "solid_gpa": self.solid_gpa, "porosity_range": list(self.porosity_range)}
+
+
+@dataclass(frozen=True)
+class ModulusCalibration(Calibration):
+    """CT intensity -> bone density -> bone modulus -> the scaffold porosity of that modulus.
+
+    1. density ``ρ = slope · HU + intercept`` (g/cm³), as :class:`Calibration`;
+    2. the bone's apparent modulus ``E = a ρ^b`` (:class:`.mechanics.DensityModulus`, a
+       site of Morgan, Bayraktar & Keaveny 2003, J Biomech 36:897-904);
+    3. the porosity whose scaffold modulus is that (:meth:`ModulusPorosity.porosity`, the
+       measured law inverted in closed form), clipped to the law's fitted span
+       (``porosity_range`` is set to it): beyond it the bone is stiffer (or softer) than
+       any scaffold built for the fit;
+    4. the pore size: the paper's ``Dp`` whose graded seed density ``P / (π Dp³ / 6)`` is the
+       density of cells of mean polyhedron-sphere pore size `pore_size_mm`
+       (:func:`.seeds.density_for_pore_size`), so the cells have one size everywhere.
+
+    Attributes
+    ----------
+    law : DensityModulus
+    scaffold : ModulusPorosity
+    pore_size_mm : float, mm
+    sv : float
+    """
+
+    law: object = None
+    scaffold: ModulusPorosity | None = None
+    pore_size_mm: float = 0.5
+    sv: float = 0.75
+
+    def __post_init__(self):
+        lo, hi = (float(p) for p in self.scaffold.porosity_range)
+        object.__setattr__(self, "porosity_range", (lo, hi))
+        object.__setattr__(self, "pore_range", (float(self.pore_size(lo)), float(self.pore_size(hi))))
+
+    def bone_modulus(self, hu) -> np.ndarray:
+        """The bone's apparent modulus at intensities `hu`, GPa (float64)."""
+        return self.law.modulus_gpa(self.density(hu))
+
+    def porosity(self, hu) -> np.ndarray:
+        """Target porosity at intensities `hu` (float64, within the fitted span)."""
+        lo, hi = self.porosity_range
+        return np.clip(self.scaffold.porosity(self.bone_modulus(hu)), lo, hi)
+
+    def pore_size(self, porosity) -> np.ndarray:
+        """The paper's pore size at `porosity` whose seed density gives cells of `pore_size_mm`, mm."""
+        from .seeds import density_for_pore_size
+
+        rho = density_for_pore_size(self.pore_size_mm, self.sv)
+        return np.cbrt(6.0 * np.asarray(porosity, np.float64) / (np.pi * rho))
+
+    def to_json(self) -> dict:
+        return {"calibration": [self.slope, self.intercept], "site": self.law.site, "law_a_mpa": self.law.a_mpa,
+                "law_b": self.law.b, "scaffold": self.scaffold.to_json(), "pore_size_mm": self.pore_size_mm,
+                "sv": self.sv}
+
+    @classmethod
+    def from_json(cls, data: dict) -> "ModulusCalibration":
+        """The calibration :meth:`to_json` wrote (ScaffoldError when malformed)."""
+        from .mechanics import DensityModulus
+
+        try:
+            s = data["scaffold"]
+            slope, intercept = (float(v) for v in data["calibration"])
+            return cls(slope, intercept, law=DensityModulus(str(data["site"]), float(data["law_a_mpa"]),
+                                                            float(data["law_b"])),
+                       scaffold=ModulusPorosity(float(s["c"]), float(s["n"]), float(s["solid_gpa"]),
+                                                tuple(float(p) for p in s["porosity_range"])),
+                       pore_size_mm=float(data["pore_size_mm"]), sv=float(data["sv"]))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ScaffoldError(f"a design's stiffness_from_ct is malformed ({exc!r}); write it again with "
+                                "implicit-scaffold design --stiffness-from-ct") from None
+
+
 def parse_calibration(values) -> Calibration | None:
     """``(SLOPE, INTERCEPT)`` (g/cm³ per HU, g/cm³) as a :class:`Calibration`; None stays None."""
     if values is None or isinstance(values, Calibration):

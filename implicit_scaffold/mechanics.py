@@ -89,6 +89,59 @@ BONE_BANDS = {
 }
 
 
+@dataclass(frozen=True)
+class DensityModulus:
+    """Trabecular bone's on-axis apparent modulus against its apparent density: ``E = a ρ^b``.
+
+    Attributes
+    ----------
+    site : str
+    a_mpa : float, MPa
+        The leading coefficient (ρ in g/cm³).
+    b : float
+        The exponent.
+    source : str
+    """
+
+    site: str
+    a_mpa: float
+    b: float
+    source: str = ""
+
+    def modulus_gpa(self, density) -> np.ndarray:
+        """Apparent modulus (GPa, float64) at apparent densities `density` (g/cm³; below 0 counts as 0)."""
+        rho = np.clip(np.asarray(density, np.float64), 0.0, None)
+        return 1e-3 * self.a_mpa * rho ** self.b
+
+    def describe(self) -> str:
+        return f"E = {self.a_mpa:g} rho^{self.b:g} MPa ({self.site}; {self.source})"
+
+
+_MORGAN_2003 = ("Morgan, Bayraktar & Keaveny 2003, J Biomech 36:897-904, power-law regressions of on-axis "
+                "modulus against apparent density (g/cm3)")
+
+#: Site-specific density-modulus relations of human trabecular bone (Morgan, Bayraktar &
+#: Keaveny 2003, J Biomech 36:897-904, doi:10.1016/s0021-9290(03)00071-x): 142 specimens, vertebra
+#: (n = 61), proximal tibia (31), greater trochanter (23), femoral neck (27); the exponents range
+#: 1.49-2.18 (abstract), the sites differ in their leading coefficients. ``--site`` picks one.
+BONE_DENSITY_MODULUS = {
+    "pooled": DensityModulus("pooled (all four sites)", 8920.0, 1.83, _MORGAN_2003),
+    "vertebra": DensityModulus("vertebra", 4730.0, 1.56, _MORGAN_2003),
+    "proximal-tibia": DensityModulus("proximal tibia", 15520.0, 1.93, _MORGAN_2003),
+    "greater-trochanter": DensityModulus("greater trochanter", 15010.0, 2.18, _MORGAN_2003),
+    "femoral-neck": DensityModulus("femoral neck", 6850.0, 1.49, _MORGAN_2003),
+}
+
+
+def density_modulus(site: str = "pooled") -> DensityModulus:
+    """The density-modulus relation of `site` (a :data:`BONE_DENSITY_MODULUS` key); ScaffoldError otherwise."""
+    key = str(site).strip().lower().replace("_", "-").replace(" ", "-")
+    if key not in BONE_DENSITY_MODULUS:
+        raise ScaffoldError(f"unknown --site {site!r}; use one of {', '.join(BONE_DENSITY_MODULUS)} "
+                            "(Morgan et al. 2003)")
+    return BONE_DENSITY_MODULUS[key]
+
+
 def material(name: str | None = None, *, E: float | None = None, nu: float | None = None) -> Material:
     """The material of a solve, from the table or from E and nu.
 

@@ -167,3 +167,255 @@ def test_parse_stiffness(text, gpa):
     from implicit_scaffold.design import parse_stiffness
 
     assert parse_stiffness(text) == pytest.approx(gpa)
+
+
+# --- graded from the CT (--stiffness-from-ct) ---------------------------------------------
+
+#: Morgan, Bayraktar & Keaveny 2003 (J Biomech 36:897-904): E = a rho^b, MPa, rho in g/cm3, written
+#: here from the paper, not from the code
+MORGAN = {"pooled": (8920, 1.83), "vertebra": (4730, 1.56), "proximal-tibia": (15520, 1.93),
+          "greater-trochanter": (15010, 2.18), "femoral-neck": (6850, 1.49)}
+#: the synthetic CT: a 6 x 2.8 x 2.8 mm block of bone, 500 HU for x < 3 mm and 900 HU beyond, read
+#: with density = 0.001 HU: 0.5 and 0.9 g/cm3
+CT_SIZE = (6.0, 2.8, 2.8)
+CT_HU = (500, 900)
+
+
+#: its voxel; the image's origin is its first voxel's centre, so the bone spans -h/2 .. size - h/2
+CT_VOXEL = 0.1
+
+
+def _write_two_density_ct(path, h=CT_VOXEL):
+    """The synthetic CT (all bone: the patient is the whole image, and no air blurs its intensities)."""
+    import SimpleITK as sitk
+
+    n = [int(round(s / h)) for s in CT_SIZE]
+    x = (np.arange(n[0]) + 0.5) * h
+    hu = np.broadcast_to(np.where(x < CT_SIZE[0] / 2, CT_HU[0], CT_HU[1])[:, None, None], n).astype(np.int16)
+    img = sitk.GetImageFromArray(np.ascontiguousarray(hu.T))
+    img.SetSpacing((h, h, h))
+    sitk.WriteImage(img, str(path))
+
+
+def _halves(field_path):
+    """The field written by a run, the x coordinate of its voxels and the patient's inside."""
+    rep = json.loads(field_path.with_suffix(".json").read_text())
+    f = np.load(field_path)
+    h = rep["voxel_mm"]
+    o = np.asarray(rep["grid_origin_mm"])
+    # voxel-centre coordinates shifted to the bone's own frame (0 .. size)
+    axes = [o[a] + CT_VOXEL / 2 + np.arange(f.shape[a]) * h for a in range(3)]
+    inside = ((axes[1] > 0) & (axes[1] < CT_SIZE[1]))[:, None] & ((axes[2] > 0) & (axes[2] < CT_SIZE[2]))[None, :]
+    return f, h, axes[0], inside
+
+
+@pytest.mark.parametrize("site", list(MORGAN))
+def test_density_modulus_laws_are_morgan_2003(site):
+    from implicit_scaffold.mechanics import density_modulus
+
+    a, b = MORGAN[site]
+    law = density_modulus(site)
+    rho = np.array([0.1, 0.5, 1.0])
+    assert np.allclose(law.modulus_gpa(rho), a * rho ** b / 1000, rtol=1e-12)
+    assert law.modulus_gpa(-0.2) == 0.0  # no negative densities
+
+
+def test_unknown_site():
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.mechanics import density_modulus
+
+    with pytest.raises(ScaffoldError, match="unknown --site 'skull'"):
+        density_modulus("skull")
+
+
+def test_fit_recovers_a_power_law():
+    from implicit_scaffold.design import fit_modulus_porosity
+
+    p = np.array([0.5, 0.6, 0.7, 0.8, 0.9])
+    e = 110.0 * 0.4 * (1 - p) ** 2.2
+    rel = fit_modulus_porosity(p, e, 110.0)
+    assert rel.c == pytest.approx(0.4, rel=1e-9) and rel.n == pytest.approx(2.2, rel=1e-9)
+    assert rel.porosity_range == (0.5, 0.9)
+
+
+def test_modulus_calibration_inverts_the_laws():
+    from implicit_scaffold.grade import ModulusCalibration, ModulusPorosity, polyhedron_sphere_expected
+    from implicit_scaffold.mechanics import density_modulus
+
+    scaffold = ModulusPorosity(0.3, 2.0, 113.8, (0.5, 0.9))
+    cal = ModulusCalibration(0.001, 0.1, law=density_modulus("vertebra"), scaffold=scaffold, pore_size_mm=0.5,
+                             sv=0.75)
+    hu = np.array([-100.0, 200.0, 500.0, 1200.0, 3000.0])
+    rho = 0.001 * hu + 0.1
+    e_bone = 4730 * np.clip(rho, 0, None) ** 1.56 / 1000
+    # closed form: 113.8 * 0.3 (1 - P)^2 = E  ->  P = 1 - sqrt(E / 34.14), within the fitted 0.5..0.9
+    expected = np.clip(1 - np.sqrt(e_bone / (113.8 * 0.3)), 0.5, 0.9)
+    assert np.allclose(cal.porosity(hu), expected, atol=1e-12)
+    assert expected[0] == 0.9 and expected[-1] == 0.5  # both ends reached: the clip is tested
+    # the cells have the target mean pore size wherever the porosity (the gamma-law expectation)
+    por = np.array([0.5, 0.7, 0.9])
+    assert np.allclose(polyhedron_sphere_expected(cal.pore_size(por), por, 0.75), 0.5, rtol=2e-3)
+
+
+@pytest.fixture(scope="module")
+def two_density_design(tmp_path_factory):
+    """A CT design with a given modulus-porosity law (no forward builds), its graded build written."""
+    from implicit_scaffold.design import design_from_ct
+    from implicit_scaffold.grade import ModulusPorosity, load_ct
+    from implicit_scaffold.patient_io import load_patient
+
+    d = tmp_path_factory.mktemp("ct")
+    ct_path = d / "two.nrrd"
+    _write_two_density_ct(ct_path)
+    relation = ModulusPorosity(1.0, 2.1, 113.8, (0.5, 0.9))
+    out = d / "graded.npy"
+    design = design_from_ct(load_ct(ct_path), load_patient(ct_path, threshold=0), calibration=(0.001, 0.0),
+                            pore_size=0.6, relation=relation, output=str(out))
+    (d / "design.json").write_text(json.dumps(design.to_json()))
+    return design, ct_path, out, d / "design.json"
+
+
+def test_ct_design_porosity_of_each_density(two_density_design):
+    design, _, out, _ = two_density_design
+    assert design.feasible and design.representative_volume["builds"] == 0
+    f, _, x, inside = _halves(out)
+    for (lo, hi), hu in zip(((0.0, 2.85), (3.15, 6.0)), CT_HU):
+        a, b = MORGAN["pooled"]
+        e = a * (hu / 1000) ** b / 1000  # GPa: the bone's modulus
+        target = 1 - (e / (113.8 * 1.0)) ** (1 / 2.1)  # the scaffold law's closed-form inverse
+        sel = (x > lo) & (x < hi)
+        region = np.broadcast_to(inside, f[sel].shape)
+        measured = 1 - np.count_nonzero(f[sel][region] < 0) / np.count_nonzero(region)
+        # each half but 0.15 mm at the interface (the CT's trilinear intensities mix the two densities
+        # there, over one CT voxel each side); the issue's 0.5 points
+        assert abs(measured - target) <= 0.005, (hu, measured, target)
+
+
+def test_generate_design_rebuilds_the_ct_design(two_density_design, tmp_path):
+    _, ct_path, out, design_json = two_density_design
+    again = tmp_path / "again.npy"
+    assert main(["generate", "--design", str(design_json), "--patient", str(ct_path), "--threshold", "0",
+                 "-o", str(again), "-q"]) == 0
+    assert np.array_equal(np.load(again), np.load(out))
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--calibration", "0.001", "0"], "give a CT volume"),  # no --patient
+    (["--calibration", "0.001", "0", "--patient", "bone.stl"], "give a CT volume"),
+    (["--calibration", "-0.001", "0", "--patient", "ct.nrrd"], "--calibration SLOPE must be positive"),
+    (["--calibration", "0.001", "nan", "--patient", "ct.nrrd"], "--calibration values must be finite"),
+    (["--patient", "ct.nrrd"], "needs --calibration SLOPE INTERCEPT"),
+    (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--site", "skull"], "unknown --site 'skull'"),
+    (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--porosity", "0.7"], "drop --porosity"),
+    (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--stiffness", "3GPa"], "give one"),
+])
+def test_bad_ct_design_input_one_line_exit_2(tmp_path, capsys, args, message):
+    out = tmp_path / "d.json"
+    args = [str(tmp_path / a) if a in ("ct.nrrd", "bone.stl") else a for a in args]
+    assert main(["design", "--stiffness-from-ct", "--pore-size", "0.5", *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "error" in err and message in err, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--porosity", "0.7", "--calibration", "0.001", "0"], "add --stiffness-from-ct"),
+    (["--porosity", "0.7", "--site", "vertebra"], "add --stiffness-from-ct"),
+    ([], "design needs --porosity"),
+])
+def test_ct_options_need_the_ct_mode(tmp_path, capsys, args, message):
+    out = tmp_path / "d.json"
+    assert main(["design", "--pore-size", "0.5", *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+    assert not out.exists()
+
+
+@pytest.mark.skipif(not os.environ.get("IMPLICIT_SCAFFOLD_SLOW"), reason="voxel FE: set IMPLICIT_SCAFFOLD_SLOW=1")
+def test_ct_design_local_moduli_match_the_bone(tmp_path):
+    """The whole loop: the law fitted on forward builds, the graded build, and each half's modulus
+    measured here by voxel FE against Morgan's modulus of its density."""
+    from implicit_scaffold.mechanics import compress, material
+
+    ct_path = tmp_path / "two.nrrd"
+    _write_two_density_ct(ct_path)
+    out, scaffold = tmp_path / "d.json", tmp_path / "g.npy"
+    assert main(["design", "--stiffness-from-ct", "--calibration", "0.001", "0", "--patient", str(ct_path),
+                 "--threshold", "0", "--pore-size", "0.5", "-o", str(out), "--scaffold", str(scaffold), "-q"]) == 0
+    d = json.loads(out.read_text())
+    assert d["feasible"] and d["representative_volume"]["builds"] <= 10
+    f, h, x, _ = _halves(scaffold)
+    o = np.asarray(json.loads(scaffold.with_suffix(".json").read_text())["grid_origin_mm"]) + CT_VOXEL / 2
+    y = o[1] + np.arange(f.shape[1]) * h
+    z = o[2] + np.arange(f.shape[2]) * h
+    # each half's core: 0.25 mm in from the bone's faces (the design's margin), 0.35 mm from the interface
+    ys, zs = (y > 0.25) & (y < CT_SIZE[1] - 0.25), (z > 0.25) & (z < CT_SIZE[2] - 0.25)
+    a, b = MORGAN["pooled"]
+    for (lo, hi), hu in zip(((0.25, 2.6), (3.3, 5.75)), CT_HU):
+        sel = (x > lo) & (x < hi)
+        core = f[np.ix_(sel, ys, zs)] < 0
+        # platens along z on every voxel of the core, solved tighter than the design's 1e-3
+        e = compress(core, h, material("ti64"), axis=2, tol=1e-5, backend="opencl").apparent_modulus_gpa
+        target = a * (hu / 1000) ** b / 1000
+        print(f"CT {hu} HU: modulus measured {e!r} GPa, Morgan's {target!r} GPa")
+        # the issue's 10 %: the fitted law's scatter over seeds, and a half's other faces than the cube's
+        assert abs(e / target - 1) <= 0.10, (hu, e, target)
+
+
+# --- the shipped design maps ----------------------------------------------------------------
+
+def test_shipped_maps_are_what_the_script_computes():
+    from implicit_scaffold import design_maps
+
+    data = json.loads(design_maps.MAPS_FILE.read_text())
+    assert design_maps.MAPS_FILE.stat().st_size < 16_000  # small: KBs
+    entries = data["entries"]
+    assert [(e["style"], e["sf"], e["sv"], e["porosity"]) for e in entries] == design_maps.grid_points()
+    # two entries rebuilt here (the smallest cubes: Sv 0.9), as benchmarks/design_maps.py builds them
+    for point in (("paper", 0.75, 0.9, 0.7), ("struts", 0.75, 0.9, 0.8)):
+        stored = entries[design_maps.grid_points().index(point)]
+        fresh = design_maps.measure_entry(*point)
+        assert fresh["min_strut_rel"] == stored["min_strut_rel"]  # voxel counts: the same bytes
+        assert fresh["modulus_rel"] == pytest.approx(stored["modulus_rel"], rel=2e-3)  # CG to 1e-3
+
+
+def test_maps_are_package_data():
+    import tomllib
+    from pathlib import Path
+
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "design_maps.json" in project["tool"]["setuptools"]["package-data"]["implicit_scaffold"]
+
+
+def _power_law_maps(a=0.2, k=1.3):
+    """Synthetic maps: strut share a Sv^-k at every porosity, the paper style's 0.2 (as the struts' at Sv 1)."""
+    from implicit_scaffold.design_maps import DesignMaps
+
+    entries = [{"style": s, "sf": 0.75, "sv": sv, "porosity": p, "min_strut_rel": a * sv ** -k if s == "struts" else a,
+                "modulus_rel": 0.1} for s in ("paper", "struts") for sv in (0.3, 0.5, 0.75, 0.9)
+               for p in (0.5, 0.7, 0.9)]
+    return DesignMaps(tuple(entries))
+
+
+def test_first_guess_interpolates_the_maps():
+    from implicit_scaffold.design import SV_RANGE, Targets, _first_guess
+
+    maps = _power_law_maps()
+    t = Targets(porosity=0.65, pore_size=0.5, min_strut=0.2)
+    g = _first_guess(maps, t, 0.2)
+    # strut 0.2 mm = 0.4 of the pore: 0.2 Sv^-1.3 = 0.4 -> Sv = 2^(-1/1.3); the search aims 3 % past it
+    assert g["struts_sv"] == pytest.approx(0.97 * 2 ** (-1 / 1.3), abs=1e-4)
+    assert g["paper"] is False  # 0.2 of the pore < 0.8 x 0.4
+    assert _first_guess(maps, t, 0.05)["paper"] is True  # 0.1 of the pore: the paper style's 0.2 holds it
+    # beyond the thickest mapped strut (0.2 x 0.3^-1.3 = 0.95 of the pore): the lowest Sv searched
+    assert _first_guess(maps, t, 0.6)["struts_sv"] == SV_RANGE[0]
+    assert _first_guess(None, t, 0.2) == {"paper": True, "struts_sv": 0.75}
+
+
+def test_design_search_uses_the_maps(feasible):
+    from implicit_scaffold.design import Targets, design
+
+    _, d, _ = feasible  # the maps' first guess (the default)
+    without = design(Targets(**TARGETS), seeds=1, maps=False)
+    assert without.feasible
+    assert d["representative_volume"]["builds"] < without.representative_volume["builds"]
