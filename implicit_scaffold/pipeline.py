@@ -1261,8 +1261,10 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
             if empty is not None:
                 report["grade"]["empty_power_cells"] = empty
             tf.level_plan = tf.level_field = None  # the mesh and metrics stages need the memory
-            if mesh and params.porosity is not None:
-                # then one step on what is printed: the whole mesh measured and the level field shifted,
+            if mesh and params.porosity is not None and (out_path is None or output_format(out_path) in MESH_FORMATS):
+                # then one step on what is printed (a mesh; a field written alone keeps the voxels' count,
+                # as generate(mesh=False) does, so that a design's build and its rebuild are one field):
+                # the whole mesh measured and the level field shifted,
                 # so that the mesh holds the porosity asked for; under a skin or a smooth cut, which take
                 # what they take whatever the level, the porosity the bins met in voxels
                 skinned = params.skin + params.smooth_cut > 0
