@@ -187,29 +187,55 @@ def macro_displacements(h: float) -> np.ndarray:
 class VoxelModel:
     """Solid voxels on a periodic node grid (a box sample is padded by one void layer).
 
+    Nothing per solid voxel is kept beyond the mask: the element connectivity (8 flat indices,
+    64 bytes a solid voxel) is made on demand (:attr:`conn`, for the NumPy reference operator),
+    and the solver's per-node sums (right-hand side, diagonal, mean strain) read the mask
+    shifted to each corner (:meth:`corner`).
+
     Attributes
     ----------
     shape : (3,) ints
         The node grid (= the element grid, periodic).
     solid : (n1, n2, n3) bool ndarray
         Solid elements, element (i, j, k) spanning nodes (i..i+1, j..j+1, k..k+1) mod shape.
-    conn : (8, ns) int64 ndarray
-        Flat node index of each corner of each solid element.
     ke : (24, 24) float ndarray
     h : float, mm
+    active : (N,) bool ndarray
+        The nodes a solid voxel touches (the unknowns).
     """
 
     shape: tuple
     solid: np.ndarray
-    conn: np.ndarray
     ke: np.ndarray
     h: float
     material: Material
     active: np.ndarray = field(init=False)
 
     def __post_init__(self):
-        n = int(np.prod(self.shape))
-        self.active = np.bincount(self.conn.ravel(), minlength=n) > 0
+        active = np.zeros(self.shape, bool)
+        for a in range(8):
+            active |= self.corner(a)
+        self.active = active.ravel()
+
+    @property
+    def solid_voxels(self) -> int:
+        return int(np.count_nonzero(self.solid))
+
+    def corner(self, a: int) -> np.ndarray:
+        """(n1, n2, n3) bool ndarray: the nodes that are corner `a` of a solid voxel (node
+        ``p`` is corner ``a`` of the voxel at ``p - CORNERS[a]``)."""
+        return np.roll(self.solid, tuple(int(o) for o in CORNERS[a]), axis=(0, 1, 2))
+
+    @property
+    def conn(self) -> np.ndarray:
+        """(8, ns) int64 ndarray: flat node index of each corner of each solid element (made on
+        each call: the NumPy reference's, not the solver's)."""
+        idx = np.array(np.nonzero(self.solid), dtype=np.int64)  # (3, ns)
+        conn = np.empty((8, idx.shape[1]), np.int64)
+        dims = np.array(self.shape, np.int64)[:, None]
+        for a, off in enumerate(CORNERS):
+            conn[a] = np.ravel_multi_index(tuple((idx + off[:, None]) % dims), self.shape)
+        return conn
 
 
 def voxel_model(solid, h: float, mat: Material, *, periodic: bool) -> VoxelModel:
@@ -227,14 +253,7 @@ def voxel_model(solid, h: float, mat: Material, *, periodic: bool) -> VoxelModel
     solid = np.asarray(solid, bool)
     if not periodic:
         solid = np.pad(solid, ((0, 1),) * 3)
-    shape = solid.shape
-    idx = np.array(np.nonzero(solid), dtype=np.int64)  # (3, ns)
-    conn = np.empty((8, idx.shape[1]), np.int64)
-    dims = np.array(shape, np.int64)[:, None]
-    for a, off in enumerate(CORNERS):
-        p = (idx + off[:, None]) % dims
-        conn[a] = np.ravel_multi_index(tuple(p), shape)
-    return VoxelModel(shape, solid, conn, element_stiffness(mat.E_gpa, mat.nu, h), float(h), mat)
+    return VoxelModel(solid.shape, np.ascontiguousarray(solid), element_stiffness(mat.E_gpa, mat.nu, h), float(h), mat)
 
 
 def gather(model: VoxelModel, u: np.ndarray) -> np.ndarray:
@@ -242,6 +261,43 @@ def gather(model: VoxelModel, u: np.ndarray) -> np.ndarray:
     m = u.shape[0]
     ue = u[:, :, model.conn]  # (m, 3, 8, ns)
     return ue.transpose(0, 2, 1, 3).reshape(m, 24, -1)
+
+
+def element_strains(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+    """(6, ns) Voigt strains at the centres of the solid voxels (in ``np.nonzero(model.solid)``'s
+    order) from nodal displacements `u` (3, N), as ``strain_matrix(h, 0) @ gather(model, u[None])[0]``
+    without the (24, ns) gather."""
+    B = strain_matrix(model.h, (0.0, 0.0, 0.0))
+    grid = u.reshape((3,) + tuple(model.shape))
+    eps = np.zeros((6, model.solid_voxels))
+    for a in range(8):
+        ua = np.roll(grid, tuple(-int(o) for o in CORNERS[a]), axis=(1, 2, 3))[:, model.solid]  # (3, ns)
+        eps += B[:, 3 * a: 3 * a + 3] @ ua
+    return eps
+
+
+def corner_sums(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+    """(m, 24) sums over the solid voxels of their element displacements (corner-major, as
+    ``gather(model, u).sum(axis=2)``), from nodal ones `u` (m, 3, N), without the (m, 24, ns) gather."""
+    m = u.shape[0]
+    flat = u.reshape(m * 3, -1)
+    out = np.empty((m, 8, 3))
+    for a in range(8):
+        out[:, a, :] = (flat @ model.corner(a).ravel().astype(flat.dtype)).reshape(m, 3)
+    return out.reshape(m, 24)
+
+
+def element_loads(model: VoxelModel, fe: np.ndarray) -> np.ndarray:
+    """(m, 3, N) nodal sums of one element force vector per load case, the same in every solid
+    voxel (``fe``: (m, 24), corner-major), as ``apply_stiffness`` assembles a uniform ``element_extra``."""
+    m = fe.shape[0]
+    out = np.zeros((m, 3) + tuple(model.shape))
+    for a in range(8):
+        mask = model.corner(a)
+        for c in range(m):
+            for d in range(3):
+                np.add(out[c, d], fe[c, 3 * a + d], out=out[c, d], where=mask)
+    return out.reshape(m, 3, -1)
 
 
 def apply_stiffness(model: VoxelModel, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
@@ -305,9 +361,7 @@ def reference_symbol_inverse(shape, ke: np.ndarray) -> np.ndarray:
 
 def diagonal(model: VoxelModel) -> np.ndarray:
     """(3, N) float ndarray: the diagonal of K (0 on nodes no solid voxel touches)."""
-    d = np.diag(model.ke).reshape(8, 3)
-    n = int(np.prod(model.shape))
-    return np.stack([sum(np.bincount(model.conn[a], minlength=n) * d[a, c] for a in range(8)) for c in range(3)])
+    return element_loads(model, np.diag(model.ke)[None])[0]
 
 
 def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = False, jacobi: bool = True):
@@ -380,9 +434,20 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     raise ValueError(f"preconditioner must be 'multigrid' or 'fft', got {kind!r}")
 
 
+def _norms(v: np.ndarray) -> np.ndarray:
+    """(m,) Euclidean norms of the m load cases of `v` (m, 3, N), without a squared copy."""
+    flat = v.reshape(len(v), -1)
+    return np.sqrt(np.einsum("mk,mk->m", flat, flat))
+
+
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None):
+        maxiter: int = 2000, progress=None, overwrite_b: bool = False):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
+
+    Each system is its own CG (its own step lengths), run in step with the others so that one
+    product serves them all; a converged one stops moving. The vectors are updated in place:
+    four of them (x, r, p and K p or the preconditioned residual) are held at once, besides
+    what `apply` and `precond` hold.
 
     Parameters
     ----------
@@ -400,31 +465,45 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
         Called after every iteration with (iteration, largest relative residual).
+    overwrite_b : bool
+        Use `b`'s memory for the residual (its values are lost).
 
     Returns
     -------
     x, iterations, relative residuals (m,)
     """
+    from .mechanics_cl import aligned_empty
+
+    m = len(b)
     x = np.zeros_like(b)
-    r = b * free
+    r = b if overwrite_b else b.copy()
+    r *= free
     z = precond(r)
-    p = z.copy()
+    # p is handed to the operator every iteration: page-aligned, the OpenCL device reads it in place
+    p = aligned_empty(b.shape, b.dtype)
+    np.copyto(p, z)
     rz = np.einsum("mcn,mcn->m", r, z)
-    res = np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale
+    del z
+    res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = apply(p) * free
+        q = apply(p)
+        q *= free
         pq = np.einsum("mcn,mcn->m", p, q)
         live = (res > tol) & (pq > 0)
         alpha = np.where(live, rz / np.where(pq > 0, pq, 1), 0.0)
-        x += alpha[:, None, None] * p
-        r -= alpha[:, None, None] * q
+        for c in range(m):  # one case's temporary at a time
+            x[c] += alpha[c] * p[c]
+            r[c] -= alpha[c] * q[c]
+        del q
         z = precond(r)
         rz_new = np.einsum("mcn,mcn->m", r, z)
         beta = np.where(live, rz_new / np.where(rz != 0, rz, 1), 0.0)
-        p = z + beta[:, None, None] * p
+        p *= beta[:, None, None]
+        p += z
+        del z
         rz = rz_new
-        res = np.where(live, np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale, res)
+        res = np.where(live, _norms(r) / scale, res)
         it += 1
         if progress is not None:
             progress(it, float(res.max()))
@@ -468,9 +547,13 @@ def check_solid(solid) -> np.ndarray:
     return solid
 
 
+#: load cases per CG block of :func:`homogenize`
+CASES_PER_BLOCK = 6
+
+
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
                maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid",
-               progress=None) -> Homogenization:
+               progress=None, cases_per_block: int = CASES_PER_BLOCK) -> Homogenization:
     """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
 
     Parameters
@@ -489,6 +572,9 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         See :func:`make_preconditioner`.
     progress : callable, optional
         (iteration, residual) after every CG iteration.
+    cases_per_block : int
+        The six load cases are solved this many at a time (1-6), with one preconditioner: the
+        solve's vectors are held for one block's cases only (:data:`CASES_PER_BLOCK`).
     """
     t0 = time.perf_counter()
     solid = check_solid(solid)
@@ -496,32 +582,42 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         raise ValueError(f"boundary must be 'periodic' or 'kinematic', got {boundary!r}")
     periodic = boundary == "periodic"
     model = voxel_model(solid, h, mat, periodic=periodic)
-    n = int(np.prod(model.shape))
-    ns = model.conn.shape[1]
+    ns = model.solid_voxels
     u0e = macro_displacements(h)  # (6, 24)
     op = _operator(model, backend)
     if periodic:
         free = model.active.astype(float)
-        b = -op(np.zeros((6, 3, n)), u0e)
-        extra = u0e
-        base = np.zeros((6, 3, n))
     else:
         # u = E x at every node; the box's faces keep it, the inside nodes are solved for
-        idx = np.array(np.unravel_index(np.arange(n), model.shape), float) * h  # (3, N)
-        base = np.stack([(strain_tensor(k) @ idx) for k in range(6)])  # (6, 3, N)
-        inner = np.ones(model.shape, bool)
-        inner[0, :, :] = inner[-1, :, :] = inner[:, 0, :] = inner[:, -1, :] = False
-        inner[:, :, 0] = inner[:, :, -1] = False
+        inner = np.zeros(model.shape, bool)
+        inner[1:-1, 1:-1, 1:-1] = True
         free = (model.active & inner.ravel()).astype(float)
-        b = -op(base)
-        extra = None
+        del inner
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
     precond = make_preconditioner(preconditioner, model, op, free, tol)
-    x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress)
-    u = base + x
-    ue_sum = gather(model, u).sum(axis=2)  # (6, 24)
-    if extra is not None:
-        ue_sum = ue_sum + ns * extra
+    block = max(1, min(6, int(cases_per_block)))
+    ue_sum = np.empty((6, 24))
+    iterations, res = 0, np.zeros(6)
+    for k0 in range(0, 6, block):
+        cases = range(k0, min(6, k0 + block))
+        if periodic:
+            # the macroscopic strain's element forces Ke E x, the same in every solid voxel
+            b = element_loads(model, -(model.ke @ u0e[list(cases)].T).T)
+        else:
+            base = _affine(model.shape, h, cases)
+            b = op(base)
+            b *= -1
+        x, its, r = pcg(op, precond, b, free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
+                        progress=progress, overwrite_b=True)
+        del b
+        if not periodic:
+            x += base
+            del base
+        ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
+        del x
+        iterations, res[list(cases)] = max(iterations, its), r
+    if periodic:
+        ue_sum += ns * u0e
     Bc = strain_matrix(h, (0.0, 0.0, 0.0))
     total = solid.size  # the sample's voxels (before the padding layer)
     mean_strain = (Bc @ ue_sum.T) / total  # (6 strain, 6 cases)
@@ -529,6 +625,20 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
                           time.perf_counter() - t0, backend)
+
+
+def _affine(shape, h: float, cases) -> np.ndarray:
+    """(m, 3, N) nodal displacements ``E x`` of the unit Voigt strains `cases` (x = node index times `h`)."""
+    axes = [np.arange(n, dtype=float).reshape([-1 if a == ax else 1 for a in range(3)]) * h
+            for ax, n in enumerate(shape)]
+    out = np.zeros((len(cases), 3) + tuple(shape))
+    for c, k in enumerate(cases):
+        eps = strain_tensor(k)
+        for d in range(3):
+            for j in range(3):
+                if eps[d, j]:
+                    out[c, d] += eps[d, j] * axes[j]
+    return out.reshape(len(cases), 3, -1)
 
 
 def strain_tensor(k: int) -> np.ndarray:
@@ -633,7 +743,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     free = free.astype(float)
     op = _operator(model, backend)
     b = -op(base) * free
-    ns = model.conn.shape[1]
+    ns = model.solid_voxels
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
@@ -641,7 +751,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
-    eps = strain_matrix(h, (0.0, 0.0, 0.0)) @ gather(model, u)[0]  # (6, ns)
+    eps = element_strains(model, u[0])  # (6, ns)
     field_vm = np.zeros(shape, np.float32)
     field_vm[model.solid] = von_mises_strain(eps)
     field_vm = field_vm[: solid.shape[0], : solid.shape[1], : solid.shape[2]]
