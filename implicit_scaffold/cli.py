@@ -272,7 +272,8 @@ def _measure_sample(sample, mat, args, boundary: str):
     from .mechanics import measure
 
     report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis="xyz".index(args.axis),
-                           backend="opencl", origin=sample.origin, progress=_solver_progress(args))
+                           backend="opencl", origin=sample.origin, progress=_solver_progress(args),
+                           cases_per_block=sample.report["cases_per_block"])
     from .memory import peak_memory
 
     # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger

@@ -547,7 +547,10 @@ def check_solid(solid) -> np.ndarray:
     return solid
 
 
-#: load cases per CG block of :func:`homogenize`
+#: load cases per CG block of :func:`homogenize` by default: all six, whose coarse levels then run
+#: compiled with each matrix entry read once for the six (on the 128^3 scaffold of the benchmark,
+#: 201 s against 345 s for six blocks of one, on a loaded machine), at the price of six cases'
+#: vectors (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)
 CASES_PER_BLOCK = 6
 
 
@@ -892,7 +895,8 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
 
 def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
             backend: str = "numpy", origin=(0.0, 0.0, 0.0),
-            preconditioner: str = "multigrid", progress=None) -> tuple[dict, Compression]:
+            preconditioner: str = "multigrid", progress=None,
+            cases_per_block: int = CASES_PER_BLOCK) -> tuple[dict, Compression]:
     """Every mechanical figure of a voxel sample, as the report's ``mechanics`` section.
 
     Parameters
@@ -911,6 +915,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         See :func:`make_preconditioner`.
     progress : callable, optional
         (solve name, iteration, residual) after every CG iteration of each solve.
+    cases_per_block : int
+        The homogenization's load cases per CG block (:func:`homogenize`).
 
     Returns
     -------
@@ -928,7 +934,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
                     progress=tell("compression"))
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
-                     progress=tell("homogenization"))
+                     progress=tell("homogenization"), cases_per_block=cases_per_block)
     consts = engineering_constants(hom.stiffness)
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
@@ -969,37 +975,42 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 
 
 #: What :func:`measure` holds at its peak over what the process held before it. Its peak is
-#: the homogenization's: six load cases as one block (the platen compression before it, one
-#: case, peaks lower: 118 MiB against 314 MiB on the 48^3 gyroid below). A fixed part (the
-#: multigrid's compiled kernels loaded from numba's cache, the device's program), a part per
-#: node of the solve's grid (the CG's and the cycle's full-grid vectors of the six cases, void
-#: nodes included; a kinematic sample also keeps ``u = E x`` at every node, on a grid one node
-#: longer per axis) and a part per solid voxel (the element connectivity, the six cases'
-#: element displacements for the periodic right-hand side). Fitted and rounded up, from
-#: fresh-process peaks (VmHWM above the resident set before the solve) of gyroids (OpenCL
-#: operator, CG to 1e-6), ``python benchmarks/bench_mechanics.py --sizes --memory 32 48
-#: --preconditioners multigrid`` and ``... --memory 64 --memory-solves measure
-#: --preconditioners multigrid,fft`` on 2026-12-04 (MiB above the start):
+#: the homogenization's (the platen compression before it is one load case). A fixed part (the
+#: multigrid's compiled kernels loaded from numba's cache, the device's programs), a part per
+#: node of the solve's grid and one more per node and load case of a CG block (the CG's four
+#: float64 vectors, the V-cycle's float32 ones, a kinematic block's ``u = E x``: every vector
+#: covers the whole grid, void nodes included), and a part per solid voxel. Nothing is kept
+#: per solid voxel but the mask: the coarse levels' matrices (float32, shared by pattern on the
+#: first coarse level) and the masks make that part. The OpenCL operator reads and writes the
+#: host's arrays in place (no device copies). Fitted and rounded up, from fresh-process peaks
+#: (VmHWM above the resident set before the solve) of gyroids (OpenCL operator, CG to 1e-6),
+#: ``python benchmarks/bench_mechanics.py --sizes --memory 48 64 --memory-solves measure
+#: --preconditioners multigrid --memory-blocks 1,6`` and the same at 96^3 (solid 0.3) on
+#: 2026-12-04, MiB above the start (estimate):
 #:
-#: ======  =====  ================  ================  =============  =============
-#: grid    solid  multigrid per.    multigrid kin.    fft per.       fft kin.
-#:                measured (est.)   measured (est.)   meas. (est.)   meas. (est.)
-#: ======  =====  ================  ================  =============  =============
-#: 48^3    0.3    314.4 (343)       326.9 h (382)
-#: 48^3    0.6    352.8 (381)       370.7 h (420)
-#: 64^3    0.3    596.0 (648)       674.1 (734)       431.8 (437)    498.3 (511)
-#: 64^3    0.6    678.2 (738)       759.7 (824)       568.1 (580)    643.8 (654)
-#: ======  =====  ================  ================  =============  =============
+#: ======  =====  ================  ================  ================  ================
+#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
+#: ======  =====  ================  ================  ================  ================
+#: 48^3    0.3    99.7 (127)        98.0 (129)        167.8 (191)       178.2 (213)
+#: 48^3    0.6    105.7 (134)       106.6 (135)       171.3 (197)       187.8 (219)
+#: 64^3    0.3    141.4 (165)       141.5 (167)       273.3 (315)       316.6 (364)
+#: 64^3    0.6    149.1 (180)       149.0 (182)       282.1 (330)       322.2 (379)
+#: 96^3    0.3    274.7 (319)       281.5 (325)       791.1 (826)       853.1 (977)
+#: ======  =====  ================  ================  ================  ================
 #:
-#: (h: homogenization alone. The FFT preconditioner's fit has one grid size; its fixed part is
-#: the multigrid's.) Per solid voxel, the multigrid's is the per-solid part plus the per-node
-#: part over the solid fraction (and the fixed part): 7,000 (periodic) to 7,900 (kinematic) bytes
-#: at 30 % solid, 4,100 to 4,500 at 60 %. The 128^3 Voronoi scaffold of the README's benchmark (30 % solid,
-#: periodic, commit 625c5f4) peaked 7,120 bytes per solid voxel above its start; this gives 7,230.
-SOLVE_FIXED_BYTES = {"multigrid": 120 * 2**20, "fft": 120 * 2**20}
-SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 1750, "kinematic": 2000},
+#: Before (six cases as one block, the right-hand side and the mean strain gathered per solid
+#: voxel, device copies of every vector): 1,750 / 2,000 bytes per node and 1,200 per solid voxel,
+#: 7,000 to 7,900 bytes per solid voxel at 30 % solid; the 128^3 Voronoi scaffold of the README's
+#: benchmark peaked 4,256.8 MiB above its start (7,092 bytes per solid voxel), and 392.4 MiB
+#: (654) with one case per block now (the kernels loaded before the start). The FFT
+#: preconditioner's constants are its fit to the former code (432-644 MiB measured at 64^3), which
+#: held more: they stay above it.
+SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
+SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 1200, "fft": 1900}
+SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 120, "kinematic": 150},
+                             "fft": {"periodic": 0, "kinematic": 0}}
+SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
 #: of a solve, per voxel of its grid
 SAMPLE_BYTES_PER_VOXEL = 9
@@ -1026,7 +1037,8 @@ CONVERGED_VOXELS_PER_WALL = 4.0
 MIN_VOXELS_PER_WALL = 2.5
 
 
-def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid") -> int:
+def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid",
+                 cases_per_block: int = 1) -> int:
     """Bytes :func:`measure` holds at its peak over what the process held before it (an estimate).
 
     Parameters
@@ -1036,16 +1048,35 @@ def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", precon
     solid_voxels : int
     boundary : {"periodic", "kinematic"}
     preconditioner : {"multigrid", "fft"}
+    cases_per_block : int
+        The homogenization's load cases per CG block (1-6); the default, 1, is the least a solve
+        needs, which the checks before a solve hold it to (:func:`check_solve`, :func:`solid_for_solve`:
+        a larger budget then takes larger blocks, :func:`block_for`).
 
     Returns
     -------
     int, bytes
-        :data:`SOLVE_FIXED_BYTES` plus :data:`SOLVE_BYTES_PER_NODE` per node and
+        :data:`SOLVE_FIXED_BYTES`, plus per node :data:`SOLVE_BYTES_PER_NODE` and
+        :data:`SOLVE_BYTES_PER_NODE_CASE` per load case of a block, plus
         :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel.
     """
     nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
-    return int(SOLVE_FIXED_BYTES[preconditioner] + SOLVE_BYTES_PER_NODE[preconditioner][boundary] * nodes
+    block = max(1, min(6, int(cases_per_block)))
+    per_node = (SOLVE_BYTES_PER_NODE[preconditioner][boundary]
+                + SOLVE_BYTES_PER_NODE_CASE[preconditioner][boundary] * block)
+    return int(SOLVE_FIXED_BYTES[preconditioner] + per_node * nodes
                + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * int(solid_voxels))
+
+
+def block_for(allowance: int, shape, solid_voxels: int, *, boundary: str = "periodic",
+              preconditioner: str = "multigrid") -> int:
+    """The most load cases per CG block (6, 3, 2 or 1: equal blocks) whose solve fits `allowance` bytes
+    (:func:`solve_memory`); 1 when none does (the caller refuses on that)."""
+    for block in (6, 3, 2):
+        if solve_memory(shape, solid_voxels, boundary=boundary, preconditioner=preconditioner,
+                        cases_per_block=block) <= allowance:
+            return block
+    return 1
 
 
 def solid_box(field, *, level: float = 0.0, chunk_bytes: int = SAMPLE_CHUNK_BYTES):
@@ -1168,7 +1199,9 @@ class SolveSample:
         The centre of ``solid[0, 0, 0]``.
     report : dict
         The ``voxel`` entry of the report's ``mechanics`` section: ``voxel_mm``, ``source_voxel_mm``,
-        ``note``, ``warning`` (None or a sentence), ``memory_estimate_bytes``, ``max_memory_bytes``.
+        ``note``, ``warning`` (None or a sentence), ``memory_estimate_bytes`` (:func:`solve_memory` with one
+        load case per block, the least the solve needs, which the budget was checked against),
+        ``cases_per_block`` (the most the budget holds, :func:`block_for`: the solve's), ``max_memory_bytes``.
     """
 
     solid: np.ndarray
@@ -1283,9 +1316,10 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
         fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
                            preconditioner=preconditioner)
         raise ScaffoldError(_refusal(h, need, held, total, fit, option))
+    block = block_for(total - held - held_margin(held), solid.shape, count, boundary=bc, preconditioner=preconditioner)
     return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
             "note": f"mechanics voxel {h:.4g} mm: the sample's own voxel: its solve fits the budget",
-            "memory_estimate_bytes": int(need), "max_memory_bytes": int(total)}
+            "memory_estimate_bytes": int(need), "cases_per_block": block, "max_memory_bytes": int(total)}
 
 
 def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None, wall: float | None = None,
@@ -1388,8 +1422,11 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     if h != h0:
         note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "
                  f"it keeps the {source}'s solid volume")
+    # the load cases per block: as many as the budget holds beside the sampled grid (freed before the solve)
+    block = block_for(allowance - held_margin(held), solid.shape, solid_count, boundary=bc,
+                      preconditioner=preconditioner)
     report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
-              "memory_estimate_bytes": int(estimate), "max_memory_bytes": int(total)}
+              "memory_estimate_bytes": int(estimate), "cases_per_block": block, "max_memory_bytes": int(total)}
     return SolveSample(solid, h, origin, report)
 
 
