@@ -2,7 +2,7 @@
 
 One trilinear hexahedron per solid voxel (exact 2x2x2 Gauss stiffness); void voxels carry
 no unknowns (a node is an unknown only when a solid voxel touches it). The system is
-solved by preconditioned conjugate gradients, all load cases as one block. Two
+solved by preconditioned conjugate gradients, the load cases in blocks (:func:`homogenize`). Two
 preconditioners (:func:`make_preconditioner`):
 
 - ``multigrid`` (the default): a V-cycle over Galerkin coarse grids of the solid itself
@@ -472,7 +472,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     -------
     x, iterations, relative residuals (m,)
     """
-    from .mechanics_cl import aligned_empty
+    from .mechanics_cl import aligned_copy
 
     m = len(b)
     x = np.zeros_like(b)
@@ -480,8 +480,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     r *= free
     z = precond(r)
     # p is handed to the operator every iteration: page-aligned, the OpenCL device reads it in place
-    p = aligned_empty(b.shape, b.dtype)
-    np.copyto(p, z)
+    p = aligned_copy(z)
     rz = np.einsum("mcn,mcn->m", r, z)
     del z
     res = _norms(r) / scale

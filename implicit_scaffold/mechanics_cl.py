@@ -34,13 +34,18 @@ def aligned_empty(shape, dtype=np.float64) -> np.ndarray:
     return raw[start:start + nbytes].view(dtype).reshape(shape)
 
 
+def aligned_copy(a: np.ndarray, dtype=None) -> np.ndarray:
+    """A copy of `a` (in `dtype`, default its own) in an :func:`aligned_empty` array."""
+    out = aligned_empty(a.shape, a.dtype if dtype is None else dtype)
+    np.copyto(out, a, casting="same_kind")
+    return out
+
+
 def _aligned(a: np.ndarray, dtype) -> np.ndarray:
     """`a` itself when it is C-contiguous, of `dtype` and aligned, else an aligned copy."""
     if a.dtype == dtype and a.flags.c_contiguous and a.ctypes.data % ALIGN == 0:
         return a
-    out = aligned_empty(a.shape, dtype)
-    np.copyto(out, a, casting="same_kind")
-    return out
+    return aligned_copy(a, dtype)
 
 
 def _shared(array, dtype, flags):

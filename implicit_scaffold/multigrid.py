@@ -438,7 +438,7 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
 
     `x` (updated in place) and the new iterate are aligned (:func:`~.mechanics_cl.aligned_empty`),
     so the OpenCL operator reads them in place."""
-    from .mechanics_cl import aligned_empty
+    from .mechanics_cl import aligned_copy, aligned_empty
 
     lo, hi = LOWER * lmax, UPPER * lmax
     theta, delta = (hi + lo) / 2, (hi - lo) / 2
@@ -453,7 +453,7 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
     np.multiply(inv_diag, r, out=d)
     d *= 1 / theta
     if x is None:
-        x = d if degree == 1 else _copy(d)
+        x = d if degree == 1 else aligned_copy(d)
     else:
         x += d
     for _ in range(degree - 1):
@@ -467,14 +467,6 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
         rho = rho_new
         x += d
     return x
-
-
-def _copy(a: np.ndarray) -> np.ndarray:
-    from .mechanics_cl import aligned_empty
-
-    out = aligned_empty(a.shape, a.dtype)
-    np.copyto(out, a)
-    return out
 
 
 class Multigrid:
