@@ -445,9 +445,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
-    product serves them all; a converged one stops moving. The vectors are updated in place:
-    four of them (x, r, p and K p or the preconditioned residual) are held at once, besides
-    what `apply` and `precond` hold.
+    product serves them all; a converged one stops moving. The vectors are updated in place, by
+    fused compiled passes (:mod:`~implicit_scaffold.fused`): four of them (x, r, p and K p or the
+    preconditioned residual) are held at once, besides what `apply` and `precond` hold.
 
     Parameters
     ----------
@@ -472,9 +472,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     -------
     x, iterations, relative residuals (m,)
     """
+    from .fused import cg_update, wdot, xpby
     from .mechanics_cl import aligned_copy
 
-    m = len(b)
     x = np.zeros_like(b)
     r = b if overwrite_b else b.copy()
     r *= free
@@ -486,23 +486,19 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = apply(p)
-        q *= free
-        pq = np.einsum("mcn,mcn->m", p, q)
+        q = apply(p)  # masked to the free unknowns in the fused passes below
+        pq = wdot(p, q, free)
         live = (res > tol) & (pq > 0)
         alpha = np.where(live, rz / np.where(pq > 0, pq, 1), 0.0)
-        for c in range(m):  # one case's temporary at a time
-            x[c] += alpha[c] * p[c]
-            r[c] -= alpha[c] * q[c]
+        rr = cg_update(x, p, r, q, free, alpha)  # x += alpha p, r -= alpha F q: one pass
         del q
         z = precond(r)
         rz_new = np.einsum("mcn,mcn->m", r, z)
         beta = np.where(live, rz_new / np.where(rz != 0, rz, 1), 0.0)
-        p *= beta[:, None, None]
-        p += z
+        xpby(z, p, beta)
         del z
         rz = rz_new
-        res = np.where(live, _norms(r) / scale, res)
+        res = np.where(live, np.sqrt(rr) / scale, res)
         it += 1
         if progress is not None:
             progress(it, float(res.max()))

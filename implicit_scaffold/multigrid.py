@@ -559,6 +559,8 @@ class Multigrid:
                 x = _chebyshev(apply, inv_diag, lmax, b, x)
             return x
         degree = FINE_DEGREE if depth == 0 else DEGREE
+        if depth == 0 and degree == 1:
+            return self._fine_jacobi(b)
         x = _chebyshev(apply, inv_diag, lmax, b, degree=degree)
         r = apply(x)
         np.subtract(b, r, out=r)
@@ -573,6 +575,26 @@ class Multigrid:
         x += corr
         del corr
         return _chebyshev(apply, inv_diag, lmax, b, x, degree=degree)
+
+    def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
+        """The fine level of the cycle with degree-1 smoothing (damped Jacobi, :func:`_chebyshev`'s
+        degree 1), each vector update one fused pass (:mod:`~implicit_scaffold.fused`)."""
+        from .fused import add_weighted, weighted
+        from .mechanics_cl import aligned_empty
+
+        s = 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
+        x = weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
+        r = self.op(x)
+        weighted(r, b, self.free, y=r)  # F (b - K x): the restriction sees the free unknowns only
+        rc = restrict(r, self.fine_shape)
+        del r
+        corr = prolong(self._cycle(1, rc), self.fine_shape)
+        del rc
+        add_weighted(x, corr, self.free)
+        del corr
+        ax = self.op(x)
+        add_weighted(x, b, self.inv_diag, s, y=ax)
+        return x
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
