@@ -72,8 +72,8 @@ def _kernels():
                         pd[i] = zd[i] + bc * pd[i]
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def weighted_rows(out, b, y, w, s, subtract, pieces, lo, hi):  # pragma: no cover - compiled
-        # out = s w (b - y) (subtract) or s w b; out may be y itself
+    def weighted_rows(out, b, y, w, s, k, accumulate, pieces, lo, hi):  # pragma: no cover - compiled
+        # out = s w (b - k y), or out += that; out may be y itself (k is 0 or 1)
         m, _, n = out.shape
         for piece in range(lo, hi):
             n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
@@ -81,31 +81,14 @@ def _kernels():
                 for d in range(3):
                     od, bd, yd = out[c, d, n0:n1], b[c, d, n0:n1], y[c, d, n0:n1]
                     wd = w[d if w.shape[0] == 3 else 0, n0:n1]
-                    if subtract:
+                    if accumulate:
                         for i in range(n1 - n0):
-                            od[i] = s * wd[i] * (bd[i] - yd[i])
-                    else:
+                            od[i] += s * wd[i] * (bd[i] - k * yd[i])
+                    else:  # out may hold anything (an empty array): never read
                         for i in range(n1 - n0):
-                            od[i] = s * wd[i] * bd[i]
+                            od[i] = s * wd[i] * (bd[i] - k * yd[i])
 
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def add_weighted_rows(x, b, y, w, s, subtract, pieces, lo, hi):  # pragma: no cover - compiled
-        # x += s w (b - y) (subtract) or x += s w b
-        m, _, n = x.shape
-        for piece in range(lo, hi):
-            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
-            for c in range(m):
-                for d in range(3):
-                    xd, bd, yd = x[c, d, n0:n1], b[c, d, n0:n1], y[c, d, n0:n1]
-                    wd = w[d if w.shape[0] == 3 else 0, n0:n1]
-                    if subtract:
-                        for i in range(n1 - n0):
-                            xd[i] += s * wd[i] * (bd[i] - yd[i])
-                    else:
-                        for i in range(n1 - n0):
-                            xd[i] += s * wd[i] * bd[i]
-
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, add_weighted_rows
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows
 
 
 def _weight(w, n: int) -> np.ndarray:
@@ -149,24 +132,22 @@ def xpby(z: np.ndarray, p: np.ndarray, beta) -> None:
     over_rows(kernel, pieces, z, p, np.asarray(beta, p.dtype), pieces)
 
 
-def weighted(out: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray | None = None) -> np.ndarray:
-    """``out = s w (b - y)`` (or ``s w b`` without `y`), in place (`out` may be `y`); returns `out`."""
+def _weighted(out, b, w, s, y, accumulate: bool) -> None:
     from .threads import over_rows
 
     kernel = _kernels()[3]
     n = out.shape[2]
     pieces = _pieces(n)
     over_rows(kernel, pieces, out, b, b if y is None else y, _weight(w, n).astype(out.dtype, copy=False),
-              out.dtype.type(s), y is not None, pieces)
+              out.dtype.type(s), out.dtype.type(y is not None), accumulate, pieces)
+
+
+def weighted(out: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray | None = None) -> np.ndarray:
+    """``out = s w (b - y)`` (or ``s w b`` without `y`), in place (`out` may be `y`); returns `out`."""
+    _weighted(out, b, w, s, y, False)
     return out
 
 
 def add_weighted(x: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray | None = None) -> None:
     """``x += s w (b - y)`` (or ``x += s w b`` without `y`), in place."""
-    from .threads import over_rows
-
-    kernel = _kernels()[4]
-    n = x.shape[2]
-    pieces = _pieces(n)
-    over_rows(kernel, pieces, x, b, b if y is None else y, _weight(w, n).astype(x.dtype, copy=False),
-              x.dtype.type(s), y is not None, pieces)
+    _weighted(x, b, w, s, y, True)

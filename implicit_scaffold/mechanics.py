@@ -543,9 +543,10 @@ def check_solid(solid) -> np.ndarray:
 
 
 #: load cases per CG block of :func:`homogenize` by default: all six, whose coarse levels then run
-#: compiled with each matrix entry read once for the six (on the 128^3 scaffold of the benchmark,
-#: 201 s against 345 s for six blocks of one, on a loaded machine), at the price of six cases'
-#: vectors (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)
+#: compiled with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
+#: by other work: on the 64^3 scaffold 32.9 s against 56.9 s for six blocks of one, medians of 3;
+#: on the 128^3 one 309.2 s against 335.3 s, one run each), at the price of six cases' vectors
+#: (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)
 CASES_PER_BLOCK = 6
 
 
@@ -986,13 +987,19 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: ======  =====  ================  ================  ================  ================
 #: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
 #: ======  =====  ================  ================  ================  ================
-#: 48^3    0.3    99.7 (127)        98.0 (129)        167.8 (191)       178.2 (213)
-#: 48^3    0.6    105.7 (134)       106.6 (135)       171.3 (197)       187.8 (219)
-#: 64^3    0.3    141.4 (165)       141.5 (167)       273.3 (315)       316.6 (364)
-#: 64^3    0.6    149.1 (180)       149.0 (182)       282.1 (330)       322.2 (379)
-#: 96^3    0.3    274.7 (319)       281.5 (325)       791.1 (826)       853.1 (977)
+#: 48^3    0.3    99.7 (130)        98.0 (132)        167.8 (203)       178.2 (230)
+#: 48^3    0.6    105.7 (136)       106.6 (138)       171.3 (210)       187.8 (236)
+#: 64^3    0.3    141.4 (170)       141.5 (174)       273.3 (345)       316.6 (403)
+#: 64^3    0.6    149.1 (185)       149.0 (189)       282.1 (360)       322.2 (418)
+#: 96^3    0.3    274.7 (336)       281.5 (346)       791.1 (927)       853.1 (1108)
+#: 128^3   0.3    545.4 (660)                         1872.6 (2060)
 #: ======  =====  ================  ================  ================  ================
 #:
+#: (The 128^3 row: the Voronoi scaffold of the README's benchmark, homogenization alone,
+#: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners multigrid
+#: [--cases-per-block 1]``, at the commit that fused the vector passes, which hold a little less
+#: than the commit the gyroids ran on; the per-node-and-case figure grows with the grid, and was
+#: raised to hold it; the kinematic one in proportion, not measured at 128^3.)
 #: Before (six cases as one block, the right-hand side and the mean strain gathered per solid
 #: voxel, device copies of every vector): 1,750 / 2,000 bytes per node and 1,200 per solid voxel,
 #: 7,000 to 7,900 bytes per solid voxel at 30 % solid; the 128^3 Voronoi scaffold of the README's
@@ -1003,7 +1010,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 120, "kinematic": 150},
+SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 140, "kinematic": 175},
                              "fft": {"periodic": 0, "kinematic": 0}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
