@@ -992,14 +992,15 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: 64^3    0.3    141.4 (170)       141.5 (174)       273.3 (345)       316.6 (403)
 #: 64^3    0.6    149.1 (185)       149.0 (189)       282.1 (360)       322.2 (418)
 #: 96^3    0.3    274.7 (336)       281.5 (346)       791.1 (927)       853.1 (1108)
-#: 128^3   0.3    545.4 (660)                         1872.6 (2060)
+#: 128^3   0.3    545.4 (660)                         1872.6 (2060)     1811.4 (2472) g
 #: ======  =====  ================  ================  ================  ================
 #:
 #: (The 128^3 row: the Voronoi scaffold of the README's benchmark, homogenization alone,
 #: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners multigrid
 #: [--cases-per-block 1]``, at the commit that fused the vector passes, which hold a little less
 #: than the commit the gyroids ran on; the per-node-and-case figure grows with the grid, and was
-#: raised to hold it; the kinematic one in proportion, not measured at 128^3.)
+#: raised to hold it; the kinematic one in proportion. g: a 128^3 gyroid, homogenization alone,
+#: the benchmark's ``--memory`` script at the last commit.)
 #: Before (six cases as one block, the right-hand side and the mean strain gathered per solid
 #: voxel, device copies of every vector): 1,750 / 2,000 bytes per node and 1,200 per solid voxel,
 #: 7,000 to 7,900 bytes per solid voxel at 30 % solid; the 128^3 Voronoi scaffold of the README's
