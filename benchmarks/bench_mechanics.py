@@ -1,10 +1,11 @@
 """Issue 14 benchmark: the stiffness of a Voronoi scaffold from its voxels.
 
-    python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--fit] [--mugrid] [--convergence]
+    python benchmarks/bench_mechanics.py [--sizes 64 128 200] [--runs 3] [--cases-per-block 1] [--fit] [--mugrid]
+                                         [--convergence]
                                          [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
                                          [--femur] [--femur-tol 1e-6] [--femur-maxiter N]
 
-- **solve**: all six load cases of periodic homogenization (one block, PCG with each
+- **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
   reference-medium one; the element operator on the OpenCL device in double) of
   a paper-style Voronoi scaffold at porosity 0.7 (about 30 % solid), N^3 voxels of 0.04 mm
@@ -58,12 +59,14 @@ import numpy as np
 from implicit_scaffold import mechanics as M, opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
-opencl.kernel('mechanics', 'stiffness_apply', NCASE=6, USE_DOUBLE=1)  # built outside the clock
+# the fine operator's kernels built outside the clock (double one case a launch, float the block's)
+opencl.kernel('mechanics', 'stiffness_apply', NCASE=1, USE_DOUBLE=1, PER_ELEMENT=0)
+opencl.kernel('mechanics', 'stiffness_apply', NCASE={block!r}, USE_DOUBLE=0, PER_ELEMENT=0)
 import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime
 t = time.perf_counter()
 hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl', maxiter={maxiter!r},
-                   preconditioner={preconditioner!r})
+                   preconditioner={preconditioner!r}, cases_per_block={block!r})
 _out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'residual': hom.residual,
          'C': hom.stiffness.tolist(), 'solid_voxels': int(solid.sum()), 'rss_before_mb': before}}
 """
@@ -190,14 +193,15 @@ if {what!r} == 'compress':
     M.compress(solid, 0.05, mat, axis=2, tol=1e-6, backend='opencl', preconditioner={preconditioner!r})
 elif {what!r} == 'homogenize':
     M.homogenize(solid, 0.05, mat, boundary={boundary!r}, tol=1e-6, backend='opencl',
-                 preconditioner={preconditioner!r})
+                 preconditioner={preconditioner!r}, cases_per_block={block!r})
 else:
-    M.measure(solid, 0.05, mat, boundary={boundary!r}, backend='opencl', preconditioner={preconditioner!r})
+    M.measure(solid, 0.05, mat, boundary={boundary!r}, backend='opencl', preconditioner={preconditioner!r},
+              cases_per_block={block!r})
 peak = peak_memory()
 nodes = int(np.prod([s + (0 if {boundary!r} == 'periodic' else 1) for s in solid.shape]))
 _out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'solve_bytes': peak - before,
          'estimate': M.solve_memory(solid.shape, int(solid.sum()), boundary={boundary!r},
-                                    preconditioner={preconditioner!r})}}
+                                    preconditioner={preconditioner!r}, cases_per_block={block!r})}}
 """
 
 
@@ -291,10 +295,10 @@ def coarsen(size: float) -> None:
                       "platens E_z GPa (vs h/2)", "periodic E_z GPa", "periodic E_x GPa"]))
 
 
-def memory(sizes, preconditioners, solves) -> None:
+def memory(sizes, preconditioners, solves, blocks) -> None:
     """The solver's own memory on small gyroids, beside the estimate ``mechanics.solve_memory`` checks."""
     rows = []
-    for pc in preconditioners:
+    for pc, block in [(pc, b) for pc in preconditioners for b in blocks]:
         for boundary in ("periodic", "kinematic"):
             for what in solves:
                 for n in sizes:
@@ -302,13 +306,13 @@ def memory(sizes, preconditioners, solves) -> None:
                         if what == "compress" and boundary == "kinematic":
                             continue  # compression has its own boundary: the periodic rows are it
                         r = run_isolated(MEMORY.format(n=n, phi=phi, boundary=boundary, preconditioner=pc,
-                                                       what=what), timeout=600)
-                        rows.append([pc, boundary if what != "compress" else "platens", what, f"{n}^3",
+                                                       what=what, block=block), timeout=600)
+                        rows.append([pc, block, boundary if what != "compress" else "platens", what, f"{n}^3",
                                      f"{r['solid_voxels'] / n ** 3:.2f}", r["solid_voxels"], r["nodes"],
                                      f"{r['solve_bytes'] / 2 ** 20:.1f}", f"{r['solve_bytes'] / r['solid_voxels']:.0f}",
                                      f"{r['estimate'] / 2 ** 20:.1f}", f"{r['estimate'] / r['solve_bytes']:.2f}"])
                         print(" | ".join(map(str, rows[-1])), file=sys.stderr, flush=True)
-    print(table(rows, ["preconditioner", "boundary", "solve", "grid", "solid", "solid voxels", "nodes",
+    print(table(rows, ["preconditioner", "cases per block", "boundary", "solve", "grid", "solid", "solid voxels", "nodes",
                        "peak above start MiB", "B/solid voxel", "estimate MiB", "estimate/measured"]))
 
 
@@ -328,6 +332,8 @@ def main(argv=None) -> int:
     ap.add_argument("--maxiter", type=int, default=2000,
                     help="stop the CG there (a capped run gives the time per iteration and the memory, "
                          "not a converged tensor: its residual says so)")
+    ap.add_argument("--cases-per-block", type=int, default=None,
+                    help="load cases per CG block (default mechanics.CASES_PER_BLOCK)")
     ap.add_argument("--fit", action="store_true")
     ap.add_argument("--fit-boundary", choices=["periodic", "kinematic"], default="periodic",
                     help="the fit's boundary conditions: the samples are cut from a non-periodic tessellation, "
@@ -352,6 +358,8 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-solves", default="compress,homogenize,measure",
                     help="--memory's solves: compress (one load case), homogenize (six), measure (both, as the "
                          "commands run them)")
+    ap.add_argument("--memory-blocks", default="1,6",
+                    help="--memory's load cases per CG block (comma-separated)")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
     ap.add_argument("--femur-maxiter", type=int, default=5000,
@@ -365,6 +373,10 @@ def main(argv=None) -> int:
                     help="run the FFT preconditioner and muGrid only up to this N (theirs take hundreds of "
                          "iterations; 128^3 would take half an hour each)")
     args = ap.parse_args(argv)
+    if args.cases_per_block is None:
+        from implicit_scaffold.mechanics import CASES_PER_BLOCK
+
+        args.cases_per_block = CASES_PER_BLOCK
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
     rows = []
@@ -375,7 +387,7 @@ def main(argv=None) -> int:
             if pc != "multigrid" and n > args.peers_up_to:
                 continue
             med, runs = median_runs(OURS.format(solid=str(path), voxel=voxel, tol=args.tol, maxiter=args.maxiter,
-                                                preconditioner=pc),
+                                                preconditioner=pc, block=args.cases_per_block),
                                     args.runs if pc == "multigrid" else args.peer_runs, warmup=0)
             # the solve's own memory: the peak above what the process held before it started
             per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
@@ -441,7 +453,8 @@ def main(argv=None) -> int:
     if args.coarsen:
         coarsen(args.coarsen)
     if args.memory:
-        memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","))
+        memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","),
+               [int(b) for b in args.memory_blocks.split(",")])
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0

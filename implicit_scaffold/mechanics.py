@@ -2,7 +2,7 @@
 
 One trilinear hexahedron per solid voxel (exact 2x2x2 Gauss stiffness); void voxels carry
 no unknowns (a node is an unknown only when a solid voxel touches it). The system is
-solved by preconditioned conjugate gradients, all load cases as one block. Two
+solved by preconditioned conjugate gradients, the load cases in blocks (:func:`homogenize`). Two
 preconditioners (:func:`make_preconditioner`):
 
 - ``multigrid`` (the default): a V-cycle over Galerkin coarse grids of the solid itself
@@ -240,29 +240,55 @@ def macro_displacements(h: float) -> np.ndarray:
 class VoxelModel:
     """Solid voxels on a periodic node grid (a box sample is padded by one void layer).
 
+    Nothing per solid voxel is kept beyond the mask: the element connectivity (8 flat indices,
+    64 bytes a solid voxel) is made on demand (:attr:`conn`, for the NumPy reference operator),
+    and the solver's per-node sums (right-hand side, diagonal, mean strain) read the mask
+    shifted to each corner (:meth:`corner`).
+
     Attributes
     ----------
     shape : (3,) ints
         The node grid (= the element grid, periodic).
     solid : (n1, n2, n3) bool ndarray
         Solid elements, element (i, j, k) spanning nodes (i..i+1, j..j+1, k..k+1) mod shape.
-    conn : (8, ns) int64 ndarray
-        Flat node index of each corner of each solid element.
     ke : (24, 24) float ndarray
     h : float, mm
+    active : (N,) bool ndarray
+        The nodes a solid voxel touches (the unknowns).
     """
 
     shape: tuple
     solid: np.ndarray
-    conn: np.ndarray
     ke: np.ndarray
     h: float
     material: Material
     active: np.ndarray = field(init=False)
 
     def __post_init__(self):
-        n = int(np.prod(self.shape))
-        self.active = np.bincount(self.conn.ravel(), minlength=n) > 0
+        active = np.zeros(self.shape, bool)
+        for a in range(8):
+            active |= self.corner(a)
+        self.active = active.ravel()
+
+    @property
+    def solid_voxels(self) -> int:
+        return int(np.count_nonzero(self.solid))
+
+    def corner(self, a: int) -> np.ndarray:
+        """(n1, n2, n3) bool ndarray: the nodes that are corner `a` of a solid voxel (node
+        ``p`` is corner ``a`` of the voxel at ``p - CORNERS[a]``)."""
+        return np.roll(self.solid, tuple(int(o) for o in CORNERS[a]), axis=(0, 1, 2))
+
+    @property
+    def conn(self) -> np.ndarray:
+        """(8, ns) int64 ndarray: flat node index of each corner of each solid element (made on
+        each call: the NumPy reference's, not the solver's)."""
+        idx = np.array(np.nonzero(self.solid), dtype=np.int64)  # (3, ns)
+        conn = np.empty((8, idx.shape[1]), np.int64)
+        dims = np.array(self.shape, np.int64)[:, None]
+        for a, off in enumerate(CORNERS):
+            conn[a] = np.ravel_multi_index(tuple((idx + off[:, None]) % dims), self.shape)
+        return conn
 
 
 def voxel_model(solid, h: float, mat: Material, *, periodic: bool) -> VoxelModel:
@@ -280,14 +306,7 @@ def voxel_model(solid, h: float, mat: Material, *, periodic: bool) -> VoxelModel
     solid = np.asarray(solid, bool)
     if not periodic:
         solid = np.pad(solid, ((0, 1),) * 3)
-    shape = solid.shape
-    idx = np.array(np.nonzero(solid), dtype=np.int64)  # (3, ns)
-    conn = np.empty((8, idx.shape[1]), np.int64)
-    dims = np.array(shape, np.int64)[:, None]
-    for a, off in enumerate(CORNERS):
-        p = (idx + off[:, None]) % dims
-        conn[a] = np.ravel_multi_index(tuple(p), shape)
-    return VoxelModel(shape, solid, conn, element_stiffness(mat.E_gpa, mat.nu, h), float(h), mat)
+    return VoxelModel(solid.shape, np.ascontiguousarray(solid), element_stiffness(mat.E_gpa, mat.nu, h), float(h), mat)
 
 
 def gather(model: VoxelModel, u: np.ndarray) -> np.ndarray:
@@ -295,6 +314,43 @@ def gather(model: VoxelModel, u: np.ndarray) -> np.ndarray:
     m = u.shape[0]
     ue = u[:, :, model.conn]  # (m, 3, 8, ns)
     return ue.transpose(0, 2, 1, 3).reshape(m, 24, -1)
+
+
+def element_strains(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+    """(6, ns) Voigt strains at the centres of the solid voxels (in ``np.nonzero(model.solid)``'s
+    order) from nodal displacements `u` (3, N), as ``strain_matrix(h, 0) @ gather(model, u[None])[0]``
+    without the (24, ns) gather."""
+    B = strain_matrix(model.h, (0.0, 0.0, 0.0))
+    grid = u.reshape((3,) + tuple(model.shape))
+    eps = np.zeros((6, model.solid_voxels))
+    for a in range(8):
+        ua = np.roll(grid, tuple(-int(o) for o in CORNERS[a]), axis=(1, 2, 3))[:, model.solid]  # (3, ns)
+        eps += B[:, 3 * a: 3 * a + 3] @ ua
+    return eps
+
+
+def corner_sums(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+    """(m, 24) sums over the solid voxels of their element displacements (corner-major, as
+    ``gather(model, u).sum(axis=2)``), from nodal ones `u` (m, 3, N), without the (m, 24, ns) gather."""
+    m = u.shape[0]
+    flat = u.reshape(m * 3, -1)
+    out = np.empty((m, 8, 3))
+    for a in range(8):
+        out[:, a, :] = (flat @ model.corner(a).ravel().astype(flat.dtype)).reshape(m, 3)
+    return out.reshape(m, 24)
+
+
+def element_loads(model: VoxelModel, fe: np.ndarray) -> np.ndarray:
+    """(m, 3, N) nodal sums of one element force vector per load case, the same in every solid
+    voxel (``fe``: (m, 24), corner-major), as ``apply_stiffness`` assembles a uniform ``element_extra``."""
+    m = fe.shape[0]
+    out = np.zeros((m, 3) + tuple(model.shape))
+    for a in range(8):
+        mask = model.corner(a)
+        for c in range(m):
+            for d in range(3):
+                np.add(out[c, d], fe[c, 3 * a + d], out=out[c, d], where=mask)
+    return out.reshape(m, 3, -1)
 
 
 def apply_stiffness(model: VoxelModel, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
@@ -358,9 +414,7 @@ def reference_symbol_inverse(shape, ke: np.ndarray) -> np.ndarray:
 
 def diagonal(model: VoxelModel) -> np.ndarray:
     """(3, N) float ndarray: the diagonal of K (0 on nodes no solid voxel touches)."""
-    d = np.diag(model.ke).reshape(8, 3)
-    n = int(np.prod(model.shape))
-    return np.stack([sum(np.bincount(model.conn[a], minlength=n) * d[a, c] for a in range(8)) for c in range(3)])
+    return element_loads(model, np.diag(model.ke)[None])[0]
 
 
 def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = False, jacobi: bool = True):
@@ -433,9 +487,20 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     raise ValueError(f"preconditioner must be 'multigrid' or 'fft', got {kind!r}")
 
 
+def _norms(v: np.ndarray) -> np.ndarray:
+    """(m,) Euclidean norms of the m load cases of `v` (m, 3, N), without a squared copy."""
+    flat = v.reshape(len(v), -1)
+    return np.sqrt(np.einsum("mk,mk->m", flat, flat))
+
+
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None):
+        maxiter: int = 2000, progress=None, overwrite_b: bool = False):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
+
+    Each system is its own CG (its own step lengths), run in step with the others so that one
+    product serves them all; a converged one stops moving. The vectors are updated in place, by
+    fused compiled passes (:mod:`~implicit_scaffold.fused`): four of them (x, r, p and K p or the
+    preconditioned residual) are held at once, besides what `apply` and `precond` hold.
 
     Parameters
     ----------
@@ -453,31 +518,40 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
         Called after every iteration with (iteration, largest relative residual).
+    overwrite_b : bool
+        Use `b`'s memory for the residual (its values are lost).
 
     Returns
     -------
     x, iterations, relative residuals (m,)
     """
+    from .fused import cg_update, wdot, xpby
+    from .mechanics_cl import aligned_copy
+
     x = np.zeros_like(b)
-    r = b * free
+    r = b if overwrite_b else b.copy()
+    r *= free
     z = precond(r)
-    p = z.copy()
+    # p is handed to the operator every iteration: page-aligned, the OpenCL device reads it in place
+    p = aligned_copy(z)
     rz = np.einsum("mcn,mcn->m", r, z)
-    res = np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale
+    del z
+    res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = apply(p) * free
-        pq = np.einsum("mcn,mcn->m", p, q)
+        q = apply(p)  # masked to the free unknowns in the fused passes below
+        pq = wdot(p, q, free)
         live = (res > tol) & (pq > 0)
         alpha = np.where(live, rz / np.where(pq > 0, pq, 1), 0.0)
-        x += alpha[:, None, None] * p
-        r -= alpha[:, None, None] * q
+        rr = cg_update(x, p, r, q, free, alpha)  # x += alpha p, r -= alpha F q: one pass
+        del q
         z = precond(r)
         rz_new = np.einsum("mcn,mcn->m", r, z)
         beta = np.where(live, rz_new / np.where(rz != 0, rz, 1), 0.0)
-        p = z + beta[:, None, None] * p
+        xpby(z, p, beta)
+        del z
         rz = rz_new
-        res = np.where(live, np.linalg.norm(r.reshape(len(b), -1), axis=1) / scale, res)
+        res = np.where(live, np.sqrt(rr) / scale, res)
         it += 1
         if progress is not None:
             progress(it, float(res.max()))
@@ -521,9 +595,17 @@ def check_solid(solid) -> np.ndarray:
     return solid
 
 
+#: load cases per CG block of :func:`homogenize` by default: all six, whose coarse levels then run
+#: compiled with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
+#: by other work: on the 64^3 scaffold 32.9 s against 56.9 s for six blocks of one, medians of 3;
+#: on the 128^3 one 309.2 s against 335.3 s, one run each), at the price of six cases' vectors
+#: (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)
+CASES_PER_BLOCK = 6
+
+
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
                maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid",
-               progress=None) -> Homogenization:
+               progress=None, cases_per_block: int = CASES_PER_BLOCK) -> Homogenization:
     """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
 
     Parameters
@@ -542,6 +624,9 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         See :func:`make_preconditioner`.
     progress : callable, optional
         (iteration, residual) after every CG iteration.
+    cases_per_block : int
+        The six load cases are solved this many at a time (1-6), with one preconditioner: the
+        solve's vectors are held for one block's cases only (:data:`CASES_PER_BLOCK`).
     """
     t0 = time.perf_counter()
     solid = check_solid(solid)
@@ -549,32 +634,42 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         raise ValueError(f"boundary must be 'periodic' or 'kinematic', got {boundary!r}")
     periodic = boundary == "periodic"
     model = voxel_model(solid, h, mat, periodic=periodic)
-    n = int(np.prod(model.shape))
-    ns = model.conn.shape[1]
+    ns = model.solid_voxels
     u0e = macro_displacements(h)  # (6, 24)
     op = _operator(model, backend)
     if periodic:
         free = model.active.astype(float)
-        b = -op(np.zeros((6, 3, n)), u0e)
-        extra = u0e
-        base = np.zeros((6, 3, n))
     else:
         # u = E x at every node; the box's faces keep it, the inside nodes are solved for
-        idx = np.array(np.unravel_index(np.arange(n), model.shape), float) * h  # (3, N)
-        base = np.stack([(strain_tensor(k) @ idx) for k in range(6)])  # (6, 3, N)
-        inner = np.ones(model.shape, bool)
-        inner[0, :, :] = inner[-1, :, :] = inner[:, 0, :] = inner[:, -1, :] = False
-        inner[:, :, 0] = inner[:, :, -1] = False
+        inner = np.zeros(model.shape, bool)
+        inner[1:-1, 1:-1, 1:-1] = True
         free = (model.active & inner.ravel()).astype(float)
-        b = -op(base)
-        extra = None
+        del inner
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
     precond = make_preconditioner(preconditioner, model, op, free, tol)
-    x, iterations, res = pcg(op, precond, b * free, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress)
-    u = base + x
-    ue_sum = gather(model, u).sum(axis=2)  # (6, 24)
-    if extra is not None:
-        ue_sum = ue_sum + ns * extra
+    block = max(1, min(6, int(cases_per_block)))
+    ue_sum = np.empty((6, 24))
+    iterations, res = 0, np.zeros(6)
+    for k0 in range(0, 6, block):
+        cases = range(k0, min(6, k0 + block))
+        if periodic:
+            # the macroscopic strain's element forces Ke E x, the same in every solid voxel
+            b = element_loads(model, -(model.ke @ u0e[list(cases)].T).T)
+        else:
+            base = _affine(model.shape, h, cases)
+            b = op(base)
+            b *= -1
+        x, its, r = pcg(op, precond, b, free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
+                        progress=progress, overwrite_b=True)
+        del b
+        if not periodic:
+            x += base
+            del base
+        ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
+        del x
+        iterations, res[list(cases)] = max(iterations, its), r
+    if periodic:
+        ue_sum += ns * u0e
     Bc = strain_matrix(h, (0.0, 0.0, 0.0))
     total = solid.size  # the sample's voxels (before the padding layer)
     mean_strain = (Bc @ ue_sum.T) / total  # (6 strain, 6 cases)
@@ -582,6 +677,20 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
                           time.perf_counter() - t0, backend)
+
+
+def _affine(shape, h: float, cases) -> np.ndarray:
+    """(m, 3, N) nodal displacements ``E x`` of the unit Voigt strains `cases` (x = node index times `h`)."""
+    axes = [np.arange(n, dtype=float).reshape([-1 if a == ax else 1 for a in range(3)]) * h
+            for ax, n in enumerate(shape)]
+    out = np.zeros((len(cases), 3) + tuple(shape))
+    for c, k in enumerate(cases):
+        eps = strain_tensor(k)
+        for d in range(3):
+            for j in range(3):
+                if eps[d, j]:
+                    out[c, d] += eps[d, j] * axes[j]
+    return out.reshape(len(cases), 3, -1)
 
 
 def strain_tensor(k: int) -> np.ndarray:
@@ -686,7 +795,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     free = free.astype(float)
     op = _operator(model, backend)
     b = -op(base) * free
-    ns = model.conn.shape[1]
+    ns = model.solid_voxels
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
@@ -694,7 +803,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
-    eps = strain_matrix(h, (0.0, 0.0, 0.0)) @ gather(model, u)[0]  # (6, ns)
+    eps = element_strains(model, u[0])  # (6, ns)
     field_vm = np.zeros(shape, np.float32)
     field_vm[model.solid] = von_mises_strain(eps)
     field_vm = field_vm[: solid.shape[0], : solid.shape[1], : solid.shape[2]]
@@ -835,7 +944,8 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
 
 def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
             backend: str = "numpy", origin=(0.0, 0.0, 0.0),
-            preconditioner: str = "multigrid", progress=None) -> tuple[dict, Compression]:
+            preconditioner: str = "multigrid", progress=None,
+            cases_per_block: int = CASES_PER_BLOCK) -> tuple[dict, Compression]:
     """Every mechanical figure of a voxel sample, as the report's ``mechanics`` section.
 
     Parameters
@@ -854,6 +964,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         See :func:`make_preconditioner`.
     progress : callable, optional
         (solve name, iteration, residual) after every CG iteration of each solve.
+    cases_per_block : int
+        The homogenization's load cases per CG block (:func:`homogenize`).
 
     Returns
     -------
@@ -871,7 +983,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
                     progress=tell("compression"))
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
-                     progress=tell("homogenization"))
+                     progress=tell("homogenization"), cases_per_block=cases_per_block)
     consts = engineering_constants(hom.stiffness)
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
@@ -912,37 +1024,49 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 
 
 #: What :func:`measure` holds at its peak over what the process held before it. Its peak is
-#: the homogenization's: six load cases as one block (the platen compression before it, one
-#: case, peaks lower: 118 MiB against 314 MiB on the 48^3 gyroid below). A fixed part (the
-#: multigrid's compiled kernels loaded from numba's cache, the device's program), a part per
-#: node of the solve's grid (the CG's and the cycle's full-grid vectors of the six cases, void
-#: nodes included; a kinematic sample also keeps ``u = E x`` at every node, on a grid one node
-#: longer per axis) and a part per solid voxel (the element connectivity, the six cases'
-#: element displacements for the periodic right-hand side). Fitted and rounded up, from
-#: fresh-process peaks (VmHWM above the resident set before the solve) of gyroids (OpenCL
-#: operator, CG to 1e-6), ``python benchmarks/bench_mechanics.py --sizes --memory 32 48
-#: --preconditioners multigrid`` and ``... --memory 64 --memory-solves measure
-#: --preconditioners multigrid,fft`` on 2026-12-04 (MiB above the start):
+#: the homogenization's (the platen compression before it is one load case). A fixed part (the
+#: multigrid's compiled kernels loaded from numba's cache, the device's programs), a part per
+#: node of the solve's grid and one more per node and load case of a CG block (the CG's four
+#: float64 vectors, the V-cycle's float32 ones, a kinematic block's ``u = E x``: every vector
+#: covers the whole grid, void nodes included), and a part per solid voxel. Nothing is kept
+#: per solid voxel but the mask: the coarse levels' matrices (float32, shared by pattern on the
+#: first coarse level) and the masks make that part. The OpenCL operator reads and writes the
+#: host's arrays in place (no device copies). Fitted and rounded up, from fresh-process peaks
+#: (VmHWM above the resident set before the solve) of gyroids (OpenCL operator, CG to 1e-6),
+#: ``python benchmarks/bench_mechanics.py --sizes --memory 48 64 --memory-solves measure
+#: --preconditioners multigrid --memory-blocks 1,6`` and the same at 96^3 (solid 0.3) on
+#: 2026-12-04, MiB above the start (estimate):
 #:
-#: ======  =====  ================  ================  =============  =============
-#: grid    solid  multigrid per.    multigrid kin.    fft per.       fft kin.
-#:                measured (est.)   measured (est.)   meas. (est.)   meas. (est.)
-#: ======  =====  ================  ================  =============  =============
-#: 48^3    0.3    314.4 (343)       326.9 h (382)
-#: 48^3    0.6    352.8 (381)       370.7 h (420)
-#: 64^3    0.3    596.0 (648)       674.1 (734)       431.8 (437)    498.3 (511)
-#: 64^3    0.6    678.2 (738)       759.7 (824)       568.1 (580)    643.8 (654)
-#: ======  =====  ================  ================  =============  =============
+#: ======  =====  ================  ================  ================  ================
+#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
+#: ======  =====  ================  ================  ================  ================
+#: 48^3    0.3    99.7 (130)        98.0 (132)        167.8 (203)       178.2 (230)
+#: 48^3    0.6    105.7 (136)       106.6 (138)       171.3 (210)       187.8 (236)
+#: 64^3    0.3    141.4 (170)       141.5 (174)       273.3 (345)       316.6 (403)
+#: 64^3    0.6    149.1 (185)       149.0 (189)       282.1 (360)       322.2 (418)
+#: 96^3    0.3    274.7 (336)       281.5 (346)       791.1 (927)       853.1 (1108)
+#: 128^3   0.3    545.4 (660)                         1872.6 (2060)     1811.4 (2472) g
+#: ======  =====  ================  ================  ================  ================
 #:
-#: (h: homogenization alone. The FFT preconditioner's fit has one grid size; its fixed part is
-#: the multigrid's.) Per solid voxel, the multigrid's is the per-solid part plus the per-node
-#: part over the solid fraction (and the fixed part): 7,000 (periodic) to 7,900 (kinematic) bytes
-#: at 30 % solid, 4,100 to 4,500 at 60 %. The 128^3 Voronoi scaffold of the README's benchmark (30 % solid,
-#: periodic, commit 625c5f4) peaked 7,120 bytes per solid voxel above its start; this gives 7,230.
-SOLVE_FIXED_BYTES = {"multigrid": 120 * 2**20, "fft": 120 * 2**20}
-SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 1750, "kinematic": 2000},
+#: (The 128^3 row: the Voronoi scaffold of the README's benchmark, homogenization alone,
+#: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners multigrid
+#: [--cases-per-block 1]``, at the commit that fused the vector passes, which hold a little less
+#: than the commit the gyroids ran on; the per-node-and-case figure grows with the grid, and was
+#: raised to hold it; the kinematic one in proportion. g: a 128^3 gyroid, homogenization alone,
+#: the benchmark's ``--memory`` script at the last commit.)
+#: Before (six cases as one block, the right-hand side and the mean strain gathered per solid
+#: voxel, device copies of every vector): 1,750 / 2,000 bytes per node and 1,200 per solid voxel,
+#: 7,000 to 7,900 bytes per solid voxel at 30 % solid; the 128^3 Voronoi scaffold of the README's
+#: benchmark peaked 4,256.8 MiB above its start (7,092 bytes per solid voxel), and 392.4 MiB
+#: (654) with one case per block now (the kernels loaded before the start). The FFT
+#: preconditioner's constants are its fit to the former code (432-644 MiB measured at 64^3), which
+#: held more: they stay above it.
+SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
+SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 1200, "fft": 1900}
+SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 140, "kinematic": 175},
+                             "fft": {"periodic": 0, "kinematic": 0}}
+SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
 #: of a solve, per voxel of its grid
 SAMPLE_BYTES_PER_VOXEL = 9
@@ -969,7 +1093,8 @@ CONVERGED_VOXELS_PER_WALL = 4.0
 MIN_VOXELS_PER_WALL = 2.5
 
 
-def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid") -> int:
+def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid",
+                 cases_per_block: int = 1) -> int:
     """Bytes :func:`measure` holds at its peak over what the process held before it (an estimate).
 
     Parameters
@@ -979,16 +1104,35 @@ def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", precon
     solid_voxels : int
     boundary : {"periodic", "kinematic"}
     preconditioner : {"multigrid", "fft"}
+    cases_per_block : int
+        The homogenization's load cases per CG block (1-6); the default, 1, is the least a solve
+        needs, which the checks before a solve hold it to (:func:`check_solve`, :func:`solid_for_solve`:
+        a larger budget then takes larger blocks, :func:`block_for`).
 
     Returns
     -------
     int, bytes
-        :data:`SOLVE_FIXED_BYTES` plus :data:`SOLVE_BYTES_PER_NODE` per node and
+        :data:`SOLVE_FIXED_BYTES`, plus per node :data:`SOLVE_BYTES_PER_NODE` and
+        :data:`SOLVE_BYTES_PER_NODE_CASE` per load case of a block, plus
         :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel.
     """
     nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
-    return int(SOLVE_FIXED_BYTES[preconditioner] + SOLVE_BYTES_PER_NODE[preconditioner][boundary] * nodes
+    block = max(1, min(6, int(cases_per_block)))
+    per_node = (SOLVE_BYTES_PER_NODE[preconditioner][boundary]
+                + SOLVE_BYTES_PER_NODE_CASE[preconditioner][boundary] * block)
+    return int(SOLVE_FIXED_BYTES[preconditioner] + per_node * nodes
                + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * int(solid_voxels))
+
+
+def block_for(allowance: int, shape, solid_voxels: int, *, boundary: str = "periodic",
+              preconditioner: str = "multigrid") -> int:
+    """The most load cases per CG block (6, 3, 2 or 1: equal blocks) whose solve fits `allowance` bytes
+    (:func:`solve_memory`); 1 when none does (the caller refuses on that)."""
+    for block in (6, 3, 2):
+        if solve_memory(shape, solid_voxels, boundary=boundary, preconditioner=preconditioner,
+                        cases_per_block=block) <= allowance:
+            return block
+    return 1
 
 
 def solid_box(field, *, level: float = 0.0, chunk_bytes: int = SAMPLE_CHUNK_BYTES):
@@ -1111,7 +1255,9 @@ class SolveSample:
         The centre of ``solid[0, 0, 0]``.
     report : dict
         The ``voxel`` entry of the report's ``mechanics`` section: ``voxel_mm``, ``source_voxel_mm``,
-        ``note``, ``warning`` (None or a sentence), ``memory_estimate_bytes``, ``max_memory_bytes``.
+        ``note``, ``warning`` (None or a sentence), ``memory_estimate_bytes`` (:func:`solve_memory` with one
+        load case per block, the least the solve needs, which the budget was checked against),
+        ``cases_per_block`` (the most the budget holds, :func:`block_for`: the solve's), ``max_memory_bytes``.
     """
 
     solid: np.ndarray
@@ -1226,9 +1372,10 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
         fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
                            preconditioner=preconditioner)
         raise ScaffoldError(_refusal(h, need, held, total, fit, option))
+    block = block_for(total - held - held_margin(held), solid.shape, count, boundary=bc, preconditioner=preconditioner)
     return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
             "note": f"mechanics voxel {h:.4g} mm: the sample's own voxel: its solve fits the budget",
-            "memory_estimate_bytes": int(need), "max_memory_bytes": int(total)}
+            "memory_estimate_bytes": int(need), "cases_per_block": block, "max_memory_bytes": int(total)}
 
 
 def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
@@ -1375,8 +1522,11 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     if h != h0:
         note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "
                  f"it keeps the {source}'s solid volume")
+    # the load cases per block: as many as the budget holds beside the sampled grid (freed before the solve)
+    block = block_for(allowance - held_margin(held), solid.shape, solid_count, boundary=bc,
+                      preconditioner=preconditioner)
     report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
-              "memory_estimate_bytes": int(estimate), "max_memory_bytes": int(total)}
+              "memory_estimate_bytes": int(estimate), "cases_per_block": block, "max_memory_bytes": int(total)}
     return SolveSample(solid, h, origin, report)
 
 
@@ -1394,7 +1544,8 @@ def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto"
     from .memory import peak_memory
 
     report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis=axis, backend="opencl",
-                           origin=sample.origin, progress=progress)
+                           origin=sample.origin, progress=progress,
+                           cases_per_block=sample.report.get("cases_per_block", 6))
     # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
     # part of it unless the build before peaked higher)
     report["voxel"] = {**sample.report, "process_peak_bytes": peak_memory()}

@@ -434,16 +434,26 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
 
 
 def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
-    """Chebyshev smoothing of ``A x = b`` in ``D^-1 A`` on ``[LOWER, UPPER] * lmax``."""
+    """Chebyshev smoothing of ``A x = b`` in ``D^-1 A`` on ``[LOWER, UPPER] * lmax``.
+
+    `x` (updated in place) and the new iterate are aligned (:func:`~.mechanics_cl.aligned_empty`),
+    so the OpenCL operator reads them in place."""
+    from .mechanics_cl import aligned_copy, aligned_empty
+
     lo, hi = LOWER * lmax, UPPER * lmax
     theta, delta = (hi + lo) / 2, (hi - lo) / 2
     sigma = theta / delta
     rho = 1 / sigma
-    r = b.copy() if x is None else b - apply(x)
-    d = inv_diag * r
+    if x is None:
+        r = b if degree == 1 else b.copy()  # read only when there is no further step
+    else:
+        r = apply(x)
+        np.subtract(b, r, out=r)
+    d = aligned_empty(r.shape, r.dtype)
+    np.multiply(inv_diag, r, out=d)
     d *= 1 / theta
     if x is None:
-        x = d.copy()
+        x = d if degree == 1 else aligned_copy(d)
     else:
         x += d
     for _ in range(degree - 1):
@@ -453,6 +463,7 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
         t = inv_diag * r
         t *= 2 * rho_new / delta
         d += t
+        del t
         rho = rho_new
         x += d
     return x
@@ -506,6 +517,8 @@ class Multigrid:
                 from .mechanics_cl import LevelOperator
 
                 level.device = LevelOperator(level)
+                # the device reads the matrices in place: the level keeps that one copy
+                level.mats = level.device.host_mats(level.mats.shape)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
         self._coarsest = self._exact(self.levels[-1]) if self.levels else None
 
@@ -546,18 +559,44 @@ class Multigrid:
                 x = _chebyshev(apply, inv_diag, lmax, b, x)
             return x
         degree = FINE_DEGREE if depth == 0 else DEGREE
+        if depth == 0 and degree == 1:
+            return self._fine_jacobi(b)
         x = _chebyshev(apply, inv_diag, lmax, b, degree=degree)
-        r = b - apply(x)
+        r = apply(x)
+        np.subtract(b, r, out=r)
         if depth == 0:
             r *= self.free
-        xc = self._cycle(depth + 1, restrict(r, shape))
-        corr = prolong(xc, shape)
+        rc = restrict(r, shape)
+        del r
+        corr = prolong(self._cycle(depth + 1, rc), shape)
+        del rc
         if depth == 0:
             corr *= self.free
         x += corr
+        del corr
         return _chebyshev(apply, inv_diag, lmax, b, x, degree=degree)
+
+    def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
+        """The fine level of the cycle with degree-1 smoothing (damped Jacobi, :func:`_chebyshev`'s
+        degree 1), each vector update one fused pass (:mod:`~implicit_scaffold.fused`)."""
+        from .fused import add_weighted, weighted
+        from .mechanics_cl import aligned_empty
+
+        s = 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
+        x = weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
+        r = self.op(x)
+        weighted(r, b, self.free, y=r)  # F (b - K x): the restriction sees the free unknowns only
+        rc = restrict(r, self.fine_shape)
+        del r
+        corr = prolong(self._cycle(1, rc), self.fine_shape)
+        del rc
+        add_weighted(x, corr, self.free)
+        del corr
+        ax = self.op(x)
+        add_weighted(x, b, self.inv_diag, s, y=ax)
+        return x
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
-        b = (self.free * r).astype(self.dtype, copy=False)
-        return (self.free * self._cycle(0, b)).astype(r.dtype, copy=False)
+        b = np.multiply(self.free, r, dtype=self.dtype)
+        return np.multiply(self.free, self._cycle(0, b), dtype=r.dtype)

@@ -7,7 +7,7 @@
  * so the result does not depend on the work-group size.
  *
  * NCASE load cases are done together (one read of the solid flags and the stiffness for
- * all of them). REAL is float unless the host asks for double (-DUSE_DOUBLE=1) on a device
+ * all of them), from case `first` of u and f. REAL is float unless the host asks for double (-DUSE_DOUBLE=1) on a device
  * that has cl_khr_fp64: the solver's CG runs in double, and a float operator limits its
  * residual to about 1e-6.
  * Reference: implicit_scaffold.mechanics.apply_stiffness (NumPy).
@@ -44,11 +44,14 @@ typedef uchar owner_t;
 #endif
 
 __kernel void stiffness_apply(__global const owner_t *solid, MATS, __global const real *u,
-                              __global real *f, const int n1, const int n2, const int n3)
+                              __global real *f, const int n1, const int n2, const int n3, const int first)
 {
     const int node = (int)get_global_id(0);
     const int n = n1 * n2 * n3;
     if (node >= n) return;
+    /* the NCASE cases from case `first` of the vectors (a block done one case per launch) */
+    u += (size_t)first * 3 * n;
+    f += (size_t)first * 3 * n;
     const int i = node / (n2 * n3), j = (node / n3) % n2, k = node % n3;
     /* the three planes around this node along each axis, wrapped once here (no % in the loops) */
     const int I[3] = {(i == 0 ? n1 : i) - 1, i, i + 1 == n1 ? 0 : i + 1};

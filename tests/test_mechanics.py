@@ -69,6 +69,39 @@ def test_periodic_laminate_matches_the_exact_tensor():
     assert np.abs(C[~nonzero]).max() < 0.01 * exact.max()
 
 
+@pytest.mark.parametrize("block", [1, 4])
+def test_load_cases_in_blocks_give_the_exact_laminate(block):
+    # one case at a time, and blocks of 4 and 2 (uneven): each case is its own CG, so the
+    # exact laminate holds whatever the blocks
+    solid = np.zeros((7, 9, 11), bool)
+    solid[:, :, 2:5] = True
+    phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+    hom = m.homogenize(solid, 0.05, TI, cases_per_block=block)
+    C = hom.stiffness
+    assert C[0, 0] == pytest.approx(phi * E / (1 - nu ** 2), rel=0.01)
+    assert C[0, 1] == pytest.approx(phi * nu * E / (1 - nu ** 2), rel=0.01)
+    assert C[5, 5] == pytest.approx(phi * E / (2 * (1 + nu)), rel=0.01)
+    assert hom.residual <= 1e-8
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_corner_sums_match_the_gathered_element_displacements(periodic):
+    # the solver's per-node sums (no per-voxel arrays) against the NumPy reference's gather
+    rng = np.random.default_rng(5)
+    solid = rng.random((7, 6, 5)) < 0.4
+    model = m.voxel_model(solid, 0.1, TI, periodic=periodic)
+    u = rng.standard_normal((2, 3, int(np.prod(model.shape))))
+    ue = m.gather(model, u)  # (2, 24, ns)
+    assert np.allclose(m.corner_sums(model, u), ue.sum(axis=2), rtol=1e-12, atol=1e-12)
+    B = m.strain_matrix(0.1, (0.0, 0.0, 0.0))
+    assert np.allclose(m.element_strains(model, u[1]), B @ ue[1], rtol=1e-12, atol=1e-9)
+    fe = rng.standard_normal((2, 24))
+    ref = m.apply_stiffness(model, np.zeros_like(u), np.linalg.solve(model.ke + np.eye(24), fe.T).T)
+    got = m.element_loads(model, (model.ke @ np.linalg.solve(model.ke + np.eye(24), fe.T)).T)
+    assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    assert np.array_equal(model.active, np.bincount(model.conn.ravel(), minlength=u.shape[2]) > 0)
+
+
 def test_no_load_path_is_a_zero_modulus_with_a_note():
     solid = np.zeros((6, 6, 8), bool)
     solid[:, :, :2] = True
@@ -298,6 +331,12 @@ def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
             # float: about 1e-7 of the largest force from float32 round-off over 192 terms
             got = StiffnessOperator(model, double=False)(u)
             assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max(), check.name
+            # a page-aligned float vector is read in place (no copy): the same product
+            from implicit_scaffold.mechanics_cl import aligned_empty
+
+            inplace = aligned_empty(u.shape, np.float32)
+            inplace[...] = u
+            assert np.array_equal(StiffnessOperator(model, double=False)(inplace), got), check.name
             from implicit_scaffold.mechanics_cl import has_double
 
             if has_double():
@@ -572,7 +611,15 @@ def _held():
     return release()
 
 
-def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_works(tmp_path, capsys, monkeypatch):
+@pytest.fixture
+def large_solve(monkeypatch):
+    """The budget tests' small grids with a solve well above a refusal's margin (8 MiB and 2 % of what
+    the process holds): the per-node bytes of the estimate as they were before the solver's memory
+    was cut (a 24^3 solve now needs a few MiB, less than the margin, so no budget could tell)."""
+    monkeypatch.setitem(m.SOLVE_BYTES_PER_NODE, "multigrid", {"periodic": 1750, "kinematic": 2000})
+
+
+def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_works(tmp_path, capsys, monkeypatch, large_solve):
     import json
     import re
 
@@ -615,7 +662,7 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     assert json.loads(out.read_text())["voxel"]["voxel_mm"] == voxel
 
 
-def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys):
+def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys, large_solve):
     import json
 
     from implicit_scaffold.memory import parse_memory
@@ -661,7 +708,17 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     assert r["solid_fraction"] == pytest.approx(ref.mean(), abs=4 / ref.size)
 
 
-def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_voxel():
+def test_a_short_budget_takes_smaller_blocks_of_load_cases():
+    shape, count = (40, 40, 40), 20000
+    sizes = {b: m.solve_memory(shape, count, cases_per_block=b) for b in (1, 2, 3, 6)}
+    assert sizes[1] < sizes[2] < sizes[3] < sizes[6]  # each case's vectors
+    assert m.block_for(sizes[6], shape, count) == 6
+    assert m.block_for(sizes[6] - 1, shape, count) == 3
+    assert m.block_for(sizes[2], shape, count) == 2
+    assert m.block_for(sizes[1], shape, count) == 1 and m.block_for(0, shape, count) == 1
+
+
+def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_voxel(large_solve):
     from implicit_scaffold.memory import parse_memory
 
     solid = np.zeros((40, 40, 40), bool)

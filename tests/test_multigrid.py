@@ -139,3 +139,36 @@ def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one():
                     continue
                 got = LevelOperator(level)(x)
                 assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_fused_vector_passes_match_numpy(dtype, rows):
+    from implicit_scaffold import fused
+
+    rng = np.random.default_rng(rows)
+    m, n = 2, 1009  # odd: pieces of unequal length
+    tol = 1e-12 if dtype == np.float64 else 1e-5
+    x, p, r, q, z, b, y = (rng.standard_normal((m, 3, n)).astype(dtype) for _ in range(7))
+    w = rng.random((rows, n)).astype(dtype)
+    alpha, beta = np.array([0.3, -1.5]), np.array([0.7, 0.0])
+
+    def close(got, want):
+        return np.allclose(got, want, rtol=tol, atol=tol * np.abs(want).max())
+
+    assert close(fused.wdot(p, q, w), (p * q * w).sum(axis=(1, 2)))
+    xe, re = x + alpha[:, None, None] * p, r - alpha[:, None, None] * (w * q)
+    rr = fused.cg_update(x, p, r, q, w, alpha)
+    assert close(x, xe) and close(r, re) and close(rr, (re.astype(float) ** 2).sum(axis=(1, 2)))
+    pe = z + beta[:, None, None] * p
+    fused.xpby(z, p, beta)
+    assert close(p, pe)
+    out = np.full_like(b, np.nan)  # an empty output is never read
+    assert close(fused.weighted(out, b, w, 0.5), 0.5 * w * b)
+    assert close(fused.weighted(y.copy(), b, w, 2.0, y=y), 2.0 * w * (b - y))
+    xe = x + 0.25 * w * (b - y)
+    fused.add_weighted(x, b, w, 0.25, y=y)
+    assert close(x, xe)
+    xe = x + w * b
+    fused.add_weighted(x, b, w)
+    assert close(x, xe)
