@@ -1380,7 +1380,7 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
 
 def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
                wall: float | None = None, boundary: str = "auto", preconditioner: str = "multigrid",
-               option: str = "--mechanics-voxel", source: str = "run") -> tuple[float, str, int, int]:
+               option: str = "--mechanics-voxel", source: str = "run", held_extra: int = 0) -> tuple[float, str, int, int]:
     """The voxel a solve of a solid sampled from a field of voxel `h0` runs at, or its refusal, decided
     from sizes alone: :func:`solid_for_solve` decides with it after a run, and a run that will
     measure what it builds decides with it before the build, from the grid it plans (issue 14).
@@ -1395,6 +1395,9 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
         The field's voxel.
     max_memory, voxel, wall, boundary, preconditioner, option, source
         As :func:`solid_for_solve`.
+    held_extra : int, bytes
+        What the process will hold beside what it holds now when the solve starts (a build's
+        arrays, when the check comes before the build).
 
     Returns
     -------
@@ -1414,7 +1417,7 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
     from .memory import budget, format_size, release
 
     total = budget(max_memory)
-    held = release()
+    held = release() + int(held_extra)
     allowance = total - held
     n = tuple(int(k) for k in n)
     count = int(solid_voxels)

@@ -408,9 +408,16 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         _check_resolved(printed_wall, params.voxel)
     grid = Grid.covering(patient.lo, patient.hi, params.voxel if params.voxel is not None
                          else _default_voxel(built.wall, _box_volume(patient), printed_wall))
-    if outs.mechanics is not None:
-        _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory)
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
+    if outs.mechanics is not None:
+        # what the build will still hold when the solve starts: a grid held in memory, about all its
+        # run's bytes (the default cube: 461 MiB at this check, 1,232 MiB at the solve, 104 bytes a
+        # voxel of its 195^3 grid, against the plan's 112); a run in slabs, the libraries of its later
+        # stages (300 MiB here, 540 MiB at the solve, under --max-memory 1G)
+        in_memory = grid.memory_estimate(run.run_bytes)
+        kept = in_memory if slab_voxels is None else LATER_STAGES_BYTES
+        _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory, kept=kept,
+                         kept_in_memory=in_memory, whole=run.whole_bytes if slab_voxels is not None else None)
     if repair and slab_voxels is not None:
         raise run.whole_grid_refusal(grid, "--repair")
     # the field: one driver for every size, over one slab held in memory when the whole grid
@@ -1322,11 +1329,19 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     return result
 
 
-def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memory) -> None:
+#: what a run in slabs holds when its solve starts beyond what it held before the lattice: the
+#: libraries its mesh and measure stages load (measured 240 MiB on the default cube in slabs)
+LATER_STAGES_BYTES = 320 * 2**20
+
+
+def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memory, *, kept: int,
+                     kept_in_memory: int = 0, whole: int | None = None) -> None:
     """Refuse, before the lattice, a run whose stiffness solve cannot fit its budget: the decision
     :func:`_measure_mechanics` takes after the build (:func:`.mechanics.plan_voxel`), taken on the
     planned grid with the solid it will hold, ``1 - P`` of the patient's volume (the closed-form
-    porosity without a target), and the cells' median wall."""
+    porosity without a target), the cells' median wall, and `kept`, the bytes the build will still
+    hold then. A run in slabs (`whole`, its whole grid's estimate) that a refusal's budget would hold
+    in memory is checked as one (`kept_in_memory`), so that the budget named is one that works."""
     from .mechanics import plan_voxel
     from .patient import Box
 
@@ -1337,8 +1352,18 @@ def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memor
     p = params.porosity if params.porosity is not None else closed_form_porosity(params.sf, params.sv)
     solid = min(int(np.prod(grid.shape, dtype=np.int64)),
                 int(math.ceil((1.0 - p) * float(patient.volume) / grid.voxel_volume)))
+    if whole is not None:
+        from .mechanics import sample_memory
+        from .memory import release
+
+        # the budget the solve at the run's voxel needs beside the slabs' leftovers: one that holds the
+        # whole grid runs it in memory, which leaves more behind
+        if whole <= release() + kept + sample_memory(grid.shape, solid, grid.spacing, grid.spacing,
+                                                     boundary=boundary):
+            kept = kept_in_memory
     plan_voxel(grid.shape, solid, grid.spacing, max_memory=max_memory, voxel=spec.voxel,
-               wall=float(np.median(walls)) if len(walls) else None, boundary=boundary)
+               wall=float(np.median(walls)) if len(walls) else None, boundary=boundary,
+               held_extra=kept)
 
 
 def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
