@@ -261,7 +261,10 @@ def _mechanics(args) -> int:
     sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
                                max_memory=args.max_memory, boundary=args.boundary)
     solid, h = sample.solid, sample.voxel
-    report, comp = _measure_sample(sample, mat, args, args.boundary)
+    from .mechanics import measure_sample
+
+    report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
+                                  progress=_solver_progress(args))
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .files import write_json
@@ -280,14 +283,6 @@ def _mechanics(args) -> int:
         lines.append(f"  time {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
     return 0
-
-
-def _measure_sample(sample, mat, args, boundary: str):
-    """:func:`~.mechanics.measure_sample` with the options of `args`."""
-    from .mechanics import measure_sample
-
-    return measure_sample(sample, mat, boundary=boundary, axis="xyz".index(args.axis),
-                          progress=_solver_progress(args))
 
 
 def _add_build_options(g) -> None:

@@ -799,7 +799,7 @@ def _mesh_correction(volume: float, patient, params: Params, calibration, voxel:
         return None
     printed = 1.0 - volume / float(patient.volume)
     if calibration.get("graded"):
-        if not area or tf is None or abs(printed - calibration["target"]) <= 0:
+        if not area or tf is None:
             return None
         guess = (calibration["target"] - printed) / (-float(area) / float(patient.volume))
         calibration["slope_per_mm"] = _voxel_slope(tf, guess) or -float(area) / float(patient.volume)

@@ -274,17 +274,22 @@ def test_graded_run_pores_follow_depth(graded_run):
     assert len(checked) >= 4 and checked[0] < 0.75 * checked[-1]
 
 
-def test_report_profiles_match_recount(graded_run):
-    prof = graded_run.report["grade"]["profiles"]["depth"]
-    inside = graded_run.patient_sdf < 0
-    depth = -graded_run.patient_sdf[inside].astype(np.float64)
-    solid = graded_run.field[inside] < 0
+def _assert_profiles_recount(r):
+    # the report's depth profile against the porosity per bin recounted from the field and the patient
+    prof = r.report["grade"]["profiles"]["depth"]
+    inside = np.asarray(r.patient_sdf) < 0
+    depth = -np.asarray(r.patient_sdf)[inside].astype(np.float64)
+    solid = np.asarray(r.field)[inside] < 0
     e = prof["edges_mm"]
     for b, measured in enumerate(prof["porosity"]):
         hi = depth <= e[b + 1] if b == len(prof["porosity"]) - 1 else depth < e[b + 1]
         m = (depth >= e[b]) & hi
         assert measured == pytest.approx(1 - solid[m].mean(), abs=1e-9)
         assert prof["voxels"][b] == m.sum()
+
+
+def test_report_profiles_match_recount(graded_run):
+    _assert_profiles_recount(graded_run)
 
 
 @pytest.mark.parametrize("extra", [{}, {"skin": 0.15}, {"smooth_cut": 0.1, "style": "struts"}])
@@ -559,13 +564,4 @@ def test_a_graded_mesh_holds_the_porosity_asked(tiled, tmp_path):
     assert abs(printed - r.report["porosity_mesh"]) < 1e-7
     assert abs(printed - target) < 0.4 * abs(before - target)
     # the profiles are the corrected field's, recounted
-    prof = r.report["grade"]["profiles"]["depth"]
-    field = np.asarray(r.field)
-    inside = np.asarray(r.patient_sdf) < 0
-    depth = -np.asarray(r.patient_sdf)[inside].astype(np.float64)
-    solid = field[inside] < 0
-    e = prof["edges_mm"]
-    for b, measured in enumerate(prof["porosity"]):
-        hi = depth <= e[b + 1] if b == len(prof["porosity"]) - 1 else depth < e[b + 1]
-        m = (depth >= e[b]) & hi
-        assert measured == pytest.approx(1 - solid[m].mean(), abs=1e-9)
+    _assert_profiles_recount(r)
