@@ -45,7 +45,7 @@ progress.Progress.stage = stage
 #: loaded as ``patient`` (stage ``load``), and ``out``, an STL path in a new temporary folder;
 #: format with ``femur=`` (the file)
 FEMUR_SHAFT = STAGE_MEMORY.replace("{", "{{").replace("}", "}}") + """
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.io.patient_io import load_patient
 opencl.context()
 with measured('load'):
     patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))

@@ -26,7 +26,7 @@ import time, tempfile, os
 import numpy as np
 import implicit_scaffold
 from implicit_scaffold import opencl
-from implicit_scaffold.lattice import lattice_sdf
+from implicit_scaffold.fields.lattice import lattice_sdf
 opencl.context()
 d = tempfile.mkdtemp()
 t0 = time.perf_counter()
@@ -46,7 +46,7 @@ for _ in range(3):
     repeat.append(time.perf_counter() - t2)
 kernel_steady = float(np.median(repeat))
 # a check of the result: the kernel against the brute-force oracle at 2,000 voxels
-from implicit_scaffold.lattice import lattice_sdf_reference
+from implicit_scaffold.fields.lattice import lattice_sdf_reference
 idx = np.stack([np.random.default_rng(1).integers(0, n, 2000) for n in r.grid.shape], 1)
 ref = lattice_sdf_reference(r.skeleton, r.grid.indices_to_points(idx), cutoff=r.report['cutoff_mm'])
 err = float(np.abs(again[idx[:, 0], idx[:, 1], idx[:, 2]] - ref).max())
@@ -81,10 +81,10 @@ import time
 import numpy as np
 import implicit_scaffold
 from implicit_scaffold import opencl
-from implicit_scaffold.cells import voronoi_cells
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.lattice import struts_field
-from implicit_scaffold.skeleton import voronoi_edges
+from implicit_scaffold.geometry.cells import voronoi_cells
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.lattice import struts_field
+from implicit_scaffold.geometry.skeleton import voronoi_edges
 opencl.context()
 t0 = time.perf_counter()
 r = implicit_scaffold.generate(style='struts', seeds=500, size=10.0, voxel=0.05, porosity={p},
@@ -119,10 +119,10 @@ DEVICES = """
 import time
 import numpy as np
 from implicit_scaffold import opencl
-from implicit_scaffold.cells import voronoi_cells
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.lattice import lattice_sdf, lattice_sdf_reference
-from implicit_scaffold.skeleton import scaled_skeleton
+from implicit_scaffold.geometry.cells import voronoi_cells
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.lattice import lattice_sdf, lattice_sdf_reference
+from implicit_scaffold.geometry.skeleton import scaled_skeleton
 # B1's seeds, skeleton, grid and the pipeline's cut-off for them
 rng = np.random.default_rng(0)
 cells = voronoi_cells(rng.uniform(0, 10, (500, 3)), [0, 0, 0], [10, 10, 10])
@@ -167,7 +167,7 @@ MC = """
 import time
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold import mesh as M
+from implicit_scaffold.mesh import marching as M
 from skimage.measure import marching_cubes
 r = implicit_scaffold.generate(seeds=500, porosity=0.8, voxel=0.04, mesh=False, morphometry=False)
 work = M._prepare_field(r.field, r.grid, 0.0)
@@ -190,9 +190,9 @@ SIMPLIFY = """
 import os, tempfile, time, zipfile
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold.mesh import mesh_summary
-from implicit_scaffold.mesh_writers import write_mesh
-from implicit_scaffold.simplify import euler_characteristic, simplification_error, simplify_mesh
+from implicit_scaffold.mesh.marching import mesh_summary
+from implicit_scaffold.mesh.writers import write_mesh
+from implicit_scaffold.mesh.simplify import euler_characteristic, simplification_error, simplify_mesh
 r = implicit_scaffold.generate(morphometry=False)  # the default cube, every triangle kept
 mesh, h, patient = r.mesh, r.grid.spacing, r.report['patient_volume_mm3']
 base = mesh_summary(mesh)

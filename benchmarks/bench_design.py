@@ -49,9 +49,9 @@ def ct_case() -> None:
     import SimpleITK as sitk
 
     from implicit_scaffold.design import design_from_ct
-    from implicit_scaffold.grade import load_ct
-    from implicit_scaffold.mechanics import compress, density_modulus, material
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.geometry.grade import load_ct
+    from implicit_scaffold.measure.mechanics import compress, density_modulus, material
+    from implicit_scaffold.io.patient_io import load_patient
 
     h, size, hu_values = 0.1, (6.0, 2.8, 2.8), (500, 900)
     n = [int(round(s / h)) for s in size]
@@ -108,7 +108,7 @@ def study_targets(count: int, stiffness_sets: int) -> list[Targets]:
 
     from implicit_scaffold.design import SV_RANGE
     from implicit_scaffold.design_maps import load_maps
-    from implicit_scaffold.mechanics import material
+    from implicit_scaffold.measure.mechanics import material
 
     rng = np.random.default_rng(STUDY_SEED)
     maps = load_maps()

@@ -24,7 +24,7 @@ from _common import DATA, FEMUR_SHAFT, median_runs, table  # noqa: E402
 
 RUN = FEMUR_SHAFT + """
 import numpy as np
-from implicit_scaffold.seeds import seed_count
+from implicit_scaffold.geometry.seeds import seed_count
 options = {options!r}
 t0 = time.perf_counter()
 r = implicit_scaffold.generate(patient=patient, porosity=0.7, voxel={voxel}, output=out, verbose=True, **options)

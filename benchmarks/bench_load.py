@@ -33,7 +33,7 @@ from _common import DATA, median_runs, table  # noqa: E402
 
 FRESH = """
 import time
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.io.patient_io import load_patient
 p = load_patient({path!r}, label={label!r})
 fresh = p.load_seconds
 t = time.perf_counter()
@@ -47,7 +47,7 @@ _out = {{'fresh_s': fresh, 'warm_s': warm, 'crop_mvoxels': float(np.prod(p._fiel
 REFERENCE = """
 import time
 import numpy as np
-from implicit_scaffold.patient_volume import load_volume
+from implicit_scaffold.fields.patient_volume import load_volume
 t = time.perf_counter()
 ref = load_volume({path!r}, label={label!r}, reference=True)
 seconds = time.perf_counter() - t
@@ -66,8 +66,8 @@ def _write_cases(folder: Path, full: bool) -> list[tuple[str, str, int | None]]:
     import numpy as np
     import SimpleITK as sitk
 
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.io.patient_io import load_patient
 
     cases = []
     roi = sitk.GetArrayFromImage(sitk.ReadImage(str(DATA / "bonejheadless_lumbar_trabecular_ROI_1_06219.nrrd")))

@@ -43,7 +43,7 @@ from _common import median_runs, run_isolated, table  # noqa: E402
 BUILD = """
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold.mechanics import crop
+from implicit_scaffold.measure.mechanics import crop
 r = implicit_scaffold.generate(size={size!r}, voxel={voxel!r}, pore_size={pore!r}, porosity={porosity!r},
                                style={style!r}, seed={seed!r}, mesh=False, morphometry=False)
 inside = r.patient_sdf < 0
@@ -56,7 +56,8 @@ _out = {{'grid': 'x'.join(map(str, solid.shape)), 'solid_fraction': float(solid.
 OURS = """
 import time
 import numpy as np
-from implicit_scaffold import mechanics as M, opencl
+from implicit_scaffold.measure import mechanics as M
+from implicit_scaffold import opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
 # the fine operator's kernels built outside the clock (double one case a launch, float the block's)
@@ -113,7 +114,7 @@ _out = {{'seconds': time.perf_counter() - t, 'iterations': int(max(its)), 'C': C
 
 FIT = """
 import numpy as np
-from implicit_scaffold import mechanics as M
+from implicit_scaffold.measure import mechanics as M
 solid = np.load({solid!r})
 mat = M.material('ti64')
 hom = M.homogenize(solid, {voxel!r}, mat, boundary={boundary!r}, tol=1e-6, backend='opencl')
@@ -125,11 +126,11 @@ _out = {{'rho': float(solid.mean()), 'E_rel': float(np.mean(list(c['youngs_modul
 
 PERIODIC_FIT = """
 import numpy as np
-from implicit_scaffold import mechanics as M
-from implicit_scaffold.cells import voronoi_cells
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.lattice import struts_field
-from implicit_scaffold.skeleton import voronoi_edges
+from implicit_scaffold.measure import mechanics as M
+from implicit_scaffold.geometry.cells import voronoi_cells
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.lattice import struts_field
+from implicit_scaffold.geometry.skeleton import voronoi_edges
 L, n, m, seed = {size!r}, {cells!r}, {voxels!r}, {seed!r}
 rng = np.random.default_rng(seed)
 seeds = rng.uniform(0.0, L, (n, 3))
@@ -159,7 +160,7 @@ _out = {{'points': out, 'strut_radius_voxels_at_0.1': float(np.quantile(F, 0.1) 
 CONVERGE = """
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold import mechanics as M
+from implicit_scaffold.measure import mechanics as M
 r = implicit_scaffold.generate(size={size!r}, voxel={voxel!r}, pore_size=0.6, porosity=0.7, seed=0, mesh=False,
                                morphometry=False)
 inside = r.patient_sdf < 0
@@ -177,8 +178,8 @@ _out = {{'voxel': r.grid.spacing, 'grid': 'x'.join(map(str, solid.shape)), 'soli
 
 MEMORY = """
 import numpy as np
-from implicit_scaffold import mechanics as M
-from implicit_scaffold.memory import peak_memory, release
+from implicit_scaffold.measure import mechanics as M
+from implicit_scaffold.run.memory import peak_memory, release
 n, phi = {n!r}, {phi!r}
 g = (np.arange(n) + 0.5) / n * 2 * np.pi
 x, y, z = np.meshgrid(g, g, g, indexing='ij', sparse=True)
@@ -208,7 +209,7 @@ _out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'solve_bytes': peak -
 COARSEN = """
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold import mechanics as M
+from implicit_scaffold.measure import mechanics as M
 r = implicit_scaffold.generate(size={size!r}, voxel={voxel!r}, pore_size=0.6, porosity=0.7, seed=0, mesh=False,
                                morphometry=False)
 s = M.solid_for_solve(r.field, r.grid, voxel={sample!r}, boundary='periodic', max_memory='16G')
@@ -225,7 +226,7 @@ _out = {{'voxel': r.grid.spacing, 'sample': s.voxel, 'wall': r.report['wall_thic
 FEMUR_BUILD = """
 import numpy as np
 import implicit_scaffold
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.io.patient_io import load_patient
 patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
 r = implicit_scaffold.generate(patient=patient, pore_size=0.6, porosity=0.7, voxel=0.1, seed=0, mesh=False,
                                morphometry=False)
@@ -242,7 +243,7 @@ _out = {{'grid': 'x'.join(map(str, solid.shape)), 'voxel': r.grid.spacing, 'soli
 
 FEMUR_SOLVE = """
 import numpy as np
-from implicit_scaffold import mechanics as M
+from implicit_scaffold.measure import mechanics as M
 solid = np.load({solid!r})
 c = M.compress(solid, {voxel!r}, M.material({material!r}), axis=2, tol={tol!r}, backend='opencl', maxiter={maxiter!r},
                preconditioner={preconditioner!r})
@@ -374,7 +375,7 @@ def main(argv=None) -> int:
                          "iterations; 128^3 would take half an hour each)")
     args = ap.parse_args(argv)
     if args.cases_per_block is None:
-        from implicit_scaffold.mechanics import CASES_PER_BLOCK
+        from implicit_scaffold.measure.mechanics import CASES_PER_BLOCK
 
         args.cases_per_block = CASES_PER_BLOCK
     voxel = 0.04

@@ -36,7 +36,7 @@ _out = {{'grid': 'x'.join(map(str, r.grid.shape)), 'voxel': r.grid.spacing}}
 OURS = """
 import time
 import numpy as np
-from implicit_scaffold import morphometry as M
+from implicit_scaffold.measure import morphometry as M
 solid = np.load({solid!r}); inside = np.load({inside!r})
 M.local_thickness(solid[:8, :8, :8], 0.04)  # load the compiled kernels outside the clock
 c0 = time.process_time(); t0 = time.perf_counter()

@@ -73,9 +73,9 @@ shutil.rmtree(os.path.dirname(out))  # a few GB per run
 if {figure!r} and r.field is not None:
     # the picture is 900 px across 27 mm: every third voxel of the same field draws the same scaffold
     # with a tenth of the triangles (rendering all of them takes tens of GB off screen)
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.mesh import mesh_field
-    from implicit_scaffold.report import render_mesh
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.mesh.marching import mesh_field
+    from implicit_scaffold.io.report import render_mesh
     step = max(1, int(round(0.15 / r.grid.spacing)))
     r.mesh = None
     light = mesh_field(r.field[::step, ::step, ::step], Grid(r.grid.origin, r.grid.spacing * step,

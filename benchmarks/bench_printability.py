@@ -21,7 +21,7 @@ from _common import DATA, median_runs, run_isolated, table  # noqa: E402
 SPEED = """
 import time
 import implicit_scaffold
-from implicit_scaffold.printability import certificate, printer_profile
+from implicit_scaffold.measure.printability import certificate, printer_profile
 # the default cube's lattice on a 400^3 grid (10 mm at 0.025 mm)
 r = implicit_scaffold.generate(voxel=0.025, mesh=False, morphometry=False)
 solid = r.field < 0
@@ -34,7 +34,7 @@ _out = {'seconds': t, 'grid': 'x'.join(map(str, r.grid.shape)), **{'part_' + k: 
 
 PROFILES = """
 import implicit_scaffold
-from implicit_scaffold.printability import certificate, printer_profile, profiles
+from implicit_scaffold.measure.printability import certificate, printer_profile, profiles
 {build}
 solid = r.field < 0
 _out = {{'grid': 'x'.join(map(str, r.grid.shape)), 'voxel': r.grid.spacing, 'porosity': r.report['porosity_voxel']}}
@@ -62,9 +62,9 @@ _out = {{'origin': list(r.grid.origin), 'spacing': r.grid.spacing, 'shape': list
 SLABS = """
 import time
 import numpy as np, psutil
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.printability import certificate, certificate_by_slabs, printer_profile
-from implicit_scaffold.tiles import FieldFile
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.measure.printability import certificate, certificate_by_slabs, printer_profile
+from implicit_scaffold.run.tiles import FieldFile
 grid = Grid(tuple({origin!r}), {spacing!r}, tuple({shape!r}))
 profile = printer_profile('dlp-resin')
 plane = grid.shape[1] * grid.shape[2]
@@ -97,7 +97,7 @@ _out = {{'seconds': t, 'before_mb': before / 2**20,
 """
 
 CUBE = "r = implicit_scaffold.generate(mesh=False, morphometry=False)"
-SHAFT = """from implicit_scaffold.patient_io import load_patient
+SHAFT = """from implicit_scaffold.io.patient_io import load_patient
 patient = load_patient({femur!r}, cut_planes=(0, 0, 210, 0, 0, 1, 0, 0, 230, 0, 0, 1))
 r = implicit_scaffold.generate(patient=patient, pore_size=0.6, porosity=0.7, voxel=0.1, mesh=False, morphometry=False)"""
 

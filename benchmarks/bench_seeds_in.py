@@ -27,7 +27,7 @@ from _common import DATA, STAGE_MEMORY, median_runs, table  # noqa: E402
 CLIP = (-30.0, 20.0, -10.0, -10.0, 40.0, 10.0)
 
 RUN = STAGE_MEMORY.replace("{", "{{").replace("}", "}}") + """
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.io.patient_io import load_patient
 opencl.context()
 t0 = time.perf_counter()
 with measured('load'):
@@ -49,8 +49,8 @@ import time
 from dataclasses import replace
 import numpy as np
 from implicit_scaffold import pipeline
-from implicit_scaffold.metrics import pore_sizes
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.measure.metrics import pore_sizes
+from implicit_scaffold.io.patient_io import load_patient
 from implicit_scaffold.progress import Progress
 patient = load_patient({ct!r}, threshold=250)
 # generate's stages up to the cells (the seeds' count, the seeding grid, the pore-size solve)

@@ -71,7 +71,7 @@ kind = {kind!r}
 patient_file, patient_options = {patient!r}
 t0 = time.perf_counter()
 if patient_file is not None:
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.io.patient_io import load_patient
     options = dict({options!r}, patient=load_patient(patient_file, **patient_options))
 else:
     options = {options!r}

@@ -41,7 +41,7 @@ def _interior_faces(seeds: int = 20000, margin: float = 1.5) -> tuple[int, float
     """(C): faces per cell of the cells of 20,000 uniform seeds that lie >= 1.5 mm from every wall."""
     import numpy as np
 
-    from implicit_scaffold.cells import voronoi_cells
+    from implicit_scaffold.geometry.cells import voronoi_cells
 
     c = voronoi_cells(np.random.default_rng(seeds).uniform(0, 10, (seeds, 3)), [0] * 3, [10] * 3)
     m = c.interior_cells(margin)

@@ -26,19 +26,21 @@ _PUBLIC = {
     "generate": "pipeline", "Result": "pipeline",
     "LatticeSpec": "specs", "GridSpec": "specs", "Outputs": "specs", "MechanicsSpec": "specs",
     # stage 1: patients
-    "Box": "patient", "Cylinder": "patient", "Sphere": "patient", "load_patient": "patient_io",
+    "Box": "fields.patient", "Cylinder": "fields.patient", "Sphere": "fields.patient",
+    "load_patient": "io.patient_io",
     # stages 2-4: seeds, cells, skeleton
-    "uniform_seeds": "seeds", "voronoi_cells": "cells", "Cells": "cells",
-    "scaled_skeleton": "skeleton", "Skeleton": "skeleton", "closed_form_porosity": "skeleton",
+    "uniform_seeds": "geometry.seeds", "voronoi_cells": "geometry.cells", "Cells": "geometry.cells",
+    "scaled_skeleton": "geometry.skeleton", "Skeleton": "geometry.skeleton",
+    "closed_form_porosity": "geometry.skeleton",
     # stage 5: the lattice's field on a grid
-    "Grid": "grid", "lattice_sdf": "lattice", "blend_field": "field",
+    "Grid": "run.grid", "lattice_sdf": "fields.lattice", "blend_field": "fields.field",
     # stage 6: the cut, at the level that meets a porosity
-    "solve_level": "field", "scaffold_field": "field",
+    "solve_level": "fields.field", "scaffold_field": "fields.field",
     # the same stages as field nodes, evaluated plane range by plane range (slab by slab)
-    "FieldNode": "nodes", "PaperLattice": "nodes", "Struts": "nodes", "Blend": "nodes", "Patient": "nodes",
-    "SDF": "nodes", "Cut": "nodes", "evaluate": "nodes",
+    "FieldNode": "fields.nodes", "PaperLattice": "fields.nodes", "Struts": "fields.nodes", "Blend": "fields.nodes",
+    "Patient": "fields.nodes", "SDF": "fields.nodes", "Cut": "fields.nodes", "evaluate": "fields.nodes",
     # stage 7: the mesh
-    "mesh_field": "mesh", "mesh_summary": "mesh", "write_mesh": "mesh_writers",
+    "mesh_field": "mesh.marching", "mesh_summary": "mesh.marching", "write_mesh": "mesh.writers",
 }
 
 

@@ -14,7 +14,7 @@ from pathlib import Path
 
 from . import __version__
 from .errors import ScaffoldError
-from .formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS
+from .io.formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS
 
 
 def _listed(formats) -> str:
@@ -199,7 +199,7 @@ def _add_scaffold_file(p, what: str) -> None:
 def _add_mechanics_options(p) -> None:
     mg = p.add_argument_group("mechanics (voxel finite elements)")
     mg.add_argument("--material", default=None, metavar="NAME",
-                    help="ti64 pcl pla peek ha tcp cocr ta (default ti64; see implicit_scaffold.mechanics.MATERIALS)")
+                    help="ti64 pcl pla peek ha tcp cocr ta (default ti64; see implicit_scaffold.measure.mechanics.MATERIALS)")
     mg.add_argument("--E", dest="young", type=float, default=None, metavar="GPA",
                     help="the solid's Young's modulus in GPa (instead of, or overriding, --material)")
     mg.add_argument("--nu", type=float, default=None, metavar="V", help="the solid's Poisson's ratio, below 0.5")
@@ -214,7 +214,7 @@ def _add_mechanics_options(p) -> None:
 
 def _mechanics_setup(args):
     """The material of a mechanics run, checked before any work."""
-    from .mechanics import material
+    from .measure.mechanics import material
 
     return material(args.material, E=args.young, nu=args.nu)
 
@@ -246,7 +246,7 @@ def _solver_progress(args):
 
 
 def _mechanics(args) -> int:
-    from .mechanics import load_sample
+    from .measure.mechanics import load_sample
 
     t0 = time.perf_counter()
     mat = _mechanics_setup(args)
@@ -255,23 +255,23 @@ def _mechanics(args) -> int:
             if fmt is None:
                 _check_report(path)
             else:
-                from .files import check_writable
+                from .io.files import check_writable
 
                 check_writable(path, formats=fmt)
     sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
                                max_memory=args.max_memory, boundary=args.boundary)
     solid, h = sample.solid, sample.voxel
-    from .mechanics import measure_sample
+    from .measure.mechanics import measure_sample
 
     report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
                                   progress=_solver_progress(args))
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
-        from .files import write_json
+        from .io.files import write_json
 
         write_json(report, args.output)
     if args.report is not None:
-        from .report import write_mechanics_report
+        from .io.report import write_mechanics_report
 
         write_mechanics_report(report, comp, h, args.report)
     if not args.quiet:
@@ -385,13 +385,13 @@ def _add_build_options(g) -> None:
 
 
 def _printer_names() -> list[str]:
-    from .printability import profiles
+    from .measure.printability import profiles
 
     return list(profiles())
 
 
 def _check_report(path) -> None:
-    from .files import check_writable
+    from .io.files import check_writable
 
     if not path.lower().endswith((".html", ".htm")):
         raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {path!r}")
@@ -424,11 +424,11 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                       mechanics=mechanics)
     patient = None
     if args.patient is not None:
-        from .files import check_writable
+        from .io.files import check_writable
 
         if output is not None:
             check_writable(output)  # before a long load, not after
-        from .patient_io import load_patient
+        from .io.patient_io import load_patient
 
         patient = load_patient(args.patient, label=args.label, threshold=args.threshold, units=args.units,
                                clip=args.clip, cut_planes=args.cut_planes, spacing=args.spacing)
@@ -438,7 +438,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
                             "--patient FILE; give one or drop them")
     ct = None
     if args.calibration is not None:
-        from .grade import load_ct
+        from .geometry.grade import load_ct
 
         ct = load_ct(_ct_source(args.patient, "--calibration reads the CT intensities of --patient"))
     return generate(lattice=lattice, grid=grid, outputs=outputs, patient=patient, shape=args.shape, size=args.size,
@@ -447,7 +447,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
 
 def _ct_source(source, what: str):
     """`source` when it names a CT volume (a volume file or a DICOM folder); else a ScaffoldError saying `what`."""
-    from .patient_io import VOLUME_EXTENSIONS
+    from .io.patient_io import VOLUME_EXTENSIONS
 
     if source is None or not (Path(source).is_dir() or str(source).lower().endswith(VOLUME_EXTENSIONS)):
         raise ScaffoldError(f"{what}; give a CT volume (.nii, .nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
@@ -495,13 +495,13 @@ def _certificate_lines(cert: dict) -> list[str]:
 
 
 def _check(args) -> int:
-    from .morphometry import read_scaffold
-    from .printability import certificate, printer_profile
+    from .measure.morphometry import read_scaffold
+    from .measure.printability import certificate, printer_profile
 
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)
     if args.output is not None:
-        from .files import check_writable
+        from .io.files import check_writable
 
         check_writable(args.output, formats=(".json",))
     scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing)
@@ -510,7 +510,7 @@ def _check(args) -> int:
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
                  "timings_s": {"check": round(time.perf_counter() - t0, 4)}})
     if args.output is not None:
-        from .files import write_json
+        from .io.files import write_json
 
         write_json(cert, args.output)
     if not args.quiet:
@@ -542,7 +542,7 @@ def _design(args) -> int:
     from .progress import Progress
 
     t0 = time.perf_counter()
-    from .files import check_writable, write_json
+    from .io.files import check_writable, write_json
 
     check_writable(args.output, formats=(".json",))
     if args.stiffness_from_ct:
@@ -559,7 +559,7 @@ def _design(args) -> int:
         raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
     min_strut = args.min_strut
     if args.printer is not None:
-        from .printability import printer_profile
+        from .measure.printability import printer_profile
 
         floor = printer_profile(args.printer).min_strut_mm
         min_strut = floor if min_strut is None else max(min_strut, floor)
@@ -592,10 +592,10 @@ def _design(args) -> int:
 def _design_from_ct(args, t0: float) -> int:
     """``design --stiffness-from-ct``: every input checked before the CT is read, then the design."""
     from .design import Targets, check_targets, design_from_ct
-    from .files import check_writable, write_json
-    from .grade import load_ct, parse_calibration
-    from .mechanics import density_modulus
-    from .patient_io import load_patient
+    from .io.files import check_writable, write_json
+    from .geometry.grade import load_ct, parse_calibration
+    from .measure.mechanics import density_modulus
+    from .io.patient_io import load_patient
     from .progress import Progress
 
     if args.stiffness is not None:
@@ -655,11 +655,11 @@ def _generate(args) -> int:
     result = _build(args, output=args.output)
     comp = result.compression
     if args.report is not None:
-        from .report import write_run_report
+        from .io.report import write_run_report
 
         extra = None
         if comp is not None:
-            from .report import strain_section_image
+            from .io.report import strain_section_image
 
             h = result.report["mechanics"]["voxel"]["voxel_mm"]
             extra = {"compression: von Mises strain, middle section": strain_section_image(comp, h)}
@@ -822,11 +822,11 @@ def analyze_table(report: dict) -> str:
 
 
 def _analyze(args) -> int:
-    from .morphometry import analyze_file
+    from .measure.morphometry import analyze_file
 
     t0 = time.perf_counter()
     if args.output is not None:
-        from .files import check_writable
+        from .io.files import check_writable
 
         check_writable(args.output, formats=(".json",))
     if args.report is not None:
@@ -835,11 +835,11 @@ def _analyze(args) -> int:
     r = result.report
     r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
     if args.output is not None:
-        from .files import write_json
+        from .io.files import write_json
 
         write_json(r, args.output)
     if args.report is not None:
-        from .report import write_analysis_report
+        from .io.report import write_analysis_report
 
         write_analysis_report(result, args.report)
     if not args.quiet:
@@ -863,7 +863,7 @@ def result_json(output) -> str:
 
 
 def _slice(args) -> int:
-    from .slices import check_stack_output
+    from .mesh.slices import check_stack_output
 
     t0 = time.perf_counter()
     check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built
@@ -962,7 +962,7 @@ def _info(args) -> int:
     how = f"named by {opencl.DEVICE_ENV}" if os.environ.get(opencl.DEVICE_ENV) else "the fastest that works"
     print(f"chosen: {pick.label} ({how})")
     t0 = time.perf_counter()
-    from .lattice import BLOCK
+    from .fields.lattice import BLOCK
 
     for source in opencl.kernel_names():
         opencl.program(source, BLOCK=BLOCK)

@@ -3,7 +3,7 @@ generator's parameters, checked on built representative volumes.
 
 What is solved and how
 ----------------------
-- Porosity is met exactly by :func:`.pipeline.generate` itself (it solves the surface offset or
+- Porosity is met exactly by :func:`~implicit_scaffold.pipeline.generate` itself (it solves the surface offset or
   the strut radius for it), and the mean pore size (polyhedron-sphere, the paper's measure) by its
   ``seed_rule="pore-size"`` (it solves the seed density). Neither is searched here.
 - The minimum strut is what is left: at a given porosity and pore size it depends on the style and
@@ -18,11 +18,11 @@ What is solved and how
 Definitions (one each, used by the search and the verification alike)
 ----------------------------------------------------------------------
 - minimum strut: the 1st percentile of the solid's local thickness counted to the voxel
-  boundaries (:func:`.morphometry.local_thickness` plus one voxel, as the print certificate's
+  boundaries (:func:`~implicit_scaffold.measure.morphometry.local_thickness` plus one voxel, as the print certificate's
   ``thinnest_mm`` p1 does), over the solid voxels of the representative volume's core (farther than
   a margin from its cut faces, where the box cut leaves slivers that no lattice parameter controls).
 - stiffness: the apparent modulus of a lubricated platen compression along z
-  (:func:`.mechanics.compress`) of the representative volume, at twice its voxel (the solve is the
+  (:func:`~implicit_scaffold.measure.mechanics.compress`) of the representative volume, at twice its voxel (the solve is the
   cost; the search corrects on measured values, so a consistent measure is what matters).
 """
 from __future__ import annotations
@@ -66,7 +66,7 @@ class Targets:
     stiffness : float or None, GPa
         Apparent modulus.
     material : str
-        A :data:`.mechanics.MATERIALS` key (for the stiffness).
+        A :data:`~implicit_scaffold.measure.mechanics.MATERIALS` key (for the stiffness).
     """
 
     porosity: float
@@ -78,7 +78,7 @@ class Targets:
 
 @dataclass(frozen=True)
 class Design:
-    """The answer: parameters for :func:`.pipeline.generate`, targets, achieved values, verdict.
+    """The answer: parameters for :func:`~implicit_scaffold.pipeline.generate`, targets, achieved values, verdict.
 
     ``achieved`` maps each target to ``{"mean", "min", "max", "values"}`` over the seeds;
     ``conflicts`` names the targets that cannot be met together and ``tradeoff`` the nearest
@@ -110,7 +110,7 @@ def check_targets(targets: Targets) -> Targets:
             raise ScaffoldError(f"--{name} must lie in ({lo:g}, {hi:g}), got {v!r}")
         return v
 
-    from .mechanics import material
+    from .measure.mechanics import material
 
     material(targets.material)  # unknown names refused here, before any build
     return Targets(porosity=num("porosity", targets.porosity, 0.0, 1.0),
@@ -158,7 +158,7 @@ def representative_volume(targets: Targets, sv_min: float = SV_RANGE[0]) -> dict
 
 def min_strut_p1(solid: np.ndarray, inside: np.ndarray, voxel: float) -> float:
     """1st percentile (mm) of the local thickness counted to the voxel boundaries over ``solid & inside``."""
-    from .morphometry import local_thickness
+    from .measure.morphometry import local_thickness
 
     thick = local_thickness(solid, voxel)
     core = solid & inside
@@ -175,7 +175,7 @@ def apparent_modulus(solid: np.ndarray, voxel: float, material_name: str, *, ste
     voxels at a sixteenth of the pore) it moves the modulus by a lot at high porosity (measured on a
     4-cell cube of 0.5 mm pores, Ti-6Al-4V: 25.48 against 24.55 GPa at 50 %, 0.994 against 1.567 GPa
     at 90 %), so the CT design measures at `step` 1."""
-    from .mechanics import compress, crop, material
+    from .measure.mechanics import compress, crop, material
 
     coarse = crop(solid)[::step, ::step, ::step]
     # tol 1e-3: the modulus moves by well under 1 % below it, and the solve is the search's cost
@@ -224,7 +224,7 @@ def _next_sv(points: list[tuple[float, float]], goal: float, lo: float, hi: floa
 
 
 def _maps(maps):
-    """`maps` as a :class:`.design_maps.DesignMaps` (True: the shipped ones) or None (False or None)."""
+    """`maps` as a :class:`~implicit_scaffold.design_maps.DesignMaps` (True: the shipped ones) or None (False or None)."""
     if maps is None or maps is False:
         return None
     from .design_maps import load_maps
@@ -246,7 +246,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     max_builds : int
         Forward builds of the search at most (the verification's are not counted).
     maps : DesignMaps or bool
-        The first guess (:mod:`.design_maps`): True reads the shipped maps, False starts from the
+        The first guess (:mod:`~implicit_scaffold.design_maps`): True reads the shipped maps, False starts from the
         defaults (the paper style, then the struts style at Sv 0.75).
 
     Returns
@@ -516,7 +516,7 @@ def load_parameters(path) -> dict:
         raise ScaffoldError(f"--design: unknown parameters {', '.join(sorted(unknown))} in {path}")
     if "stiffness_from_ct" in params:
         # the calibration chain of a design graded from the CT: generate's calibration (needs the CT as --patient)
-        from .grade import ModulusCalibration
+        from .geometry.grade import ModulusCalibration
 
         params = dict(params)
         params["calibration"] = ModulusCalibration.from_json(params.pop("stiffness_from_ct"))
@@ -524,7 +524,7 @@ def load_parameters(path) -> dict:
 
 
 def generate_design(path, **options):
-    """:func:`.pipeline.generate` with the parameters of a design.json; `options` (``output``,
+    """:func:`~implicit_scaffold.pipeline.generate` with the parameters of a design.json; `options` (``output``,
     ``size``, ``patient``, ``voxel``, ...) are passed on and win over the design's.
 
     Returns
@@ -539,7 +539,7 @@ def generate_design(path, **options):
 # --- graded, from the patient's CT (--stiffness-from-ct) ----------------------------------
 
 #: porosities of the forward builds that fit the scaffold's modulus-porosity law: the span a
-#: graded scaffold keeps (:data:`.grade.POROSITY_RANGE`: below 0.5 the void stops being reliably
+#: graded scaffold keeps (:data:`~implicit_scaffold.geometry.grade.POROSITY_RANGE`: below 0.5 the void stops being reliably
 #: interconnected, above 0.9 the struts stop carrying load), its ends and its middle
 FIT_POROSITIES = (0.5, 0.7, 0.9)
 #: random seeds built at each of them (the modulus of a few-cell cube spreads by some 5-15 % from
@@ -572,7 +572,7 @@ def fit_modulus_porosity(porosity, modulus_gpa, solid_gpa: float):
     -------
     ModulusPorosity
     """
-    from .grade import ModulusPorosity
+    from .geometry.grade import ModulusPorosity
 
     p = np.asarray(porosity, np.float64)
     e = np.asarray(modulus_gpa, np.float64)
@@ -586,7 +586,7 @@ def fit_modulus_porosity(porosity, modulus_gpa, solid_gpa: float):
 def patient_intensities(ct, patient, max_voxels: int = CT_SAMPLE_VOXELS) -> np.ndarray:
     """The CT's intensities (float64) at voxel centres inside `patient`, on a grid of at most
     `max_voxels` over its bounds (at the CT's finest spacing when that fits)."""
-    from .grid import Grid
+    from .run.grid import Grid
 
     lo, hi = np.asarray(patient.lo, np.float64), np.asarray(patient.hi, np.float64)
     h = float(np.min(np.linalg.norm(ct.affine[:, :3], axis=0)))
@@ -605,28 +605,28 @@ def design_from_ct(ct, patient, *, calibration, site: str = "pooled", pore_size:
 
     The CT's intensities give the bone's density by the linear `calibration`, the density its
     apparent modulus by a published density-modulus law of the anatomical `site` (Morgan,
-    Bayraktar & Keaveny 2003, J Biomech 36:897-904; :data:`.mechanics.BONE_DENSITY_MODULUS`),
+    Bayraktar & Keaveny 2003, J Biomech 36:897-904; :data:`~implicit_scaffold.measure.mechanics.BONE_DENSITY_MODULUS`),
     and that modulus the porosity of the scaffold whose modulus it is, through the scaffold's
     own modulus-porosity law, measured: a power law fitted (:func:`fit_modulus_porosity`) to
     forward builds of a representative cube at :data:`FIT_POROSITIES` (:data:`FIT_SEEDS` seeds
     each, the apparent modulus of a platen compression at the design voxel, :func:`apparent_modulus`
     with step 1). The graded
-    scaffold is then built on the patient by the grading machinery (:class:`.grade.ModulusCalibration`
-    as the calibration of :func:`.pipeline.generate`), with cells of mean pore size `pore_size`.
+    scaffold is then built on the patient by the grading machinery (:class:`~implicit_scaffold.geometry.grade.ModulusCalibration`
+    as the calibration of :func:`~implicit_scaffold.pipeline.generate`), with cells of mean pore size `pore_size`.
 
     Parameters
     ----------
     ct : CTImage
     patient : object
-        The patient geometry (:func:`.patient_io.load_patient`), in the CT's frame.
+        The patient geometry (:func:`~implicit_scaffold.io.patient_io.load_patient`), in the CT's frame.
     calibration : (slope, intercept)
         Density g/cm³ = slope · HU + intercept.
     site : str
-        A :data:`.mechanics.BONE_DENSITY_MODULUS` key.
+        A :data:`~implicit_scaffold.measure.mechanics.BONE_DENSITY_MODULUS` key.
     pore_size : float, mm
         Mean polyhedron-sphere pore size.
     material : str
-        The scaffold's solid (:data:`.mechanics.MATERIALS`).
+        The scaffold's solid (:data:`~implicit_scaffold.measure.mechanics.MATERIALS`).
     min_strut : float, mm, optional
         Checked on the fit's builds at the field's most porous end.
     voxel : float, mm, optional
@@ -647,9 +647,9 @@ def design_from_ct(ct, patient, *, calibration, site: str = "pooled", pore_size:
         ``feasible`` (at least :data:`CT_FEASIBLE_SHARE` of the patient's voxels within the
         scaffold's reach, and the minimum strut kept).
     """
-    from .grade import ModulusCalibration, parse_calibration
-    from .mechanics import density_modulus
-    from .mechanics import material as material_of
+    from .geometry.grade import ModulusCalibration, parse_calibration
+    from .measure.mechanics import density_modulus
+    from .measure.mechanics import material as material_of
     from .pipeline import generate
 
     law = density_modulus(site)
@@ -705,7 +705,7 @@ def design_from_ct(ct, patient, *, calibration, site: str = "pooled", pore_size:
     build_voxel = float(voxel) if voxel is not None else rve["voxel"]
     if progress is not None:
         progress.note(f"graded build on the patient at {build_voxel:.4g} mm")
-    from .formats import MESH_WRITERS
+    from .io.formats import MESH_WRITERS
     from .specs import output_format
 
     r = generate(patient=patient, ct=ct, calibration=modcal, voxel=build_voxel, seed=seed, output=output,

@@ -1,7 +1,7 @@
 """The design maps (issue 16): minimum strut and apparent modulus against style, Sf, Sv and porosity.
 
 Measured once on forward builds by ``benchmarks/design_maps.py`` and shipped as
-``design_maps.json`` beside this module; :func:`.design.design` reads them for its first guess
+``design_maps.json`` beside this module; :func:`~implicit_scaffold.design.design` reads them for its first guess
 (which style, which Sv), so fewer forward builds are spent finding the bracket. The search then
 corrects on the builds it measures itself, so the maps need only be close.
 
@@ -50,17 +50,17 @@ def grid_points() -> list[tuple[str, float, float, float]]:
 
 
 def cube(sv: float) -> dict:
-    """The cube an entry is built on (``size``, ``voxel``, ``margin``, mm), as :func:`.design.forward` takes it."""
+    """The cube an entry is built on (``size``, ``voxel``, ``margin``, mm), as :func:`~implicit_scaffold.design.forward` takes it."""
     size = CELLS * PORE_SIZE / sv
     voxel = max(PORE_SIZE / 16.0, size / MAX_VOXELS_SIDE)
     return {"size": size, "voxel": voxel, "margin": 0.5 * PORE_SIZE}
 
 
 def measure_entry(style: str, sf: float, sv: float, porosity: float) -> dict:
-    """One entry of the maps, built and measured (:func:`.design.forward`): the minimum strut over the
+    """One entry of the maps, built and measured (:func:`~implicit_scaffold.design.forward`): the minimum strut over the
     pore size and the apparent modulus over the solid's, rounded to :data:`DIGITS` digits."""
     from .design import Targets, forward
-    from .mechanics import material
+    from .measure.mechanics import material
 
     m = forward({"style": style, "sf": sf, "sv": sv},
                 Targets(porosity=porosity, pore_size=PORE_SIZE, material=MATERIAL), cube(sv), SEED, stiffness=True)

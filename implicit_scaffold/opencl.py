@@ -595,17 +595,17 @@ def probe_here(position) -> dict:
     dict
         ``ok``, ``reason``, ``build_seconds``, ``mvoxels_per_second``, ``max_error_mm``.
     """
-    from .cells import voronoi_cells
-    from .grid import Grid
-    from .lattice import lattice_sdf, lattice_sdf_reference, struts_field, struts_field_reference
-    from .patient_mesh import triangle_distance, triangle_distance_reference
-    from .skeleton import scaled_skeleton, voronoi_edges
+    from .geometry.cells import voronoi_cells
+    from .run.grid import Grid
+    from .fields.lattice import lattice_sdf, lattice_sdf_reference, struts_field, struts_field_reference
+    from .fields.patient_mesh import triangle_distance, triangle_distance_reference
+    from .geometry.skeleton import scaled_skeleton, voronoi_edges
 
     _ACTIVE.clear()
     _ACTIVE.update(_activate(position))
     ctx, _ = context()
     t0 = time.perf_counter()
-    from .lattice import BLOCK
+    from .fields.lattice import BLOCK
 
     for source, names in kernel_names().items():
         prg = _program(ctx, source, (("BLOCK", BLOCK),))

@@ -14,15 +14,15 @@ import numpy as np
 
 from . import __version__, opencl
 from .errors import ScaffoldError
-from .field import sample
-from .grid import Grid, run_bytes_per_voxel
-from .memory import available_memory, check_memory
+from .fields.field import sample
+from .run.grid import Grid, run_bytes_per_voxel
+from .run.memory import available_memory, check_memory
 from .progress import Progress
-from .skeleton import closed_form_porosity, quad_areas
+from .geometry.skeleton import closed_form_porosity, quad_areas
 from .specs import (FLAT_KEYWORDS, STYLES, GridSpec, LatticeSpec, Outputs, check_width,  # noqa: F401
                     output_format, specs_from)
 
-from .formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS  # noqa: E402
+from .io.formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS  # noqa: E402
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
@@ -99,7 +99,7 @@ class Result:
         The same dict as the JSON report.
     cells : Cells
     skeleton : Skeleton or None
-        The paper style's skeleton (a :class:`~.skeleton.SkeletonSource` in a tiled run, which builds
+        The paper style's skeleton (a :class:`~implicit_scaffold.geometry.skeleton.SkeletonSource` in a tiled run, which builds
         it slab by slab); None for struts.
     edges : (ne, 2, 3) ndarray or None
         The struts' axes; None for the paper style.
@@ -111,7 +111,7 @@ class Result:
     patient_sdf : (nx, ny, nz) float32 ndarray, mm
         The patient's signed distance as the run read it: a mesh patient's is clamped
         beyond the skin and smooth-cut widths (and a depth grade's deepest node) plus 3
-        voxels, where only its sign matters (:meth:`.patient_mesh.MeshPatient.clamp_far_field`).
+        voxels, where only its sign matters (:meth:`~implicit_scaffold.fields.patient_mesh.MeshPatient.clamp_far_field`).
         A memmap in a tiled run, as `field`.
     mesh : trimesh.Trimesh or None
         None without the mesh stage. A run in slabs streams its mesh to the output file, and
@@ -134,7 +134,7 @@ class Result:
     timings: dict = dc_field(default_factory=dict)
     #: the slabs of a run kept on disk (None for one slab held in memory)
     tiled: Any = None
-    #: the platen compression of ``Outputs.mechanics`` (:class:`.mechanics.Compression`), else None
+    #: the platen compression of ``Outputs.mechanics`` (:class:`~implicit_scaffold.measure.mechanics.Compression`), else None
     compression: Any = None
     mesh_file: Any = None
     _mesh: Any = dc_field(default=None, repr=False)
@@ -164,7 +164,7 @@ def _read_back(path: Path, report: dict):
     import warnings
 
     from .errors import ScaffoldWarning
-    from .memory import format_size, process_memory
+    from .run.memory import format_size, process_memory
 
     budget = int(round(float((report.get("tiled") or {}).get("max_memory_mb", 0)) * 2**20))
     need = int(report.get("triangles", 0)) * READ_BACK_BYTES_PER_TRIANGLE
@@ -311,23 +311,23 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     ----------
     lattice : LatticeSpec, optional
         The lattice: style, seeds or pore size, porosity, Sf, Sv, blend, seed, grading
-        (:class:`~.specs.LatticeSpec`, whose fields are also keywords here).
+        (:class:`~implicit_scaffold.specs.LatticeSpec`, whose fields are also keywords here).
     grid : GridSpec, optional
         The voxel and the run's layout: ``voxel``, ``max_memory``, ``tiled``, ``workers``,
-        ``scheduler`` (:class:`~.specs.GridSpec`; also keywords). Every run's field is made
-        by one slab driver (:mod:`.tiled`): a grid that fits is one slab held in memory, a
+        ``scheduler`` (:class:`~implicit_scaffold.specs.GridSpec`; also keywords). Every run's field is made
+        by one slab driver (:mod:`~implicit_scaffold.run.tiled`): a grid that fits is one slab held in memory, a
         larger one runs in slabs kept on disk, with the same field bit for bit; one that
         cannot fit even so is refused before the work starts, naming the budget that would
         do. ``report["tiled"]["workers"]`` says how many worker processes ran.
     outputs : Outputs, optional
         What is written and measured: ``path`` (the keyword ``output``), ``mesh``,
         ``morphometry``, ``slices``, ``printer``, ``repair``, ``tolerance``, ``mechanics``
-        (:class:`~.specs.Outputs`; also keywords). The JSON report goes beside the path; a
+        (:class:`~implicit_scaffold.specs.Outputs`; also keywords). The JSON report goes beside the path; a
         printer's certificate lands in ``report["print_check"]``, a repair's changes in
         ``report["repair"]``, the slices' geometry in ``report["slices"]``, the mesh
         simplification's measured error in ``report["simplification"]``.
     patient : object, optional
-        A patient geometry (see :mod:`.patient`, :func:`.patient_io.load_patient`); by
+        A patient geometry (see :mod:`~implicit_scaffold.fields.patient`, :func:`~implicit_scaffold.io.patient_io.load_patient`); by
         default the built-in `shape` of `size`.
     shape : {"box", "cylinder", "sphere"}
     size : float or (3,) floats, mm
@@ -337,7 +337,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     smooth_cut : float, mm
         Width of a smooth instead of sharp intersection with the patient; 0 for sharp.
     ct : CTImage or str or Path, optional
-        The patient's CT intensities, for ``calibration`` (:func:`.grade.load_ct`).
+        The patient's CT intensities, for ``calibration`` (:func:`~implicit_scaffold.geometry.grade.load_ct`).
     verbose : bool
         Print stage progress on stderr.
     output, mesh, morphometry, slices, printer, repair, tolerance, voxel, max_memory, tiled, \
@@ -366,7 +366,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
                                                           outs.printer, outs.repair)
     max_memory, tiled, scheduler, workers = layout.max_memory, layout.tiled, layout.scheduler, layout.workers
     del shape, size, skin, smooth_cut, grid
-    from .patient import clamp_far_field, primitive
+    from .fields.patient import clamp_far_field, primitive
 
     if params.seeds_in is None:
         # time and memory then follow the bone's volume, not its bounding box's
@@ -381,7 +381,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         patient = primitive(params.shape, params.size)
     # everything that can be checked before the work starts is checked now
     opencl.context()
-    from .memory import budget
+    from .run.memory import budget
 
     # the patient as the fine grid reads it: beyond the skin and smooth-cut widths (and a
     # depth grade's deepest node) only its sign matters, so a mesh's far field is clamped there
@@ -439,7 +439,7 @@ def _checked_output(output: Path | None) -> Path | None:
     report, before the work starts."""
     if output is None:
         return None
-    from .files import check_writable
+    from .io.files import check_writable
 
     out_path = Path(output)
     check_writable(out_path)
@@ -449,7 +449,7 @@ def _checked_output(output: Path | None) -> Path | None:
 
 @dataclass(frozen=True)
 class _Graded:
-    """A graded run's pore-size field and the seed density drawn from it (:mod:`.grade`)."""
+    """A graded run's pore-size field and the seed density drawn from it (:mod:`~implicit_scaffold.geometry.grade`)."""
 
     field: Any
     density: Any
@@ -459,7 +459,7 @@ def _graded_density(params: Params, patient, ct, prog) -> _Graded | None:
     """Stage ``density``: the seed density of a graded run (``--grade`` or ``--calibration``), else None."""
     if params.grade is None and params.calibration is None:
         return None
-    from . import grade as grading
+    from .geometry import grade as grading
 
     if isinstance(ct, (str, Path)):
         ct = grading.load_ct(ct)
@@ -478,7 +478,7 @@ def _seed_volume(params: Params, patient) -> float:
 
 def _seed_count(params: Params, patient) -> int:
     """The first seed count of an even (not graded) run: given, by the paper's formula, or for the pore size."""
-    from .seeds import density_for_pore_size, seed_count
+    from .geometry.seeds import density_for_pore_size, seed_count
 
     if params.seeds is not None:
         return params.seeds
@@ -494,8 +494,8 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
     and the cells' own memory. Returns the plan's slab voxels (None: the whole grid, or no voxel given)."""
     planned = None
     if params.voxel is not None:
-        from .cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
-        from .tiles import blend_halo
+        from .geometry.cells import CELLS_BYTES_PER_SEED, HELD_BYTES_PER_SEED
+        from .run.tiles import blend_halo
 
         # what the cells, the skeleton and the packed primitives will hold, and the blend's halo
         # at the widest the walls allow (half a wall; a wall is at most 1 - Sv of two cells'
@@ -511,9 +511,9 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
 
 
 def _check_cells_memory(run: _RunPlan, params: Params, n: int, graded: bool) -> None:
-    """Refuse `n` seeds whose cells cannot be built within what --max-memory leaves (:func:`.cells.check_seed_memory`)."""
-    from .cells import check_seed_memory
-    from .memory import process_memory
+    """Refuse `n` seeds whose cells cannot be built within what --max-memory leaves (:func:`~implicit_scaffold.geometry.cells.check_seed_memory`)."""
+    from .geometry.cells import check_seed_memory
+    from .run.memory import process_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
                       available=min(run.max_memory - process_memory(), available_memory()),
@@ -538,10 +538,10 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
     """Stages ``seeds`` and ``cells``: the seeds drawn for `n` (for the pore size, the count
     corrected until the cells measure it) and their Voronoi (or power) cells; the walls and
     windows of the cells near the patient."""
-    from .cells import voronoi_cells
-    from .memory import release
-    from .metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
-    from .seeds import PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, seeds_in_patient, uniform_seeds
+    from .geometry.cells import voronoi_cells
+    from .run.memory import release
+    from .measure.metrics import interior_face_pairs, pore_sizes, trabecular_thicknesses
+    from .geometry.seeds import PORE_SIZE_PASSES, PORE_SIZE_TOLERANCE, corrected_count, seeds_in_patient, uniform_seeds
 
     lo, hi = np.asarray(patient.lo, float), np.asarray(patient.hi, float)
     # solve the seed count for the measured pore size: the Poisson-Voronoi estimate, then
@@ -552,7 +552,7 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
         coarse, coarse_grid = _coarse_patient(patient, (float(patient.volume) / n) ** (1 / 3))
     weighted = graded is not None and params.weighted
     if graded is not None:
-        from . import grade as grading
+        from .geometry import grade as grading
     tried = []
     for _ in range(PORE_SIZE_PASSES if solving else 1):
         # every pass draws from the same --seed: the seeds are a function of the count alone
@@ -616,9 +616,9 @@ def _skeleton_stage(params: Params, built: _Built, grid: Grid, run: _RunPlan, pr
     slab_voxels : int or None
         Voxels per slab on disk, or None for one slab held in memory (:meth:`_RunPlan.plan`).
     """
-    from .lattice import packed_bytes
-    from .skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
-    from .tiles import blend_halo
+    from .fields.lattice import packed_bytes
+    from .geometry.skeleton import SkeletonSource, scaled_skeleton, voronoi_edges
+    from .run.tiles import blend_halo
 
     cells = built.cells
     reserve = GRADE_RESERVE if graded else 0
@@ -629,7 +629,7 @@ def _skeleton_stage(params: Params, built: _Built, grid: Grid, run: _RunPlan, pr
         return None, edges, run.plan(grid, halo=0, reserve=packed_bytes(edges=edges) + reserve)
     # planned from the cells: a whole grid holds the whole skeleton, a slab the skeleton of
     # the cells that reach it (SkeletonSource), which it counts slab by slab
-    from .tiled import _band
+    from .run.tiled import _band
 
     source = SkeletonSource(cells, params.sf, params.sv)
     primitives = max(packed_bytes(cells=cells), source.bytes_near(-np.inf, np.inf))
@@ -683,9 +683,9 @@ def _metrics_fit_beside(grid: Grid, triangles: int, tolerance: float, max_memory
     """Whether the voxel measures may run beside the mesh (its second pass), its summary and
     write: their arrays and a mesh of `triangles` together within `max_memory`, and nothing else
     compiled and parallel (the simplification) in between."""
-    from .grid import MORPHOMETRY_BYTES_PER_VOXEL
-    from .memory import process_memory
-    from .mesh_stream import MESH_BYTES_PER_TRIANGLE
+    from .run.grid import MORPHOMETRY_BYTES_PER_VOXEL
+    from .run.memory import process_memory
+    from .mesh.stream import MESH_BYTES_PER_TRIANGLE
 
     if tolerance > 0:
         return False
@@ -696,7 +696,7 @@ def _metrics_fit_beside(grid: Grid, triangles: int, tolerance: float, max_memory
 def _grade_reach(grade) -> float:
     """How deep (mm) a grade reads the patient's distance: a depth profile's deepest node plus
     its widest pore (the depth bins beyond are one); 0 for the others (they read positions)."""
-    from .grade import GradeProfile
+    from .geometry.grade import GradeProfile
 
     if isinstance(grade, GradeProfile):
         return float(max(grade.depths)) + float(max(grade.sizes))
@@ -705,7 +705,7 @@ def _grade_reach(grade) -> float:
 
 def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, grid: Grid, cells,
                   max_voxels: int | None = None) -> dict:
-    """The graded run's report keys: its field, the offset field and the profiles (:mod:`.grade`).
+    """The graded run's report keys: its field, the offset field and the profiles (:mod:`~implicit_scaffold.geometry.grade`).
 
     `s` and `s_p` are arrays, or a tiled run's fields on disk (read in chunks of at most `max_voxels`).
     """
@@ -732,8 +732,8 @@ def _grade_report(params: Params, gfield, density, plan, level_field, s, s_p, gr
 
 
 def _grade_profiles(params: Params, gfield, s, s_p, grid: Grid, cells, max_voxels: int | None = None) -> dict:
-    """The graded report's ``profiles`` (and ``below_skin``), recounted from the fields (:func:`.grade.profiles`)."""
-    from .grade import profiles
+    """The graded report's ``profiles`` (and ``below_skin``), recounted from the fields (:func:`~implicit_scaffold.geometry.grade.profiles`)."""
+    from .geometry.grade import profiles
 
     below = params.skin + params.smooth_cut
     info = {"profiles": profiles(s, grid, cells, params.sv, gfield, s_p, max_voxels=max_voxels, below=below)}
@@ -785,7 +785,7 @@ def _lattice_plan(params: Params, skeleton, edges, grid: Grid, box_volume: float
 
 def _mesh_correction(volume: float, patient, params: Params, calibration, voxel: float,
                      area: float | None = None, tf=None) -> float | None:
-    """The level step after the whole mesh was measured (:func:`.printed.correction`); noted in `calibration`.
+    """The level step after the whole mesh was measured (:func:`~implicit_scaffold.fields.printed.correction`); noted in `calibration`.
 
     A graded run's level is a field of depth bins, solved in voxels, with no calibration prism;
     its target is the voxels' porosity (``calibration["target"]``) and its slope is measured on
@@ -793,7 +793,7 @@ def _mesh_correction(volume: float, patient, params: Params, calibration, voxel:
     asks for (a blended field's gradient is shorter than 1 at thin walls, where the surface moves
     farther than the level: the area alone undershoots the slope).
     """
-    from .printed import correction
+    from .fields.printed import correction
 
     if not calibration or calibration.get("by") != "mesh" or "correction" in calibration:
         return None
@@ -811,7 +811,7 @@ def _mesh_correction(volume: float, patient, params: Params, calibration, voxel:
 
 def _voxel_slope(tf, step: float) -> float | None:
     """d porosity / d level (per mm) of the finished field over a level step of `step` mm, in voxels:
-    the patient's voxels whose value the step carries across 0 (:func:`.tiled.shift_level` makes
+    the patient's voxels whose value the step carries across 0 (:func:`~implicit_scaffold.run.tiled.shift_level` makes
     ``max(s - step, s_P)``), over the patient's voxels and the step. None when none crosses."""
     d, crossing = abs(float(step)), 0
     for sl in tf.slabs:
@@ -834,7 +834,7 @@ def _tolerance(params: Params, voxel: float) -> float:
 
 
 def _simplify(mesh, tolerance: float, voxel: float, patient_volume: float, prog, max_memory: int):
-    """Simplify `mesh` within `tolerance` (:mod:`.simplify`) and measure what moved.
+    """Simplify `mesh` within `tolerance` (:mod:`~implicit_scaffold.mesh.simplify`) and measure what moved.
 
     Returns
     -------
@@ -847,9 +847,9 @@ def _simplify(mesh, tolerance: float, voxel: float, patient_volume: float, prog,
     """
     import manifold3d
 
-    from .mesh import mesh_volume
-    from .memory import process_memory
-    from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE, euler_characteristic, simplification_error, simplify_mesh
+    from .mesh.marching import mesh_volume
+    from .run.memory import process_memory
+    from .mesh.simplify import SIMPLIFY_BYTES_PER_TRIANGLE, euler_characteristic, simplification_error, simplify_mesh
 
     before = len(mesh.faces)
     info = {"tolerance_mm": float(tolerance), "tolerance_voxels": float(tolerance / voxel),
@@ -907,20 +907,20 @@ def _printed_kind(params: Params, mesh: bool, slices, *, graded: bool) -> str | 
 
 
 def _prism(grid: Grid):
-    """The calibration prism's y and z bands (:func:`.printed.prism_bands`)."""
-    from .printed import prism_bands
+    """The calibration prism's y and z bands (:func:`~implicit_scaffold.fields.printed.prism_bands`)."""
+    from .fields.printed import prism_bands
 
     return prism_bands(grid.shape)
 
 
 def _printed_level(printed: str, read, level: float, grid: Grid, params: Params, slices, ys, zs,
                    pieces=None, whole_volume: float | None = None):
-    """The level that meets the target on what is printed (:func:`.printed.printed_level`),
+    """The level that meets the target on what is printed (:func:`~implicit_scaffold.fields.printed.printed_level`),
     from the lattice and patient fields on the calibration prism (and, for a mesh, the grid's
     y-face bands); and the report's record. ``read(ys, zs)`` gives the two fields on a band."""
     from functools import partial
 
-    from .printed import clean_prism, face_bands, face_shave, printed_level, printed_measure
+    from .fields.printed import clean_prism, face_bands, face_shave, printed_level, printed_measure
 
     slices = slices or {}
     base, s_p = read(ys, zs)
@@ -953,7 +953,7 @@ def _paper_blend(params: Params, wall_p10: float, window_p25: float) -> float:
 def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, walls, grid: Grid, k, cutoff,
                  level, porosity_voxel, fragments, sealed, seed_solve=None) -> dict:
     """The report's keys that a whole-grid and a tiled run share."""
-    from .metrics import cell_metrics
+    from .measure.metrics import cell_metrics
 
     report: dict[str, Any] = {
         "version": __version__,
@@ -1000,7 +1000,7 @@ def _base_report(params: Params, patient, box_volume, seeds, cells, cells_in, wa
 def _patient_source(patient) -> dict | None:
     """How to build the patient again: its file and options, or the built-in shape; None for an
     object given to :func:`generate` directly."""
-    from .patient import SHAPES
+    from .fields.patient import SHAPES
 
     source = getattr(patient, "load_options", None)  # set by patient_io.load_patient
     if source is not None:
@@ -1013,7 +1013,7 @@ def _patient_source(patient) -> dict | None:
 
 def _paper_count(params: Params, patient, box_volume: float) -> int:
     """The paper's seed count n = V P / (pi Dp^3 / 6) for these options (V: where the seeds are drawn)."""
-    from .seeds import seed_count
+    from .geometry.seeds import seed_count
 
     porosity = params.porosity if params.porosity is not None else closed_form_porosity(params.sf, params.sv)
     return seed_count(box_volume if params.seeds_in == "box" else float(patient.volume), porosity,
@@ -1021,8 +1021,8 @@ def _paper_count(params: Params, patient, box_volume: float) -> int:
 
 
 #: bytes a graded run holds beside the slabs: the seeding grid, the offset's sample of
-#: :data:`~.grade.LEVEL_SAMPLE_VOXELS` voxels with its sort, and the per-bin histograms of
-#: :class:`~.tiles.GroupQuantile` (1.5 MiB a bin)
+#: :data:`~implicit_scaffold.geometry.grade.LEVEL_SAMPLE_VOXELS` voxels with its sort, and the per-bin histograms of
+#: :class:`~implicit_scaffold.run.tiles.GroupQuantile` (1.5 MiB a bin)
 GRADE_RESERVE = 320 * 2**20
 #: a tiled run builds the whole skeleton once when it (and its packed primitives) take at
 #: most this share of --max-memory, else slab by slab
@@ -1044,7 +1044,7 @@ class _RunPlan:
     def whole_grid_refusal(self, grid: Grid, what: str) -> ScaffoldError:
         """The one-line refusal of a stage that needs the whole grid in memory, naming the budget
         the last :meth:`plan` found it needs."""
-        from .memory import format_size
+        from .run.memory import format_size
 
         return ScaffoldError(
             f"{what} needs the whole grid in memory: a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} "
@@ -1062,19 +1062,19 @@ class _RunPlan:
         raise if neither fits.
 
         `reserve` is what the stages hold beside the grid's voxels on the whole grid (the
-        lattice's primitives, :func:`~.lattice.packed_bytes`); of that, `slab_share` is
+        lattice's primitives, :func:`~implicit_scaffold.fields.lattice.packed_bytes`); of that, `slab_share` is
         built slab by slab in a tiled run, in proportion to the slab's voxels (twice, for the
         primitives that reach a slab from beyond it). Every stage's thinnest slab must fit
         beside what the process holds and the reserve, from the lattice to the mesh: a
         budget too small for that is refused now, naming the smallest that would do.
         `slab_bytes(h0, h1)`, when given, is what the lattice's primitives take for the
         slab of planes ``[h0, h1)`` (halo included), known per slab
-        (:meth:`~.skeleton.SkeletonSource.bytes_near`): the slabs are then thinned until
+        (:meth:`~implicit_scaffold.geometry.skeleton.SkeletonSource.bytes_near`): the slabs are then thinned until
         the most crowded one fits.
         """
-        from .memory import format_size, release
-        from .tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, WORKER_RESERVE, check_disk
-        from .tiles import plan_slabs
+        from .run.memory import format_size, release
+        from .run.tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, WORKER_RESERVE, check_disk
+        from .run.tiles import plan_slabs
 
         held = release() + STAGE_RESERVE
         whole = grid.memory_estimate(self.run_bytes) + held + int(reserve)
@@ -1095,7 +1095,7 @@ class _RunPlan:
         n = self.workers
         if n > 1:
             held += n * (WORKER_RESERVE + int(reserve) - int(slab_share))
-        from .mesh_stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
+        from .mesh.stream import MESH_HALO_PLANES, MESH_SLAB_BYTES_PER_VOXEL
 
         plane = grid.shape[1] * grid.shape[2]
         thinnest = int((1 + 2 * halo) * plane * per_voxel * n)
@@ -1132,7 +1132,7 @@ class _RunPlan:
 
     def _thin_for(self, grid: Grid, halo: int, held: int, slab_bytes, voxels: int) -> int:
         """The largest slab (voxels, halo included) whose every slab fits with its primitives."""
-        from .memory import format_size
+        from .run.memory import format_size
 
         plane = grid.shape[1] * grid.shape[2]
         planes = max(1, voxels // plane - 2 * halo)
@@ -1153,8 +1153,8 @@ class _RunPlan:
 def _worst_slab(grid: Grid, halo: int, planes: int, slab_bytes) -> int:
     """The bytes of the most crowded slab of the lattice pass when slabs own `planes` planes:
     its voxels and, by `slab_bytes(h0, h1)`, its primitives."""
-    from .tiled import SLAB_BYTES_PER_VOXEL
-    from .tiles import plan_slabs
+    from .run.tiled import SLAB_BYTES_PER_VOXEL
+    from .run.tiles import plan_slabs
 
     plane = grid.shape[1] * grid.shape[2]
     slabs = plan_slabs(grid.shape, max_voxels=(planes + 2 * halo) * plane, halo=halo)
@@ -1162,15 +1162,15 @@ def _worst_slab(grid: Grid, halo: int, planes: int, slab_bytes) -> int:
 
 
 def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
-    """The voxel measures of a tiled run, slab by slab (:func:`~.morphometry.morphometry_by_slabs`):
+    """The voxel measures of a tiled run, slab by slab (:func:`~implicit_scaffold.measure.morphometry.morphometry_by_slabs`):
     the whole grid's keys, meanings and figures.
 
     The local thickness's halo starts at the 99th percentile of the cells' sphere diameters
     (the widest pores are about their cells' size); the measure widens it wherever a voxel
     reads a thickness above it, so the figures are exact whatever the start.
     """
-    from .memory import release
-    from .morphometry import SLAB_MORPHOMETRY_BYTES_PER_VOXEL, morphometry_by_slabs
+    from .run.memory import release
+    from .measure.morphometry import SLAB_MORPHOMETRY_BYTES_PER_VOXEL, morphometry_by_slabs
 
     # the widest pore is about the widest cell's sphere; a patient's surface cells run to the box's
     # walls, so the 99th percentile starts it, and the measure widens the halo where that falls short
@@ -1186,10 +1186,10 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
 
 
 def _slab_certificate(tf, grid: Grid, printer, run: _RunPlan, prog):
-    """The print certificate of a tiled run, slab by slab (:func:`~.printability.certificate_by_slabs`):
+    """The print certificate of a tiled run, slab by slab (:func:`~implicit_scaffold.measure.printability.certificate_by_slabs`):
     the whole grid's figures and section maps, in slabs that fit what --max-memory leaves."""
-    from .memory import release
-    from .printability import SLAB_CERTIFICATE_BYTES_PER_VOXEL, certificate_by_slabs
+    from .run.memory import release
+    from .measure.printability import SLAB_CERTIFICATE_BYTES_PER_VOXEL, certificate_by_slabs
 
     # slabs of the size asked for (tiled=<voxels>), else as large as the budget allows
     max_voxels = run.forced_voxels or max(1, max(0, run.max_memory - release()) // SLAB_CERTIFICATE_BYTES_PER_VOXEL)
@@ -1203,7 +1203,7 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
            morphometry: bool = True, seed_solve=None, grade=None, printer=None, repair: bool = False,
            printed_wall: float | None = None, mechanics=None) -> Result:
     """From the cells' primitives to the outputs: the field by the one slab driver
-    (:func:`.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
+    (:func:`~implicit_scaffold.run.tiled.tiled_scaffold`), the report, then the mesh, measures, certificate and files.
 
     `slab_voxels` None holds the whole grid as one slab in memory; the outputs are then made
     from the arrays (:func:`_finish_in_memory`), else slab by slab from the fields on disk
@@ -1212,9 +1212,9 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     PrinterProfile to certify what was built for; `mechanics` ``(MechanicsSpec, max_memory)``
     the stiffness to measure on what was built (:func:`_measure_mechanics`).
     """
-    from .patient import SHAPES
-    from .executor import executor_for
-    from .tiled import sample_slabs, tiled_scaffold
+    from .fields.patient import SHAPES
+    from .run.executor import executor_for
+    from .run.tiled import sample_slabs, tiled_scaffold
 
     in_memory = slab_voxels is None
     box_volume = float(np.prod(np.asarray(patient.hi, float) - np.asarray(patient.lo, float)))
@@ -1312,7 +1312,7 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     if mechanics is not None:
         with prog.stage("mechanics", "voxel finite elements"):
             _measure_mechanics(result, *mechanics, progress=prog.solver())
-    from .memory import peak_memory
+    from .run.memory import peak_memory
 
     if out_path is not None:
         report["file_size_bytes"] = out_path.stat().st_size
@@ -1323,7 +1323,7 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     report["timings_s"] = {k2: round(v, 4) for k2, v in prog.timings.items()}
     report["peak_memory_after_stage_mb"] = {k2: round(v / 2**20, 1) for k2, v in prog.high_water.items()}
     if out_path is not None:
-        from .files import write_json
+        from .io.files import write_json
 
         write_json(report, report_path(out_path))
     return result
@@ -1337,13 +1337,13 @@ LATER_STAGES_BYTES = 320 * 2**20
 def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memory, *, kept: int,
                      kept_in_memory: int = 0, whole: int | None = None) -> None:
     """Refuse, before the lattice, a run whose stiffness solve cannot fit its budget: the decision
-    :func:`_measure_mechanics` takes after the build (:func:`.mechanics.plan_voxel`), taken on the
+    :func:`_measure_mechanics` takes after the build (:func:`~implicit_scaffold.measure.mechanics.plan_voxel`), taken on the
     planned grid with the solid it will hold, ``1 - P`` of the patient's volume (the closed-form
     porosity without a target), the cells' median wall, and `kept`, the bytes the build will still
     hold then. A run in slabs (`whole`, its whole grid's estimate) that a refusal's budget would hold
     in memory is checked as one (`kept_in_memory`), so that the budget named is one that works."""
-    from .mechanics import plan_voxel
-    from .patient import Box
+    from .measure.mechanics import plan_voxel
+    from .fields.patient import Box
 
     boundary = spec.boundary
     if boundary == "auto":
@@ -1353,8 +1353,8 @@ def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memor
     solid = min(int(np.prod(grid.shape, dtype=np.int64)),
                 int(math.ceil((1.0 - p) * float(patient.volume) / grid.voxel_volume)))
     if whole is not None:
-        from .mechanics import sample_memory
-        from .memory import release
+        from .measure.mechanics import sample_memory
+        from .run.memory import release
 
         # the budget the solve at the run's voxel needs beside the slabs' leftovers: one that holds the
         # whole grid runs it in memory, which leaves more behind
@@ -1369,11 +1369,11 @@ def _check_mechanics(spec, params: Params, patient, grid: Grid, walls, max_memor
 def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
     """The stiffness of what was built, into ``result.report["mechanics"]`` and ``result.compression``.
 
-    The solid comes from the field at the mechanics voxel (:func:`.mechanics.solid_for_solve`),
+    The solid comes from the field at the mechanics voxel (:func:`~implicit_scaffold.measure.mechanics.solid_for_solve`),
     a few planes at a time, so a slab run's field on disk is never held whole; the solve's memory
     is checked against the budget before it starts.
     """
-    from .mechanics import measure_sample, solid_box, solid_for_solve
+    from .measure.mechanics import measure_sample, solid_box, solid_for_solve
 
     boundary = spec.boundary
     if boundary == "auto" and result.patient_sdf is not None:
@@ -1391,9 +1391,9 @@ def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
 
 def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool,
              why: str | None = None) -> None:
-    """Move the finished field's surface by `step` mm (:func:`.tiled.shift_level`), clean its
+    """Move the finished field's surface by `step` mm (:func:`~implicit_scaffold.run.tiled.shift_level`), clean its
     fragments and sealed voids again, and update the report."""
-    from .tiled import shift_level
+    from .run.tiled import shift_level
 
     with prog.stage("correct", why or f"level {step:+.3g} mm for the mesh's porosity"):
         more = shift_level(tf, step, remove_fragments=params.remove_fragments,
@@ -1410,9 +1410,9 @@ def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, on
 
 
 def _repair(tf, report: dict, params: Params, printer, grid: Grid, prog, one_piece: bool) -> None:
-    """Stage ``repair``: the field repaired for the printer (:func:`.repair.repair`), cleaned of the
+    """Stage ``repair``: the field repaired for the printer (:func:`~implicit_scaffold.fields.repair.repair`), cleaned of the
     fragments and sealed voids it may leave, and the report's figures updated."""
-    from .repair import repair
+    from .fields.repair import repair
 
     with prog.stage("repair", printer.name):
         # the voxels' porosity as built is what is kept: the level met the target (or the printed
@@ -1426,7 +1426,7 @@ def _repair(tf, report: dict, params: Params, printer, grid: Grid, prog, one_pie
 
 
 def _mesh_report(report: dict, summary: dict, patient) -> None:
-    """The mesh's keys of the report, from :func:`.mesh.mesh_summary` (or the streamed mesh's summary)."""
+    """The mesh's keys of the report, from :func:`~implicit_scaffold.mesh.marching.mesh_summary` (or the streamed mesh's summary)."""
     report.update({
         "triangles": summary["triangles"],
         "watertight": summary["watertight"],
@@ -1440,9 +1440,9 @@ def _mesh_report(report: dict, summary: dict, patient) -> None:
 
 
 def _pieces_report(report: dict, rows: list[dict]) -> str | None:
-    """The report's patient pieces (:func:`.pieces.piece_table`'s rows); a warning for the pieces
+    """The report's patient pieces (:func:`~implicit_scaffold.run.pieces.piece_table`'s rows); a warning for the pieces
     too small to hold one pore (the target's, or the mean measured), or None."""
-    from .pieces import REPORT_PIECES, small_pieces_warning
+    from .run.pieces import REPORT_PIECES, small_pieces_warning
 
     report["patient_pieces_count"] = len(rows)
     report["patient_pieces"] = rows[:REPORT_PIECES]
@@ -1455,7 +1455,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
                       one_piece: bool, slab_voxels=None) -> Result:
     """The outputs of a run held in memory: the patient's pieces, the mesh, the voxel measures,
     the certificate, the slices and the files, from the field's arrays."""
-    from .pieces import label_pieces, one_piece_table, piece_table
+    from .run.pieces import label_pieces, one_piece_table, piece_table
 
     s, s_p = tf.field.field, tf.patient.field
     h = grid.spacing
@@ -1477,7 +1477,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
     simplify_warnings = []
     metrics_job, written = None, False
     if mesh:
-        from .mesh import mesh_field, mesh_summary, mesh_volume
+        from .mesh.marching import mesh_field, mesh_summary, mesh_volume
 
         with prog.stage("mesh"):
             # mesh_summary below checks closure and winding; no need to check twice
@@ -1488,7 +1488,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
         tolerance = _tolerance(params, h)
 
         def measure_beside(triangles):
-            from .morphometry import morphometry as measure
+            from .measure.morphometry import morphometry as measure
 
             # the voxel measures run in a second thread while the mesh is made again, summed
             # up and written (they overlap well on 2 cores: compiled loops and file writes that
@@ -1510,7 +1510,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
         if metrics_job is None:
             metrics_job = measure_beside(len(result.mesh.faces))
         if metrics_job is not None and printer is None and run.slices is None and out_path is not None:
-            from .files import atomic_path
+            from .io.files import atomic_path
 
             # the file does not depend on the summary: written beside it (the write is mostly
             # the kernel copying pages, the summary a compiled loop; both release the interpreter)
@@ -1527,7 +1527,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
             with prog.stage("mesh summary"):
                 _mesh_report(report, mesh_summary(result.mesh), patient)
     if morphometry:
-        from .morphometry import morphometry as measure, surface_measures
+        from .measure.morphometry import morphometry as measure, surface_measures
 
         with prog.stage("metrics", "" if metrics_job is None else "beside the mesh summary and write"):
             # measured on what was built: fragments counts pieces left after any removal
@@ -1537,7 +1537,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
         found.pop("porosity_voxel", None)  # the scaffold pass counted it already
         report.update(found)
     if printer is not None:
-        from .printability import certificate
+        from .measure.printability import certificate
 
         with prog.stage("print check", printer.name):
             report["print_check"] = certificate(s < 0, h, printer, field=s, region=inside, origin=grid.origin)
@@ -1555,7 +1555,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                      one_piece: bool, slab_voxels: int) -> Result:
     """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
-    from .pieces import one_piece_table, piece_table_by_slabs
+    from .run.pieces import one_piece_table, piece_table_by_slabs
 
     if one_piece and params.remove_fragments:
         # a primitive keeping its main body: its one row from what the passes counted, without
@@ -1598,8 +1598,8 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     if printer is not None:
         report["print_check"] = _slab_certificate(tf, grid, printer, run, prog)
     if ext in FIELD_FORMATS:
-        from .export import write_volume
-        from .memory import process_memory
+        from .io.export import write_volume
+        from .run.memory import process_memory
 
         with prog.stage("write"):
             # z blocks cut from the field on disk, within what --max-memory leaves
@@ -1626,7 +1626,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     """Mesh a tiled run's field into `out_path` slab by slab, in bounded memory.
 
     Without simplification, STL and PLY are streamed straight to the file, and OBJ and 3MF
-    are formatted a block at a time from a streamed PLY (:func:`.mesh_writers.write_mesh_from_ply`:
+    are formatted a block at a time from a streamed PLY (:func:`~implicit_scaffold.mesh.writers.write_mesh_from_ply`:
     the 3MF's model XML is deflated into the zip as it is written). With a tolerance, the
     streamed PLY is read back whole and simplified when that fits in --max-memory, else
     written as it is, with a warning.
@@ -1634,7 +1634,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     Returns
     -------
     summary : dict
-        As :func:`.mesh_stream.write_mesh_slabs` gives it, or :func:`.mesh.mesh_summary`'s
+        As :func:`~implicit_scaffold.mesh.stream.write_mesh_slabs` gives it, or :func:`~implicit_scaffold.mesh.marching.mesh_summary`'s
         of the simplified mesh (with ``workers``).
     simplification : dict or None
         The report's ``simplification`` (None without a tolerance).
@@ -1642,11 +1642,11 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     """
     import os
 
-    from .mesh import mesh_summary
-    from .mesh_writers import write_mesh, write_mesh_from_ply
-    from .memory import process_memory, release
-    from .mesh_stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel, write_mesh_slabs
-    from .simplify import SIMPLIFY_BYTES_PER_TRIANGLE
+    from .mesh.marching import mesh_summary
+    from .mesh.writers import write_mesh, write_mesh_from_ply
+    from .run.memory import process_memory, release
+    from .mesh.stream import MESH_HALO_PLANES, mesh_slab_bytes_per_voxel, write_mesh_slabs
+    from .mesh.simplify import SIMPLIFY_BYTES_PER_TRIANGLE
 
     # marching cubes holds more per voxel than the field passes did, the more the denser the
     # surface (and two slabs may be in flight); the plan kept room for its thinnest slab, which
@@ -1697,7 +1697,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
 
 def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
     """Printer slices of the field (an array or a field on disk) and the stack's summary for the report."""
-    from .slices import write_slices
+    from .mesh.slices import write_slices
 
     with prog.stage("slices"):
         stack = write_slices(field, grid, slices["out_dir"], pixel=slices.get("pixel"),
@@ -1795,7 +1795,7 @@ def _coarse_patient(patient, cell: float | None = None, cells_across: float = 64
 
 def _faces_near_patient(cells, coarse: np.ndarray, grid) -> np.ndarray:
     """Interior faces (counted once) whose two cells' seeds lie in the patient (on the seeding grid)."""
-    from .metrics import interior_face_pairs
+    from .measure.metrics import interior_face_pairs
 
     inside = sample(coarse, grid, cells.seeds) < 0
     f = interior_face_pairs(cells)
@@ -1811,8 +1811,8 @@ def report_path(path) -> Path:
 
 def write_outputs(result: Result, path: Path) -> None:
     """Write the mesh or the field to `path` (atomically); the JSON is written by :func:`generate`."""
-    from .export import write_volume
-    from .mesh_writers import write_mesh
+    from .io.export import write_volume
+    from .mesh.writers import write_mesh
 
     if output_format(path) in MESH_FORMATS:
         write_mesh(result.mesh, path)

@@ -42,7 +42,7 @@ class Progress:
         t0 = time.perf_counter()
         yield
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
-        from .memory import peak_memory
+        from .run.memory import peak_memory
 
         self.high_water[name] = peak_memory()
         check_interrupted()

@@ -5,7 +5,7 @@ grid=GridSpec(...), outputs=Outputs(...), patient=...)``) or the same options as
 Each spec is a frozen dataclass checked when it is built: a bad value raises a
 :class:`~implicit_scaffold.errors.ScaffoldError` whose one line says what is wrong and how to
 fix it, so a spec that exists is a valid one, and the values it holds are the normalised ones
-(``porosity="none"`` is None, a ``grade`` string is a :class:`~implicit_scaffold.grade.GradeProfile`,
+(``porosity="none"`` is None, a ``grade`` string is a :class:`~implicit_scaffold.geometry.grade.GradeProfile`,
 a ``max_memory`` size is bytes, a printer name is its profile). ``dataclasses.replace`` checks
 the new spec again. Units are mm.
 
@@ -21,7 +21,7 @@ from pathlib import Path
 from typing import Any
 
 from .errors import ScaffoldError, positive_mm
-from .formats import FIELD_WRITERS, MESH_WRITERS, match
+from .io.formats import FIELD_WRITERS, MESH_WRITERS, match
 
 #: the lattice styles: the paper's pores and channels, or capsules on the Voronoi edges
 STYLES = ("paper", "struts")
@@ -136,9 +136,9 @@ class LatticeSpec:
     weighted: bool = False
 
     def __post_init__(self):
-        from .field import check_porosity
-        from .seeds import SEED_RULES
-        from .skeleton import check_scale
+        from .fields.field import check_porosity
+        from .geometry.seeds import SEED_RULES
+        from .geometry.skeleton import check_scale
 
         style = str(self.style).lower()
         if style not in STYLES:
@@ -171,7 +171,7 @@ class LatticeSpec:
 
     def _graded(self, seeds) -> dict:
         """The graded options (``grade``, ``calibration``, ``relax``, ``weighted``) checked, or a ScaffoldError."""
-        from .grade import check_grade, parse_calibration
+        from .geometry.grade import check_grade, parse_calibration
 
         grade = check_grade(self.grade)
         calibration = parse_calibration(self.calibration)
@@ -229,7 +229,7 @@ class GridSpec:
     scheduler: Any = None
 
     def __post_init__(self):
-        from .memory import parse_memory
+        from .run.memory import parse_memory
 
         if self.voxel is not None:
             _set(self, "voxel", positive_mm("voxel", self.voxel, example="0.04"))
@@ -245,14 +245,14 @@ class GridSpec:
             if not isinstance(t, numbers.Integral) or t < 1:
                 raise ScaffoldError(f"tiled must be True, False, None or the voxels of a slab (a whole number "
                                     f">= 1), got {t!r}")
-        from .executor import check_workers
+        from .run.executor import check_workers
 
         _set(self, "workers", check_workers(self.workers, self.scheduler))
 
 
 @dataclass(frozen=True)
 class MechanicsSpec:
-    """The stiffness a run measures on what it builds (voxel finite elements, :mod:`.mechanics`).
+    """The stiffness a run measures on what it builds (voxel finite elements, :mod:`~implicit_scaffold.measure.mechanics`).
 
     Its memory is checked when the run has planned its grid, before the lattice: a solve that
     cannot fit is refused then, not after the scaffold is built and written.
@@ -260,15 +260,15 @@ class MechanicsSpec:
     Parameters
     ----------
     material : str or Material
-        A :data:`.mechanics.MATERIALS` key (``ti64 pcl pla peek ha tcp cocr ta``) or a
-        :class:`.mechanics.Material`; held as the Material.
+        A :data:`~implicit_scaffold.measure.mechanics.MATERIALS` key (``ti64 pcl pla peek ha tcp cocr ta``) or a
+        :class:`~implicit_scaffold.measure.mechanics.Material`; held as the Material.
     E : float, GPa, optional
         Young's modulus (instead of, or overriding, the material's).
     nu : float, optional
         Poisson's ratio, in (-1, 0.5).
     voxel : float, mm, optional
         The solve's voxel; by default the run's own when its solve fits the budget, else the
-        finest that fits (:func:`.mechanics.plan_voxel`).
+        finest that fits (:func:`~implicit_scaffold.measure.mechanics.plan_voxel`).
     boundary : {"auto", "periodic", "kinematic"}
         The homogenization's boundary conditions (auto: periodic for a box patient).
     axis : {"x", "y", "z"}
@@ -288,7 +288,7 @@ class MechanicsSpec:
     axis: str = "z"
 
     def __post_init__(self):
-        from .mechanics import Material, material
+        from .measure.mechanics import Material, material
 
         mat = self.material
         if not isinstance(mat, Material):
@@ -314,7 +314,7 @@ class Outputs:
     path : str or Path, optional
         Where to write: a mesh (``.stl``, ``.ply``, ``.obj``, ``.3mf``) or the field
         (``.npy``, ``.vti``, ``.nii(.gz)``, ``.nrrd``, ``.mha``, ``.tif``, ``.zarr``); the JSON
-        report goes beside it. None writes nothing (the :class:`~.pipeline.Result` has it all).
+        report goes beside it. None writes nothing (the :class:`~implicit_scaffold.pipeline.Result` has it all).
     mesh : bool
         False stops after the field (no marching cubes); a mesh `path` needs it.
     morphometry : bool
@@ -351,7 +351,7 @@ class Outputs:
     mechanics: MechanicsSpec | None = None
 
     def __post_init__(self):
-        from .simplify import check_tolerance
+        from .mesh.simplify import check_tolerance
 
         mesh = check_flag("mesh", self.mesh)
         if self.path is not None:
@@ -371,7 +371,7 @@ class Outputs:
                     positive_mm(name, self.slices[name], example="0.05")
         printer = self.printer
         if printer is not None and not hasattr(printer, "min_strut_mm"):
-            from .printability import printer_profile
+            from .measure.printability import printer_profile
 
             printer = printer_profile(printer)
         repair = check_flag("repair", self.repair)

@@ -100,7 +100,7 @@ def _fmt(v) -> str:
 
 
 def _write_csv(path: Path, rows: list[dict]) -> None:
-    from .files import atomic_path
+    from .io.files import atomic_path
 
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -113,8 +113,8 @@ def _write_csv(path: Path, rows: list[dict]) -> None:
 
 
 def _write_png(path: Path, fig) -> None:
-    from .files import atomic_path
-    from .report import _png
+    from .io.files import atomic_path
+    from .io.report import _png
 
     data = _png(fig)
     with atomic_path(path) as tmp:
@@ -147,9 +147,9 @@ def _porosity_run(sf: float, sv: float, seeds: int, blend, settings: SweepSettin
 
 def _cell_run(target: float, seed: int) -> dict:
     """The paper's cell metrics of the seeds ``generate`` draws for a target pore size at P = 80 %."""
-    from .cells import voronoi_cells
-    from .metrics import cell_metrics, pore_sizes
-    from .seeds import seed_count, uniform_seeds
+    from .geometry.cells import voronoi_cells
+    from .measure.metrics import cell_metrics, pore_sizes
+    from .geometry.seeds import seed_count, uniform_seeds
 
     lo, hi = np.asarray(BOX_LO), np.asarray(BOX_HI)
     volume = float(np.prod(hi - lo))
@@ -188,8 +188,8 @@ def _cell_run(target: float, seed: int) -> dict:
 
 
 def _fig10_plot(rows: list[dict], settings: SweepSettings):
-    from .report import _figure
-    from .skeleton import closed_form_porosity
+    from .io.report import _figure
+    from .geometry.skeleton import closed_form_porosity
 
     fig, ax = _figure(6.4, 4.4)
     colours = ["#1f77b4", "#ff7f0e", "#2ca02c", "#d62728", "#9467bd"]
@@ -216,7 +216,7 @@ def _fig10_plot(rows: list[dict], settings: SweepSettings):
 
 
 def _fig11_plot(rows: list[dict]):
-    from .report import _figure
+    from .io.report import _figure
 
     fig, ax = _figure(6.0, 4.0)
     for name, marker in (("sharp", "o"), ("blend", "s")):
@@ -236,7 +236,7 @@ def _fig11_plot(rows: list[dict]):
 
 
 def _fig13_plot(rows: list[dict]):
-    from .report import _figure
+    from .io.report import _figure
 
     fig, ax = _figure(6.0, 4.0)
     dense = np.linspace(0.5, 5.0, 200)
@@ -258,7 +258,7 @@ def _fig13_plot(rows: list[dict]):
 
 
 def _fig14_plot(rows: list[dict]):
-    from .report import _figure
+    from .io.report import _figure
 
     fig, ax = _figure(6.0, 4.4)
     t = np.array([r["target_mm"] for r in rows])
@@ -278,7 +278,7 @@ def _fig14_plot(rows: list[dict]):
 
 
 def _fig17_plot(rows: list[dict]):
-    from .report import _figure
+    from .io.report import _figure
 
     fig, ax = _figure(6.4, 4.4)
     t = [r["target_mm"] for r in rows]
@@ -308,7 +308,7 @@ def _fig17_plot(rows: list[dict]):
 
 
 def _fig19_plot(rows: list[dict]):
-    from .report import _figure
+    from .io.report import _figure
 
     fig, ax = _figure(6.0, 4.0)
     t = [r["target_mm"] for r in rows]
@@ -367,7 +367,7 @@ def run_sweep(out_dir, *, quick: bool = False, seed: int = 0,
         raise ScaffoldError(f"--seed must be >= 0, got {seed}")
     s = settings if settings is not None else (QUICK if quick else FULL)
     out = _out_dir(out_dir)
-    from .skeleton import closed_form_porosity
+    from .geometry.skeleton import closed_form_porosity
 
     blends = list(s.blends)
     total = (len(s.fig10_scales) + len(s.fig11_seeds)) * len(blends) + len(s.targets)

@@ -26,7 +26,7 @@ def pytest_report_header(config):
 @pytest.fixture(scope="session")
 def cube_cells():
     """500 uniform seeds in the paper's 10 mm cube, seed 0."""
-    from implicit_scaffold.cells import voronoi_cells
+    from implicit_scaffold.geometry.cells import voronoi_cells
 
     rng = np.random.default_rng(0)
     return voronoi_cells(rng.uniform(0, 10, (500, 3)), [0, 0, 0], [10, 10, 10])
@@ -35,7 +35,7 @@ def cube_cells():
 @pytest.fixture(scope="session")
 def small_cells():
     """40 uniform seeds in a 3 x 2.5 x 2 mm box: small enough for brute-force oracles."""
-    from implicit_scaffold.cells import voronoi_cells
+    from implicit_scaffold.geometry.cells import voronoi_cells
 
     rng = np.random.default_rng(7)
     hi = np.array([3.0, 2.5, 2.0])

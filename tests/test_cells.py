@@ -2,7 +2,7 @@ import re
 import numpy as np
 import pytest
 
-from implicit_scaffold.cells import voronoi_cells
+from implicit_scaffold.geometry.cells import voronoi_cells
 from implicit_scaffold.errors import ScaffoldError
 
 
@@ -52,7 +52,7 @@ def test_too_few_seeds():
 
 
 def test_too_many_seeds_for_memory_fail_before_the_work():
-    from implicit_scaffold.cells import (BYTES_PER_SEED, CELLS_BYTES_PER_SEED, CELLS_PEAK_BYTES_PER_SEED, CHUNK_SEEDS,
+    from implicit_scaffold.geometry.cells import (BYTES_PER_SEED, CELLS_BYTES_PER_SEED, CELLS_PEAK_BYTES_PER_SEED, CHUNK_SEEDS,
                                          check_seed_memory)
 
     # 2 M seeds on a machine with 8 GiB free: refused, with a pore size that would fit
@@ -203,7 +203,7 @@ def test_cells_built_in_chunks_are_the_cells_built_at_once(monkeypatch, weighted
     margin; cells that a seed beyond it may cut are built again with the seeds that cut them:
     the same cells as one voro++ run (faces, neighbours, volumes, areas and centroids), here
     with a sparse end whose big cells are cut from beyond their chunk's margin."""
-    import implicit_scaffold.cells as C
+    import implicit_scaffold.geometry.cells as C
 
     rng = np.random.default_rng(7)
     seeds = np.concatenate([rng.uniform(0, 1, (900, 3)) * [3, 3, 3],
@@ -222,7 +222,7 @@ def test_cells_built_in_chunks_are_the_cells_built_at_once(monkeypatch, weighted
 
 
 def test_polygon_properties_in_chunks_are_bit_for_bit_the_same(monkeypatch, small_cells):
-    import implicit_scaffold.cells as C
+    import implicit_scaffold.geometry.cells as C
 
     c = small_cells
     whole = C.polygon_properties(c.face_vertices, c.face_start)
@@ -244,7 +244,7 @@ def test_cells_of_seeds_drawn_in_a_patient_are_built_in_chunks_as_at_once(monkey
     voro++ never given more than two chunks' seeds; and the same seeds give the same bytes again."""
     import pyvoro2
 
-    import implicit_scaffold.cells as C
+    import implicit_scaffold.geometry.cells as C
 
     rng = np.random.default_rng(2)
     p = rng.normal(size=(2000, 3))

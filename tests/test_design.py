@@ -2,7 +2,7 @@
 
 The oracles do not use design.py's measures: each test rebuilds the scaffold with ``generate`` and
 the written parameters, counts the porosity from the field itself, and takes the 1st percentile of
-:func:`implicit_scaffold.morphometry.local_thickness` (plus one voxel: to the voxel boundaries, as
+:func:`implicit_scaffold.measure.morphometry.local_thickness` (plus one voxel: to the voxel boundaries, as
 the print certificate counts) over the solid farther than the written margin from the cube's faces,
 the margin found from voxel coordinates rather than from the patient's field.
 
@@ -31,7 +31,7 @@ def feasible(tmp_path_factory):
 def _rebuild(d: dict, seed: int):
     """The written parameters built on the written cube, and the three targets measured here."""
     from implicit_scaffold import generate
-    from implicit_scaffold.morphometry import local_thickness
+    from implicit_scaffold.measure.morphometry import local_thickness
 
     rve = d["representative_volume"]
     r = generate(size=rve["size"], mesh=False, morphometry=False, seed=seed, **d["parameters"])
@@ -121,7 +121,7 @@ def test_bad_design_file_exit_2(tmp_path, capsys):
 
 @pytest.mark.skipif(not os.environ.get("IMPLICIT_SCAFFOLD_SLOW"), reason="voxel FE searches: set IMPLICIT_SCAFFOLD_SLOW=1")
 def test_stiffness_target_met(tmp_path):
-    from implicit_scaffold.mechanics import compress, crop, material
+    from implicit_scaffold.measure.mechanics import compress, crop, material
 
     out = tmp_path / "d.json"
     # 9.5 GPa: about what Ti-6Al-4V struts give at 70 % (9.3-9.9 GPa measured over Sv 0.48-0.75)
@@ -211,7 +211,7 @@ def _halves(field_path):
 
 @pytest.mark.parametrize("site", list(MORGAN))
 def test_density_modulus_laws_are_morgan_2003(site):
-    from implicit_scaffold.mechanics import density_modulus
+    from implicit_scaffold.measure.mechanics import density_modulus
 
     a, b = MORGAN[site]
     law = density_modulus(site)
@@ -222,7 +222,7 @@ def test_density_modulus_laws_are_morgan_2003(site):
 
 def test_unknown_site():
     from implicit_scaffold.errors import ScaffoldError
-    from implicit_scaffold.mechanics import density_modulus
+    from implicit_scaffold.measure.mechanics import density_modulus
 
     with pytest.raises(ScaffoldError, match="unknown --site 'skull'"):
         density_modulus("skull")
@@ -239,8 +239,8 @@ def test_fit_recovers_a_power_law():
 
 
 def test_modulus_calibration_inverts_the_laws():
-    from implicit_scaffold.grade import ModulusCalibration, ModulusPorosity, polyhedron_sphere_expected
-    from implicit_scaffold.mechanics import density_modulus
+    from implicit_scaffold.geometry.grade import ModulusCalibration, ModulusPorosity, polyhedron_sphere_expected
+    from implicit_scaffold.measure.mechanics import density_modulus
 
     scaffold = ModulusPorosity(0.3, 2.0, 113.8, (0.5, 0.9))
     cal = ModulusCalibration(0.001, 0.1, law=density_modulus("vertebra"), scaffold=scaffold, pore_size_mm=0.5,
@@ -261,8 +261,8 @@ def test_modulus_calibration_inverts_the_laws():
 def two_density_design(tmp_path_factory):
     """A CT design with a given modulus-porosity law (no forward builds), its graded build written."""
     from implicit_scaffold.design import design_from_ct
-    from implicit_scaffold.grade import ModulusPorosity, load_ct
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.geometry.grade import ModulusPorosity, load_ct
+    from implicit_scaffold.io.patient_io import load_patient
 
     d = tmp_path_factory.mktemp("ct")
     ct_path = d / "two.nrrd"
@@ -335,7 +335,7 @@ def test_ct_options_need_the_ct_mode(tmp_path, capsys, args, message):
 def test_ct_design_local_moduli_match_the_bone(tmp_path):
     """The whole loop: the law fitted on forward builds, the graded build, and each half's modulus
     measured here by voxel FE against Morgan's modulus of its density."""
-    from implicit_scaffold.mechanics import compress, material
+    from implicit_scaffold.measure.mechanics import compress, material
 
     ct_path = tmp_path / "two.nrrd"
     _write_two_density_ct(ct_path)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.executor import InProcess, Processes, check_workers, executor_for
+from implicit_scaffold.run.executor import InProcess, Processes, check_workers, executor_for
 from implicit_scaffold.pipeline import generate
 
 
@@ -117,7 +117,7 @@ def _ball():
     """A mesh patient: an icosphere, its far field clamped and its sign by ray parity."""
     import trimesh
 
-    from implicit_scaffold.patient_mesh import MeshPatient
+    from implicit_scaffold.fields.patient_mesh import MeshPatient
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=0.95)
     return MeshPatient(np.asarray(ball.vertices) + 1.0, np.asarray(ball.faces), name="ball")
@@ -187,7 +187,7 @@ def test_a_budget_counts_every_workers_slab_and_runtime(tmp_path):
     larger budget for more workers, and the run then completes in that budget's slabs."""
     import re
 
-    from implicit_scaffold.memory import parse_memory
+    from implicit_scaffold.run.memory import parse_memory
 
     kw = dict(TINY, voxel=0.025, output=tmp_path / "a.npy", mesh=False, morphometry=False)
     named = {}

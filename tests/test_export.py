@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.export import write_volume
-from implicit_scaffold.grid import Grid
+from implicit_scaffold.io.export import write_volume
+from implicit_scaffold.run.grid import Grid
 
 
 @pytest.fixture(scope="module")
@@ -127,7 +127,7 @@ class _OnDisk:
 def test_streamed_nifti_is_simpleitks_file(tmp_path, field_grid, binary, monkeypatch):
     import gzip
 
-    from implicit_scaffold import files
+    from implicit_scaffold.io import files
 
     # deflated in pieces of 2000 bytes, on the thread pool: still one gzip stream
     monkeypatch.setattr(files, "DEFLATE_PIECE", 2000)
@@ -147,7 +147,7 @@ def test_streamed_nifti_is_simpleitks_file(tmp_path, field_grid, binary, monkeyp
 def test_streamed_nrrd_and_mha_have_simpleitks_header_and_values(tmp_path, field_grid, ext, monkeypatch):
     import SimpleITK as sitk
 
-    from implicit_scaffold import files
+    from implicit_scaffold.io import files
 
     monkeypatch.setattr(files, "DEFLATE_PIECE", 2000)  # many pieces; ITK checks the zlib stream's Adler-32
     field, grid = field_grid

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.field import blend_field, check_porosity, scaffold_field, solve_level
+from implicit_scaffold.fields.field import blend_field, check_porosity, scaffold_field, solve_level
 
 
 def test_solve_level_counts_exactly():
@@ -30,7 +30,7 @@ def test_solve_level_is_midway_between_the_sorted_values(kind, shape):
              "sample misled": lambda: rng.normal(size=shape)}[kind]().astype(np.float32)
     if kind == "sample misled":
         # the voxels the sample reads hold values far above the others: its bracket misses
-        from implicit_scaffold.tiles import SAMPLE_STRIDE
+        from implicit_scaffold.run.tiles import SAMPLE_STRIDE
 
         field.reshape(-1)[::SAMPLE_STRIDE] = 100.0
     inside = rng.random(shape) < 0.7
@@ -83,7 +83,7 @@ def test_bad_porosity(bad):
 def test_blend_field_gives_scipy_gaussian_bits(shape, h, k):
     # the compiled passes against SciPy's gaussian_filter, the oracle, bit for bit (radii past the
     # array's size on the thin axes: the clamped "nearest" ends)
-    from implicit_scaffold.field import blend_field_reference
+    from implicit_scaffold.fields.field import blend_field_reference
 
     field = np.random.default_rng(4).normal(size=shape).astype(np.float32)
     got = blend_field(field, h, k)

@@ -1,7 +1,7 @@
 """The one table of file formats: every reader and writer dispatches on it."""
 import pytest
 
-from implicit_scaffold import formats
+from implicit_scaffold.io import formats
 
 
 @pytest.mark.parametrize("name, ext", [("a/B.NII.GZ", ".nii.gz"), ("scaffold.stl", ".stl"), ("x.Tiff", ".tiff"),
@@ -18,7 +18,10 @@ def test_match_names_only_the_listed_formats():
 
 
 def test_the_modules_dispatch_on_the_table():
-    from implicit_scaffold import export, mesh_stream, mesh_writers, morphometry, patient_io, pipeline
+    from implicit_scaffold.io import export, patient_io
+    from implicit_scaffold.mesh import stream as mesh_stream, writers as mesh_writers
+    from implicit_scaffold.measure import morphometry
+    from implicit_scaffold import pipeline
 
     assert mesh_writers.MESH_FORMATS is formats.MESH_WRITERS is pipeline.MESH_FORMATS
     assert export.VOLUME_FORMATS is formats.FIELD_WRITERS is pipeline.FIELD_FORMATS

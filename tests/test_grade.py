@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 
 import implicit_scaffold
-from implicit_scaffold import grade
-from implicit_scaffold.cells import voronoi_cells
+from implicit_scaffold.geometry import grade
+from implicit_scaffold.geometry.cells import voronoi_cells
 from implicit_scaffold.cli import main
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.metrics import pore_sizes
-from implicit_scaffold.patient import Box
+from implicit_scaffold.measure.metrics import pore_sizes
+from implicit_scaffold.fields.patient import Box
 
 SV = 0.75
 
@@ -327,7 +327,7 @@ def test_a_graded_run_in_slabs_gives_the_whole_grid_bytes(tmp_path, monkeypatch,
 def test_a_graded_mesh_patient_runs_in_slabs_with_the_whole_grid_bytes(tmp_path):
     import trimesh
 
-    from implicit_scaffold.patient_mesh import MeshPatient
+    from implicit_scaffold.fields.patient_mesh import MeshPatient
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=1.6)
     patient = MeshPatient(np.asarray(ball.vertices) + 1.7, np.asarray(ball.faces), name="ball")
@@ -347,7 +347,7 @@ def test_a_graded_mesh_patient_runs_in_slabs_with_the_whole_grid_bytes(tmp_path)
 
 
 def test_graded_report_page(graded_run, tmp_path):
-    from implicit_scaffold.report import grade_profile_plot, write_run_report
+    from implicit_scaffold.io.report import grade_profile_plot, write_run_report
 
     png = grade_profile_plot(graded_run.report["grade"]["profiles"]["depth"], xlabel="depth (mm)", title="t")
     assert png[:8] == b"\x89PNG\r\n\x1a\n"
@@ -374,7 +374,7 @@ def _write_ct(path, *, radius=3.0, length=5.0, core=2.0, h=0.2):
 
 @pytest.mark.slow
 def test_ct_dense_shell_gets_smaller_pores(tmp_path):
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.io.patient_io import load_patient
 
     path = tmp_path / "bone.nrrd"
     centre = _write_ct(path)
@@ -417,7 +417,7 @@ def test_graded_struts_meet_porosity_per_depth_bin():
 
 def test_graded_without_porosity_target_keeps_the_lattice():
     # porosity none: no offset field, the lattice as Sf and Sv make it (closed form, before blending)
-    from implicit_scaffold.skeleton import closed_form_porosity
+    from implicit_scaffold.geometry.skeleton import closed_form_porosity
 
     r = implicit_scaffold.generate(size=3.0, grade="0:0.5,1:0.8", porosity=None, blend=0, voxel=0.04,
                                    mesh=False, morphometry=False)
@@ -465,7 +465,7 @@ def test_callable_grade_end_to_end():
 def test_level_field_meets_each_bin_from_a_sample(monkeypatch):
     # a lattice-like field whose level for 70 % porosity drifts with depth: the offset field must
     # follow it bin by bin, also when the nodes settle on a sample first (as on 10^8 voxels)
-    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.run.grid import Grid
 
     n = 80
     g = Grid((0.0, 0.0, 0.0), 0.05, (n, n, n))

@@ -4,7 +4,7 @@ import pytest
 import SimpleITK as sitk
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.images import read_image
+from implicit_scaffold.io.images import read_image
 
 
 def _volume(shape=(4, 5, 6)):

@@ -2,10 +2,10 @@
 import numpy as np
 import pytest
 
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.lattice import (lattice_sdf, lattice_sdf_reference, struts_field,
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.lattice import (lattice_sdf, lattice_sdf_reference, struts_field,
                                        struts_field_reference)
-from implicit_scaffold.skeleton import scaled_skeleton, voronoi_edges
+from implicit_scaffold.geometry.skeleton import scaled_skeleton, voronoi_edges
 
 # float32 coordinates of a few mm carry ~1e-6 mm of rounding; 1e-4 mm is the bound
 TOL = 1e-4
@@ -171,8 +171,8 @@ def test_a_slab_outside_the_grid_is_refused(small_cells):
 
 
 def test_quads_packed_in_chunks_are_packed_the_same(monkeypatch, small_cells):
-    import implicit_scaffold.lattice as L
-    from implicit_scaffold.skeleton import scaled_skeleton
+    import implicit_scaffold.fields.lattice as L
+    from implicit_scaffold.geometry.skeleton import scaled_skeleton
 
     sk = scaled_skeleton(small_cells, 0.75, 0.75)
     whole = L._pack_quads(sk, (0.1, -0.2, 0.3))
@@ -194,7 +194,7 @@ def test_long_block_lists_are_sorted_and_the_field_exact(small_cells):
     import pyopencl as cl
 
     from implicit_scaffold import opencl
-    from implicit_scaffold.lattice import _pack_paper, bin_on_device
+    from implicit_scaffold.fields.lattice import _pack_paper, bin_on_device
 
     sk = scaled_skeleton(small_cells, 0.75, 0.75)
     grid = _grid(small_cells, 0.25)
@@ -243,7 +243,7 @@ def test_skipped_blocks_leave_every_other_block_bit_for_bit(small_cells):
 def test_what_a_slab_packed_goes_with_its_skeleton(small_cells):
     # the slabs of one skeleton pack it once; a slab's own skeleton (SkeletonSource.near) takes
     # its packed primitives with it, not beside the next slab's skeleton as that one is built
-    import implicit_scaffold.lattice as L
+    import implicit_scaffold.fields.lattice as L
 
     sk = scaled_skeleton(small_cells, 0.75, 0.75)
     grid = _grid(small_cells, 0.05, shape=(45, 37, 29))

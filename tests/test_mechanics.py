@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from implicit_scaffold import mechanics as m
+from implicit_scaffold.measure import mechanics as m
 from implicit_scaffold.errors import ScaffoldError
 
 TI = m.material("ti64")
@@ -317,7 +317,7 @@ def _devices():
 @pytest.mark.parametrize("periodic", [True, False])
 def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
     from implicit_scaffold import opencl
-    from implicit_scaffold.mechanics_cl import StiffnessOperator
+    from implicit_scaffold.measure.mechanics_cl import StiffnessOperator
 
     rng = np.random.default_rng(3)
     solid = rng.random((9, 10, 11)) < 0.4  # odd sizes, a random (hinged, holed) solid
@@ -332,12 +332,12 @@ def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
             got = StiffnessOperator(model, double=False)(u)
             assert np.abs(got - ref).max() <= 1e-6 * np.abs(ref).max(), check.name
             # a page-aligned float vector is read in place (no copy): the same product
-            from implicit_scaffold.mechanics_cl import aligned_empty
+            from implicit_scaffold.measure.mechanics_cl import aligned_empty
 
             inplace = aligned_empty(u.shape, np.float32)
             inplace[...] = u
             assert np.array_equal(StiffnessOperator(model, double=False)(inplace), got), check.name
-            from implicit_scaffold.mechanics_cl import has_double
+            from implicit_scaffold.measure.mechanics_cl import has_double
 
             if has_double():
                 got = StiffnessOperator(model, double=True)(u)
@@ -432,7 +432,8 @@ def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
 
 
 def test_generate_refuses_a_mechanics_solve_that_cannot_fit_before_the_lattice(tmp_path, monkeypatch):
-    from implicit_scaffold import pipeline, tiled
+    from implicit_scaffold import pipeline
+    from implicit_scaffold.run import tiled
     from implicit_scaffold.errors import ScaffoldError
     from implicit_scaffold.specs import MechanicsSpec
 
@@ -504,7 +505,7 @@ def trilinear(field, origin, h, points):
 
 
 def test_the_sampled_field_is_the_trilinear_field_and_the_same_from_disk(tmp_path):
-    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.run.grid import Grid
 
     rng = np.random.default_rng(5)
     field = rng.standard_normal((19, 14, 17)).astype(np.float32)  # odd sizes
@@ -606,7 +607,7 @@ def oracle_solid(field, grid, h):
 
 
 def _held():
-    from implicit_scaffold.memory import release
+    from implicit_scaffold.run.memory import release
 
     return release()
 
@@ -626,7 +627,7 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     import json
     import re
 
-    from implicit_scaffold.memory import parse_memory
+    from implicit_scaffold.run.memory import parse_memory
 
     g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
     x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
@@ -668,7 +669,7 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
 def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys, large_solve):
     import json
 
-    from implicit_scaffold.memory import parse_memory
+    from implicit_scaffold.run.memory import parse_memory
 
     g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
     x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
@@ -699,7 +700,7 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     assert f"voxel {h:.4g} mm" in cap.out and "finest voxel" in cap.out
     assert r["voxel"]["memory_estimate_bytes"] < parse_memory(budget)
     # the solid solved is the brute-force one: its solid fraction
-    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.run.grid import Grid
 
     # with walls a voxel's breadth across, coarsening would leave fewer than 2.5 voxels across them:
     # refused before sampling, naming the budget of the run's voxel
@@ -722,7 +723,7 @@ def test_a_short_budget_takes_smaller_blocks_of_load_cases():
 
 
 def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_voxel(large_solve):
-    from implicit_scaffold.memory import parse_memory
+    from implicit_scaffold.run.memory import parse_memory
 
     solid = np.zeros((40, 40, 40), bool)
     solid[:, :, 5:30] = True  # 40,000 solid voxels on a 41^3 kinematic node grid

@@ -6,8 +6,8 @@ import math
 import numpy as np
 import pytest
 
-from implicit_scaffold.cells import voronoi_cells
-from implicit_scaffold.metrics import (cell_metrics, interior_face_pairs, pore_size_histogram, pore_sizes,
+from implicit_scaffold.geometry.cells import voronoi_cells
+from implicit_scaffold.measure.metrics import (cell_metrics, interior_face_pairs, pore_size_histogram, pore_sizes,
                                        trabecular_thicknesses)
 
 

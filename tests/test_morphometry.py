@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from implicit_scaffold import morphometry as M
+from implicit_scaffold.measure import morphometry as M
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.grid import Grid
+from implicit_scaffold.run.grid import Grid
 
 
 def _coords(n):
@@ -252,7 +252,7 @@ def test_voxelize_open_mesh_is_refused():
 
 
 def test_same_result_on_one_thread_and_all():
-    from implicit_scaffold.threads import limited
+    from implicit_scaffold.run.threads import limited
 
     rng = np.random.default_rng(3)
     from scipy import ndimage
@@ -280,7 +280,7 @@ def test_volume_resampled_to_the_voxel_asked(tmp_path):
 
 
 def test_euler_characteristic_is_additive_over_slabs_with_a_one_plane_halo():
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     rng = np.random.default_rng(5)
     # a random solid: many components, tunnels and cavities crossing every slab boundary
@@ -302,7 +302,7 @@ def test_morphometry_by_slabs_gives_the_whole_grid_figures(planes, halo):
     """Slabs of a scaffold's field, with a halo too narrow at first (widened by the check),
     give the whole grid's morphometry, bit for bit."""
     from implicit_scaffold import generate
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     r = generate(size=2.0, pore_size=0.6, porosity=0.7, voxel=0.04, seed=5, mesh=False, morphometry=False)
     s, s_p, grid = r.field, r.patient_sdf, r.grid

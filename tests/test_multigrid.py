@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from implicit_scaffold import mechanics as M
-from implicit_scaffold import multigrid as G
+from implicit_scaffold.measure import mechanics as M
+from implicit_scaffold.measure import multigrid as G
 
 MAT = M.material("ti64")
 
@@ -121,7 +121,7 @@ def test_multigrid_iterations_stay_flat_when_struts_are_refined(scaffolds):
 def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one():
     cases = 1  # the solver sends the device one load case (six run compiled on the host)
     from implicit_scaffold import opencl
-    from implicit_scaffold.mechanics_cl import LevelOperator, has_double
+    from implicit_scaffold.measure.mechanics_cl import LevelOperator, has_double
 
     rng = np.random.default_rng(5)
     solid = rng.random((9, 10, 11)) < 0.4
@@ -144,7 +144,7 @@ def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one():
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("rows", [1, 3])
 def test_fused_vector_passes_match_numpy(dtype, rows):
-    from implicit_scaffold import fused
+    from implicit_scaffold.measure import fused
 
     rng = np.random.default_rng(rows)
     m, n = 2, 1009  # odd: pieces of unequal length

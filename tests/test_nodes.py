@@ -2,13 +2,13 @@
 import numpy as np
 import pytest
 
-from implicit_scaffold.cells import voronoi_cells
-from implicit_scaffold.field import blend_field, scaffold_field, solve_level
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.lattice import lattice_sdf, struts_field
-from implicit_scaffold.nodes import SDF, Blend, Cut, FieldNode, PaperLattice, Patient, Struts, evaluate
-from implicit_scaffold.patient import Sphere, patient_sdf
-from implicit_scaffold.skeleton import scaled_skeleton, voronoi_edges
+from implicit_scaffold.geometry.cells import voronoi_cells
+from implicit_scaffold.fields.field import blend_field, scaffold_field, solve_level
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.lattice import lattice_sdf, struts_field
+from implicit_scaffold.fields.nodes import SDF, Blend, Cut, FieldNode, PaperLattice, Patient, Struts, evaluate
+from implicit_scaffold.fields.patient import Sphere, patient_sdf
+from implicit_scaffold.geometry.skeleton import scaled_skeleton, voronoi_edges
 
 
 @pytest.fixture(scope="module")

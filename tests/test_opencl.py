@@ -152,7 +152,7 @@ def test_pip_runtimes_are_registered_beside_the_loaders_own(monkeypatch, tmp_pat
 
 
 def test_every_kernel_builds_on_the_chosen_device():
-    from implicit_scaffold.lattice import BLOCK
+    from implicit_scaffold.fields.lattice import BLOCK
 
     names = opencl.kernel_names()
     assert {"lattice", "patient"} <= set(names)
@@ -165,11 +165,11 @@ def test_every_kernel_builds_on_the_chosen_device():
 
 def test_every_working_device_matches_the_numpy_references(small_cells):
     import implicit_scaffold
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.lattice import (lattice_sdf, lattice_sdf_reference, struts_field,
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.fields.lattice import (lattice_sdf, lattice_sdf_reference, struts_field,
                                            struts_field_reference)
-    from implicit_scaffold.patient_mesh import triangle_distance, triangle_distance_reference
-    from implicit_scaffold.skeleton import scaled_skeleton, voronoi_edges
+    from implicit_scaffold.fields.patient_mesh import triangle_distance, triangle_distance_reference
+    from implicit_scaffold.geometry.skeleton import scaled_skeleton, voronoi_edges
 
     devices = opencl.working_devices()
     assert devices, "the chosen device is a working one"
@@ -183,7 +183,7 @@ def test_every_working_device_matches_the_numpy_references(small_cells):
     struts_ref = struts_field_reference(edges, pts, cutoff=0.3, blend=0.05)
     # the smooth minimum sums the struts nearer than the cut-off, so the field steps where a
     # strut lies at the cut-off: float32 and float64 may see it on either side there
-    from implicit_scaffold.lattice import _segment_dist
+    from implicit_scaffold.fields.lattice import _segment_dist
 
     d = _segment_dist(pts[:, None], edges[None, :, 0], edges[None, :, 1])
     smooth = ~(np.abs(d - 0.3) < 1e-4).any(axis=1)

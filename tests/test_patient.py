@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from implicit_scaffold.grid import Grid, evaluate_by_slabs
-from implicit_scaffold.patient import Box
+from implicit_scaffold.run.grid import Grid, evaluate_by_slabs
+from implicit_scaffold.fields.patient import Box
 
 
 @pytest.mark.parametrize("size, spacing, origin", [((10, 10, 10), 0.25, (-0.5, -0.5, -0.5)),
@@ -29,8 +29,8 @@ def test_the_boxs_grid_is_the_distance_to_a_box(size, spacing, origin):
 def test_a_cut_patient_takes_the_maximum_with_its_half_spaces_bit_for_bit():
     # the compiled pass against the NumPy expression it replaces: cut_sdf_axes on broadcast axes,
     # rounded to float32, then the maximum with the base's distance
-    from implicit_scaffold.grid import evaluate_by_slabs
-    from implicit_scaffold.patient import CutPatient, Sphere
+    from implicit_scaffold.run.grid import evaluate_by_slabs
+    from implicit_scaffold.fields.patient import CutPatient, Sphere
 
     rng = np.random.default_rng(3)
     normals = rng.normal(size=(4, 3))

@@ -8,7 +8,7 @@ import trimesh
 
 from implicit_scaffold.cli import main
 from implicit_scaffold.errors import ScaffoldError, ScaffoldWarning
-from implicit_scaffold.patient_io import load_patient
+from implicit_scaffold.io.patient_io import load_patient
 
 
 def cylinder(scale=1.0):
@@ -167,7 +167,7 @@ def _inside_mesh(points, triangles):
 @pytest.mark.slow
 def test_femur_shaft_segment_scaffold(data_dir, tmp_path):
     from implicit_scaffold import generate
-    from implicit_scaffold.patient_mesh import triangle_distance_reference
+    from implicit_scaffold.fields.patient_mesh import triangle_distance_reference
 
     femur = data_dir / "jigsaw_femur.stl"
     # mid-shaft (the femur runs 8..474 mm along z; its shaft is ~27 mm across near z = 220)

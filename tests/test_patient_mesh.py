@@ -6,9 +6,9 @@ import pytest
 import trimesh
 
 from implicit_scaffold import generate
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.patient import CutPatient, Cylinder, Sphere, cut_halfspaces
-from implicit_scaffold.patient_mesh import (clamped_distance, inside_votes, mesh_patient_from_trimesh,
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.fields.patient import CutPatient, Cylinder, Sphere, cut_halfspaces
+from implicit_scaffold.fields.patient_mesh import (clamped_distance, inside_votes, mesh_patient_from_trimesh,
                                             triangle_distance, triangle_distance_reference)
 
 
@@ -238,7 +238,7 @@ def test_compiled_ray_parity_matches_numpy_reference(x_range):
     # (crossings_reference, inside_votes_reference) are the oracle of the compiled ones
     from scipy.spatial.transform import Rotation
 
-    from implicit_scaffold.patient_mesh import crossings, crossings_reference, inside_votes_reference
+    from implicit_scaffold.fields.patient_mesh import crossings, crossings_reference, inside_votes_reference
 
     box = trimesh.creation.box(extents=[1.7, 1.1, 1.3])
     box.apply_transform(np.vstack([np.hstack([Rotation.from_euler("xyz", [0.3, -0.5, 0.9]).as_matrix(),

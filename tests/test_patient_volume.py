@@ -13,9 +13,9 @@ import pytest
 sitk = pytest.importorskip("SimpleITK")
 
 from implicit_scaffold.errors import ScaffoldError  # noqa: E402
-from implicit_scaffold.grid import Grid  # noqa: E402
-from implicit_scaffold import patient_volume as pv  # noqa: E402
-from implicit_scaffold.patient_volume import load_volume  # noqa: E402
+from implicit_scaffold.run.grid import Grid  # noqa: E402
+from implicit_scaffold.fields import patient_volume as pv  # noqa: E402
+from implicit_scaffold.fields.patient_volume import load_volume  # noqa: E402
 
 
 def _write(path, array_ijk, spacing, origin, direction=None):

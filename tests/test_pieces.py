@@ -6,7 +6,7 @@ import pytest
 
 import implicit_scaffold
 from implicit_scaffold.errors import ScaffoldWarning
-from implicit_scaffold.grid import evaluate_by_slabs
+from implicit_scaffold.run.grid import evaluate_by_slabs
 
 
 class _Union:
@@ -104,7 +104,7 @@ def test_one_pore_sized_pieces_raise_no_warning():
 def test_main_body_per_piece_against_brute_force():
     from scipy import ndimage
 
-    from implicit_scaffold.pieces import remove_fragments_by_piece
+    from implicit_scaffold.run.pieces import remove_fragments_by_piece
 
     rng = np.random.default_rng(3)
     field = rng.normal(0.3, 1.0, (30, 20, 16)).astype(np.float32)
@@ -147,9 +147,9 @@ def test_a_tiled_run_keeps_each_pieces_scaffold_with_the_whole_grid_bytes(tmp_pa
 def test_the_pieces_table_by_slabs_is_the_whole_grids(planes, main_bodies_only):
     from scipy import ndimage
 
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.pieces import label_pieces, piece_table, piece_table_by_slabs
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.run.pieces import label_pieces, piece_table, piece_table_by_slabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     rng = np.random.default_rng(11)
     grid = Grid(origin=(0.0, 0.0, 0.0), spacing=0.1, shape=(33, 21, 18))
@@ -170,10 +170,10 @@ def test_the_pieces_table_by_slabs_is_the_whole_grids(planes, main_bodies_only):
 def test_the_prisms_pieces_by_slabs_are_the_whole_grids():
     from scipy import ndimage
 
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.pieces import label_pieces
-    from implicit_scaffold.tiled import prism_pieces
-    from implicit_scaffold.tiles import FieldFile, plan_slabs
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.run.pieces import label_pieces
+    from implicit_scaffold.run.tiled import prism_pieces
+    from implicit_scaffold.run.tiles import FieldFile, plan_slabs
 
     rng = np.random.default_rng(5)
     grid = Grid(origin=(0.0, 0.0, 0.0), spacing=0.1, shape=(30, 24, 20))
@@ -207,8 +207,8 @@ def test_a_patient_in_pieces_gets_the_same_printed_level_in_slabs(tmp_path):
 def test_a_primitives_one_row_in_slabs_is_the_whole_grids(shape):
     # a primitive's row comes from the passes' counts, in memory and in slabs; the oracle labels
     # the finished grid's patient and solid and reads the table off them
-    from implicit_scaffold.field import sample
-    from implicit_scaffold.pieces import label_pieces, piece_table
+    from implicit_scaffold.fields.field import sample
+    from implicit_scaffold.run.pieces import label_pieces, piece_table
 
     kw = dict(shape=shape, size=4, pore_size=0.8, porosity=0.7, voxel=0.08, mesh=False, morphometry=False)
     whole = implicit_scaffold.generate(tiled=False, **kw)
@@ -225,7 +225,7 @@ def test_a_primitives_one_row_in_slabs_is_the_whole_grids(shape):
 
 
 def test_label_sizes_count_as_bincount_does():
-    from implicit_scaffold.pieces import label_pieces, label_sizes
+    from implicit_scaffold.run.pieces import label_pieces, label_sizes
 
     rng = np.random.default_rng(5)
     labels, count = label_pieces(rng.random((23, 17, 31)) < 0.4)
@@ -244,7 +244,7 @@ def test_label_sizes_count_as_bincount_does():
 
 @pytest.mark.parametrize("contiguous", [True, False])
 def test_paint_labels_writes_what_a_boolean_mask_writes(contiguous):
-    from implicit_scaffold.pieces import label_pieces, paint_labels
+    from implicit_scaffold.run.pieces import label_pieces, paint_labels
 
     rng = np.random.default_rng(4)
     labels, count = label_pieces(rng.random((23, 19, 17)) < 0.4)

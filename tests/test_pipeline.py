@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 import implicit_scaffold
-from implicit_scaffold.patient import Box, Cylinder, Sphere
-from implicit_scaffold.skeleton import closed_form_porosity
+from implicit_scaffold.fields.patient import Box, Cylinder, Sphere
+from implicit_scaffold.geometry.skeleton import closed_form_porosity
 
 
 @pytest.mark.slow
@@ -106,7 +106,7 @@ def test_field_only():
 def test_seeds_in_patient_follow_the_patient_volume():
     # a sphere holds pi/6 of its box: seeding only where it is (plus one cell) makes fewer
     # seeds than the box formula, and the formula's count (of the sphere's volume) inside it
-    from implicit_scaffold.seeds import seed_count
+    from implicit_scaffold.geometry.seeds import seed_count
 
     r = implicit_scaffold.generate(shape="sphere", size=8.0, seeds_in="patient", pore_size=1.0,
                                    voxel=0.1, porosity=0.7, seed_rule="paper")
@@ -189,7 +189,7 @@ class _TwoPlates:
         return np.minimum(box(np.array([5, 5, 0.3]), half), box(np.array([35, 35, 39.7]), half))
 
     def sdf_grid(self, grid, x_range=None):
-        from implicit_scaffold.grid import evaluate_by_slabs
+        from implicit_scaffold.run.grid import evaluate_by_slabs
 
         def fn(x, y, z):
             pts = np.stack(np.broadcast_arrays(x, y, z), axis=-1)
@@ -202,7 +202,7 @@ def test_seeds_fill_thin_parts_of_a_large_box():
     patient, by the exact distance (the oracle), and none beyond the margin, when the patient's
     parts are thinner than the box's 64th: the seeding grid follows the cell, not the box."""
     from implicit_scaffold.pipeline import _coarse_patient
-    from implicit_scaffold.seeds import seeds_in_patient
+    from implicit_scaffold.geometry.seeds import seeds_in_patient
 
     patient, n = _TwoPlates(), 500
     cell = (patient.volume / n) ** (1 / 3)
@@ -221,7 +221,7 @@ def test_a_voxel_that_cannot_hold_the_walls_is_refused_before_the_lattice(monkey
     # out empty): refused before the lattice, naming a voxel that holds them
     import re
 
-    from implicit_scaffold import tiled
+    from implicit_scaffold.run import tiled
     from implicit_scaffold.errors import ScaffoldError
 
     def no_lattice(**kwargs):
@@ -267,7 +267,7 @@ def test_the_default_voxel_holds_the_printed_walls():
 
 
 def test_a_level_step_longer_than_a_voxel_is_no_correction():
-    from implicit_scaffold.printed import correction
+    from implicit_scaffold.fields.printed import correction
 
     info = {"slope_per_mm": -0.2383}
     # the prism's slope does not hold that far: 0.71 mm at 0.33 mm voxels made a solid block

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 import implicit_scaffold
-from implicit_scaffold.seeds import PV_CUBE_ROOT_MEAN, seed_count
+from implicit_scaffold.geometry.seeds import PV_CUBE_ROOT_MEAN, seed_count
 
 
 def _box_cell_volumes(seeds, lo, hi):

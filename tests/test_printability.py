@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from implicit_scaffold import printability
+from implicit_scaffold.measure import printability
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.printability import (certificate, overhang_shares, printer_profile, profiles,
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.measure.printability import (certificate, overhang_shares, printer_profile, profiles,
                                             reached_by, throat_radius)
 
 H = 0.02
@@ -228,8 +228,8 @@ def _same_certificate(want, got):
 
 
 def _by_slabs_equals_whole(s, p, grid, profile, max_voxels, **kw):
-    from implicit_scaffold.printability import certificate_by_slabs
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.measure.printability import certificate_by_slabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     want = certificate(s < 0, grid.spacing, profile, field=s, region=p < 0, origin=grid.origin)
     got = certificate_by_slabs(ArraySlabs(s, grid), ArraySlabs(p, grid), grid.spacing, profile,
@@ -338,7 +338,7 @@ def test_tiled_run_with_a_printer_gives_the_whole_grid_certificate(tmp_path):
     assert tiled.report["tiled"]["slabs"] > 1
     _same_certificate(whole.report["print_check"], tiled.report["print_check"])
     # the run's page draws the certificate's two section maps from the tiled run too
-    from implicit_scaffold.report import write_run_report
+    from implicit_scaffold.io.report import write_run_report
 
     write_run_report(tiled, tmp_path / "r.html")
     assert (tmp_path / "r.html").read_text().count("print certificate: where the problems lie") == 2
@@ -350,8 +350,8 @@ def test_flood_in_two_halves_gives_the_single_floods_fixpoint(seed):
     # (a reconstruction has one fixpoint); a blobby void whose best paths cross the cut both ways
     from scipy import ndimage
 
-    from implicit_scaffold.morphometry import _squared_edt
-    from implicit_scaffold.printability import _flood_kernels
+    from implicit_scaffold.measure.morphometry import _squared_edt
+    from implicit_scaffold.measure.printability import _flood_kernels
 
     flood, flood_faces = _flood_kernels()
     solid = ndimage.gaussian_filter(np.random.default_rng(seed).normal(size=(40 + seed, 27, 33)), 1.5) > 0.1

@@ -15,8 +15,8 @@ import pytest
 import trimesh
 from PIL import Image
 
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.mesh import mesh_field, prism_volume
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.mesh.marching import mesh_field, prism_volume
 from implicit_scaffold.pipeline import generate
 
 #: the issue's bound on the printed porosity's distance from the target
@@ -46,7 +46,7 @@ def test_face_shave_is_what_the_forced_y_rows_take_off_the_whole_mesh():
     # shave measures it; noise in the solid reaches the y faces everywhere
     from scipy.ndimage import gaussian_filter
 
-    from implicit_scaffold.printed import FACE_ROWS, face_bands, face_shave
+    from implicit_scaffold.fields.printed import FACE_ROWS, face_bands, face_shave
 
     rng = np.random.default_rng(5)
     h = 0.1
@@ -77,7 +77,7 @@ def test_a_thin_prism_of_solid_prints_no_void(rows):
     # all solid inside a box patient: marching cubes' volume in a prism whose y faces are open
     # cuts spans from the first row's centre to the last's, so the patient's volume it is
     # divided by counts those rows by half; a whole row more would read 1 / rows of void
-    from implicit_scaffold.printed import printed_level, printed_measure, prism_bands
+    from implicit_scaffold.fields.printed import printed_level, printed_measure, prism_bands
 
     # two layers of voxels around the box: the grid's outer layer, forced outside for closed
     # meshes, then stays clear of its faces, which marching cubes places exactly
@@ -103,7 +103,7 @@ def test_the_slices_measure_counts_every_row_of_a_thin_prism(spacing, lo, rows):
     # pixels of the voxel's size sit on the voxel centres, so the grey levels of the prism are
     # clip(0.5 - s / h, 0, 1) summed over every one of its voxels; where a centre computes a hair
     # below its row (0.03 mm pixels), a strict test dropped a row and read 1 / rows of the solid as void
-    from implicit_scaffold.printed import printed_measure, prism_bands
+    from implicit_scaffold.fields.printed import printed_measure, prism_bands
 
     grid = Grid(lo, spacing, (20, 40, 16))
     ys, zs = prism_bands(grid.shape, max_voxels=rows * 20 * 16)
@@ -136,7 +136,7 @@ def test_a_coarse_voxel_cylinder_meets_the_target_on_the_mesh(tmp_path):
 
 
 def test_a_mesh_patient_meets_the_target(tmp_path):
-    from implicit_scaffold.patient_io import load_patient
+    from implicit_scaffold.io.patient_io import load_patient
 
     bone = trimesh.creation.icosphere(subdivisions=4, radius=1.6)
     bone.apply_translation([1.6, 1.6, 1.6])

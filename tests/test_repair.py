@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from implicit_scaffold.printability import printer_profile
-from implicit_scaffold.repair import repair
+from implicit_scaffold.measure.printability import printer_profile
+from implicit_scaffold.fields.repair import repair
 
 H = 0.05  # mm
 
@@ -116,7 +116,7 @@ def test_repair_of_a_grid_past_the_budget_is_refused_at_once_naming_one_that_wor
     import re
 
     from implicit_scaffold.errors import ScaffoldError
-    from implicit_scaffold.memory import parse_memory
+    from implicit_scaffold.run.memory import parse_memory
     from implicit_scaffold.pipeline import generate
 
     kw = dict(size=3, seeds=40, voxel=0.015, porosity=0.75, printer="custom:min_strut=0.1,min_throat=0.1,drain=0.2",

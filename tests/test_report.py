@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import implicit_scaffold
-from implicit_scaffold import report
+from implicit_scaffold.io import report
 
 
 @pytest.fixture(scope="module")
@@ -17,7 +17,7 @@ def small_run():
 def test_page_is_self_contained(tmp_path, small_run):
     r = small_run
     imgs = {"section": report.section_image(r.field, r.grid),
-            "pores": report.histogram(implicit_scaffold.metrics.pore_sizes(r.cells, 0.75), title="pores",
+            "pores": report.histogram(implicit_scaffold.measure.metrics.pore_sizes(r.cells, 0.75), title="pores",
                                       xlabel="mm", marks={"target": 0.6})}
     path = tmp_path / "r.html"
     report.write_html(path, r.report, imgs)

@@ -17,9 +17,9 @@ from scipy import ndimage, sparse
 from scipy.sparse.csgraph import connected_components
 
 from implicit_scaffold.cli import main
-from implicit_scaffold.field import fill_sealed_voids, void_mask
+from implicit_scaffold.fields.field import fill_sealed_voids, void_mask
 from implicit_scaffold.pipeline import generate
-from implicit_scaffold.tiles import SlabComponents, plan_slabs
+from implicit_scaffold.run.tiles import SlabComponents, plan_slabs
 
 # a 3 mm cube at 0.04 mm (77^3 voxels): dozens of sealed voids before filling
 SMALL = dict(size=3.0, pore_size=0.6, porosity=0.8, voxel=0.04, seed=3, morphometry=False)

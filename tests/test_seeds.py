@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.seeds import seed_count, uniform_seeds
+from implicit_scaffold.geometry.seeds import seed_count, uniform_seeds
 
 
 def test_paper_seed_counts():
@@ -27,8 +27,8 @@ def test_bad_seed_count_inputs(args):
 
 def test_seeds_in_a_patient_the_grid_does_not_see_stop():
     """A patient no grid point lies in (thinner than a step) gets the seeds asked for in its margin."""
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.seeds import seeds_in_patient
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.geometry.seeds import seeds_in_patient
 
     grid = Grid.covering(np.zeros(3), np.full(3, 10.0), 1.0)
     sdf = np.full(grid.shape, 0.3, np.float32)   # 0.3 mm from a surface everywhere, inside nowhere

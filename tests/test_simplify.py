@@ -1,4 +1,4 @@
-"""Mesh simplification within a tolerance (implicit_scaffold.simplify) and its measure.
+"""Mesh simplification within a tolerance (implicit_scaffold.mesh.simplify) and its measure.
 
 Oracles, none of them manifold3d's own: closed-form ball volumes; closedness, winding and
 bodies counted here over the faces (union-find on shared edges); self-intersection by a
@@ -15,9 +15,9 @@ import trimesh
 from scipy.spatial import cKDTree
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.mesh import mesh_field
-from implicit_scaffold.simplify import (check_tolerance, euler_characteristic, simplification_error, simplify_mesh,
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.mesh.marching import mesh_field
+from implicit_scaffold.mesh.simplify import (check_tolerance, euler_characteristic, simplification_error, simplify_mesh,
                                         surface_deviation)
 
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.skeleton import (closed_form_porosity, piece_volumes, scaled_skeleton,
+from implicit_scaffold.geometry.skeleton import (closed_form_porosity, piece_volumes, scaled_skeleton,
                                         voronoi_edges)
 
 
@@ -66,7 +66,7 @@ def test_scale_factors_must_lie_in_open_interval(cube_cells, bad):
 
 
 def test_voronoi_edges_of_cubes():
-    from implicit_scaffold.cells import voronoi_cells
+    from implicit_scaffold.geometry.cells import voronoi_cells
 
     # 2 x 2 x 2 cubes in a 2 mm box: interior edges are the 3 axis-parallel crosses
     g = np.array([0.5, 1.5])
@@ -83,8 +83,8 @@ def test_skeleton_near_a_band_is_the_whole_skeletons_part_there():
     """The skeleton a slab builds (SkeletonSource.near) holds, in the same order and with the same
     values, the whole skeleton's quads and pieces of the cells that reach the band; every quad of
     the other cells lies outside the band."""
-    from implicit_scaffold.cells import voronoi_cells
-    from implicit_scaffold.skeleton import SkeletonSource, quad_areas
+    from implicit_scaffold.geometry.cells import voronoi_cells
+    from implicit_scaffold.geometry.skeleton import SkeletonSource, quad_areas
 
     rng = np.random.default_rng(4)
     cells = voronoi_cells(rng.uniform(0, 3, (120, 3)), [0, 0, 0], [3, 3, 3])

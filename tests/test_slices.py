@@ -6,8 +6,8 @@ import pytest
 from PIL import Image
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.grid import Grid
-from implicit_scaffold.slices import STACK_JSON, write_slices
+from implicit_scaffold.run.grid import Grid
+from implicit_scaffold.mesh.slices import STACK_JSON, write_slices
 
 
 def _sphere(radius=1.7, h=0.05, size=4.0):
@@ -133,7 +133,7 @@ def _same_folders(a, b):
     (_wavy, 0.23, 0.07),   # pixels wider than voxels: some slabs own no column
 ])
 def test_slabs_give_the_same_bytes_as_the_array(tmp_path, make, pixel, layer):
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     field, grid = make()
     plane = grid.shape[1] * grid.shape[2]
@@ -148,7 +148,7 @@ def test_slabs_give_the_same_bytes_as_the_array(tmp_path, make, pixel, layer):
 
 
 def test_slabs_from_a_field_file(tmp_path):
-    from implicit_scaffold.tiles import FieldFile
+    from implicit_scaffold.run.tiles import FieldFile
 
     field, grid = _wavy(seed=9, shape=(21, 16, 13))
     whole = write_slices(field, grid, tmp_path / "whole", pixel=0.05, layer=0.06)
@@ -177,7 +177,7 @@ def test_float64_array_with_a_bound_reads_slabs_with_the_same_bytes(tmp_path):
 def test_slab_layers_agree_with_the_voxels(tmp_path):
     # pixels = voxels and layers = voxel planes: each layer samples its voxel plane at the voxel
     # centres, so its solid share is the plane's share of negative voxels (NumPy on the field)
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     field, grid = _wavy(seed=2, shape=(30, 27, 25), h=0.05)
     stack = write_slices(ArraySlabs(field, grid), None, tmp_path / "s", max_voxels=4 * 27 * 25)
@@ -191,7 +191,7 @@ def test_slab_layers_agree_with_the_voxels(tmp_path):
 
 
 def test_slab_progress_counts_slabs_then_layers(tmp_path):
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     field, grid = _wavy()
     calls = []
@@ -203,7 +203,7 @@ def test_slab_progress_counts_slabs_then_layers(tmp_path):
 
 @pytest.mark.parametrize("stop_at", [2, 30])  # while sampling the slabs, while encoding the layers
 def test_interrupted_slab_run_leaves_nothing(tmp_path, stop_at):
-    from implicit_scaffold.tiles import FieldFile
+    from implicit_scaffold.run.tiles import FieldFile
 
     field, grid = _wavy()
     out = tmp_path / "out"
@@ -225,7 +225,7 @@ def test_interrupted_slab_run_leaves_nothing(tmp_path, stop_at):
                                              ({"max_voxels": 0}, "max_voxels must be a positive"),
                                              ({"max_voxels": 1.5e6}, "max_voxels must be a positive")])
 def test_bad_slab_bound(tmp_path, kwargs, message):
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     field, grid = _wavy()
     with pytest.raises(ScaffoldError, match=message):
@@ -234,7 +234,7 @@ def test_bad_slab_bound(tmp_path, kwargs, message):
 
 
 def test_source_with_another_grid(tmp_path):
-    from implicit_scaffold.tiles import ArraySlabs
+    from implicit_scaffold.run.tiles import ArraySlabs
 
     field, grid = _wavy()
     other = Grid(grid.origin, grid.spacing * 2, grid.shape)
@@ -246,7 +246,7 @@ def test_source_with_another_grid(tmp_path):
 @pytest.mark.parametrize("pixel, layer", [(0.09, 0.09), (0.033, 0.07), (0.021, 0.013)])
 def test_grey_columns_match_scipy_bilinear_samples(pixel, layer):
     # the compiled sampler against SciPy's map_coordinates on blended planes (layer_coverage)
-    from implicit_scaffold.slices import _grey, _layer_planes, _pixel_indices, grey_columns, layer_coverage, \
+    from implicit_scaffold.mesh.slices import _grey, _layer_planes, _pixel_indices, grey_columns, layer_coverage, \
         stack_geometry
 
     field, grid = _wavy(seed=7, shape=(26, 21, 19), h=0.09)

@@ -4,7 +4,7 @@ import threading
 import numpy as np
 import pytest
 
-from implicit_scaffold.threads import over_rows
+from implicit_scaffold.run.threads import over_rows
 
 
 def _count(hits, seen, lo, hi):
@@ -42,7 +42,7 @@ def test_pieces_run_on_more_than_one_thread():
 
 
 def test_one_thread_takes_the_rows_at_once():
-    from implicit_scaffold.threads import limited
+    from implicit_scaffold.run.threads import limited
 
     calls = []
     with limited(1):
@@ -60,7 +60,7 @@ def test_an_error_in_a_piece_is_raised():
 
 
 def test_by_rows_covers_the_first_arguments_rows():
-    from implicit_scaffold.threads import by_rows
+    from implicit_scaffold.run.threads import by_rows
 
     def _mark_rows(hits, lo, hi):
         hits[lo:hi] += 1
@@ -96,10 +96,11 @@ def _kernel_builders():
             return d
         return decorate
 
-    names = [m.name for m in pkgutil.iter_modules(implicit_scaffold.__path__) if m.name != "__main__"]
+    names = [m.name for m in pkgutil.walk_packages(implicit_scaffold.__path__, "implicit_scaffold.")
+             if not m.ispkg and not m.name.endswith("__main__")]
     builders = []
     for name in names:
-        mod = importlib.import_module(f"implicit_scaffold.{name}")
+        mod = importlib.import_module(name)
         for fname, obj in list(vars(mod).items()):
             fn = getattr(obj, "__wrapped__", obj)  # a builder behind an lru_cache that another test filled
             if (inspect.isfunction(fn) and fn.__module__ == mod.__name__ and fn.__code__.co_argcount == 0
@@ -143,7 +144,7 @@ def test_a_kernel_calling_a_helper_loads_from_the_cache_in_a_new_process(tmp_pat
     import subprocess
     import sys
 
-    code = ("import numpy as np\nfrom implicit_scaffold.tiles import order_pair_sampled\n"
+    code = ("import numpy as np\nfrom implicit_scaffold.run.tiles import order_pair_sampled\n"
             "v = np.random.default_rng(0).random(50000).astype(np.float32)\n"
             "print(order_pair_sampled(v, v > 0.1, 2000, int((v > 0.1).sum())))\n")
     env = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path), "NUMBA_DEBUG_CACHE": "1"}

@@ -6,7 +6,7 @@ import pytest
 
 from implicit_scaffold.errors import ScaffoldError
 from implicit_scaffold.pipeline import generate
-from implicit_scaffold.memory import parse_memory
+from implicit_scaffold.run.memory import parse_memory
 
 # a 3 mm cube at 0.04 mm: 77^3 voxels, ~100 seeds; slabs of 6,000 voxels hold one plane
 SMALL = dict(size=3.0, pore_size=0.6, porosity=0.75, voxel=0.04, seed=3)
@@ -42,7 +42,7 @@ def test_a_skeleton_built_slab_by_slab_gives_the_whole_grid_bytes(tmp_path, monk
     """A skeleton too large for its share of the budget is built slab by slab from the cells that
     reach each slab (SkeletonSource): the same bytes as the whole skeleton's."""
     from implicit_scaffold import pipeline
-    from implicit_scaffold.skeleton import SkeletonSource
+    from implicit_scaffold.geometry.skeleton import SkeletonSource
 
     whole, _ = _run(tmp_path, "whole.npy", tiled=False)
     monkeypatch.setattr(pipeline, "WHOLE_SKELETON_SHARE", 0.0)
@@ -76,8 +76,8 @@ def test_a_dask_cluster_gives_the_same_bytes(tmp_path):
 def test_an_interrupted_tiled_run_leaves_nothing(tmp_path, monkeypatch, workers):
     import multiprocessing
 
-    import implicit_scaffold.tiled as tiled_mod
-    from implicit_scaffold.tiles import StreamQuantile
+    import implicit_scaffold.run.tiled as tiled_mod
+    from implicit_scaffold.run.tiles import StreamQuantile
 
     scratch = tmp_path / "scratch"
     scratch.mkdir()
@@ -119,7 +119,7 @@ def test_bad_memory_sizes(text):
 
 
 def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
-    from implicit_scaffold.patient_mesh import MeshPatient
+    from implicit_scaffold.fields.patient_mesh import MeshPatient
     import trimesh
 
     with pytest.raises(ScaffoldError, match=r"pass --max-memory [\d.]+[MG] or more"):
@@ -130,7 +130,7 @@ def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
 @pytest.mark.parametrize("cut", [dict(skin=0.12), dict(smooth_cut=0.1), dict(skin=0.08, smooth_cut=0.06)])
 @pytest.mark.parametrize("mesh_patient", [False, True])
 def test_skin_and_smooth_cut_in_slabs_give_the_whole_grid_bytes(tmp_path, monkeypatch, cut, mesh_patient):
-    import implicit_scaffold.tiled as tiled_mod
+    import implicit_scaffold.run.tiled as tiled_mod
 
     refines = []
     real = tiled_mod._refine
@@ -151,7 +151,7 @@ def _ball(radius=1.4, centre=1.5):
     """A mesh patient: an icosphere whose far field a whole grid would take from a transform."""
     import trimesh
 
-    from implicit_scaffold.patient_mesh import MeshPatient
+    from implicit_scaffold.fields.patient_mesh import MeshPatient
 
     ball = trimesh.creation.icosphere(subdivisions=3, radius=radius)
     return MeshPatient(np.asarray(ball.vertices) + centre, np.asarray(ball.faces), name="ball")
@@ -192,7 +192,7 @@ def test_a_tiled_result_maps_its_fields_and_leaves_no_file(tmp_path):
     assert not tiled.field.flags.writeable
     assert list(folder.iterdir()) == []  # unlinked already: the maps hold the data until they go
     # the run's page shows a section of the mapped field (one x plane of it)
-    from implicit_scaffold.report import write_run_report
+    from implicit_scaffold.io.report import write_run_report
 
     write_run_report(tiled, tmp_path / "run.html")
     assert "section through the middle" in (tmp_path / "run.html").read_text()
@@ -202,7 +202,7 @@ def test_a_tiled_result_maps_its_fields_and_leaves_no_file(tmp_path):
 
 def test_zarr_streams_from_slabs_with_the_whole_grid_values(tmp_path, monkeypatch):
     zarr = pytest.importorskip("zarr")
-    import implicit_scaffold.export as export
+    import implicit_scaffold.io.export as export
 
     whole = generate(output=tmp_path / "whole.zarr", mesh=False, morphometry=False, tiled=False, **SMALL)
     generate(output=tmp_path / "whole.npy", mesh=False, morphometry=False, tiled=False, **SMALL)
@@ -337,7 +337,7 @@ def test_a_refused_budget_names_one_that_works_and_the_run_keeps_it(tmp_path):
     import subprocess
     import sys
 
-    from implicit_scaffold.morphometry import local_thickness
+    from implicit_scaffold.measure.morphometry import local_thickness
 
     # the thickness kernels compiled and cached on disk first: compiling is not the run's memory
     local_thickness(np.ones((3, 3, 3), bool), 1.0)
@@ -362,9 +362,9 @@ def test_a_refused_budget_names_one_that_works_and_the_run_keeps_it(tmp_path):
 #: skeleton; prints the report, or the refusal
 _SLAB_STARTS = """
 import json, sys
-from implicit_scaffold import tiled
+from implicit_scaffold.run import tiled
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.memory import release
+from implicit_scaffold.run.memory import release
 from implicit_scaffold.pipeline import generate
 starts, own = [], []
 plain = tiled.slab_fields
@@ -456,7 +456,7 @@ def test_a_tiled_mesh_meets_the_porosity_target_as_the_whole_grids_does(tmp_path
     # corrective step of the level; the STL's own volume says where they landed
     import trimesh
 
-    import implicit_scaffold.printed as printed
+    import implicit_scaffold.fields.printed as printed
 
     monkeypatch.setattr(printed, "CORRECT_ABOVE", 0.0)
     kw = dict(size=3.0, pore_size=0.5, porosity=0.8, voxel=0.025, seed=2, morphometry=False)
@@ -483,9 +483,9 @@ def test_blocks_far_outside_the_patient_are_skipped_with_the_same_results(tmp_pa
     # sign beyond it), the mesh the same bytes, and slabs give the whole grid's bytes
     import trimesh
 
-    import implicit_scaffold.lattice as lattice_mod
-    from implicit_scaffold.patient import clamp_far_field, far_clamp
-    from implicit_scaffold.patient_mesh import MeshPatient
+    import implicit_scaffold.fields.lattice as lattice_mod
+    from implicit_scaffold.fields.patient import clamp_far_field, far_clamp
+    from implicit_scaffold.fields.patient_mesh import MeshPatient
 
     real = lattice_mod.blocks_beyond
     skipped = []

@@ -6,8 +6,8 @@ import pytest
 from scipy import ndimage
 
 from implicit_scaffold.errors import ScaffoldError
-from implicit_scaffold.field import level_between, remove_fragments, solve_level
-from implicit_scaffold.tiles import (SlabComponents, StreamQuantile, level_ranks,
+from implicit_scaffold.fields.field import level_between, remove_fragments, solve_level
+from implicit_scaffold.run.tiles import (SlabComponents, StreamQuantile, level_ranks,
                                      plan_slabs)
 
 
@@ -94,8 +94,8 @@ def test_fragments_across_slabs_match_the_whole_grid(thickness):
 
 @pytest.mark.parametrize("k", [0.0, 0.05, 0.13])
 def test_blend_of_a_slab_with_its_halo_is_the_whole_blend(k):
-    from implicit_scaffold.field import blend_field
-    from implicit_scaffold.tiles import blend_halo
+    from implicit_scaffold.fields.field import blend_field
+    from implicit_scaffold.run.tiles import blend_halo
 
     rng = np.random.default_rng(9)
     field = rng.normal(size=(45, 17, 19)).astype(np.float32)
@@ -110,8 +110,8 @@ def test_blend_of_a_slab_with_its_halo_is_the_whole_blend(k):
 
 
 def test_field_file_holds_planes_and_vanishes(tmp_path):
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.tiles import ArraySlabs, FieldFile
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.run.tiles import ArraySlabs, FieldFile
 
     grid = Grid((0.0, 0.0, 0.0), 0.1, (11, 6, 5))
     field = np.random.default_rng(2).standard_normal(grid.shape).astype(np.float32)
@@ -133,8 +133,8 @@ def test_field_file_removes_what_killed_runs_left(tmp_path):
     import subprocess
     import sys
 
-    from implicit_scaffold.grid import Grid
-    from implicit_scaffold.tiles import FieldFile
+    from implicit_scaffold.run.grid import Grid
+    from implicit_scaffold.run.tiles import FieldFile
 
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
                           text=True, check=True)
@@ -151,7 +151,7 @@ def test_field_file_removes_what_killed_runs_left(tmp_path):
 
 def test_group_quantile_gives_each_groups_order_statistics():
     # against a sort of each group's values, fed in three uneven slabs, ties and signs mixed
-    from implicit_scaffold.tiles import GroupQuantile
+    from implicit_scaffold.run.tiles import GroupQuantile
 
     rng = np.random.default_rng(5)
     values = np.concatenate([rng.normal(size=30_000), np.zeros(500), -np.zeros(500),
@@ -175,7 +175,7 @@ def test_group_quantile_gives_each_groups_order_statistics():
 
 
 def test_group_quantile_refuses_ranks_beyond_a_group():
-    from implicit_scaffold.tiles import GroupQuantile
+    from implicit_scaffold.run.tiles import GroupQuantile
 
     q = GroupQuantile(2)
     q.count(np.arange(5, dtype=np.float32), np.array([0, 0, 1, 1, 1]))

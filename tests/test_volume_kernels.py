@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from implicit_scaffold import patient_volume as pv
-from implicit_scaffold import volume_kernels as vk
+from implicit_scaffold.fields import patient_volume as pv
+from implicit_scaffold.fields import volume_kernels as vk
 
 
 def _centres(shape):
@@ -222,7 +222,7 @@ def test_fast_load_agrees_with_the_reference(tmp_path):
     """The same bone file through both paths: the volume fits the mask's to their tolerances,
     the bounds and the surface agree to a small share of a voxel."""
     sitk = pytest.importorskip("SimpleITK")
-    from implicit_scaffold.grid import Grid
+    from implicit_scaffold.run.grid import Grid
 
     h = np.array([0.5, 0.6, 0.4])
     shape = (40, 36, 44)

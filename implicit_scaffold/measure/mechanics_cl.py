@@ -1,0 +1,148 @@
+"""The voxel finite-element operator on the OpenCL device (``kernels/mechanics.cl``).
+
+:func:`~implicit_scaffold.measure.mechanics.apply_stiffness` is its NumPy reference; the tests hold
+them together. The conjugate gradients stay on the host in float64 (the FFT preconditioner
+is NumPy/SciPy); only ``K p`` runs here, in double when the device has ``cl_khr_fp64``.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from .. import opencl
+
+
+def has_double() -> bool:
+    """Whether the active device computes in double precision."""
+    ctx, _ = opencl.context()
+    return "cl_khr_fp64" in ctx.devices[0].extensions
+
+
+#: host arrays the device reads and writes in place are aligned to this many bytes: a CPU
+#: device then uses them as its buffers (``USE_HOST_PTR``, zero copy); at any other address
+#: the Intel CPU runtime keeps a copy of its own (measured: 16-byte-aligned NumPy arrays of
+#: 400 MB doubled the resident set, 4096-byte-aligned ones added nothing)
+ALIGN = 4096
+
+
+def aligned_empty(shape, dtype=np.float64) -> np.ndarray:
+    """An uninitialised C-contiguous array whose data start on an :data:`ALIGN`-byte boundary."""
+    dtype = np.dtype(dtype)
+    shape = tuple(int(v) for v in np.atleast_1d(shape))
+    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    raw = np.empty(nbytes + ALIGN, np.uint8)
+    start = (-raw.ctypes.data) % ALIGN
+    return raw[start:start + nbytes].view(dtype).reshape(shape)
+
+
+def aligned_copy(a: np.ndarray, dtype=None) -> np.ndarray:
+    """A copy of `a` (in `dtype`, default its own) in an :func:`aligned_empty` array."""
+    out = aligned_empty(a.shape, a.dtype if dtype is None else dtype)
+    np.copyto(out, a, casting="same_kind")
+    return out
+
+
+def _aligned(a: np.ndarray, dtype) -> np.ndarray:
+    """`a` itself when it is C-contiguous, of `dtype` and aligned, else an aligned copy."""
+    if a.dtype == dtype and a.flags.c_contiguous and a.ctypes.data % ALIGN == 0:
+        return a
+    return aligned_copy(a, dtype)
+
+
+def _shared(array, dtype, flags):
+    """A device buffer over a host array (kept alive beside it): no copy on a CPU device."""
+    import pyopencl as cl
+
+    ctx, _ = opencl.context()
+    host = _aligned(np.asarray(array).reshape(-1) if np.size(array) else np.zeros(1, dtype), dtype)
+    return host, cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+
+
+class _Gather:
+    """``f = A u`` by the gather kernel of ``kernels/mechanics.cl`` on a periodic node grid.
+
+    The kernel reads and writes host arrays in place (``USE_HOST_PTR`` on :data:`ALIGN`-aligned
+    arrays): no device copies of the vectors, the element matrices or the solid flags."""
+
+    def __init__(self, shape, owner, mats, *, double: bool, per_element: bool):
+        import pyopencl as cl
+
+        self.shape = tuple(int(v) for v in shape)
+        self.double = bool(double)
+        self.dtype = np.float64 if self.double else np.float32
+        self.per_element = int(per_element)
+        self._owner_host, self.owner = _shared(owner, np.int32 if per_element else np.uint8, cl.mem_flags.READ_ONLY)
+        self._mats_host, self.mats = _shared(mats, self.dtype, cl.mem_flags.READ_ONLY)
+        self.n = int(np.prod(self.shape))
+
+    def __call__(self, u: np.ndarray) -> np.ndarray:
+        """A u for (m, 3, N) nodal values, in float64 (or in the operator's own float when
+        `u` comes in it). `u` is read in place when it is aligned (:func:`aligned_empty`) and
+        of the operator's float; the result is aligned."""
+        import pyopencl as cl
+
+        m = u.shape[0]
+        ctx, queue = opencl.context()
+        # the fine operator in double runs one case per launch: a quarter faster per case than
+        # six together on the 128^3 scaffold of the benchmark (307 against 408 ms a case, and
+        # 413 against 576 in another run; in float the two were within 10 %, either way)
+        step = 1 if self.double and not self.per_element else m
+        k = opencl.kernel("mechanics", "stiffness_apply", NCASE=step, USE_DOUBLE=int(self.double),
+                          PER_ELEMENT=self.per_element)
+        native = u.dtype == self.dtype
+        host = _aligned(u, self.dtype)
+        out = aligned_empty(host.shape, self.dtype)
+        flags = cl.mem_flags
+        u_buf = cl.Buffer(ctx, flags.READ_ONLY | flags.USE_HOST_PTR, hostbuf=host)
+        f_buf = cl.Buffer(ctx, flags.WRITE_ONLY | flags.USE_HOST_PTR, hostbuf=out)
+        n1, n2, n3 = self.shape
+        for first in range(0, m, step):
+            k(queue, (self.n,), None, self.owner, self.mats, u_buf, f_buf, np.int32(n1), np.int32(n2), np.int32(n3),
+              np.int32(first))
+        # mapping the result makes the host array current (a no-op on a CPU device)
+        view, _ = cl.enqueue_map_buffer(queue, f_buf, cl.map_flags.READ, 0, out.shape, out.dtype)
+        del view
+        queue.finish()
+        u_buf.release()
+        f_buf.release()
+        return out if native else out.astype(np.float64)
+
+
+class StiffnessOperator(_Gather):
+    """``K u`` of a :class:`~implicit_scaffold.measure.mechanics.VoxelModel` on the device.
+
+    Parameters
+    ----------
+    model : VoxelModel
+    double : bool, optional
+        Compute in double (default: when the device can).
+    """
+
+    def __init__(self, model, *, double: bool | None = None):
+        self.model = model
+        super().__init__(model.shape, model.solid, model.ke, double=has_double() if double is None else double,
+                         per_element=False)
+
+    def single(self) -> "StiffnessOperator":
+        """The same operator in float (a preconditioner's: half the time and memory of double)."""
+        return self if not self.double else StiffnessOperator(self.model, double=False)
+
+    def __call__(self, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
+        """K u; with `element_extra` (a one-off right-hand side) the NumPy reference does it."""
+        if element_extra is not None:
+            from .mechanics import apply_stiffness
+
+            return apply_stiffness(self.model, u, element_extra)
+        return super().__call__(u)
+
+
+class LevelOperator(_Gather):
+    """``A u`` of a coarse multigrid level (:class:`~implicit_scaffold.measure.multigrid.Level`) on
+    the device, in the float of its matrices."""
+
+    def __init__(self, level):
+        super().__init__(level.shape, level.index, level.mats, double=level.mats.dtype == np.float64,
+                         per_element=True)
+
+    def host_mats(self, shape) -> np.ndarray:
+        """The host array the device reads the level's matrices from (to keep as the level's own)."""
+        return self._mats_host.reshape(shape)

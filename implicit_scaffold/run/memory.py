@@ -1,0 +1,141 @@
+"""Memory budgets: what a run may hold, what it holds now, and giving freed memory back.
+
+Every stage that sizes its work by memory asks here. A run's budget (``--max-memory``)
+defaults to :data:`DEFAULT_MAX_MEMORY`, or less when less is free, so that a run sized
+on one machine behaves the same on another; a grid that does not fit whole is built in
+slabs (:mod:`~implicit_scaffold.run.tiled`), and one that cannot fit even so is refused before the work
+starts, naming the smallest budget that would do.
+"""
+from __future__ import annotations
+
+import ctypes
+import gc
+import sys
+
+import numpy as np
+
+from ..errors import ScaffoldError
+
+#: the default --max-memory, bytes: 4 GiB, whatever the machine has beyond it
+DEFAULT_MAX_MEMORY = 4 * 2**30
+#: at most this share of the memory free when the run starts, when that is below the default
+DEFAULT_MEMORY_SHARE = 0.8
+
+
+def available_memory() -> int:
+    """Bytes of memory this process can still take (free plus reclaimable cache)."""
+    import psutil
+
+    return int(psutil.virtual_memory().available)
+
+
+def default_max_memory() -> int:
+    """The default memory budget, bytes: :data:`DEFAULT_MAX_MEMORY`, or a safe share of
+    what is free now when that is less."""
+    return int(min(DEFAULT_MAX_MEMORY, DEFAULT_MEMORY_SHARE * available_memory()))
+
+
+def parse_memory(text) -> int:
+    """A memory size such as ``4G``, ``3.5GB``, ``800M`` or ``800MiB`` (a bare number is GiB), as bytes."""
+    units = {"": 2**30, "k": 2**10, "m": 2**20, "g": 2**30, "t": 2**40}
+    raw = str(text).strip().lower()
+    for suffix in ("ib", "b"):
+        if raw.endswith(suffix) and raw[:-len(suffix)][-1:] in "kmgt":
+            raw = raw[:-len(suffix)]
+            break
+    unit = raw[-1:] if raw[-1:] in "kmgt" else ""
+    try:
+        value = float(raw[:len(raw) - len(unit)])
+    except ValueError:
+        raise ScaffoldError(f"--max-memory must be a size such as 4G or 800M, got {text!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ScaffoldError(f"--max-memory must be a positive size such as 4G, got {text!r}")
+    return int(value * units[unit])
+
+
+def budget(max_memory=None) -> int:
+    """`max_memory` as bytes: a size (``"4G"``), a number of bytes, or None for the default."""
+    if max_memory is None:
+        return default_max_memory()
+    if isinstance(max_memory, str):
+        return parse_memory(max_memory)
+    return int(max_memory)
+
+
+def format_size(nbytes: float) -> str:
+    """A size as ``--max-memory`` takes it, rounded up to the next tenth of a GiB (or MiB below 1 GiB)."""
+    if nbytes >= 2**30:
+        return f"{np.ceil(nbytes / 2**30 * 10) / 10:.1f}G"
+    return f"{int(np.ceil(nbytes / 2**20 / 10) * 10)}M"
+
+
+def process_memory() -> int:
+    """Bytes this process holds now (resident set)."""
+    import psutil
+
+    return int(psutil.Process().memory_info().rss)
+
+
+def peak_memory(children: bool = False) -> int:
+    """The most bytes this process has held (its peak resident set), or the largest of its
+    finished child processes' peaks.
+
+    On Linux the process's own peak is its address space's high-water mark (``VmHWM``):
+    ``ru_maxrss`` keeps, across ``exec``, the peak of the process it was forked from, so a
+    run started by a large parent would report the parent's size.
+    """
+    import resource
+
+    if not children:
+        try:
+            with open("/proc/self/status") as fh:
+                for line in fh:
+                    if line.startswith("VmHWM:"):
+                        return int(line.split()[1]) * 1024
+        except OSError:
+            pass
+    who = resource.RUSAGE_CHILDREN if children else resource.RUSAGE_SELF
+    return int(resource.getrusage(who).ru_maxrss) * 1024
+
+
+_LIBC = None
+
+
+def release() -> int:
+    """Give the memory freed so far back to the system; return what the process holds then.
+
+    NumPy's large arrays are returned when freed, but the many small blocks of a stage
+    (voro++'s cells as Python objects, sorting temporaries) stay in the C heap, where the
+    resident set keeps counting them; glibc's ``malloc_trim`` hands them back. Called
+    between stages and slabs, so that what a slab may take is measured on what is held.
+    """
+    global _LIBC
+    # the young generations only: a stage's cyclic garbage is recent, and a full collection
+    # walks every object the imported libraries hold (30 ms a call, three calls a run)
+    gc.collect(1)
+    if sys.platform.startswith("linux"):
+        try:
+            if _LIBC is None:
+                _LIBC = ctypes.CDLL("libc.so.6")
+            _LIBC.malloc_trim(0)
+        except (OSError, AttributeError):  # another C library: nothing to trim
+            pass
+    return process_memory()
+
+
+def check_memory(grid, bytes_per_voxel: int, available: int | None = None) -> int:
+    """Raise a :class:`ScaffoldError` before allocating a grid that cannot fit.
+
+    Returns
+    -------
+    int
+        The estimate, bytes.
+    """
+    need = grid.memory_estimate(bytes_per_voxel)
+    have = available_memory() if available is None else int(available)
+    if need > have:
+        raise ScaffoldError(
+            f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
+            f"{need / 2**30:.1f} GiB but only {have / 2**30:.1f} GiB is free; "
+            f"use a larger --voxel (e.g. {grid.spacing * (need / have) ** (1 / 3) * 1.1:.3g} mm)")
+    return need
