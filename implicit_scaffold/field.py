@@ -125,15 +125,19 @@ def _blend_kernels():
         _, ny, nz = src.shape
         r = w.shape[0] - 1
         line = np.empty(nz + 2 * r)
+        acc = np.empty(nz)
         for i in range(lo, hi):
             for j in range(ny):
                 for k in range(nz + 2 * r):
                     line[k] = np.float64(src[i, j, min(max(k - r, 0), nz - 1)])
+                # the same sums in the same order as along_x's, a whole row per weight (vectorised)
                 for k in range(nz):
-                    acc = line[k + r] * w[0]
-                    for m in range(r, 0, -1):
-                        acc += (line[k + r - m] + line[k + r + m]) * w[m]
-                    out[i, j, k] = np.float32(acc)
+                    acc[k] = line[k + r] * w[0]
+                for m in range(r, 0, -1):
+                    for k in range(nz):
+                        acc[k] += (line[k + r - m] + line[k + r + m]) * w[m]
+                for k in range(nz):
+                    out[i, j, k] = np.float32(acc[k])
 
     _BLEND = (along_x, along_y, along_z)
     return _BLEND
