@@ -89,3 +89,7 @@ def test_blend_field_gives_scipy_gaussian_bits(shape, h, k):
     got = blend_field(field, h, k)
     assert not np.array_equal(got, field)
     assert got.dtype == np.float32 and got.tobytes() == blend_field_reference(field, h, k).tobytes()
+    # a run of planes (a slab's own, its halo read) is those planes of the oracle, at either end too
+    want = blend_field_reference(field, h, k)
+    for i0, i1 in ((0, 1), (1, shape[0]), (shape[0] // 2, shape[0] // 2 + 1)):
+        assert blend_field(field, h, k, planes=(i0, i1)).tobytes() == want[i0:i1].tobytes()

@@ -15,7 +15,7 @@ from ..errors import ScaffoldError
 BLEND_SIGMAS = 3.0
 
 
-def blend_field(field: np.ndarray, spacing: float, k: float) -> np.ndarray:
+def blend_field(field: np.ndarray, spacing: float, k: float, planes=None) -> np.ndarray:
     """Round every crease of the solid over a width `k` by a Gaussian filter of the field.
 
     A filter of a distance field blends the field across a crease, rounding
@@ -29,26 +29,31 @@ def blend_field(field: np.ndarray, spacing: float, k: float) -> np.ndarray:
     k : float, mm
         Blend width; the filter's standard deviation is ``k / 3`` and its support ``k``.
         0 returns the field unchanged.
+    planes : (i0, i1), optional
+        Only the planes ``i0 <= i < i1`` of the result (each the same bits as in the whole
+        result): a slab's own planes, when `field` holds its halo too.
 
     Returns
     -------
-    (nx, ny, nz) float32 ndarray, mm
+    (i1 - i0, ny, nz) float32 ndarray, mm
+        ``(nx, ny, nz)`` without `planes`.
     """
     from ..run.threads import over_rows
 
+    i0, i1 = (0, field.shape[0]) if planes is None else (int(planes[0]), int(planes[1]))
     sigma = k / BLEND_SIGMAS / spacing
     if k <= 0 or sigma < 0.25:
-        return field
+        return field if planes is None else field[i0:i1]
     weights = _gaussian_weights(sigma, int(BLEND_SIGMAS * float(sigma) + 0.5))
     along_x, along_y, along_z = _blend_kernels()
     src = np.ascontiguousarray(field, np.float32)
-    out = np.empty(src.shape, np.float32)
+    out = np.empty((i1 - i0,) + src.shape[1:], np.float32)
     # one axis after the other, each rounded to float32 as SciPy's passes are; x reads the
-    # input and writes `out`, y goes back to a scratch array, z to `out`
-    over_rows(along_x, src.shape[1], src, weights, out)
+    # input's planes around i0..i1 and writes `out`, y goes to a scratch array, z back to `out`
+    over_rows(along_x, src.shape[1], src, weights, out, i0)
     tmp = np.empty_like(out)
-    over_rows(along_y, src.shape[0], out, weights, tmp)
-    over_rows(along_z, src.shape[0], tmp, weights, out)
+    over_rows(along_y, out.shape[0], out, weights, tmp)
+    over_rows(along_z, out.shape[0], tmp, weights, out)
     return out
 
 
@@ -87,11 +92,12 @@ def _blend_kernels():
     import numba as nb
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def along_x(src, w, out, lo, hi):  # pragma: no cover - compiled
+    def along_x(src, w, out, first, lo, hi):  # pragma: no cover - compiled
+        # out's planes are src's first, first + 1, ...
         nx, _, nz = src.shape
         r = w.shape[0] - 1
         acc = np.empty(nz)
-        for i in range(nx):
+        for i in range(first, first + out.shape[0]):
             for j in range(lo, hi):
                 for k in range(nz):
                     acc[k] = np.float64(src[i, j, k]) * w[0]
@@ -101,7 +107,7 @@ def _blend_kernels():
                     for k in range(nz):
                         acc[k] += (np.float64(src[a, j, k]) + np.float64(src[b, j, k])) * w[m]
                 for k in range(nz):
-                    out[i, j, k] = np.float32(acc[k])
+                    out[i - first, j, k] = np.float32(acc[k])
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def along_y(src, w, out, lo, hi):  # pragma: no cover - compiled
@@ -125,15 +131,19 @@ def _blend_kernels():
         _, ny, nz = src.shape
         r = w.shape[0] - 1
         line = np.empty(nz + 2 * r)
+        acc = np.empty(nz)
         for i in range(lo, hi):
             for j in range(ny):
                 for k in range(nz + 2 * r):
                     line[k] = np.float64(src[i, j, min(max(k - r, 0), nz - 1)])
+                # the same sums in the same order as along_x's, a whole row per weight (vectorised)
                 for k in range(nz):
-                    acc = line[k + r] * w[0]
-                    for m in range(r, 0, -1):
-                        acc += (line[k + r - m] + line[k + r + m]) * w[m]
-                    out[i, j, k] = np.float32(acc)
+                    acc[k] = line[k + r] * w[0]
+                for m in range(r, 0, -1):
+                    for k in range(nz):
+                        acc[k] += (line[k + r - m] + line[k + r + m]) * w[m]
+                for k in range(nz):
+                    out[i, j, k] = np.float32(acc[k])
 
     _BLEND = (along_x, along_y, along_z)
     return _BLEND

@@ -34,6 +34,8 @@ from ..geometry.skeleton import Skeleton
 BLOCK = 8
 #: float4 words per packed quad (kernels/lattice.cl, QUAD_WORDS)
 QUAD_WORDS = 9
+#: blocks per work-group of the lists' sort (``bin_sort`` in kernels/lattice.cl)
+SORT_GROUP = 8
 
 
 @dataclass(frozen=True)
@@ -359,8 +361,12 @@ def bin_on_device(kind: str, buffer, lo, hi, grid: Grid, *, cutoff: float, x_ran
     if m:
         opencl.kernel("lattice", f"{kind}_bin_fill", BLOCK=BLOCK)(
             queue, (m,), None, *common, *extra, offsets_dev, fill, items, keys)
+    # small work-groups: left to choose, Intel's CPU runtime packs 16 blocks into one vector,
+    # whose lanes then take every path of the others' heaps (the femoral shaft's 0.02 mm slab:
+    # 0.38 s of CPU to sort, 0.17 s in groups of 8)
     opencl.kernel("lattice", "bin_sort", BLOCK=BLOCK)(
-        queue, (n_blocks,), None, offsets_dev, fill, items, keys, np.int32(n_blocks))
+        queue, (-(-n_blocks // SORT_GROUP) * SORT_GROUP,), (SORT_GROUP,), offsets_dev, fill, items, keys,
+        np.int32(n_blocks))
     return offsets_dev, fill, items, keys
 
 

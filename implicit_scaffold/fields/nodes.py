@@ -145,8 +145,8 @@ class Blend:
         x0, x1 = _planes(grid, x_range)
         h = self.halo(grid)
         h0, h1 = max(0, x0 - h), min(grid.shape[0], x1 + h)
-        wide = blend_field(self.child.evaluate(grid, (h0, h1), skip=skip), grid.spacing, self.k)
-        return np.ascontiguousarray(wide[x0 - h0:x1 - h0])
+        return np.ascontiguousarray(blend_field(self.child.evaluate(grid, (h0, h1), skip=skip), grid.spacing,
+                                                self.k, planes=(x0 - h0, x1 - h0)))
 
 
 @dataclass(frozen=True)
