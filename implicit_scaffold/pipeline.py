@@ -387,8 +387,8 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     # depth grade's deepest node) only its sign matters, so a mesh's far field is clamped there
     # and computed slab by slab, the same on the whole grid as in slabs
     fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
-    run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry), int(budget(max_memory)), tiled, params,
-                   fine_patient, out_path, slices, workers=workers)
+    run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry, repair=bool(repair)),
+                   int(budget(max_memory)), tiled, params, fine_patient, out_path, slices, workers=workers)
     prog = Progress(verbose)
     if mesh:
         # the mesh stages' libraries load while the cells and the lattice are computed (about
