@@ -178,3 +178,27 @@ def test_a_run_in_slabs_repairs_as_the_whole_grid_does(tmp_path):
     assert slabs.report["repair"] == whole.report["repair"]
     for key in ("porosity_voxel", "bodies_voxels", "fragments_removed", "sealed_voids"):
         assert slabs.report[key] == whole.report[key], key
+
+
+def test_repair_of_a_grid_past_the_budget_runs_in_slabs(tmp_path):
+    """--repair no longer needs the whole grid: a budget too small for any run is refused at once,
+    in one line naming the smallest that works in slabs; under that budget the run repairs its
+    field in slabs, finishes and writes it."""
+    import json
+    import re
+
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.pipeline import generate, report_path
+
+    kw = dict(size=3, seeds=40, voxel=0.02, porosity=0.75, printer="custom:min_strut=0.1,min_throat=0.1,drain=0.2",
+              mesh=False, morphometry=False, repair=True)
+    with pytest.raises(ScaffoldError, match="even in slabs") as err:
+        generate(output=tmp_path / "refused.npy", max_memory="100M", **kw)
+    assert "\n" not in str(err.value) and not (tmp_path / "refused.npy").exists()
+    named = re.search(r"pass --max-memory (\S+) or more", str(err.value)).group(1)
+    r = generate(output=tmp_path / "slabs.npy", max_memory=named, **kw)
+    assert r.report["tiled"]["slabs"] > 1
+    written = json.loads(report_path(tmp_path / "slabs.npy").read_text())
+    assert written["repair"]["printer"] == "custom" and written["repair"]["porosity"]["after"] is not None
+    field = np.load(tmp_path / "slabs.npy")
+    assert field.shape == tuple(written["grid_shape"])
