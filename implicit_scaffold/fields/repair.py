@@ -10,6 +10,9 @@ minimum. The porosity target is then met again by one global offset ``t`` (a qua
 ``s - delta`` over the patient, as :func:`~implicit_scaffold.fields.field.solve_level` finds it), and the whole is
 measured again; a few rounds settle it. What cannot be met (a minimum strut too thick for
 the porosity at this pore size, throats that cannot open without breaking struts) is named.
+
+A field in slabs on disk is repaired slab by slab (:func:`repair_by_slabs`): the same rounds, each
+step with the halo it reads and exact reductions across slabs, and the same field, bit for bit.
 """
 from __future__ import annotations
 
@@ -443,8 +446,12 @@ class _Stores:
     def ints(self):
         from ..measure.printability import _IntPlanes
 
-        self._open.append(_IntPlanes(self.grid, self.folder))
-        return self._open[-1]
+        return self.keep(_IntPlanes(self.grid, self.folder))
+
+    def keep(self, store):
+        """Close `store` (one made elsewhere) with the others."""
+        self._open.append(store)
+        return store
 
     def close(self) -> None:
         for store in self._open:
@@ -568,11 +575,9 @@ def _measure_by_slabs(solid_of, region_of, grid, h: float, profile, max_voxels: 
     fits = True
     if profile.drain_mm > 0:
         rho2 = (0.5 * (float(profile.drain_mm) / h - 1.0)) ** 2  # as measure reads the drain
-        maps["d2"], halo_d = _distances_by_slabs(solid_of, region_of, grid, max_voxels, halo, stores.folder,
-                                                 math.ceil(rho2) + 1)
-        stores._open.append(maps["d2"])
-        maps["r2"], _ = _flood_by_slabs(maps["d2"], grid, max_voxels, stores.folder)
-        stores._open.append(maps["r2"])
+        maps["d2"] = stores.keep(_distances_by_slabs(solid_of, region_of, grid, max_voxels, halo, stores.folder,
+                                                     math.ceil(rho2) + 1)[0])
+        maps["r2"] = stores.keep(_flood_by_slabs(maps["d2"], grid, max_voxels, stores.folder)[0])
         d2s, r2s = maps["d2"], maps["r2"]
         unreached_parts, seen, wide = SlabComponents(), [], [False]
 
@@ -725,7 +730,7 @@ def repair_by_slabs(source, patient, h: float, profile, *, porosity: float | Non
     (:class:`~implicit_scaffold.run.tiles.StreamQuantile`, two passes), the solid's bodies and the
     undrained pores by union-find, the counts and the largest amounts by sums and maxima. The
     maps of the current round, the one before and the round being tried are kept on disk
-    (about 60 bytes a voxel in `folder`); a slab holds about `max_voxels` voxels of each working
+    (up to about 70 bytes a voxel in `folder`, removed at the end); a slab holds about `max_voxels` voxels of each working
     array, its halo included (:data:`SLAB_REPAIR_BYTES_PER_VOXEL` bytes a voxel in all).
     """
     from ..run.tiles import SlabComponents, StreamQuantile
