@@ -369,7 +369,8 @@ def _add_build_options(g) -> None:
     cg.add_argument("--repair", action="store_true",
                     help="before the mesh, thicken struts thinner than the printer's minimum and open throats its "
                          "drain cannot pass, by local offsets of the field, keeping the porosity; the JSON's repair "
-                         "says what changed and what could not be met (needs --printer)")
+                         "says what changed and what could not be met (needs --printer; a run in slabs repairs slab by "
+                         "slab, the same field)")
     rg = g.add_argument_group("memory and cluster")
     rg.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory the run may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "

@@ -387,8 +387,8 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     # depth grade's deepest node) only its sign matters, so a mesh's far field is clamped there
     # and computed slab by slab, the same on the whole grid as in slabs
     fine_patient = clamp_far_field(patient, params.skin + params.smooth_cut + _grade_reach(params.grade))
-    run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry), int(budget(max_memory)), tiled, params,
-                   fine_patient, out_path, slices, workers=workers)
+    run = _RunPlan(run_bytes_per_voxel(mesh=mesh, morphometry=morphometry, repair=bool(repair)),
+                   int(budget(max_memory)), tiled, params, fine_patient, out_path, slices, workers=workers)
     prog = Progress(verbose)
     if mesh:
         # the mesh stages' libraries load while the cells and the lattice are computed (about
@@ -400,8 +400,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
 
     graded = _graded_density(params, patient, ct, prog)
     n = graded.density.count if graded else _seed_count(params, patient)
-    if _plan_before_cells(run, params, patient, n, graded is not None) is not None and repair:
-        raise run.whole_grid_refusal(Grid.covering(patient.lo, patient.hi, params.voxel), "--repair")
+    _plan_before_cells(run, params, patient, n, graded is not None)
     built = _seeds_and_cells(params, patient, n, graded, run, prog)
     printed_wall = _printed_wall(built.wall, params)
     if params.voxel is not None:
@@ -418,8 +417,6 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         kept = in_memory if slab_voxels is None else LATER_STAGES_BYTES
         _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory, kept=kept,
                          kept_in_memory=in_memory, whole=run.whole_bytes if slab_voxels is not None else None)
-    if repair and slab_voxels is not None:
-        raise run.whole_grid_refusal(grid, "--repair")
     # the field: one driver for every size, over one slab held in memory when the whole grid
     # fits (slab_voxels None), else over slabs kept on disk; then the outputs
     return _build(run, params, patient, grid, built.cells, skeleton, edges, built.seeds, built.walls,
@@ -1041,16 +1038,6 @@ class _RunPlan:
         self.workers = int(workers)  # local processes for the lattice pass of a run in slabs
         self.params, self.patient, self.out_path, self.slices = params, patient, out_path, slices
 
-    def whole_grid_refusal(self, grid: Grid, what: str) -> ScaffoldError:
-        """The one-line refusal of a stage that needs the whole grid in memory, naming the budget
-        the last :meth:`plan` found it needs."""
-        from .run.memory import format_size
-
-        return ScaffoldError(
-            f"{what} needs the whole grid in memory: a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} "
-            f"voxels needs about {format_size(self.whole_bytes)} but --max-memory is {format_size(self.max_memory)}: "
-            f"pass --max-memory {format_size(SMALLEST_MARGIN * self.whole_bytes)} or more, or use a larger --voxel")
-
     @property
     def forced_voxels(self) -> int | None:
         """The voxels per slab asked for by ``tiled=<int>``, else None."""
@@ -1293,7 +1280,7 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
         report["bodies_voxels"] = tf.pieces
         report["patient_pieces_count"] = tf.patient_pieces
         if repair:
-            _repair(tf, report, params, printer, grid, prog, one_piece)
+            _repair(tf, report, params, printer, grid, prog, one_piece, None if in_memory else run)
             if calibration and not report["repair"]["holds"]["porosity"]:
                 # a level moved for the printed porosity would undo the repair where it moved the porosity
                 calibration["correction"] = "none: the repair moved the porosity (see repair.why)"
@@ -1409,18 +1396,28 @@ def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, on
     report["bodies_voxels"] = tf.pieces
 
 
-def _repair(tf, report: dict, params: Params, printer, grid: Grid, prog, one_piece: bool) -> None:
+def _repair(tf, report: dict, params: Params, printer, grid: Grid, prog, one_piece: bool,
+            run: _RunPlan | None = None) -> None:
     """Stage ``repair``: the field repaired for the printer (:func:`~implicit_scaffold.fields.repair.repair`), cleaned of the
-    fragments and sealed voids it may leave, and the report's figures updated."""
-    from .fields.repair import repair
+    fragments and sealed voids it may leave, and the report's figures updated. A run in slabs
+    (`run` given) repairs its field on disk slab by slab (:func:`~implicit_scaffold.fields.repair.repair_by_slabs`),
+    each slab within what --max-memory leaves: the same field, bit for bit."""
+    from .fields.repair import SLAB_REPAIR_BYTES_PER_VOXEL, repair, repair_by_slabs
 
     with prog.stage("repair", printer.name):
         # the voxels' porosity as built is what is kept: the level met the target (or the printed
         # geometry's) already
-        repaired, info = repair(tf.field.field, tf.patient.field, grid.spacing, printer, porosity=None,
-                                progress=prog.bar("repair"))
-        tf.field.field[...] = repaired
-        del repaired
+        if run is None:
+            repaired, info = repair(tf.field.field, tf.patient.field, grid.spacing, printer, porosity=None,
+                                    progress=prog.bar("repair"))
+            tf.field.field[...] = repaired
+            del repaired
+        else:
+            from .run.memory import release
+
+            max_voxels = run.forced_voxels or max(1, max(0, run.max_memory - release()) // SLAB_REPAIR_BYTES_PER_VOXEL)
+            info = repair_by_slabs(tf.field, tf.patient, grid.spacing, printer, porosity=None, max_voxels=max_voxels,
+                                   progress=prog.bar("repair"))
     _correct(tf, 0.0, report, params, grid, prog, one_piece, why="fragments and sealed voids after the repair")
     report["repair"] = info
 

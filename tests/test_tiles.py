@@ -232,3 +232,32 @@ def test_kept_labels_give_the_relabelled_masks():
     field = np.where(solid, -1.0, 1.0).astype(np.float32)
     assert c.drop_fragments(0, field, 2.0) == np.count_nonzero(want)
     np.testing.assert_array_equal(field == 2.0, want)
+
+
+@pytest.mark.parametrize("thickness", [1, 2, 5])
+def test_26_connected_pieces_join_across_slabs_as_ndimage_labels_them(thickness):
+    """SlabComponents(connectivity=26) against scipy.ndimage.label with a 3x3x3 structure on the
+    whole mask: the same pieces (count and voxels per piece), joined across edges and corners
+    of the slab faces too; 6-connected on the same mask gives more pieces."""
+    from scipy import ndimage
+
+    rng = np.random.default_rng(7)
+    mask = rng.random((23, 17, 19)) < 0.12  # sparse: many pieces touch only by edges or corners
+    labels, count = ndimage.label(mask, np.ones((3, 3, 3), bool))
+    comp = SlabComponents(connectivity=26)
+    local = []
+    for x0 in range(0, 23, thickness):
+        local.append((x0, comp.add(mask[x0:x0 + thickness])))
+    comp.finish()
+    assert comp.piece_count == count
+    # every piece's voxels map to one root, and no two pieces to the same one
+    roots = np.zeros(mask.shape, np.int64)
+    for i, (x0, lab) in enumerate(local):
+        roots[x0:x0 + lab.shape[0]] = comp.roots_of(i, lab)
+    pairs = np.unique(np.stack([labels[mask], roots[mask]]), axis=1)
+    assert pairs.shape[1] == count
+    six = SlabComponents()
+    for x0 in range(0, 23, thickness):
+        six.add(mask[x0:x0 + thickness])
+    six.finish()
+    assert six.piece_count == ndimage.label(mask)[1] > count

@@ -10,9 +10,13 @@ minimum. The porosity target is then met again by one global offset ``t`` (a qua
 ``s - delta`` over the patient, as :func:`~implicit_scaffold.fields.field.solve_level` finds it), and the whole is
 measured again; a few rounds settle it. What cannot be met (a minimum strut too thick for
 the porosity at this pore size, throats that cannot open without breaking struts) is named.
+
+A field in slabs on disk is repaired slab by slab (:func:`repair_by_slabs`): the same rounds, each
+step with the halo it reads and exact reductions across slabs, and the same field, bit for bit.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -129,14 +133,27 @@ def _spread(amount: np.ndarray, where: np.ndarray, h: float, full: float, fade: 
     fading linearly to 0 over the next `fade` mm, so that the offset makes no step on a
     neighbouring surface. Amounts are rounded up to steps of :data:`STEP_VOXELS` voxels.
     """
-    out = np.zeros(where.shape, np.float32)
     if not where.any():
-        return out
+        return np.zeros(where.shape, np.float32)
+    return _spread_levels(amount, where, h, full, fade, _levels(float(amount[where].max()), h))
+
+
+def _levels(top: float, h: float) -> np.ndarray:
+    """The amounts (mm) :func:`_spread` rounds up to, for sources of at most `top` mm."""
     step = STEP_VOXELS * h
-    top = float(amount[where].max())
     levels = step * np.arange(1, int(np.ceil(top / step)) + 1)
     if len(levels) > MAX_STEPS:
         levels = np.linspace(levels[0], levels[-1], MAX_STEPS)
+    return levels
+
+
+def _spread_levels(amount: np.ndarray, where: np.ndarray, h: float, full: float, fade: float,
+                   levels: np.ndarray) -> np.ndarray:
+    """:func:`_spread` with the `levels` of the whole grid's sources (:func:`_levels`): on a slab
+    with a halo of ``full + fade`` mm, its owned planes are the whole grid's."""
+    out = np.zeros(where.shape, np.float32)
+    if not where.any() or not len(levels):
+        return out
     rounded = np.zeros(where.shape, np.float32)
     # each source's amount rounded up to the next level it reaches
     rounded[where] = levels[np.minimum(np.searchsorted(levels, amount[where] - 1e-9), len(levels) - 1)]
@@ -239,18 +256,30 @@ def level_for(moved: np.ndarray, weight: np.ndarray, region: np.ndarray, solid: 
     ``moved / weight < t``, so ``t`` is a quantile of that ratio (midway between two
     consecutive values, :func:`~implicit_scaffold.fields.field.level_between`), exact in the voxel count.
     """
-    from .field import level_between
-
     free = region & (weight > 0)
     fixed = int(np.count_nonzero(region & ~free & (moved < 0)))
     values = moved[free] / weight[free]
     k = int(solid) - fixed
-    if values.size == 0 or k <= 0:
-        return float(values.min()) - 1e-6 if values.size else 0.0
-    if k >= values.size:
-        return float(values.max()) + 1e-6
-    part = np.partition(values, (k - 1, k))
-    return float(level_between(part[k - 1], part[k]))
+
+    def order(*ranks):
+        part = np.partition(values, ranks)
+        return [part[r] for r in ranks]
+
+    return _level_at(k, values.size, values.min() if values.size else None,
+                     values.max() if values.size else None, order)
+
+
+def _level_at(k: int, n: int, low, high, order) -> float:
+    """:func:`level_for`'s offset from the `k` voxels to make solid among `n` free ones, their
+    ratios' least and largest (float32) and ``order(*ranks)``, the ratios at 0-based ranks."""
+    from .field import level_between
+
+    if n == 0 or k <= 0:
+        return float(low) - 1e-6 if n else 0.0
+    if k >= n:
+        return float(high) + 1e-6
+    below, above = order(k - 1, k)
+    return float(level_between(np.float32(below), np.float32(above)))
 
 
 def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosity: float | None,
@@ -328,8 +357,7 @@ def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosit
                 break
             del trial, current, solid, total, weight
         if accepted is None:
-            stopped = (f"round {step} stopped: its offsets, even scaled by {STEP_SCALES[-1]:g}, broke the porosity, "
-                       "the solid's connection or made more thin struts or undrained pores than they fixed")
+            stopped = _stopped(step)
             break
         last, state = state, accepted
         # what a round's offset did not improve (a sharp edge where the patient cuts the lattice
@@ -343,6 +371,19 @@ def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosit
     grown = int(np.count_nonzero(solid & ~solid0))
     opened = int(np.count_nonzero(solid0 & ~solid))
     after_porosity = 1.0 - np.count_nonzero(solid & region) / n_region
+    info = _summary(profile, h, done, target, before_porosity, after_porosity, shift, grown, opened, before, found,
+                    stopped)
+    return np.ascontiguousarray(current, np.float32), info
+
+
+def _stopped(step: int) -> str:
+    return (f"round {step} stopped: its offsets, even scaled by {STEP_SCALES[-1]:g}, broke the porosity, "
+            "the solid's connection or made more thin struts or undrained pores than they fixed")
+
+
+def _summary(profile, h: float, done: int, target: float, before_porosity: float, after_porosity: float,
+             shift: float, grown: int, opened: int, before: dict, found: dict, stopped: str | None) -> dict:
+    """:func:`repair`'s info from its counts and the figures of :func:`measure` before and after."""
     holds = {**_holds(found, profile, each=True),
              # ties in the field (equal values the level cannot split) may leave a few voxels over
              "porosity": abs(after_porosity - target) <= POROSITY_TOLERANCE}
@@ -364,7 +405,7 @@ def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosit
                    "material elsewhere to give back")
     if stopped and why:
         why.append(stopped)
-    info = {"printer": profile.name, "rounds": done,
+    return {"printer": profile.name, "rounds": done,
             "porosity": {"target": float(target), "before": float(before_porosity), "after": float(after_porosity)},
             "level_shift_mm": float(shift),
             "volume_moved_mm3": float((grown + opened) * h ** 3),
@@ -377,4 +418,455 @@ def repair(field: np.ndarray, patient: np.ndarray, h: float, profile, *, porosit
             "void_reached_by_drain_share": {"before": before["void_reached_by_drain_share"],
                                             "after": found["void_reached_by_drain_share"]},
             "holds": holds, "why": why}
-    return np.ascontiguousarray(current, np.float32), info
+
+
+# ----------------------------------------------------------------------------- in slabs
+
+#: bytes per voxel of a slab (its halo included) while :func:`repair_by_slabs` works on it: the
+#: window's solid, thickness, flags and squared distances, and a spread's levels, distances and tapers
+SLAB_REPAIR_BYTES_PER_VOXEL = 80
+
+# what :func:`measure` marks per voxel, kept as bits of one int32 plane store; the last two are
+# the voxels a round repairs (:func:`offsets`' `thin` and `undrained`)
+_BELOW, _THIN, _UNREACHED, _UNDRAINED, _MIDDLE, _THROAT, _FIX_THIN, _FIX_OPEN = (1 << i for i in range(8))
+
+
+class _Stores:
+    """Float32 and int32 planes over the grid on disk, closed (and removed) together."""
+
+    def __init__(self, grid, folder):
+        self.grid, self.folder, self._open = grid, folder, []
+
+    def floats(self):
+        from ..run.tiles import FieldFile
+
+        self._open.append(FieldFile(self.grid, self.folder))
+        return self._open[-1]
+
+    def ints(self):
+        from ..measure.printability import _IntPlanes
+
+        return self.keep(_IntPlanes(self.grid, self.folder))
+
+    def keep(self, store):
+        """Close `store` (one made elsewhere) with the others."""
+        self._open.append(store)
+        return store
+
+    def close(self) -> None:
+        for store in self._open:
+            store.close()
+        self._open = []
+
+
+@dataclass
+class _SlabState:
+    """A round's state in slabs (as :class:`_State`): the field, the summed local offsets and the
+    global offset's weights (None: zeros and ones) on disk, :func:`measure`'s maps (thickness,
+    flags, ``d2``, ``r2``) on disk and its figures, and the global offset (mm)."""
+
+    field: object
+    total: object
+    weight: object
+    maps: dict
+    found: dict
+    shift: float
+    stores: _Stores | None = None
+
+
+def _windows(nx: int, plane: int, max_voxels: int, halo: int):
+    """``(x0, x1, lo, hi, own)``: the slabs' owned planes, their planes read with `halo` on either
+    side, and the owned planes' slice of those (:func:`~implicit_scaffold.measure.printability._spans`)."""
+    from ..measure.printability import _spans
+
+    for x0, x1 in _spans(nx, plane, max_voxels, halo):
+        lo, hi = max(0, x0 - halo), min(nx, x1 + halo)
+        yield x0, x1, lo, hi, slice(x0 - lo, x1 - lo)
+
+
+def _percentile_1(n: int, at) -> float:
+    """``np.percentile(values, 1)`` of `n` float32 values from their order statistics ``at(r0, r1)``
+    (the values at 0-based ranks): NumPy's linear interpolation, step for step."""
+    q = np.true_divide(1, 100)
+    virtual = n * q + (1 + q * (1 - 1 - 1)) - 1
+    r0 = int(np.floor(virtual))
+    r0, r1 = (n - 1, n - 1) if virtual >= n - 1 else (0, 0) if virtual < 0 else (r0, r0 + 1)
+    gamma = float(virtual - np.floor(virtual))
+    a, b = (np.float32(v) for v in at(r0, r1))
+    diff = b - a
+    return float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
+
+
+def _measure_by_slabs(solid_of, region_of, grid, h: float, profile, max_voxels: int, stores: _Stores,
+                      halo: int) -> tuple[dict, dict, int]:
+    """:func:`measure` of the solid ``solid_of(lo, hi)`` (planes ``[lo, hi)``) in the region
+    ``region_of(lo, hi)``, slab by slab: its maps on disk (``thickness``, float32; ``flags``, the
+    bits ``_BELOW`` to ``_THROAT``; ``d2`` and ``r2``, int32, when the profile drains), identical
+    on every voxel to the whole grid's where :func:`repair` reads them, and its figures.
+
+    How far each step reads beyond a slab (its halo):
+
+    - thickness: a sphere that paints an owned voxel has its centre within its radius ``r``, whose
+      distance is exact with a halo of ``2 r``; the halo is widened until the thickest owned
+      voxel (which bounds the largest inscribed sphere) is within it, as
+      :func:`~implicit_scaffold.measure.morphometry.morphometry_by_slabs` does;
+    - thin: the core (solid at least ``m / 2`` from the void) is read within ``0.87 m + h`` of a
+      voxel, and a core voxel's distance within ``m / 2`` of it: a distance compared with a
+      bound is exact on a window that holds every voxel within the bound, so ``ceil(m / 2h) + 1``
+      plus ``ceil((0.87 m + h) / h) + 1`` planes;
+    - drain reach: the void's squared distance, capped above the drain's (the certificate's
+      :func:`~implicit_scaffold.measure.printability._distances_by_slabs`: every comparison
+      :func:`measure` makes keeps its answer under the cap), and the max-min flood iterated
+      over the slabs to the whole grid's fixpoint (``_flood_by_slabs``); the sphere's reach with
+      a halo of its radius (``_pores_by_slabs``). Undrained pores are pieces of the unreached
+      void joined across slabs by union-find (:class:`~implicit_scaffold.run.tiles.SlabComponents`), a
+      piece undrained when some voxel of it holds a drain-sized ball (a count per piece);
+    - throats: the ridge of ``d2`` reads one plane, the drained void within ``2 h`` three; the
+      channels' middles are joined across slabs 26-connected, as ``ndimage.label`` with a 3x3x3
+      structure joins them, and lead out when some voxel of theirs is near the drained void.
+
+    Returns the maps, the figures and the thickness's halo (a start for the next measure).
+    """
+    from ..measure.morphometry import ThicknessTally, local_thickness
+    from ..measure.printability import _distances_by_slabs, _flood_by_slabs, _pores_by_slabs
+    from ..run.pieces import label_pieces
+    from ..run.tiles import SlabComponents, StreamQuantile
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    m = profile.min_strut_mm
+    maps = {"thickness": stores.floats(), "flags": stores.ints(), "d2": None, "r2": None}
+    flags, thickness = maps["flags"], maps["thickness"]
+    while True:
+        tally = ThicknessTally(h)
+        windows = list(_windows(nx, plane, max_voxels, halo))
+        for x0, x1, lo, hi, own in windows:
+            solid_w = solid_of(lo, hi)
+            thick = local_thickness(solid_w, h)[own]
+            solid = solid_w[own]
+            del solid_w
+            tally.add(thick, solid)
+            thick[solid] += np.float32(h)
+            thickness.write(x0, thick)
+        if tally.max_voxels <= halo or len(windows) == 1:
+            break
+        halo = max(2 * halo, int(math.ceil(tally.max_voxels)) + 2)
+    core_halo = math.ceil(m / 2 / h) + 1
+    width = core_halo + math.ceil((0.87 * m + h) / h) + 1
+    n = {"solid": 0, "below": 0, "thin": 0, "void": 0, "unreached": 0, "undrained": 0}
+    p1 = StreamQuantile()
+    for x0, x1, lo, hi, own in _windows(nx, plane, max_voxels, width):
+        solid_w = solid_of(lo, hi)
+        core = _far(solid_w, h) >= m / 2
+        # no core within the window: none within the bound either, as on the whole grid without any
+        near = _far(~core, h)[own] <= 0.87 * m + h
+        del core
+        solid = solid_w[own]
+        del solid_w
+        thick = thickness.read(x0, x1)
+        below = solid & (thick < m)
+        thin = below & ~near
+        flags.write(x0, np.where(below, _BELOW, 0) | np.where(thin, _THIN, 0))
+        p1.count(thick, solid)
+        n["solid"] += int(np.count_nonzero(solid))
+        n["below"] += int(np.count_nonzero(below))
+        n["thin"] += int(np.count_nonzero(thin))
+        n["void"] += int(np.count_nonzero(region_of(x0, x1) & ~solid))
+    fits = True
+    if profile.drain_mm > 0:
+        rho2 = (0.5 * (float(profile.drain_mm) / h - 1.0)) ** 2  # as measure reads the drain
+        maps["d2"] = stores.keep(_distances_by_slabs(solid_of, region_of, grid, max_voxels, halo, stores.folder,
+                                                     math.ceil(rho2) + 1)[0])
+        maps["r2"] = stores.keep(_flood_by_slabs(maps["d2"], grid, max_voxels, stores.folder)[0])
+        d2s, r2s = maps["d2"], maps["r2"]
+        unreached_parts, seen, wide = SlabComponents(), [], [False]
+
+        def visit(x0, void, r2, reached):
+            x1 = x0 + len(void)
+            unreached = void & ~reached[0]
+            d2 = d2s.read(x0, x1)
+            wide[0] |= bool(np.any(d2[void] >= rho2))
+            unreached_parts.add(unreached, tally=unreached & (d2 >= rho2))
+            flags.write(x0, flags.read(x0, x1) | np.where(unreached, _UNREACHED, 0))
+            n["unreached"] += int(np.count_nonzero(unreached))
+            seen.append((x0, x1))
+
+        _pores_by_slabs(d2s, r2s, lambda x0, x1: region_of(x0, x1) & ~solid_of(x0, x1), grid, h, max_voxels,
+                        [profile.drain_mm], visit)
+        fits = wide[0]
+        unreached_parts.finish()
+        holds_ball = unreached_parts.tally_by_root() > 0
+        for index, (x0, x1) in enumerate(seen):
+            f = flags.read(x0, x1)
+            roots = unreached_parts.roots_of(index, label_pieces((f & _UNREACHED) > 0)[0])
+            undrained = (roots >= 0) & holds_ball[np.maximum(roots, 0)] if holds_ball.size else np.zeros(roots.shape, bool)
+            n["undrained"] += int(np.count_nonzero(undrained))
+            flags.write(x0, f | np.where(undrained, _UNDRAINED, 0))
+        middle_parts, seen = SlabComponents(connectivity=26), []
+        for x0, x1, lo, hi, own in _windows(nx, plane, max_voxels, 3):
+            f = flags.read(lo, hi)
+            drained = region_of(lo, hi) & ~solid_of(lo, hi) & ((f & _UNREACHED) == 0)
+            near = (_far(~drained, h) <= 2 * h)[own]
+            del drained
+            d2w = d2s.read(lo, hi)
+            d2, r2 = d2w[own], r2s.read(x0, x1)
+            middles = ((f[own] & _UNDRAINED) > 0) & (r2 > 0) & (d2 < rho2) & (d2 >= r2) & _ridge(d2w)[own]
+            del d2w
+            middle_parts.add(middles, tally=near & middles)
+            flags.write(x0, f[own] | np.where(middles, _MIDDLE, 0))
+            seen.append((x0, x1))
+        middle_parts.finish()
+        leads_out = middle_parts.tally_by_root() > 0
+        for index, (x0, x1) in enumerate(seen):
+            f = flags.read(x0, x1)
+            roots = middle_parts.roots_of(index, label_pieces((f & _MIDDLE) > 0, connectivity=26)[0])
+            throat = (roots >= 0) & leads_out[np.maximum(roots, 0)] if leads_out.size else np.zeros(roots.shape, bool)
+            flags.write(x0, f | np.where(throat, _THROAT, 0))
+    thinnest = 0.0
+    if n["solid"]:
+        def at(*ranks):
+            p1.select(*ranks)
+            for x0, x1, _, _, _ in _windows(nx, plane, max_voxels, 0):
+                p1.refine(thickness.read(x0, x1), solid_of(x0, x1))
+            return p1.values()
+
+        thinnest = _percentile_1(n["solid"], at)
+    n_solid, n_void = n["solid"], n["void"]
+    found = {"below_min_strut_share": float(n["below"] / n_solid) if n_solid else 0.0,
+             "thin_share": float(n["thin"] / n_solid) if n_solid else 0.0,
+             "drain_fits": fits,
+             "undrained_share": float(n["undrained"] / n_void) if n_void else 0.0,
+             "thinnest_p1_mm": thinnest,
+             "void_reached_by_drain_share": (float(1.0 - n["unreached"] / n_void) if n_void else 1.0)
+             if profile.drain_mm > 0 else None,
+             "thin": n["thin"], "undrained": n["undrained"]}
+    return maps, found, halo
+
+
+def _offsets_by_slabs(maps: dict, solid_of, grid, h: float, profile, max_voxels: int, delta, weight) -> None:
+    """:func:`offsets` slab by slab, from :func:`_measure_by_slabs`' maps (the voxels to repair
+    marked ``_FIX_THIN`` and ``_FIX_OPEN``), into the float32 stores `delta` and `weight`.
+
+    Each spread's levels come from its sources' largest amount over the whole grid (a first pass);
+    a slab then reads the halo its sources reach, ``full + fade`` mm (``m / 2 + 2 h`` for a thin
+    strut, ``drain / 2 + 2 h`` for a throat), and the walls' maximum filter its radius
+    (``ceil(m / 2h)``): a source beyond that adds nothing to an owned voxel.
+    """
+    from scipy import ndimage
+
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    m = float(profile.min_strut_mm)
+    flags, thickness, d2s = maps["flags"], maps["thickness"], maps["d2"]
+    rho = 0.5 * (float(profile.drain_mm) / h - 1.0)  # voxels, as reached_by reads the drain
+
+    def grow_of(thin, thick):
+        return np.where(thin, (m - thick) / 2 + h / 2, 0).astype(np.float32)
+
+    def short_of(undrained, d2):
+        short = np.where(undrained, (rho - np.sqrt(d2.astype(np.float32))) * h + h / 2, 0).astype(np.float32)
+        return np.maximum(short, 0, out=short)
+
+    tops = {"grow": None, "short": None}
+    for x0, x1, _, _, _ in _windows(nx, plane, max_voxels, 0):
+        f = flags.read(x0, x1)
+        thin, undrained = (f & _FIX_THIN) > 0, (f & _FIX_OPEN) > 0
+        if thin.any():
+            top = float(grow_of(thin, thickness.read(x0, x1))[thin].max())
+            tops["grow"] = top if tops["grow"] is None else max(tops["grow"], top)
+        if profile.drain_mm > 0 and undrained.any():
+            top = float(short_of(undrained, d2s.read(x0, x1))[undrained].max())
+            tops["short"] = top if tops["short"] is None else max(tops["short"], top)
+    empty = np.zeros(0)
+    grow_levels = _levels(tops["grow"], h) if tops["grow"] is not None else empty
+    ones = _levels(1.0, h)
+    opens = tops["short"] is not None
+    full_thin, full_open, fade = m / 2 + h, float(profile.drain_mm) / 2 + h, h
+    short_levels = _levels(tops["short"], h) if opens else empty
+    radius = int(np.ceil(m / 2 / h))
+    halo = max(math.ceil((max(full_thin, full_open if opens else 0.0) + fade) / h) + 1, radius)
+    for x0, x1, lo, hi, own in _windows(nx, plane, max_voxels, halo):
+        f = flags.read(lo, hi)
+        thick = thickness.read(lo, hi)
+        thin = (f & _FIX_THIN) > 0
+        out = _spread_levels(grow_of(thin, thick), thin, h, full_thin, fade, grow_levels)[own]
+        acts = _spread_levels(thin.astype(np.float32), thin, h, full_thin, fade, ones)[own]
+        if opens:
+            undrained = (f & _FIX_OPEN) > 0
+            opening = _spread_levels(short_of(undrained, d2s.read(lo, hi)), undrained, h, full_open, fade,
+                                     short_levels)[own]
+            solid = solid_of(x0, x1)
+            wall = ndimage.maximum_filter(thick, size=2 * radius + 1)[own]
+            spare = np.where(solid & ((f[own] & _THIN) == 0), np.maximum(wall - m, 0) / 2, 0).astype(np.float32)
+            spare[~solid] = np.inf
+            del wall
+            np.minimum(opening, spare, out=opening)
+            opening[thin[own]] = 0
+            out -= opening
+            np.maximum(acts, _spread_levels(undrained.astype(np.float32), undrained, h, full_open, fade,
+                                            ones)[own], out=acts)
+        delta.write(x0, out)
+        weight.write(x0, (1.0 - acts).astype(np.float32))
+
+
+def _bodies_of(parts) -> int:
+    """:func:`_bodies` from the solid's pieces joined across slabs (:class:`~implicit_scaffold.run.tiles.SlabComponents`)."""
+    parts.finish()
+    sizes = parts.sizes[parts.sizes > 0]
+    if len(sizes) <= 1:
+        return len(sizes)
+    return int(np.count_nonzero(sizes > SPECK * sizes.sum()))
+
+
+def repair_by_slabs(source, patient, h: float, profile, *, porosity: float | None, max_voxels: int,
+                    rounds: int = REPAIR_ROUNDS, folder=None, progress=None) -> dict:
+    """:func:`repair` of the field `source` (a FieldFile or ArraySlabs) in the region
+    ``patient < 0``, slab by slab: the same rounds, offsets and level, and the same repaired
+    field, bit for bit, written into `source`; returns the same info.
+
+    Every step reads its slab with the halo it needs (:func:`_measure_by_slabs`,
+    :func:`_offsets_by_slabs`), and what needs the whole grid is an exact reduction across
+    slabs: the level by the streamed quantile of :func:`level_for`'s ratios
+    (:class:`~implicit_scaffold.run.tiles.StreamQuantile`, two passes), the solid's bodies and the
+    undrained pores by union-find, the counts and the largest amounts by sums and maxima. The
+    maps of the current round, the one before and the round being tried are kept on disk
+    (up to about 70 bytes a voxel in `folder`, removed at the end); a slab holds about `max_voxels` voxels of each working
+    array, its halo included (:data:`SLAB_REPAIR_BYTES_PER_VOXEL` bytes a voxel in all).
+    """
+    from ..run.tiles import SlabComponents, StreamQuantile
+
+    grid = source.grid
+    nx = int(grid.shape[0])
+    plane = int(grid.shape[1]) * int(grid.shape[2])
+    max_voxels = max(1, int(max_voxels))
+
+    def spans():
+        return [(x0, x1) for x0, x1, _, _, _ in _windows(nx, plane, max_voxels, 0)]
+
+    def region_of(lo, hi):
+        return patient.read(lo, hi) < 0
+
+    def solid_in(store):
+        return lambda lo, hi: store.read(lo, hi) < 0
+
+    n_region = n_solid0 = 0
+    parts = SlabComponents()
+    for x0, x1 in spans():
+        solid, region = source.read(x0, x1) < 0, region_of(x0, x1)
+        n_region += int(np.count_nonzero(region))
+        n_solid0 += int(np.count_nonzero(solid & region))
+        parts.add(solid)
+    bodies0 = _bodies_of(parts)
+    del parts
+    before_porosity = 1.0 - n_solid0 / n_region
+    target = before_porosity if porosity is None else float(porosity)
+    want = int(round(n_region * (1.0 - target)))
+    cap = max(float(profile.min_strut_mm), float(profile.drain_mm))
+    stores = _Stores(grid, folder)
+    halo = max(1, math.ceil(profile.min_strut_mm / h) + 1)
+    live = [stores]  # every store opened, closed (and its files removed) at the end whatever happens
+    try:
+        maps, found, halo = _measure_by_slabs(solid_in(source), region_of, grid, h, profile, max_voxels, stores,
+                                              halo)
+        state = _SlabState(source, None, None, maps, found, 0.0, stores)
+        before = found
+        fix = {"thin": found["thin"], "open": 0}
+        for x0, x1 in spans():
+            f = maps["flags"].read(x0, x1)
+            fix["open"] += int(np.count_nonzero(f & _THROAT))
+            maps["flags"].write(x0, f | np.where(f & _THIN, _FIX_THIN, 0) | np.where(f & _THROAT, _FIX_OPEN, 0))
+        done, stopped = 0, None
+        for step in range(1, rounds + 1):
+            if _holds(state.found, profile) or not (fix["thin"] or fix["open"]):
+                break
+            work = _Stores(grid, folder)
+            live.append(work)
+            delta, acts = work.floats(), work.floats()
+            _offsets_by_slabs(state.maps, solid_in(state.field), grid, h, profile, max_voxels, delta, acts)
+            accepted = None
+            for scale in STEP_SCALES:
+                trial = _Stores(grid, folder)
+                live.append(trial)
+                field, total, weight = trial.floats(), trial.floats(), trial.floats()
+                quantile, fixed, low, high = StreamQuantile(), 0, None, None
+                for x0, x1 in spans():
+                    d = delta.read(x0, x1)
+                    t = (state.total.read(x0, x1) if state.total is not None else np.zeros_like(d)) \
+                        + np.float32(scale) * d
+                    w = np.minimum(state.weight.read(x0, x1) if state.weight is not None
+                                   else np.ones_like(d), acts.read(x0, x1))
+                    total.write(x0, t)
+                    weight.write(x0, w)
+                    moved = source.read(x0, x1) - t
+                    region = region_of(x0, x1)
+                    free = region & (w > 0)
+                    fixed += int(np.count_nonzero(region & ~free & (moved < 0)))
+                    values = moved[free] / w[free]
+                    quantile.count(values)
+                    if values.size:
+                        low = values.min() if low is None else min(low, values.min())
+                        high = values.max() if high is None else max(high, values.max())
+
+                def order(*ranks):
+                    quantile.select(*ranks)
+                    for x0, x1 in spans():
+                        w = weight.read(x0, x1)
+                        free = region_of(x0, x1) & (w > 0)
+                        quantile.refine((source.read(x0, x1) - total.read(x0, x1))[free] / w[free])
+                    return quantile.values()
+
+                shift = float(np.clip(_level_at(want - fixed, quantile.n, low, high, order), -cap, cap))
+                n_solid, parts = 0, SlabComponents()
+                for x0, x1 in spans():
+                    moved = source.read(x0, x1) - total.read(x0, x1)
+                    current = np.maximum(moved - np.float32(shift) * weight.read(x0, x1), patient.read(x0, x1))
+                    field.write(x0, current)
+                    solid = current < 0
+                    n_solid += int(np.count_nonzero(solid & region_of(x0, x1)))
+                    parts.add(solid)
+                maps, found, halo = _measure_by_slabs(solid_in(field), region_of, grid, h, profile, max_voxels,
+                                                      trial, halo)
+                now = 1.0 - n_solid / n_region
+                if (abs(now - target) <= POROSITY_TOLERANCE and _bodies_of(parts) <= bodies0
+                        and found["thin"] + found["undrained"] < state.found["thin"] + state.found["undrained"]):
+                    accepted = _SlabState(field, total, weight, maps, found, shift, trial)
+                    break
+                trial.close()
+            work.close()
+            if accepted is None:
+                stopped = _stopped(step)
+                break
+            last, state = state, accepted
+            # what a round's offset did not improve is not offset again (as repair)
+            fix = {"thin": 0, "open": 0}
+            for x0, x1 in spans():
+                f, was = state.maps["flags"].read(x0, x1), last.maps["flags"].read(x0, x1)
+                thin = ((f & _THIN) > 0) & ~(((was & _THIN) > 0) & (state.maps["thickness"].read(x0, x1)
+                                                                   < last.maps["thickness"].read(x0, x1) + h / 2))
+                opens = np.zeros(thin.shape, bool)
+                if state.maps["r2"] is not None:
+                    opens = ((f & _THROAT) > 0) & ~(((was & _THROAT) > 0)
+                                                    & (state.maps["r2"].read(x0, x1) <= last.maps["r2"].read(x0, x1)))
+                fix["thin"] += int(np.count_nonzero(thin))
+                fix["open"] += int(np.count_nonzero(opens))
+                state.maps["flags"].write(x0, f | np.where(thin, _FIX_THIN, 0) | np.where(opens, _FIX_OPEN, 0))
+            last.stores.close()
+            done = step
+            if progress is not None:
+                progress(step, rounds)
+        grown = opened = n_solid = 0
+        for x0, x1 in spans():
+            was = source.read(x0, x1) < 0
+            now = state.field.read(x0, x1) < 0 if state.field is not source else was
+            grown += int(np.count_nonzero(now & ~was))
+            opened += int(np.count_nonzero(was & ~now))
+            n_solid += int(np.count_nonzero(now & region_of(x0, x1)))
+        after_porosity = 1.0 - n_solid / n_region
+        if state.field is not source:
+            for x0, x1 in spans():
+                source.write(x0, state.field.read(x0, x1))
+    finally:
+        for opened_stores in live:
+            opened_stores.close()
+    return _summary(profile, h, done, target, before_porosity, after_porosity, state.shift, grown, opened, before,
+                    state.found, stopped)

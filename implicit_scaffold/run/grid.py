@@ -23,13 +23,21 @@ MORPHOMETRY_BYTES_PER_VOXEL = 80
 #: per voxel (a 20 mm femoral shaft at 0.05 mm: 107.7 M voxels, 71 M triangles) that is
 #: 82 bytes per voxel, plus about 20 held by the earlier stages, rounded up
 MESH_BYTES_PER_VOXEL = 112
+#: the same with the printer's repair held in memory (its field, offsets, weights and measures
+#: for the round kept and the one tried): 1,087 MiB peak on a 202^3 grid (8.2 M voxels), from
+#: 234 MiB held before the lattice, 104 bytes a voxel, rounded up; a grid that cannot hold it is
+#: repaired in slabs (fields/repair.py, repair_by_slabs)
+REPAIR_BYTES_PER_VOXEL = 112
 
 
-def run_bytes_per_voxel(*, mesh: bool, morphometry: bool) -> int:
-    """Peak bytes per voxel of a pipeline run that meshes or not, measures or not."""
+def run_bytes_per_voxel(*, mesh: bool, morphometry: bool, repair: bool = False) -> int:
+    """Peak bytes per voxel of a pipeline run that meshes or not, measures or not, repairs or not."""
     if mesh:
-        return MESH_BYTES_PER_VOXEL
-    return MORPHOMETRY_BYTES_PER_VOXEL if morphometry else PIPELINE_BYTES_PER_VOXEL
+        stages = MESH_BYTES_PER_VOXEL
+    else:
+        stages = MORPHOMETRY_BYTES_PER_VOXEL if morphometry else PIPELINE_BYTES_PER_VOXEL
+    # the repair's arrays are freed before the mesh and the measures
+    return max(stages, REPAIR_BYTES_PER_VOXEL) if repair else stages
 
 
 @dataclass(frozen=True)

@@ -18,13 +18,16 @@ import numpy as np
 REPORT_PIECES = 20
 
 
-def label_pieces(inside: np.ndarray) -> tuple[np.ndarray, int]:
+def label_pieces(inside: np.ndarray, connectivity: int = 6) -> tuple[np.ndarray, int]:
     """The 6-connected pieces of a mask (the patient's, the solid's, the void's).
 
     Parameters
     ----------
     inside : bool ndarray, 2-D or 3-D
         The voxels that belong to some piece.
+    connectivity : 6 or 26
+        26 joins voxels across edges and corners too (3-D only; ``scipy.ndimage.label``
+        with a 3x3x3 structure).
 
     Returns
     -------
@@ -38,7 +41,8 @@ def label_pieces(inside: np.ndarray) -> tuple[np.ndarray, int]:
     mask = np.ascontiguousarray(inside, dtype=bool)  # cc3d numbers in memory order: C order
     if mask.size == 0 or not mask.any():
         return np.zeros(mask.shape, np.int32), 0
-    labels, count = cc3d.connected_components(mask, connectivity=4 if mask.ndim == 2 else 6, return_N=True,
+    labels, count = cc3d.connected_components(mask, connectivity=4 if mask.ndim == 2 else connectivity,
+                                              return_N=True,
                                               out_dtype=np.uint32)
     return labels.view(np.int32), int(count)
 

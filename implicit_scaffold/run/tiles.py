@@ -358,10 +358,14 @@ class SlabComponents:
     :meth:`sealed_mask`), as :func:`~implicit_scaffold.fields.field.fill_sealed_voids` finds them.
     """
 
-    def __init__(self, keep_labels: bool = False):
+    def __init__(self, keep_labels: bool = False, connectivity: int = 6):
         # a run of one slab held in memory keeps its labels for the second pass (4 bytes a
         # voxel) instead of labelling the same mask again
         self._keep_labels = bool(keep_labels)
+        if connectivity not in (6, 26):
+            raise ValueError(f"connectivity {connectivity}: 6 (faces) or 26 (faces, edges and corners)")
+        # 26: pieces joined across edges and corners too, as scipy.ndimage.label with a 3x3x3 structure
+        self.connectivity = int(connectivity)
         self._labels_of: dict[int, np.ndarray] = {}
         self._offsets: list[int] = []
         self._sizes: list[np.ndarray] = []
@@ -388,11 +392,10 @@ class SlabComponents:
         nxt = self._offsets[index + 1] if index + 1 < len(self._offsets) else len(self._parent)
         return labels, nxt - self._offsets[index]
 
-    @staticmethod
-    def _label(solid: np.ndarray):
+    def _label(self, solid: np.ndarray):
         from .pieces import label_pieces
 
-        return label_pieces(solid)
+        return label_pieces(solid, connectivity=self.connectivity)
 
     def add(self, solid: np.ndarray, opens: np.ndarray | None = None, tally: np.ndarray | None = None) -> np.ndarray:
         """Pass 1: the solid (bool, owned planes only) of the next slab along x.
@@ -421,9 +424,8 @@ class SlabComponents:
         edge = np.unique(np.concatenate([f.ravel() for f in faces]))
         self._edge.append(edge[edge > 0].astype(np.int64) - 1 + offset)
         if self._last_plane is not None:
-            both = (self._last_plane > 0) & (first > 0)
-            a = self._last_plane[both].astype(np.int64) - 1 + self._last_offset
-            b = first[both].astype(np.int64) - 1 + offset
+            a, b = self._face_pairs(self._last_plane, first)
+            a, b = a + self._last_offset, b + offset
             # the distinct pairs, as one int64 key each (a 1-D unique, not a row-wise one)
             span = int(b.max(initial=0)) + 1
             keys = np.unique(a * span + b)
@@ -436,6 +438,20 @@ class SlabComponents:
         self._last_plane = labels[-1].copy()
         self._last_offset = offset
         return labels
+
+    def _face_pairs(self, last: np.ndarray, first: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The 0-based labels of the voxels that touch across the face between two slabs: face to
+        face, and for 26-connected pieces edge to edge and corner to corner too."""
+        ny, nz = last.shape
+        shifts = [(0, 0)] if self.connectivity == 6 else [(dj, dk) for dj in (-1, 0, 1) for dk in (-1, 0, 1)]
+        a_all, b_all = [], []
+        for dj, dk in shifts:
+            u = last[max(0, -dj):ny - max(0, dj), max(0, -dk):nz - max(0, dk)]
+            v = first[max(0, dj):ny - max(0, -dj), max(0, dk):nz - max(0, -dk)]
+            both = (u > 0) & (v > 0)
+            a_all.append(u[both].astype(np.int64) - 1)
+            b_all.append(v[both].astype(np.int64) - 1)
+        return np.concatenate(a_all), np.concatenate(b_all)
 
     def finish(self) -> int:
         """Choose the main body; return the number of fragments (pieces but the main one)."""
