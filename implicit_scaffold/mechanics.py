@@ -595,8 +595,8 @@ def check_solid(solid) -> np.ndarray:
     return solid
 
 
-#: load cases per CG block of :func:`homogenize` by default: all six, whose coarse levels then run
-#: compiled with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
+#: load cases per CG block of :func:`homogenize` by default: all six, whose products then run
+#: with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
 #: by other work: on the 64^3 scaffold 32.9 s against 56.9 s for six blocks of one, medians of 3;
 #: on the 128^3 one 309.2 s against 335.3 s, one run each), at the price of six cases' vectors
 #: (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)

@@ -118,8 +118,8 @@ def test_multigrid_iterations_stay_flat_when_struts_are_refined(scaffolds):
     assert max(its[0.04]) < 60
 
 
-def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one():
-    cases = 1  # the solver sends the device one load case (six run compiled on the host)
+@pytest.mark.parametrize("cases", [1, 6])  # the solver sends the device a block of load cases, or one
+def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one(cases):
     from implicit_scaffold import opencl
     from implicit_scaffold.mechanics_cl import LevelOperator, has_double
 
