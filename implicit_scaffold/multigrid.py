@@ -603,6 +603,23 @@ class Multigrid:
         add_weighted(x, b, self.inv_diag, s, y=ax)
         return x
 
+    def compact(self, live: np.ndarray):
+        """The same preconditioner on vectors kept on the nodes `live` only, (m, 3, len(live)):
+        the residual is spread over the grid in the cycle's float, the result's live nodes
+        taken back in the residual's (one pass each, no whole-grid vector in the solver's float)."""
+        from .fused import put, take
+
+        n = self.free.shape[1]
+        w = np.ascontiguousarray(self._free_out[:, live])
+
+        def apply(r: np.ndarray) -> np.ndarray:
+            b = put(r, live, n, w, self.dtype)
+            x = self._cycle(0, b)
+            del b
+            return take(x, live, w, r.dtype)
+
+        return apply
+
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
         from .fused import weighted

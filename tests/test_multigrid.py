@@ -95,6 +95,10 @@ def test_the_v_cycle_is_symmetric_positive(scaffolds):
     mx, my = mg(x), mg(y)
     assert np.vdot(y, mx) == pytest.approx(np.vdot(x, my), rel=1e-9)
     assert np.vdot(x, mx) > 0 and np.vdot(y, my) > 0
+    # the same cycle on vectors kept on the nodes with a free unknown only (the CG's own)
+    live = np.flatnonzero(free.any(axis=0))
+    assert not np.delete(mx, live, axis=2).any()
+    assert np.allclose(mg.compact(live)(x[:, :, live]), mx[:, :, live], rtol=0, atol=1e-12 * np.abs(mx).max())
 
 
 def test_multigrid_and_fft_give_the_same_tensor(scaffolds):
@@ -172,3 +176,10 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     xe = x + w * b
     fused.add_weighted(x, b, w)
     assert close(x, xe)
+    # the CG's vectors on some nodes only (every other one, and the last), to and from the grid
+    idx = np.r_[np.arange(0, n - 1, 2), n - 1]
+    assert close(fused.take(b, idx, w[:, idx]), w[:, idx] * b[:, :, idx])
+    spread = np.zeros_like(b)
+    spread[:, :, idx] = w[:, idx] * b[:, :, idx]
+    got = fused.put(b[:, :, idx], idx, n, w[:, idx], np.float64)
+    assert got.dtype == np.float64 and close(got, spread)
