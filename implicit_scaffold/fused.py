@@ -88,31 +88,25 @@ def _kernels():
                         for i in range(n1 - n0):
                             od[i] = s * wd[i] * (bd[i] - k * yd[i])
 
-    # a vector on the live nodes only, (m, 3, len(idx)), from and to the whole grid's (m, 3, N);
-    # each piece reads or writes its own entries of idx (distinct nodes), so no two pieces race
+    # a vector on the live nodes only, (m, 3, len(idx)), from the whole grid's (m, 3, N), or
+    # spread back onto it; each piece reads or writes its own entries of idx (distinct nodes), so
+    # no two pieces race
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def take_rows(src, idx, w, out, pieces, lo, hi):  # pragma: no cover - compiled
-        m, _, n = out.shape
+    def move_rows(src, idx, w, out, spread, pieces, lo, hi):  # pragma: no cover - compiled
+        m, n = src.shape[0], idx.shape[0]
         for piece in range(lo, hi):
             n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
             for c in range(m):
                 for d in range(3):
                     wd = w[d if w.shape[0] == 3 else 0]
-                    for i in range(n0, n1):
-                        out[c, d, i] = wd[i] * src[c, d, idx[i]]
+                    if spread:
+                        for i in range(n0, n1):
+                            out[c, d, idx[i]] = wd[i] * src[c, d, i]
+                    else:
+                        for i in range(n0, n1):
+                            out[c, d, i] = wd[i] * src[c, d, idx[i]]
 
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def put_rows(src, idx, w, out, pieces, lo, hi):  # pragma: no cover - compiled
-        m, _, n = src.shape
-        for piece in range(lo, hi):
-            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
-            for c in range(m):
-                for d in range(3):
-                    wd = w[d if w.shape[0] == 3 else 0]
-                    for i in range(n0, n1):
-                        out[c, d, idx[i]] = wd[i] * src[c, d, i]
-
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, take_rows, put_rows
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows
 
 
 def _weight(w, n: int) -> np.ndarray:
@@ -184,7 +178,7 @@ def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
     n = len(idx)
     out = np.empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
-    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
     return out
 
 
@@ -198,5 +192,5 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     out.fill(0)
     k = len(idx)
     pieces = _pieces(k)
-    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, True, pieces)
     return out
