@@ -88,7 +88,25 @@ def _kernels():
                         for i in range(n1 - n0):
                             od[i] = s * wd[i] * (bd[i] - k * yd[i])
 
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows
+    # a vector on the live nodes only, (m, 3, len(idx)), from the whole grid's (m, 3, N), or
+    # spread back onto it; each piece reads or writes its own entries of idx (distinct nodes), so
+    # no two pieces race
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def move_rows(src, idx, w, out, spread, pieces, lo, hi):  # pragma: no cover - compiled
+        m, n = src.shape[0], idx.shape[0]
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    wd = w[d if w.shape[0] == 3 else 0]
+                    if spread:
+                        for i in range(n0, n1):
+                            out[c, d, idx[i]] = wd[i] * src[c, d, i]
+                    else:
+                        for i in range(n0, n1):
+                            out[c, d, i] = wd[i] * src[c, d, idx[i]]
+
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows
 
 
 def _weight(w, n: int) -> np.ndarray:
@@ -151,3 +169,28 @@ def weighted(out: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray | 
 def add_weighted(x: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray | None = None) -> None:
     """``x += s w (b - y)`` (or ``x += s w b`` without `y`), in place."""
     _weighted(x, b, w, s, y, True)
+
+
+def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
+    """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass."""
+    from ..run.threads import over_rows
+
+    n = len(idx)
+    out = np.empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
+    pieces = _pieces(n)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
+    return out
+
+
+def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
+    """The whole grid's (m, 3, n) vector, ``w * src`` on the nodes `idx` and 0 elsewhere, in
+    `dtype` (default `src`'s), page-aligned (the OpenCL operator reads it in place)."""
+    from .mechanics_cl import aligned_empty
+    from ..run.threads import over_rows
+
+    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)
+    out.fill(0)
+    k = len(idx)
+    pieces = _pieces(k)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, True, pieces)
+    return out

@@ -494,13 +494,17 @@ def _norms(v: np.ndarray) -> np.ndarray:
 
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None, overwrite_b: bool = False):
+        maxiter: int = 2000, progress=None):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
-    product serves them all; a converged one stops moving. The vectors are updated in place, by
-    fused compiled passes (:mod:`~implicit_scaffold.measure.fused`): four of them (x, r, p and K p or the
-    preconditioned residual) are held at once, besides what `apply` and `precond` hold.
+    product serves them all; a converged one stops moving. The CG's vectors are kept on the
+    live nodes only (those with a free unknown: at 30 % solid some 44 % of the grid), and
+    updated in place by fused compiled passes (:mod:`~implicit_scaffold.measure.fused`): x, r, p and
+    K p or the preconditioned residual. A product spreads p over the whole grid for `apply`
+    and keeps K p's live nodes; a preconditioner with a ``compact(live)`` method
+    (:class:`~implicit_scaffold.measure.multigrid.Multigrid`) takes and gives live-node vectors itself,
+    another gets and gives whole-grid ones.
 
     Parameters
     ----------
@@ -508,7 +512,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         (m, 3, N) -> K x (m, 3, N).
     precond : callable
     b : (m, 3, N) float ndarray
-        Right-hand sides, zero on fixed nodes.
+        Right-hand sides, zero on fixed nodes. Not kept: pass it without holding a reference
+        of your own, and its memory is released once its live nodes are read.
     free : (N,) or (3, N) float ndarray of 0 and 1
         The unknowns (per node, or per node and component); K x is masked to them.
     scale : (m,) floats
@@ -518,44 +523,52 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
         Called after every iteration with (iteration, largest relative residual).
-    overwrite_b : bool
-        Use `b`'s memory for the residual (its values are lost).
 
     Returns
     -------
-    x, iterations, relative residuals (m,)
+    x (m, 3, N), iterations, relative residuals (m,)
     """
-    from .fused import cg_update, wdot, xpby
-    from .mechanics_cl import aligned_copy
+    from .fused import cg_update, put, take, wdot, xpby
 
-    x = np.zeros_like(b)
-    r = b if overwrite_b else b.copy()
-    r *= free
-    z = precond(r)
-    # p is handed to the operator every iteration: page-aligned, the OpenCL device reads it in place
-    p = aligned_copy(z)
-    rz = np.einsum("mcn,mcn->m", r, z)
+    n = b.shape[2]
+    w = np.asarray(free, float).reshape(-1, n)
+    live = np.flatnonzero(w.any(axis=0))
+    wl = np.ascontiguousarray(w[:, live])
+    ones = np.ones((1, live.size))
+    r = take(b, live, wl)  # F b on the live nodes
+    del b
+    compact = getattr(precond, "compact", None)
+    if compact is not None:
+        pre = compact(live)
+    else:
+        def pre(v):
+            return take(precond(put(v, live, n, ones)), live, ones)
+    x = np.zeros_like(r)
+    z = pre(r)
+    p = z
     del z
+    rz = np.einsum("mcn,mcn->m", r, p)
     res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = apply(p)  # masked to the free unknowns in the fused passes below
-        pq = wdot(p, q, free)
-        live = (res > tol) & (pq > 0)
-        alpha = np.where(live, rz / np.where(pq > 0, pq, 1), 0.0)
-        rr = cg_update(x, p, r, q, free, alpha)  # x += alpha p, r -= alpha F q: one pass
+        q = take(apply(put(p, live, n, ones)), live, ones)  # masked to the free unknowns below
+        pq = wdot(p, q, wl)
+        live_cases = (res > tol) & (pq > 0)
+        alpha = np.where(live_cases, rz / np.where(pq > 0, pq, 1), 0.0)
+        rr = cg_update(x, p, r, q, wl, alpha)  # x += alpha p, r -= alpha F q: one pass
         del q
-        z = precond(r)
+        z = pre(r)
         rz_new = np.einsum("mcn,mcn->m", r, z)
-        beta = np.where(live, rz_new / np.where(rz != 0, rz, 1), 0.0)
+        beta = np.where(live_cases, rz_new / np.where(rz != 0, rz, 1), 0.0)
         xpby(z, p, beta)
         del z
         rz = rz_new
-        res = np.where(live, np.sqrt(rr) / scale, res)
+        res = np.where(live_cases, np.sqrt(rr) / scale, res)
         it += 1
         if progress is not None:
             progress(it, float(res.max()))
-    return x, it, res
+    del r, p
+    return put(x, live, n, ones), it, res
 
 
 # ----------------------------------------------------------------------------- homogenization
@@ -595,8 +608,8 @@ def check_solid(solid) -> np.ndarray:
     return solid
 
 
-#: load cases per CG block of :func:`homogenize` by default: all six, whose coarse levels then run
-#: compiled with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
+#: load cases per CG block of :func:`homogenize` by default: all six, whose products then run
+#: with each matrix entry read once for the six (``bench_mechanics.py``, the machine loaded
 #: by other work: on the 64^3 scaffold 32.9 s against 56.9 s for six blocks of one, medians of 3;
 #: on the 128^3 one 309.2 s against 335.3 s, one run each), at the price of six cases' vectors
 #: (:func:`solve_memory`); a budget too short for them takes smaller blocks (:func:`block_for`)
@@ -652,16 +665,16 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     iterations, res = 0, np.zeros(6)
     for k0 in range(0, 6, block):
         cases = range(k0, min(6, k0 + block))
+        # the right-hand side is handed to pcg with no reference kept here, so that it is
+        # released once pcg has read its live nodes
         if periodic:
             # the macroscopic strain's element forces Ke E x, the same in every solid voxel
-            b = element_loads(model, -(model.ke @ u0e[list(cases)].T).T)
+            x, its, r = pcg(op, precond, element_loads(model, -(model.ke @ u0e[list(cases)].T).T), free,
+                            scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
         else:
             base = _affine(model.shape, h, cases)
-            b = op(base)
-            b *= -1
-        x, its, r = pcg(op, precond, b, free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
-                        progress=progress, overwrite_b=True)
-        del b
+            x, its, r = pcg(op, precond, np.negative(op(base)), free, scale=scale[list(cases)], tol=tol,
+                            maxiter=maxiter, progress=progress)
         if not periodic:
             x += base
             del base
@@ -794,12 +807,12 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
         free &= ~platen
     free = free.astype(float)
     op = _operator(model, backend)
-    b = -op(base) * free
     ns = model.solid_voxels
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
-    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress)
+    x, iterations, res = pcg(op, precond, -op(base) * free, free, scale=scale, tol=tol, maxiter=maxiter,
+                             progress=progress)
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
@@ -1061,10 +1074,28 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: (654) with one case per block now (the kernels loaded before the start). The FFT
 #: preconditioner's constants are its fit to the former code (432-644 MiB measured at 64^3), which
 #: held more: they stay above it.
+#: Since the CG's vectors cover the live nodes only (commit 2bb473f), the per-node-and-case part is
+#: 100 / 135 (from 140 / 175); the rest is kept. The same ``--memory 64`` command on it (MiB above
+#: the start, estimate in brackets, the ratio):
+#:
+#: ======  =====  ================  ================  ==================  ==================
+#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic    6 cases kinematic
+#: ======  =====  ================  ================  ==================  ==================
+#: 64^3    0.3    64.0 (160) 2.50   63.2 (163) 2.59   150.9 (285) 1.89  189.6 (340) 1.79
+#: 64^3    0.6    85.0 (175) 2.06   85.1 (178) 2.10   216.6 (300) 1.39  221.2 (355) 1.61
+#: ======  =====  ================  ================  ==================  ==================
+#:
+#: and the 128^3 Voronoi scaffold of the README's benchmark (homogenization alone, six cases a
+#: block, its kernels' first build inside the count) 2,142 bytes per solid voxel above the start,
+#: 1,286 MiB, against 1,580 (1.23). 96^3 and 128^3 were not measured with one case a block or with
+#: kinematic conditions on this code: there the estimate stays above the former code's figures of
+#: the table above (1.05-1.11), which held more; for six periodic cases it is below them (0.92 at
+#: 96^3, 0.84 at 128^3), where this code holds less (the 128^3 figure just given). A full refit
+#: (the fixed part, per node, per solid voxel) waits for those points.
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 140, "kinematic": 175},
+SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 100, "kinematic": 135},
                              "fft": {"periodic": 0, "kinematic": 0}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)

@@ -28,10 +28,10 @@ is built from the solid itself:
   polynomial in ``D^-1 A`` is symmetric, so the V-cycle is a symmetric preconditioner, as
   conjugate gradients need.
 
-The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). The coarse
-levels run compiled (numba) on both cores for a block of load cases, and on the OpenCL device
-(the same gather kernel, one matrix per element) for one. Under CG to 1e-6 the cycle runs in
-float32. Units: mm, GPa.
+The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
+OpenCL one the coarse levels run on the device too (the same gather kernel, one matrix per
+element, a block of load cases a launch); with the NumPy one, compiled (numba) on both cores.
+Under CG to 1e-6 the cycle runs in float32. Units: mm, GPa.
 """
 from __future__ import annotations
 
@@ -260,10 +260,12 @@ def _stencils(n: int):
 
 def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N)."""
+    from .mechanics_cl import aligned_empty
+
     _, _, transfer = _kernels()
     m = y.shape[0]
     n1, n2, n3 = (int(v) for v in fine_shape)
-    out = np.empty((m, 3, n1, n2, n3), y.dtype)
+    out = aligned_empty((m, 3, n1, n2, n3), y.dtype)  # read in place by the OpenCL operator
     args = [a for n in (n1, n2, n3) for a in _stencils(n)[:2]]
     transfer(np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out, *args)
     return out.reshape(m, 3, -1)
@@ -271,10 +273,12 @@ def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
 
 def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
     """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid."""
+    from .mechanics_cl import aligned_empty
+
     _, _, transfer = _kernels()
     m = r.shape[0]
     fine_shape = tuple(int(v) for v in fine_shape)
-    out = np.empty((m, 3) + coarse_shape(fine_shape), r.dtype)
+    out = aligned_empty((m, 3) + coarse_shape(fine_shape), r.dtype)  # read in place by the OpenCL operator
     args = [a for n in fine_shape for a in _stencils(n)[2:]]
     transfer(np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, *args)
     return out.reshape(m, 3, -1)
@@ -311,7 +315,7 @@ class Level:
         The largest eigenvalue of ``D^-1 A`` (estimated).
     device : callable or None
         The same product on the OpenCL device
-        (:class:`~implicit_scaffold.measure.mechanics_cl.LevelOperator`), used for one load case when set.
+        (:class:`~implicit_scaffold.measure.mechanics_cl.LevelOperator`), used (for one load case or a block) when set.
     """
 
     shape: tuple
@@ -323,9 +327,10 @@ class Level:
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``A x`` for (m, 3, N) nodal values."""
-        # one load case runs faster on the device (0.041 s against 0.12 s on a 64^3 level),
-        # six faster here (0.29 s against 0.39 s): the device's loop reads each case apart
-        if self.device is not None and x.shape[0] == 1:
+        # on the device when there is one, for one case or a block (in the cycle, 64^3 scaffold:
+        # the first level's product of six cases 0.020 s there against 0.037 s compiled here,
+        # which also transposes the block to node-major order and back)
+        if self.device is not None:
             return self.device(x)
         _, apply, _ = _kernels()
         xt = np.ascontiguousarray(x.transpose(2, 1, 0))
@@ -495,6 +500,8 @@ class Multigrid:
         free = np.asarray(free, float)
         self.dtype = np.dtype(dtype)
         self.free = np.broadcast_to(free.reshape(-1, n), (3, n)).astype(self.dtype)
+        # the mask the result is multiplied by in the solver's float (the caller's own array)
+        self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
         self.op = op
         rng = np.random.default_rng(seed)
@@ -596,7 +603,31 @@ class Multigrid:
         add_weighted(x, b, self.inv_diag, s, y=ax)
         return x
 
+    def compact(self, live: np.ndarray):
+        """The same preconditioner on vectors kept on the nodes `live` only, (m, 3, len(live)):
+        the residual is spread over the grid in the cycle's float, the result's live nodes
+        taken back in the residual's (one pass each, no whole-grid vector in the solver's float)."""
+        from .fused import put, take
+
+        n = self.free.shape[1]
+        w = np.ascontiguousarray(self._free_out[:, live])
+
+        def apply(r: np.ndarray) -> np.ndarray:
+            b = put(r, live, n, w, self.dtype)
+            x = self._cycle(0, b)
+            del b
+            return take(x, live, w, r.dtype)
+
+        return apply
+
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
-        b = np.multiply(self.free, r, dtype=self.dtype)
-        return np.multiply(self.free, self._cycle(0, b), dtype=r.dtype)
+        from .fused import weighted
+        from .mechanics_cl import aligned_empty
+
+        # each a fused pass with the cast (NumPy's casting multiply took 67 ms a call on a
+        # 64^3 block of six cases, some 8 % of the solve)
+        b = weighted(aligned_empty(r.shape, self.dtype), r, self.free)
+        x = self._cycle(0, b)
+        del b
+        return weighted(aligned_empty(r.shape, r.dtype), x, self._free_out)
