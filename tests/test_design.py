@@ -419,3 +419,23 @@ def test_design_search_uses_the_maps(feasible):
     without = design(Targets(**TARGETS), seeds=1, maps=False)
     assert without.feasible
     assert d["representative_volume"]["builds"] < without.representative_volume["builds"]
+
+
+def test_a_seed_thinner_than_seed_0_makes_the_search_raise_its_strut_goal(monkeypatch):
+    """The search reads seed 0; a strut model whose seed 1 is 20 % thinner (t = 0.16 Sv^-1.3 mm, seed 1
+    times 0.8) must end with every seed's thinnest strut at the target, not as a conflict."""
+    from implicit_scaffold import design as D
+
+    def forward(params, targets, rve, seed=0, stiffness=False):
+        t = (0.16 if params["style"] == "struts" else 0.05) * params["sv"] ** -1.3 * (0.8 if seed == 1 else 1.0)
+        return {"porosity": targets.porosity, "pore_size": targets.pore_size, "min_strut": t}
+
+    monkeypatch.setattr(D, "forward", forward)
+    target = 0.3
+    d = D.design(D.Targets(porosity=0.7, pore_size=0.5, min_strut=target), seeds=3, maps=False)
+    assert d.feasible, d.conflicts
+    assert min(d.achieved["min_strut"]["values"]) >= target
+    # seed 1 of the chosen Sv is the model's 0.8 of seed 0's
+    sv = d.parameters["sv"]
+    assert d.achieved["min_strut"]["min"] == pytest.approx(0.8 * 0.16 * sv ** -1.3)
+    assert len(d.search) <= D.MAX_BUILDS
