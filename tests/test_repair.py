@@ -152,16 +152,6 @@ def test_a_repair_in_slabs_is_the_whole_grids_bit_for_bit(case, planes):
     assert slab_info == info
 
 
-def test_percentile_from_two_order_statistics_is_numpys():
-    from implicit_scaffold.fields.repair import _percentile_1
-
-    rng = np.random.default_rng(5)
-    for n in [1, 2, 3, 99, 100, 101, 1000, 4321]:
-        values = (rng.random(n) * 3).astype(np.float32)
-        ordered = np.sort(values)
-        assert _percentile_1(n, lambda *r: [ordered[i] for i in r]) == float(np.percentile(values, 1))
-
-
 def test_a_run_in_slabs_repairs_as_the_whole_grid_does(tmp_path):
     """generate --repair in slabs (tiled=<voxels>): it writes the field of the run in memory,
     byte for byte, and the report's repair and clean-up figures are the same."""

@@ -261,3 +261,13 @@ def test_26_connected_pieces_join_across_slabs_as_ndimage_labels_them(thickness)
         six.add(mask[x0:x0 + thickness])
     six.finish()
     assert six.piece_count == ndimage.label(mask)[1] > count
+
+
+def test_percentile_from_two_order_statistics_is_numpys():
+    from implicit_scaffold.run.tiles import percentile_1
+
+    rng = np.random.default_rng(5)
+    for n in [1, 2, 3, 99, 100, 101, 1000, 4321]:
+        values = (rng.random(n) * 3).astype(np.float32)
+        ordered = np.sort(values)
+        assert percentile_1(n, lambda *r: [ordered[i] for i in r]) == float(np.percentile(values, 1))

@@ -484,19 +484,6 @@ def _windows(nx: int, plane: int, max_voxels: int, halo: int):
         yield x0, x1, lo, hi, slice(x0 - lo, x1 - lo)
 
 
-def _percentile_1(n: int, at) -> float:
-    """``np.percentile(values, 1)`` of `n` float32 values from their order statistics ``at(r0, r1)``
-    (the values at 0-based ranks): NumPy's linear interpolation, step for step."""
-    q = np.true_divide(1, 100)
-    virtual = n * q + (1 + q * (1 - 1 - 1)) - 1
-    r0 = int(np.floor(virtual))
-    r0, r1 = (n - 1, n - 1) if virtual >= n - 1 else (0, 0) if virtual < 0 else (r0, r0 + 1)
-    gamma = float(virtual - np.floor(virtual))
-    a, b = (np.float32(v) for v in at(r0, r1))
-    diff = b - a
-    return float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
-
-
 def _measure_by_slabs(solid_of, region_of, grid, h: float, profile, max_voxels: int, stores: _Stores,
                       halo: int) -> tuple[dict, dict, int]:
     """:func:`measure` of the solid ``solid_of(lo, hi)`` (planes ``[lo, hi)``) in the region
@@ -530,7 +517,7 @@ def _measure_by_slabs(solid_of, region_of, grid, h: float, profile, max_voxels: 
     from ..measure.morphometry import ThicknessTally, local_thickness
     from ..measure.printability import _distances_by_slabs, _flood_by_slabs, _pores_by_slabs
     from ..run.pieces import label_pieces
-    from ..run.tiles import SlabComponents, StreamQuantile
+    from ..run.tiles import SlabComponents, StreamQuantile, percentile_1
 
     nx = int(grid.shape[0])
     plane = int(grid.shape[1]) * int(grid.shape[2])
@@ -630,7 +617,7 @@ def _measure_by_slabs(solid_of, region_of, grid, h: float, profile, max_voxels: 
                 p1.refine(thickness.read(x0, x1), solid_of(x0, x1))
             return p1.values()
 
-        thinnest = _percentile_1(n["solid"], at)
+        thinnest = percentile_1(n["solid"], at)
     n_solid, n_void = n["solid"], n["void"]
     found = {"below_min_strut_share": float(n["below"] / n_solid) if n_solid else 0.0,
              "thin_share": float(n["thin"] / n_solid) if n_solid else 0.0,

@@ -601,23 +601,13 @@ def _thinnest(tally, min_strut: float) -> tuple[dict, float]:
     n = int(counts.sum())
     cum = np.cumsum(counts)
 
-    def order(k: int):
-        return values[int(np.searchsorted(cum, k, side="right"))]
+    from ..run.tiles import percentile_1
 
-    q = np.float64(1) / 100
-    at = n * q + (1 + q * (1 - 1 - 1)) - 1  # numpy's virtual index for the linear method
-    if at >= n - 1:
-        p1 = order(n - 1)
-    elif at < 0:
-        p1 = order(0)
-    else:
-        lo = math.floor(at)
-        g = at - lo
-        a, b = order(lo), order(lo + 1)
-        d = np.float32(b - a)
-        p1 = np.float32(b - d * np.float32(1 - g)) if g >= 0.5 else np.float32(a + d * np.float32(g))
+    def order(*ranks):
+        return [values[int(np.searchsorted(cum, k, side="right"))] for k in ranks]
+
     below = int(counts[values < min_strut].sum()) / n
-    return {"min": float(values[0]), "p1": float(p1)}, below
+    return {"min": float(values[0]), "p1": percentile_1(n, order)}, below
 
 
 #: the labels of the certificate's section maps

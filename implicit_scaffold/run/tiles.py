@@ -333,6 +333,20 @@ class GroupQuantile:
         return out
 
 
+def percentile_1(n: int, at) -> float:
+    """``np.percentile(values, 1)`` of `n` float32 values from their order statistics ``at(r0, r1)``
+    (the values at 0-based ranks, from a streamed count or a tally): NumPy's linear
+    interpolation, step for step, in float32."""
+    q = np.true_divide(1, 100)
+    virtual = n * q + (1 + q * (1 - 1 - 1)) - 1
+    r0 = int(np.floor(virtual))
+    r0, r1 = (n - 1, n - 1) if virtual >= n - 1 else (0, 0) if virtual < 0 else (r0, r0 + 1)
+    gamma = float(virtual - np.floor(virtual))
+    a, b = (np.float32(v) for v in at(r0, r1))
+    diff = b - a
+    return float(b - diff * (1 - gamma) if gamma >= 0.5 else a + diff * gamma)
+
+
 def level_ranks(n_inside: int, porosity: float) -> tuple[int, int] | None:
     """The two ranks whose midpoint (:func:`~implicit_scaffold.fields.field.level_between`) is the level of
     :func:`~implicit_scaffold.fields.field.solve_level`.
