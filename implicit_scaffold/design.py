@@ -284,9 +284,11 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     def stiff_miss(m):
         return 0.0 if not want_e else m["stiffness"] / targets.stiffness - 1.0
 
+    guide = _maps(maps)  # read once: each pass of the search below starts from it
+
     def search():
         """Steps 1-3 on seed 0 for the current strut goal: (chosen, its measures, strut_limited)."""
-        first = _first_guess(_maps(maps), targets, strut_goal)
+        first = _first_guess(guide, targets, strut_goal)
         # 1. the paper style at its defaults (unless the maps put its walls well below the strut)
         paper = {"style": "paper", "sf": 0.75, "sv": 0.75}
         chosen, chosen_m = None, None
