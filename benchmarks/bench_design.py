@@ -5,8 +5,8 @@
 
 Runs a few designs through :func:`implicit_scaffold.design.design` (without and with a stiffness
 target, one infeasible on purpose) and prints, for each: the wall time, the forward builds of the
-search (the issue allows 10 of a 128³ cube), the representative cube's grid, the parameters found,
-and every target beside its achieved mean and range over the seeds. The issue's budgets: 2 min
+search (the issue allows 10 of a 128³ cube), the representative cube's grid, the parameters found
+(with the verification's modulus cube), and every target beside its achieved mean and range over the seeds. The issue's budgets: 2 min
 without --stiffness, 5 min with it, on 2 cores. Timings on a shared 2-core machine are noisy.
 
 ``--no-maps`` starts the searches without the shipped design maps (the builds they save). ``--ct``
@@ -145,6 +145,16 @@ def seeds_meet(d, *, every: bool = True) -> dict:
     return met
 
 
+def modulus_cube(d) -> str:
+    """The verification's modulus cube of a design, as text (empty without a modulus target)."""
+    cube = d.representative_volume.get("modulus")
+    if not cube:
+        return ""
+    cells = cube["size"] * d.parameters["sv"] / d.targets["pore_size"]
+    return (f", modulus cube {cube['size']:.3g} mm ({cells:.1f} cells) solved at {cube['solve_voxel']:.3g} mm "
+            f"({cube['size'] / cube['solve_voxel']:.0f} voxels a side)")
+
+
 def accuracy_study(count: int, seeds: int, stiffness_sets: int) -> None:
     """The issue's study: `count` target sets, `seeds` seeds each; a table and the share meeting all."""
     rows, t_all = [], time.perf_counter()
@@ -152,7 +162,7 @@ def accuracy_study(count: int, seeds: int, stiffness_sets: int) -> None:
           f"{stiffness_sets} with a modulus (Ti-6Al-4V); a target is met on every seed, or on the means over them")
     print(f"{'#':>2s} {'P':>6s} {'pore':>6s} {'strut':>6s} {'E GPa':>6s} | {'builds':>6s} {'s':>6s} | "
           f"{'P mean (min..max)':24s} {'pore mean':>9s} {'strut min':>9s} {'E mean':>7s} {'E min..max':>13s} | "
-          f"every seed | on the means")
+          f"every seed | on the means | parameters")
     for i, t in enumerate(study_targets(count, stiffness_sets)):
         t0 = time.perf_counter()
         d = design(t, seeds=seeds)
@@ -169,7 +179,8 @@ def accuracy_study(count: int, seeds: int, stiffness_sets: int) -> None:
               f"{a['porosity']['mean']:.4f} ({a['porosity']['min']:.4f}..{a['porosity']['max']:.4f}) "
               f"{a['pore_size']['mean']:9.4f} {a['min_strut']['min']:9.4f} {e} | "
               f"{'all' if not missed else 'missed ' + ','.join(missed)} | "
-              f"{'all' if not missed_means else 'missed ' + ','.join(missed_means)}", flush=True)
+              f"{'all' if not missed_means else 'missed ' + ','.join(missed_means)} | "
+              f"Sv {d.parameters['sv']:g}, generator P {d.parameters['porosity']:.4f}{modulus_cube(d)}", flush=True)
     every = sum(r[0] for r in rows)
     means = sum(r[1] for r in rows)
     print(f"{every} of {len(rows)} target sets met all their targets on every seed ({100 * every / len(rows):.0f} %), "
@@ -207,7 +218,8 @@ def main(argv=None) -> None:
         p = d.parameters
         print(f"  {'feasible' if d.feasible else 'INFEASIBLE'}; {dt:.1f} s; {rve['builds']} forward builds of a "
               f"{n}^3 cube ({rve['size']:.3g} mm, voxel {rve['voxel']:.3g} mm) + {len(rve['seeds'])} seed checks; "
-              f"style {p['style']}, Sf {p['sf']:g}, Sv {p['sv']:g}")
+              f"style {p['style']}, Sf {p['sf']:g}, Sv {p['sv']:g}, generator porosity {p['porosity']:g}"
+              f"{modulus_cube(d)}")
         for k, a in d.achieved.items():
             print(f"    {k:10s} target {d.targets[k]:<6g} achieved mean {a['mean']:.4g}, "
                   f"range {a['min']:.4g}..{a['max']:.4g}")

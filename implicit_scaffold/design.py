@@ -22,8 +22,12 @@ Definitions (one each, used by the search and the verification alike)
   ``thinnest_mm`` p1 does), over the solid voxels of the representative volume's core (farther than
   a margin from its cut faces, where the box cut leaves slivers that no lattice parameter controls).
 - stiffness: the apparent modulus of a lubricated platen compression along z
-  (:func:`~implicit_scaffold.measure.mechanics.compress`) of the representative volume, at twice its voxel (the solve is the
-  cost; the search corrects on measured values, so a consistent measure is what matters).
+  (:func:`~implicit_scaffold.measure.mechanics.compress`) of each seed's modulus cube (:func:`modulus_volume`:
+  :data:`MODULUS_CELLS` cells of the chosen Sv a side, built at the design voxel, its signed distance sampled at a
+  solve voxel of at most :data:`MODULUS_VOXELS_SIDE` a side keeping the solid volume, every voxel solved:
+  :func:`cube_modulus`). The search reads seed 0's representative volume instead, at twice its voxel (the solve
+  is the cost); where the seeds' mean misses, the verification runs again at a generator porosity moved within
+  the porosity's tolerance (:data:`MODULUS_POROSITY_SHIFT`).
 """
 from __future__ import annotations
 
@@ -48,6 +52,22 @@ VERIFY_PASSES = 3
 STIFFNESS_TOLERANCE = 0.05
 #: the Sv range searched (below 0.3 the cells are too large for a few of them in 128³)
 SV_RANGE = (0.3, 0.95)
+#: the verification's modulus is measured on a cube of this many cells (of the chosen Sv) a side,
+#: larger than the search's at a low Sv (three cells of Sv 0.3): a few-cell cube's apparent
+#: modulus spreads by some ±15 % from seed to seed (measured in the accuracy study, README), and the
+#: spread of an apparent modulus falls roughly as one over the square root of the cells
+MODULUS_CELLS = 5
+#: ... solved on at most this many voxels a side (the field built at the design voxel, sampled at the
+#: solve's keeping its solid volume): the solve is the verification's cost. 64 over five cells is a
+#: solve voxel of 1/12.8 of a cell, about the design maps' (1/12: their cube's 96 build voxels over four
+#: cells, every other one)
+MODULUS_VOXELS_SIDE = 64
+#: the verification runs again at a porosity moved within the target's tolerance when a seed's
+#: modulus misses the target by more than the issue's 10 % and the seeds' mean by more than this
+MODULUS_CENTRE = 0.02
+#: ... moved by at most this (the issue's tolerance is 0.005; the seeds' porosities spread by up to
+#: 0.0012 about the generator's in the accuracy study, README)
+MODULUS_POROSITY_SHIFT = 0.0035
 #: acceptance of the achieved values (issue 16)
 POROSITY_POINTS = 0.005
 PORE_SIZE_RELATIVE = 0.05
@@ -214,6 +234,75 @@ def forward(params: dict, targets: Targets, rve: dict, seed: int, *, stiffness: 
     return out
 
 
+def modulus_volume(targets: Targets, rve: dict, sv: float) -> dict:
+    """The cube the verification measures the modulus on: :data:`MODULUS_CELLS` cells of Sv `sv` a
+    side (pore size / Sv each: the same cube in cells whatever Sv, so that the modulus at a porosity
+    does not depend on where the strut put Sv), built at the design voxel of `rve` and solved at the
+    finest voxel that keeps it within :data:`MODULUS_VOXELS_SIDE` voxels a side (never finer than the
+    design voxel).
+
+    Returns
+    -------
+    dict
+        ``size`` (mm), ``voxel`` (the build's, mm), ``solve_voxel`` (mm).
+    """
+    size = MODULUS_CELLS * targets.pore_size / sv
+    return {"size": size, "voxel": rve["voxel"], "solve_voxel": max(rve["voxel"], size / MODULUS_VOXELS_SIDE)}
+
+
+def cube_modulus(params: dict, targets: Targets, cube: dict, seed: int) -> float:
+    """The apparent modulus (GPa) of the verification: `params` built on the cube `cube`
+    (:func:`modulus_volume`) at its voxel, the signed distance sampled (trilinear) at its
+    ``solve_voxel`` with the solid below the level that keeps the build's solid volume
+    (:func:`~implicit_scaffold.measure.mechanics.solid_for_solve`, as ``--mechanics-voxel``), then
+    :func:`apparent_modulus` on every voxel of that sample.
+
+    Sampling keeps the walls' volume where taking every other voxel of a build would not (the paper
+    style's three-voxel walls lost a third of the modulus at 90 % porosity, :func:`apparent_modulus`).
+    """
+    from .measure.mechanics import solid_for_solve
+    from .pipeline import generate
+
+    r = generate(size=cube["size"], voxel=cube["voxel"], mesh=False, morphometry=False, seed=seed,
+                 porosity=targets.porosity, pore_size=targets.pore_size, seed_rule="pore-size", **params)
+    sample = solid_for_solve(np.asarray(r.field), r.grid, voxel=cube["solve_voxel"])
+    return apparent_modulus(sample.solid, sample.voxel, targets.material, step=1)
+
+
+def _verify(params: dict, targets: Targets, porosity: float, rve: dict, seeds: int, stiffness: bool,
+            progress=None) -> tuple[dict, dict | None]:
+    """`params` built at the generator's `porosity` over the seeds 0 .. `seeds` - 1: the porosity, pore
+    size and strut on the search's cube `rve` (:func:`forward`), the modulus on the larger cube of
+    :func:`modulus_volume` (:func:`cube_modulus`). Returns the achieved values (mean, min, max and
+    values per target) and that cube (None without `stiffness`)."""
+    from dataclasses import replace
+
+    built = replace(targets, porosity=porosity)
+    cube = modulus_volume(targets, rve, params["sv"]) if stiffness else None
+    runs = []
+    for s in range(int(seeds)):
+        m = forward(params, built, rve, seed=s, stiffness=False)
+        if stiffness:
+            m["stiffness"] = cube_modulus(params, built, cube, seed=s)
+        runs.append(m)
+        if progress is not None:
+            progress.note(f"check seed {s}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
+    achieved = {k: {"mean": float(np.mean([r[k] for r in runs])), "min": float(min(r[k] for r in runs)),
+                    "max": float(max(r[k] for r in runs)), "values": [r[k] for r in runs]} for k in runs[0]}
+    return achieved, cube
+
+
+def _worst_miss(targets: Targets, achieved: dict) -> float:
+    """The largest relative miss of a seed's modulus."""
+    return max(abs(v / targets.stiffness - 1) for v in achieved["stiffness"]["values"])
+
+
+def _off_centre(targets: Targets, achieved: dict) -> bool:
+    """A seed's modulus beyond the issue's tolerance, and the seeds' mean more than :data:`MODULUS_CENTRE` off."""
+    return (_worst_miss(targets, achieved) > STIFFNESS_RELATIVE
+            and abs(achieved["stiffness"]["mean"] / targets.stiffness - 1) > MODULUS_CENTRE)
+
+
 def _next_sv(points: list[tuple[float, float]], goal: float, lo: float, hi: float) -> float:
     """Secant step on (log Sv, log value) towards `goal` through the two last points; bisection of
     the bracket [lo, hi] when the step leaves it."""
@@ -360,20 +449,14 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
             _, chosen, chosen_m = best
         return chosen, chosen_m, strut_limited
 
-    # verification: the chosen (or, infeasible, the closest) parameters over the seeds. The search
-    # reads seed 0 only: where another seed's thinnest strut falls below the target, the goal is
-    # raised by that seed's shortfall and the search runs again (its builds so far are reused)
+    # verification: the chosen (or, infeasible, the closest) parameters over the seeds, on the search's
+    # cube for the porosity, pore size and strut and on a larger cube for the modulus (modulus_volume).
+    # The search reads seed 0 only: where another seed's thinnest strut falls below the target, the goal
+    # is raised by that seed's shortfall and the search runs again (its builds so far are reused)
     for attempt in range(VERIFY_PASSES):
         chosen, chosen_m, strut_limited = search()
         final = chosen if chosen is not None else _closest(log, strut_goal)
-        runs = []
-        for s in range(int(seeds)):
-            m = forward(final, targets, rve, seed=s, stiffness=want_e)
-            runs.append(m)
-            if progress is not None:
-                progress.note(f"check seed {s}: " + ", ".join(f"{k} {v:.4g}" for k, v in m.items()))
-        achieved = {k: {"mean": float(np.mean([r[k] for r in runs])), "min": float(min(r[k] for r in runs)),
-                        "max": float(max(r[k] for r in runs)), "values": [r[k] for r in runs]} for k in runs[0]}
+        achieved, cube = _verify(final, targets, targets.porosity, rve, seeds, want_e, progress)
         met = _met(targets, achieved)
         thinnest = achieved["min_strut"]["min"]
         if (chosen is None or met.get("min_strut", True) or len(log) >= max_builds or thinnest <= 0
@@ -384,6 +467,26 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
         if progress is not None:
             progress.note(f"a seed's thinnest strut {thinnest:.4g} mm is under {targets.min_strut:.4g} mm: "
                           f"searching again for {strut_goal:.4g} mm on seed 0")
+    # the seeds' mean modulus off the target (with a seed beyond the issue's 10 %): at a fixed porosity
+    # neither Sv nor the cube moves the struts' modulus (a scaled copy: the maps hold one modulus for
+    # Sv 0.3-0.6), but the porosity does, within the target's tolerance: the generator's porosity moved
+    # by up to MODULUS_POROSITY_SHIFT towards the target modulus (Gibson and Ashby's E ∝ (1 - P)²), the
+    # verification run again, and kept when its worst seed is closer and the other targets still hold
+    porosity = targets.porosity
+    if chosen is not None and want_e and _off_centre(targets, achieved):
+        mean = achieved["stiffness"]["mean"]
+        want = 1.0 - (1.0 - targets.porosity) * math.sqrt(targets.stiffness / mean)
+        shifted = targets.porosity + min(max(want - targets.porosity, -MODULUS_POROSITY_SHIFT), MODULUS_POROSITY_SHIFT)
+        if progress is not None:
+            progress.note(f"the seeds' mean modulus {mean:.4g} GPa misses {targets.stiffness:.4g} GPa: checking "
+                          f"again at the generator's porosity {shifted:.4f}")
+        again, again_cube = _verify(final, targets, shifted, rve, seeds, want_e, progress)
+        again_met = _met(targets, again)
+        every_seed = (all(abs(v - targets.porosity) <= POROSITY_POINTS for v in again["porosity"]["values"])
+                      and all(abs(v / targets.pore_size - 1) <= PORE_SIZE_RELATIVE for v in again["pore_size"]["values"]))
+        if (every_seed and all(again_met[k] for k in met if k != "stiffness" and met[k])
+                and _worst_miss(targets, again) < _worst_miss(targets, achieved)):
+            achieved, cube, met, porosity = again, again_cube, again_met, shifted
     conflicts, tradeoff = [], {}
     if not all(met.values()):
         conflicts = ["porosity", "pore_size"] + [k for k in ("min_strut", "stiffness") if not met.get(k, True)]
@@ -391,11 +494,12 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
             conflicts.append("min_strut")  # the modulus was out of reach only by keeping the strut
         conflicts = list(dict.fromkeys(k for k in conflicts if k in met))
         tradeoff = _tradeoff(targets, log, achieved, met, strut_ok)
-    parameters = {"porosity": targets.porosity, "pore_size": targets.pore_size, "seed_rule": "pore-size",
+    parameters = {"porosity": porosity, "pore_size": targets.pore_size, "seed_rule": "pore-size",
                   **final, "voxel": rve["voxel"]}
     return Design(parameters=parameters, targets={k: v for k, v in asdict(targets).items() if v is not None},
                   achieved=achieved, feasible=all(met.values()), conflicts=conflicts, tradeoff=tradeoff,
-                  search=log, representative_volume={**rve, "seeds": list(range(int(seeds))), "builds": len(log)},
+                  search=log, representative_volume={**rve, "seeds": list(range(int(seeds))), "builds": len(log),
+                                                     **({"modulus": cube} if want_e else {})},
                   definitions=DEFINITIONS)
 
 
@@ -431,8 +535,12 @@ DEFINITIONS = {
     "min_strut": "1st percentile of the solid's local thickness (maximal spheres, plus one voxel: to the voxel "
                  "boundaries, as the print certificate's thinnest_mm p1) over the solid farther than the margin "
                  "from the cube's cut faces, mm",
-    "stiffness": "apparent modulus of a lubricated platen compression along z of the cube, voxel FE at twice "
-                 "the design voxel (every other voxel), CG to a relative residual of 1e-3, GPa",
+    "stiffness": "apparent modulus of a lubricated platen compression along z of each seed's modulus cube "
+                 f"(representative_volume.modulus: {MODULUS_CELLS} cells of the chosen Sv a side, pore size / Sv "
+                 "each), built at the design voxel, its signed distance "
+                 f"sampled at the solve voxel (at most {MODULUS_VOXELS_SIDE} a side) with the solid below the level "
+                 "that keeps the build's solid volume, voxel FE on every voxel of that sample, CG to a relative "
+                 "residual of 1e-3, GPa",
 }
 
 
