@@ -35,7 +35,8 @@ CASES = [
     Targets(porosity=0.8, pore_size=0.6, min_strut=0.1),
     Targets(porosity=0.7, pore_size=0.5, min_strut=0.6),  # infeasible on purpose
     Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=9.5, material="ti64"),
-    Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=8.0, material="ti64"),  # strut-limited
+    # strut-limited on the search's cube; on the modulus cube, with the porosity shift, within 10 % on the mean
+    Targets(porosity=0.7, pore_size=0.5, min_strut=0.25, stiffness=8.0, material="ti64"),
     Targets(porosity=0.7, pore_size=0.5, min_strut=0.2, stiffness=3.0, material="ti64"),  # infeasible on purpose
 ]
 

@@ -121,19 +121,27 @@ def test_bad_design_file_exit_2(tmp_path, capsys):
 
 @pytest.mark.skipif(not os.environ.get("IMPLICIT_SCAFFOLD_SLOW"), reason="voxel FE searches: set IMPLICIT_SCAFFOLD_SLOW=1")
 def test_stiffness_target_met(tmp_path):
-    from implicit_scaffold.measure.mechanics import compress, crop, material
+    from implicit_scaffold import generate
+    from implicit_scaffold.design import MODULUS_VOXELS_SIDE
+    from implicit_scaffold.measure.mechanics import compress, material, solid_for_solve
 
     out = tmp_path / "d.json"
-    # 9.5 GPa: about what Ti-6Al-4V struts give at 70 % (9.3-9.9 GPa measured over Sv 0.48-0.75)
+    # 9 GPa: about what Ti-6Al-4V struts give at 70 % on the verification's modulus cube (8.575-9.193 GPa
+    # over 5 seeds at Sv 0.5239 in benchmarks/bench_design.py, README)
     code = main(["design", "--porosity", "0.7", "--pore-size", "0.5", "--min-strut", "0.25", "--stiffness",
-                 "9.5GPa", "--seeds", "2", "-o", str(out), "-q"])
+                 "9GPa", "--seeds", "2", "-o", str(out), "-q"])
     d = json.loads(out.read_text())
     assert code == 0 and d["feasible"], d["achieved"]
-    _, _, p1, r = _rebuild(d, 0)
-    h = float(r.grid.spacing)
-    # the documented measure (every other voxel), solved here to a tighter tolerance: within the 10 %
-    e = compress(crop(r.field < 0)[::2, ::2, ::2], 2 * h, material("ti64"), axis=2, tol=1e-5).apparent_modulus_gpa
-    assert abs(e / 9.5 - 1) <= 0.10 and p1 >= 0.25
+    _, _, p1, _ = _rebuild(d, 0)
+    # the documented measure: the modulus cube (its size and voxels as written) built with the written
+    # parameters, sampled at the solve voxel keeping the solid volume, solved here to a tighter tolerance
+    cube = d["representative_volume"]["modulus"]
+    params = {**d["parameters"], "voxel": cube["voxel"]}
+    r = generate(size=cube["size"], mesh=False, morphometry=False, seed=0, **params)
+    sample = solid_for_solve(r.field, r.grid, voxel=cube["solve_voxel"])
+    assert max(sample.solid.shape) <= MODULUS_VOXELS_SIDE + 1  # the solve's grid as documented
+    e = compress(sample.solid, sample.voxel, material("ti64"), axis=2, tol=1e-5).apparent_modulus_gpa
+    assert abs(e / 9.0 - 1) <= 0.10 and p1 >= 0.25
 
 
 @pytest.mark.skipif(not os.environ.get("IMPLICIT_SCAFFOLD_SLOW"), reason="voxel FE searches: set IMPLICIT_SCAFFOLD_SLOW=1")
