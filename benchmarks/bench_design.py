@@ -6,8 +6,8 @@
 Runs a few designs through :func:`implicit_scaffold.design.design` (without and with a stiffness
 target, one infeasible on purpose) and prints, for each: the wall time, the forward builds of the
 search (the issue allows 10 of a 128³ cube), the representative cube's grid, the parameters found
-(with the verification's modulus cube), and every target beside its achieved mean and range over the seeds. The issue's budgets: 2 min
-without --stiffness, 5 min with it, on 2 cores. Timings on a shared 2-core machine are noisy.
+(with the verification's modulus cube), and every target beside its achieved mean and range over
+the seeds. The issue's budgets: 2 min without --stiffness, 5 min with it, on 2 cores. Timings on a shared 2-core machine are noisy.
 
 ``--no-maps`` starts the searches without the shipped design maps (the builds they save). ``--ct``
 runs the design graded from a CT instead (``design --stiffness-from-ct``): a synthetic CT of two

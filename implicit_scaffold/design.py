@@ -272,7 +272,7 @@ def cube_modulus(params: dict, targets: Targets, cube: dict, seed: int) -> float
 def _verify(params: dict, targets: Targets, porosity: float, rve: dict, seeds: int, stiffness: bool,
             progress=None) -> tuple[dict, dict | None]:
     """`params` built at the generator's `porosity` over the seeds 0 .. `seeds` - 1: the porosity, pore
-    size and strut on the search's cube `rve` (:func:`forward`), the modulus on the larger cube of
+    size and strut on the search's cube `rve` (:func:`forward`), the modulus on the cube of
     :func:`modulus_volume` (:func:`cube_modulus`). Returns the achieved values (mean, min, max and
     values per target) and that cube (None without `stiffness`)."""
     from dataclasses import replace
@@ -450,7 +450,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
         return chosen, chosen_m, strut_limited
 
     # verification: the chosen (or, infeasible, the closest) parameters over the seeds, on the search's
-    # cube for the porosity, pore size and strut and on a larger cube for the modulus (modulus_volume).
+    # cube for the porosity, pore size and strut and on the modulus cube (modulus_volume) for the modulus.
     # The search reads seed 0 only: where another seed's thinnest strut falls below the target, the goal
     # is raised by that seed's shortfall and the search runs again (its builds so far are reused)
     for attempt in range(VERIFY_PASSES):
@@ -476,14 +476,17 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     if chosen is not None and want_e and _off_centre(targets, achieved):
         mean = achieved["stiffness"]["mean"]
         want = 1.0 - (1.0 - targets.porosity) * math.sqrt(targets.stiffness / mean)
-        shifted = targets.porosity + min(max(want - targets.porosity, -MODULUS_POROSITY_SHIFT), MODULUS_POROSITY_SHIFT)
+        shift = min(max(want - targets.porosity, -MODULUS_POROSITY_SHIFT), MODULUS_POROSITY_SHIFT)
+        shifted = targets.porosity + shift
         if progress is not None:
             progress.note(f"the seeds' mean modulus {mean:.4g} GPa misses {targets.stiffness:.4g} GPa: checking "
                           f"again at the generator's porosity {shifted:.4f}")
         again, again_cube = _verify(final, targets, shifted, rve, seeds, want_e, progress)
         again_met = _met(targets, again)
+        # the porosity and pore size on every seed (the shift spends most of the porosity's tolerance)
         every_seed = (all(abs(v - targets.porosity) <= POROSITY_POINTS for v in again["porosity"]["values"])
-                      and all(abs(v / targets.pore_size - 1) <= PORE_SIZE_RELATIVE for v in again["pore_size"]["values"]))
+                      and all(abs(v / targets.pore_size - 1) <= PORE_SIZE_RELATIVE
+                              for v in again["pore_size"]["values"]))
         if (every_seed and all(again_met[k] for k in met if k != "stiffness" and met[k])
                 and _worst_miss(targets, again) < _worst_miss(targets, achieved)):
             achieved, cube, met, porosity = again, again_cube, again_met, shifted
