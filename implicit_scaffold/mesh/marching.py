@@ -317,35 +317,16 @@ def force_outside(work: np.ndarray, *, first_x: bool, last_x: bool) -> None:
 def _ambiguous_faces(work: np.ndarray) -> np.ndarray:
     """Voxel faces whose corners alternate in sign, as ``(m, 4)`` flat indices ``A, B, C, D``.
 
-    ``A`` and ``C`` are diagonal; the four go round the face.
+    ``A`` and ``C`` are diagonal; the four go round the face. In order of blocks of planes
+    (``_SLAB_VOXELS`` voxels), in each the faces normal to x, then y, then z, each kind in
+    C order of ``A``: a compiled scan of the signs, without the boolean temporaries of the
+    NumPy slicing it replaces (on a slab of the femoral shaft at 0.02 mm, 65 M voxels:
+    0.05 s against 0.54 s, which was a tenth of the slab's meshing).
     """
+    work = np.ascontiguousarray(work)
     nx, ny, nz = work.shape
-    sy, sx = nz, ny * nz  # flat strides of j and i
-    # (slices of the sign slab for A, B, C, D; flat offsets of B, C, D from A)
-    kinds = (
-        # faces normal to x, in slice i: (j,k) (j+1,k) (j+1,k+1) (j,k+1)
-        (lambda s: (s[:-1, :-1, :-1], s[:-1, 1:, :-1], s[:-1, 1:, 1:], s[:-1, :-1, 1:]), (sy, sy + 1, 1)),
-        # faces normal to y: (i,k) (i+1,k) (i+1,k+1) (i,k+1)
-        (lambda s: (s[:-1, :, :-1], s[1:, :, :-1], s[1:, :, 1:], s[:-1, :, 1:]), (sx, sx + 1, 1)),
-        # faces normal to z: (i,j) (i+1,j) (i+1,j+1) (i,j+1)
-        (lambda s: (s[:-1, :-1, :], s[1:, :-1, :], s[1:, 1:, :], s[:-1, 1:, :]), (sx, sx + sy, sy)),
-    )
-    found = []
     step = max(1, _SLAB_VOXELS // (ny * nz))
-    for i0 in range(0, nx - 1, step):
-        # slices i0 .. i1 inclusive; faces whose first corner lies in i0 .. i1 - 1
-        i1 = min(i0 + step, nx - 1)
-        s = work[i0:i1 + 1] > 0
-        for corners, (ob, oc, od) in kinds:
-            a, b, c, d = corners(s)
-            alt = (a == c) & (b == d) & (a != b)
-            ii, jj, kk = np.nonzero(alt)
-            if len(ii):
-                first = ((ii + i0) * ny + jj) * nz + kk
-                found.append(np.stack([first, first + ob, first + oc, first + od], axis=1))
-    if not found:
-        return np.empty((0, 4), dtype=np.int64)
-    return np.concatenate(found).astype(np.int64)
+    return compiled_kernels()["ambiguous_faces"](work, step)
 
 
 def break_face_ties(work: np.ndarray, max_rounds: int = TIE_ROUNDS, offset: int = 0) -> None:
@@ -925,9 +906,65 @@ def compiled_kernels():
             area += np.sqrt(nx * nx + ny * ny + nz * nz)
         return flux, area
 
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def ambiguous_faces(work, step):  # pragma: no cover - compiled
+        # _ambiguous_faces' rows, in its order: for each block of `step` planes, the faces
+        # normal to x (corners (i,j,k) (i,j+1,k) (i,j+1,k+1) (i,j,k+1)), then to y ((i,j,k)
+        # (i+1,j,k) (i+1,j,k+1) (i,j,k+1)), then to z ((i,j,k) (i+1,j,k) (i+1,j+1,k)
+        # (i,j+1,k)), each in C order of its first corner, whose plane i lies in the block.
+        # Four corners alternate in sign when a^b, b^c and c^d all hold (0/1 signs); such
+        # faces are rare, so a row is first tested with a branch-free loop the compiler
+        # vectorizes, and searched only when it holds one
+        nx, ny, nz = work.shape
+        sy = nz
+        sx = ny * nz
+        rows = np.empty((64, 4), np.int64)
+        n = 0
+        sign = np.empty((min(step, nx - 1) + 1, ny, nz), np.uint8)
+        for i0 in range(0, nx - 1, step):
+            i1 = min(i0 + step, nx - 1)
+            for i in range(i0, i1 + 1):
+                for j in range(ny):
+                    for k in range(nz):
+                        sign[i - i0, j, k] = 1 if work[i, j, k] > 0 else 0
+            for kind in range(3):
+                if kind == 0:
+                    ob, oc, od = sy, sy + 1, 1
+                elif kind == 1:
+                    ob, oc, od = sx, sx + 1, 1
+                else:
+                    ob, oc, od = sx, sx + sy, sy
+                for i in range(i1 - i0):
+                    for j in range(ny - (kind != 1)):
+                        if kind == 0:
+                            ra, rb, rc, rd = sign[i, j], sign[i, j + 1], sign[i, j + 1, 1:], sign[i, j, 1:]
+                        elif kind == 1:
+                            ra, rb, rc, rd = sign[i, j], sign[i + 1, j], sign[i + 1, j, 1:], sign[i, j, 1:]
+                        else:
+                            ra, rb, rc, rd = sign[i, j], sign[i + 1, j], sign[i + 1, j + 1], sign[i, j + 1]
+                        m = nz - (kind != 2)
+                        hit = 0
+                        for k in range(m):
+                            hit |= (ra[k] ^ rb[k]) & (rb[k] ^ rc[k]) & (rc[k] ^ rd[k])
+                        if not hit:
+                            continue
+                        for k in range(m):
+                            if (ra[k] ^ rb[k]) & (rb[k] ^ rc[k]) & (rc[k] ^ rd[k]):
+                                if n == rows.shape[0]:
+                                    grown = np.empty((2 * n, 4), np.int64)
+                                    grown[:n] = rows
+                                    rows = grown
+                                first = ((i0 + i) * ny + j) * nz + k
+                                rows[n, 0] = first
+                                rows[n, 1] = first + ob
+                                rows[n, 2] = first + oc
+                                rows[n, 3] = first + od
+                                n += 1
+        return rows[:n].copy()
+
     _KERNELS = {"x_flux": x_flux, "triangles": triangles, "ply_faces": ply_faces, "has_duplicates": has_duplicates,
                 "edge_check": edge_check, "closed_pieces": closed_pieces, "closed_fans": closed_fans,
-                "vertex_pieces": vertex_pieces}
+                "vertex_pieces": vertex_pieces, "ambiguous_faces": ambiguous_faces}
     return _KERNELS
 
 
