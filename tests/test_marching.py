@@ -688,3 +688,41 @@ def test_flying_edges_closes_ambiguous_faces(sigma):
     # settling one face the other way changes at most the two cells beside it, each
     # less than a voxel's volume; the noise field has holes everywhere, so the bound is loose
     assert abs(m.volume - lewiner) <= 2 * ambiguous * 0.1 ** 3
+
+
+def _ambiguous_faces_by_slicing(work, step):
+    """Brute force: every face of each kind over the whole array by NumPy slicing, ordered by
+    (block of `step` planes of its first corner, kind, flat index of its first corner)."""
+    nx, ny, nz = work.shape
+    s = work > 0
+    sy, sx = nz, ny * nz
+    index = np.arange(work.size).reshape(work.shape)
+    kinds = [((s[:-1, :-1, :-1], s[:-1, 1:, :-1], s[:-1, 1:, 1:], s[:-1, :-1, 1:]), index[:-1, :-1, :-1], (sy, sy + 1, 1)),
+             ((s[:-1, :, :-1], s[1:, :, :-1], s[1:, :, 1:], s[:-1, :, 1:]), index[:-1, :, :-1], (sx, sx + 1, 1)),
+             ((s[:-1, :-1, :], s[1:, :-1, :], s[1:, 1:, :], s[:-1, 1:, :]), index[:-1, :-1, :], (sx, sx + sy, sy))]
+    rows, keys = [], []
+    for kind, ((a, b, c, d), first, offsets) in enumerate(kinds):
+        alt = (a != b) & (b != c) & (c != d)
+        f = first[alt]
+        rows.append(np.stack([f] + [f + o for o in offsets], axis=1))
+        keys.append(np.stack([f // sx // step, np.full(len(f), kind), f], axis=1))
+    rows, keys = np.concatenate(rows), np.concatenate(keys)
+    return rows[np.lexsort(keys.T[::-1])]
+
+
+@pytest.mark.parametrize("shape", [(3, 3, 3), (6, 7, 5), (40, 30, 20), (4, 530, 500)])
+def test_ambiguous_faces_match_numpy_slicing(shape):
+    # the compiled scan gives every face whose corners alternate in sign, in the order of its
+    # blocks of planes (several planes a block, or one: the last shape's planes hold more
+    # than _SLAB_VOXELS), kinds and corners; zeros count as outside
+    from implicit_scaffold.mesh.marching import _SLAB_VOXELS, _ambiguous_faces
+
+    rng = np.random.default_rng(sum(shape))
+    work = rng.normal(size=shape).astype(np.float32)
+    work[rng.random(shape) < 0.1] = 0.0
+    step = max(1, _SLAB_VOXELS // (shape[1] * shape[2]))
+    expected = _ambiguous_faces_by_slicing(work, step)
+    assert len(expected) > 0
+    got = _ambiguous_faces(work)
+    assert got.dtype == np.int64 and got.shape == expected.shape
+    np.testing.assert_array_equal(got, expected)

@@ -317,35 +317,16 @@ def force_outside(work: np.ndarray, *, first_x: bool, last_x: bool) -> None:
 def _ambiguous_faces(work: np.ndarray) -> np.ndarray:
     """Voxel faces whose corners alternate in sign, as ``(m, 4)`` flat indices ``A, B, C, D``.
 
-    ``A`` and ``C`` are diagonal; the four go round the face.
+    ``A`` and ``C`` are diagonal; the four go round the face. In order of blocks of planes
+    (``_SLAB_VOXELS`` voxels), in each the faces normal to x, then y, then z, each kind in
+    C order of ``A``: a compiled scan of the signs, without the boolean temporaries of the
+    NumPy slicing it replaces (on a slab of the femoral shaft at 0.02 mm, 65 M voxels:
+    0.05 s against 0.54 s, which was a tenth of the slab's meshing).
     """
+    work = np.ascontiguousarray(work)
     nx, ny, nz = work.shape
-    sy, sx = nz, ny * nz  # flat strides of j and i
-    # (slices of the sign slab for A, B, C, D; flat offsets of B, C, D from A)
-    kinds = (
-        # faces normal to x, in slice i: (j,k) (j+1,k) (j+1,k+1) (j,k+1)
-        (lambda s: (s[:-1, :-1, :-1], s[:-1, 1:, :-1], s[:-1, 1:, 1:], s[:-1, :-1, 1:]), (sy, sy + 1, 1)),
-        # faces normal to y: (i,k) (i+1,k) (i+1,k+1) (i,k+1)
-        (lambda s: (s[:-1, :, :-1], s[1:, :, :-1], s[1:, :, 1:], s[:-1, :, 1:]), (sx, sx + 1, 1)),
-        # faces normal to z: (i,j) (i+1,j) (i+1,j+1) (i,j+1)
-        (lambda s: (s[:-1, :-1, :], s[1:, :-1, :], s[1:, 1:, :], s[:-1, 1:, :]), (sx, sx + sy, sy)),
-    )
-    found = []
     step = max(1, _SLAB_VOXELS // (ny * nz))
-    for i0 in range(0, nx - 1, step):
-        # slices i0 .. i1 inclusive; faces whose first corner lies in i0 .. i1 - 1
-        i1 = min(i0 + step, nx - 1)
-        s = work[i0:i1 + 1] > 0
-        for corners, (ob, oc, od) in kinds:
-            a, b, c, d = corners(s)
-            alt = (a == c) & (b == d) & (a != b)
-            ii, jj, kk = np.nonzero(alt)
-            if len(ii):
-                first = ((ii + i0) * ny + jj) * nz + kk
-                found.append(np.stack([first, first + ob, first + oc, first + od], axis=1))
-    if not found:
-        return np.empty((0, 4), dtype=np.int64)
-    return np.concatenate(found).astype(np.int64)
+    return compiled_kernels()["ambiguous_faces"](work, step)
 
 
 def break_face_ties(work: np.ndarray, max_rounds: int = TIE_ROUNDS, offset: int = 0) -> None:
@@ -665,48 +646,71 @@ def compiled_kernels():
     @nb.njit(cache=True, boundscheck=False, nogil=True)
     def edge_check(faces, nverts, plane):  # pragma: no cover - compiled
         # Closed and consistently wound: each directed edge u->v (corner c to corner c + 1
-        # of a face) used once and v->u once. Each vertex's outgoing edges are listed (a
-        # vertex of marching cubes has a handful), so each count is a short scan: exact, in
-        # linear time, without sorting the 3F edges. An edge whose two ends lie on the same
-        # grid plane p (plane[u] == plane[v] == p, p = 1 or 2) may have uses in another slab:
-        # it is set aside, returned as a (u, v) row of that plane's array, and not checked.
+        # of a face) used once and v->u once. Both counts are read at u alone: u->v is a
+        # corner at u whose next corner is v, and v->u one whose previous corner is v. So
+        # each vertex's corners are listed with their (next, previous) corners (a vertex of
+        # marching cubes has a handful) and every count is a short scan of one list: exact,
+        # in linear time, without sorting the 3F edges or reading other vertices' lists
+        # (which took a third longer on a slab of the femoral shaft: 1.50 s against 0.92 s
+        # for 17 M triangles). An edge whose two ends lie on the same grid plane p
+        # (plane[u] == plane[v] == p, p = 1 or 2) may have uses in another slab: it is set
+        # aside, returned as a (u, v) row of that plane's array in face order, and not checked.
         nf = faces.shape[0]
         start = np.zeros(nverts + 1, np.int64)
         aside = np.zeros(3, np.int64)
         for f in range(nf):
             for c in range(3):
                 u, v, p = _edge_at(faces, plane, f, c)
+                start[u + 1] += 1
                 if p:
                     aside[p] += 1
-                else:
-                    start[u + 1] += 1
         for u in range(nverts):
             start[u + 1] += start[u]
         fill = start[:-1].copy()
-        adj = np.empty(start[nverts], faces.dtype)
+        nxt = np.empty(start[nverts], faces.dtype)
+        prv = np.empty(start[nverts], faces.dtype)
         first = np.empty((aside[1], 2), faces.dtype)
         last = np.empty((aside[2], 2), faces.dtype)
         aside[:] = 0
         for f in range(nf):
+            a = faces[f, 0]
+            b = faces[f, 1]
+            d = faces[f, 2]
             for c in range(3):
-                u, v, p = _edge_at(faces, plane, f, c)
-                if p:
+                # corner c at u, its next corner v and previous one w
+                if c == 0:
+                    u, v, w = a, b, d
+                elif c == 1:
+                    u, v, w = b, d, a
+                else:
+                    u, v, w = d, a, b
+                i = fill[u]
+                nxt[i] = v
+                prv[i] = w
+                fill[u] = i + 1
+                p = plane[u]
+                if p > 0 and p == plane[v]:
                     rows = first if p == 1 else last
                     rows[aside[p], 0] = u
                     rows[aside[p], 1] = v
                     aside[p] += 1
-                else:
-                    adj[fill[u]] = v
-                    fill[u] += 1
         watertight = True
         winding = True
         for u in range(nverts):
-            for e in range(start[u], start[u + 1]):
-                v = adj[e]
+            s = start[u]
+            e = start[u + 1]
+            pu = plane[u]
+            for i in range(s, e):
+                v = nxt[i]
+                if pu > 0 and pu == plane[v]:
+                    continue  # set aside (its uses here are counted with the other slab's)
                 forward = 0
-                for e2 in range(start[u], start[u + 1]):
-                    if adj[e2] == v:
+                backward = 0
+                for j in range(s, e):
+                    if nxt[j] == v:
                         forward += 1
+                    if prv[j] == v:
+                        backward += 1
                 if u == v:
                     # a loop is its own reverse: two uses of it run the same way
                     if forward != 2:
@@ -714,10 +718,6 @@ def compiled_kernels():
                     else:
                         winding = False
                     continue
-                backward = 0
-                for e2 in range(start[v], start[v + 1]):
-                    if adj[e2] == u:
-                        backward += 1
                 if forward + backward != 2:
                     watertight = False
                 elif forward != 1:
@@ -925,9 +925,65 @@ def compiled_kernels():
             area += np.sqrt(nx * nx + ny * ny + nz * nz)
         return flux, area
 
+    @nb.njit(cache=True, boundscheck=False, nogil=True)
+    def ambiguous_faces(work, step):  # pragma: no cover - compiled
+        # _ambiguous_faces' rows, in its order: for each block of `step` planes, the faces
+        # normal to x (corners (i,j,k) (i,j+1,k) (i,j+1,k+1) (i,j,k+1)), then to y ((i,j,k)
+        # (i+1,j,k) (i+1,j,k+1) (i,j,k+1)), then to z ((i,j,k) (i+1,j,k) (i+1,j+1,k)
+        # (i,j+1,k)), each in C order of its first corner, whose plane i lies in the block.
+        # Four corners alternate in sign when a^b, b^c and c^d all hold (0/1 signs); such
+        # faces are rare, so a row is first tested with a branch-free loop the compiler
+        # vectorizes, and searched only when it holds one
+        nx, ny, nz = work.shape
+        sy = nz
+        sx = ny * nz
+        rows = np.empty((64, 4), np.int64)
+        n = 0
+        sign = np.empty((min(step, nx - 1) + 1, ny, nz), np.uint8)
+        for i0 in range(0, nx - 1, step):
+            i1 = min(i0 + step, nx - 1)
+            for i in range(i0, i1 + 1):
+                for j in range(ny):
+                    for k in range(nz):
+                        sign[i - i0, j, k] = 1 if work[i, j, k] > 0 else 0
+            for kind in range(3):
+                if kind == 0:
+                    ob, oc, od = sy, sy + 1, 1
+                elif kind == 1:
+                    ob, oc, od = sx, sx + 1, 1
+                else:
+                    ob, oc, od = sx, sx + sy, sy
+                for i in range(i1 - i0):
+                    for j in range(ny - (kind != 1)):
+                        if kind == 0:
+                            ra, rb, rc, rd = sign[i, j], sign[i, j + 1], sign[i, j + 1, 1:], sign[i, j, 1:]
+                        elif kind == 1:
+                            ra, rb, rc, rd = sign[i, j], sign[i + 1, j], sign[i + 1, j, 1:], sign[i, j, 1:]
+                        else:
+                            ra, rb, rc, rd = sign[i, j], sign[i + 1, j], sign[i + 1, j + 1], sign[i, j + 1]
+                        m = nz - (kind != 2)
+                        hit = 0
+                        for k in range(m):
+                            hit |= (ra[k] ^ rb[k]) & (rb[k] ^ rc[k]) & (rc[k] ^ rd[k])
+                        if not hit:
+                            continue
+                        for k in range(m):
+                            if (ra[k] ^ rb[k]) & (rb[k] ^ rc[k]) & (rc[k] ^ rd[k]):
+                                if n == rows.shape[0]:
+                                    grown = np.empty((2 * n, 4), np.int64)
+                                    grown[:n] = rows
+                                    rows = grown
+                                first = ((i0 + i) * ny + j) * nz + k
+                                rows[n, 0] = first
+                                rows[n, 1] = first + ob
+                                rows[n, 2] = first + oc
+                                rows[n, 3] = first + od
+                                n += 1
+        return rows[:n].copy()
+
     _KERNELS = {"x_flux": x_flux, "triangles": triangles, "ply_faces": ply_faces, "has_duplicates": has_duplicates,
                 "edge_check": edge_check, "closed_pieces": closed_pieces, "closed_fans": closed_fans,
-                "vertex_pieces": vertex_pieces}
+                "vertex_pieces": vertex_pieces, "ambiguous_faces": ambiguous_faces}
     return _KERNELS
 
 

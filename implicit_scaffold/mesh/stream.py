@@ -51,7 +51,7 @@ import numpy as np
 
 from ..errors import ScaffoldError
 from ..run.executor import InProcess, Processes, free_cpus, start_method
-from ..run.memory import available_memory
+from ..run.memory import available_memory, keep_freed_memory
 from ..io.files import atomic_path, check_writable, folder_of, new_temp, remove_quietly
 from .marching import (FACE_CHUNK, TIE_ROUNDS, break_face_ties, check_level, check_meshable, compiled_kernels,
                    face_measures, force_outside, index_to_mm, marching_cubes_surface, nothing_to_mesh, prepare_planes)
@@ -192,6 +192,11 @@ def write_mesh_slabs(source, path, *, level: float = 0.0, max_voxels: int, progr
     the planes' vertices and edges. With two slabs in flight the stage adds at most
     ``MESH_SLAB_BYTES_PER_VOXEL * max_voxels`` bytes at B2's 0.4 triangles per voxel
     (see that constant for how it was measured and how it grows with the triangles).
+    A worker process keeps what its slabs free for its next slab
+    (:func:`~implicit_scaffold.run.memory.keep_freed_memory`) rather than fault it in again,
+    so it holds its largest slab's peak until the stage ends, and the two workers' peaks
+    meet: on B2 (morphometry off) the workers' largest resident set went from 0.88 to
+    0.97 GiB and the mesh stage from 31.0 s to 16.0 s (2026-12-04, machine shared, load 6).
     """
     final = check_writable(path, formats=STREAM_FORMATS)
     grid = source.grid
@@ -617,6 +622,9 @@ def _mesh_task(job: _SlabJob, slab):
     source = job.source
     if isinstance(source, tuple):
         source = FieldFile.open_readonly(source[1], source[2])
+    if job.target.out is None:
+        # a worker process, which meshes slab after slab: its freed arrays stay for the next
+        keep_freed_memory()
     try:
         held = _mesh_slab(source, slab.x0, slab.x1, job.level)
         place = yield None if held is None else held[2]
