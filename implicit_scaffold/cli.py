@@ -160,7 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
     de.add_argument("--seeds", type=int, default=5,
                     help="random seeds of the verification (default 5; the CT design fits on 2 seeds a porosity)")
-    dg = de.add_argument_group("graded from the patient's CT (the bone's modulus, voxel by voxel)")
+    dg = de.add_argument_group("the patient: the design built on it (or, with --stiffness-from-ct, graded from its "
+                               "CT, the bone's modulus voxel by voxel)")
     dg.add_argument("--stiffness-from-ct", action="store_true",
                     help="target the bone's apparent modulus everywhere: the CT's density (--calibration) through the "
                          "site's density-modulus law (--site; Morgan, Bayraktar & Keaveny 2003), matched by the "
@@ -171,15 +172,22 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the density-modulus law: pooled vertebra proximal-tibia greater-trochanter femoral-neck "
                          "(Morgan et al. 2003; default pooled)")
     dg.add_argument("--patient", metavar="FILE", default=None,
-                    help="the patient's CT volume (.nii, .nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
+                    help="the patient, as for generate: without --stiffness-from-ct the design is built on it once "
+                         "more and measured (design.json's patient_check); with it, the patient's CT volume (.nii, "
+                         ".nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
     dg.add_argument("--threshold", type=float, default=None, help="the patient: keep intensities >= HU")
     dg.add_argument("--label", type=int, default=None, help="the patient: keep this segmentation label")
     _add_spacing(dg)
+    _add_patient_cuts(dg)
+    dg.add_argument("--max-memory", default=None, metavar="SIZE",
+                    help="memory the build on the patient may hold, e.g. 4G or 800M (default: 4G, or 80%% of the "
+                         "free memory when less)")
     dg.add_argument("--voxel", type=float, default=None,
-                    help="voxel of the graded build, mm (default: the representative cube's, pore size / 16)")
+                    help="voxel of the build on the patient, mm (default: the representative cube's, pore size / "
+                         "16)")
     dg.add_argument("--scaffold", metavar="FILE", default=None,
-                    help="write the graded scaffold here, as generate -o does (default: built and measured, "
-                         "not written)")
+                    help="write the scaffold built on the patient here, as generate -o does (default: built and "
+                         "measured, not written)")
     de.add_argument("-o", "--output", required=True, metavar="JSON", help="where to write design.json")
     de.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
 
@@ -285,6 +293,17 @@ def _mechanics(args) -> int:
     return 0
 
 
+def _add_patient_cuts(pg) -> None:
+    """A mesh patient's units and the part of the bone kept: generate's and design's."""
+    pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
+                    help="units of a mesh file (default mm; a warning says when the size suggests others)")
+    pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
+                    default=None, help="keep the part of the bone inside this box (mm)")
+    pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
+                    metavar=("PX", "PY", "PZ", "NX", "NY", "NZ", "QX", "QY", "QZ", "MX", "MY", "MZ"),
+                    help="two osteotomy planes, point and normal each (mm); the segment between them is kept")
+
+
 def _add_build_options(g) -> None:
     """The options that say what to build, shared by generate and slice."""
     g.add_argument("--shape", default="box", choices=["box", "cylinder", "sphere"],
@@ -298,13 +317,7 @@ def _add_build_options(g) -> None:
     pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
     pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
     _add_spacing(pg)
-    pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
-                    help="units of a mesh file (default mm; a warning says when the size suggests others)")
-    pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
-                    default=None, help="keep the part of the bone inside this box (mm)")
-    pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
-                    metavar=("PX", "PY", "PZ", "NX", "NY", "NZ", "QX", "QY", "QZ", "MX", "MY", "MZ"),
-                    help="two osteotomy planes, point and normal each (mm); the segment between them is kept")
+    _add_patient_cuts(pg)
     pg.add_argument("--seeds-in", choices=["box", "patient"], default=None,
                     help="box: uniform in the bounding box (the paper); patient: only where the patient is, "
                          "plus one cell, with the seed count from the patient's volume (default: patient with "
@@ -539,7 +552,9 @@ def _apply_design(args) -> None:
 
 
 def _design(args) -> int:
-    from .design import Targets, check_targets, conflict_message, design, parse_stiffness
+    from .design import (Targets, check_on_patient, check_targets, conflict_message, design, parse_stiffness,
+                         patient_check_message)
+    from .errors import positive_mm
     from .progress import Progress
 
     t0 = time.perf_counter()
@@ -549,13 +564,21 @@ def _design(args) -> int:
     if args.stiffness_from_ct:
         return _design_from_ct(args, t0)
     ct_only = [name for name, given in (("--calibration", args.calibration is not None),
-                                        ("--patient", args.patient is not None), ("--site", args.site != "pooled"),
-                                        ("--scaffold", args.scaffold is not None), ("--voxel", args.voxel is not None),
-                                        ("--threshold", args.threshold is not None), ("--label", args.label is not None),
-                                        ("--spacing", args.spacing is not None)) if given]
+                                        ("--site", args.site != "pooled")) if given]
     if ct_only:
         raise ScaffoldError(f"{', '.join(ct_only)} apply to a design graded from the CT; add --stiffness-from-ct "
                             "or drop them")
+    patient_only = [name for name, given in (("--scaffold", args.scaffold is not None),
+                                             ("--voxel", args.voxel is not None),
+                                             ("--max-memory", args.max_memory is not None),
+                                             ("--units", args.units is not None), ("--clip", args.clip is not None),
+                                             ("--cut-planes", args.cut_planes is not None),
+                                             ("--threshold", args.threshold is not None),
+                                             ("--label", args.label is not None),
+                                             ("--spacing", args.spacing is not None)) if given]
+    if patient_only and args.patient is None:
+        raise ScaffoldError(f"{', '.join(patient_only)} apply to the build on the patient; add --patient FILE or "
+                            "drop them")
     if args.porosity is None:
         raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
     min_strut = args.min_strut
@@ -568,10 +591,30 @@ def _design(args) -> int:
                       stiffness=None if args.stiffness is None else parse_stiffness(args.stiffness),
                       material=args.material)
     check_targets(targets)  # bad input refused before the stage line
+    patient = None
+    if args.patient is not None:
+        from .io.patient_io import load_patient
+
+        if args.voxel is not None:
+            positive_mm("voxel", args.voxel, example="0.05")
+        if args.scaffold is not None:
+            check_writable(args.scaffold)
+        if args.max_memory is not None:
+            from .run.memory import budget
+
+            budget(args.max_memory)  # a bad size refused before the design
+        patient = load_patient(args.patient, label=args.label, threshold=args.threshold, units=args.units,
+                               clip=args.clip, cut_planes=args.cut_planes, spacing=args.spacing)
     prog = Progress(not args.quiet)
     with prog.stage("design", "forward builds of a representative cube, then the check over seeds"):
         d = design(targets, seeds=args.seeds, progress=prog)
+    check = None
+    if patient is not None:
+        with prog.stage("patient check", "the design built on the patient and measured"):
+            check = check_on_patient(d, patient, voxel=args.voxel, output=args.scaffold, max_memory=args.max_memory,
+                                     progress=prog)
     out = {"version": __version__, **d.to_json(), "printer": args.printer,
+           **({"patient_check": check} if check is not None else {}),
            "timings_s": {"design": round(time.perf_counter() - t0, 3)}}
     write_json(out, args.output)
     if not args.quiet:
@@ -585,9 +628,14 @@ def _design(args) -> int:
             lines.append(f"    {k}: target {d.targets[k]:g}, achieved {v['mean']:.4g} ({v['min']:.4g}..{v['max']:.4g})")
         if not d.feasible:
             lines.append("  " + conflict_message(d))
+        if check is not None:
+            lines.append("  " + patient_check_message(check, d.targets))
+            lines += [f"    note: {n}" for n in check["notes"]]
+            if args.scaffold is not None:
+                lines.append(f"  wrote {args.scaffold}")
         lines.append(f"  time {time.perf_counter() - t0:.1f} s")
         print("\n".join(lines))
-    return 0 if d.feasible else 3
+    return 0 if d.feasible and (check is None or all(check["met"].values())) else 3
 
 
 def _design_from_ct(args, t0: float) -> int:
@@ -601,6 +649,11 @@ def _design_from_ct(args, t0: float) -> int:
 
     if args.stiffness is not None:
         raise ScaffoldError("--stiffness is one modulus, --stiffness-from-ct the bone's everywhere: give one")
+    not_ct = [name for name, given in (("--units", args.units is not None), ("--clip", args.clip is not None),
+                                       ("--cut-planes", args.cut_planes is not None),
+                                       ("--max-memory", args.max_memory is not None)) if given]
+    if not_ct:
+        raise ScaffoldError(f"{', '.join(not_ct)} are not taken with --stiffness-from-ct yet; crop the CT or drop them")
     if args.porosity is not None:
         raise ScaffoldError("--stiffness-from-ct takes the porosity from the CT (the bone's modulus); drop --porosity")
     if args.calibration is None:

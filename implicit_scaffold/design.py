@@ -551,6 +551,104 @@ def _describe(p: dict) -> str:
     return f"style {p['style']}, Sf {p['sf']:g}, Sv {p['sv']:g}"
 
 
+#: the patient check measures the thinnest strut (a whole-grid local thickness, some 40 bytes a
+#: voxel) on grids of at most this many voxels; above it the cubes' figure stands alone
+PATIENT_STRUT_VOXELS = 32_000_000
+
+
+def check_on_patient(d: Design, patient, *, voxel: float | None = None, seed: int = 0, output=None,
+                     max_memory=None, progress=None) -> dict:
+    """The design built on the patient and measured as the cubes are: what the user will print.
+
+    The cubes of the search and the verification measure the lattice away from any surface; the
+    patient's scaffold is that lattice cut by the bone, with as many cells as the bone holds. So the
+    parameters are built once more on `patient` (seed `seed`, the design voxel or `voxel`), as
+    ``generate --design design.json --patient ...`` builds them, and the porosity, mean pore size
+    and thinnest strut are measured on that build:
+
+    - porosity: the printed porosity (the report's ``porosity_printed``, by the mesh) when the scaffold
+      is written, else the voxels' (the level is solved for the one that is printed);
+    - pore size: the report's mean polyhedron-sphere pore size of the patient's cells;
+    - thinnest strut: the 1st percentile local thickness (:func:`min_strut_p1`) over the solid
+      farther than the representative cube's margin inside the bone (where the cut leaves slivers,
+      as on the cubes), on grids of at most :data:`PATIENT_STRUT_VOXELS` voxels.
+
+    The modulus is not checked here: a patient's apparent modulus depends on its shape, and the
+    target is a material property of the lattice (the modulus cubes measure it).
+
+    Parameters
+    ----------
+    d : Design
+        From :func:`design`.
+    patient : object
+        The patient geometry (:func:`~implicit_scaffold.io.patient_io.load_patient`).
+    voxel : float, mm, optional
+        The build's voxel (default: the design's, ``d.parameters["voxel"]``).
+    seed : int
+    output : path, optional
+        Write the scaffold there, as ``generate -o`` does.
+    max_memory : str or int, optional
+        As generate's.
+
+    Returns
+    -------
+    dict
+        ``seed``, ``voxel``, ``porosity`` (and ``porosity_measure``), ``pore_size``, ``min_strut``
+        (None when not measured, with ``notes``), ``met`` per target checked, ``cells``.
+    """
+    from .pipeline import generate
+
+    params = dict(d.parameters)
+    if voxel is not None:
+        params["voxel"] = float(voxel)
+    if progress is not None:
+        progress.note(f"the design built on the patient at {params['voxel']:.4g} mm, seed {seed}")
+    r = generate(patient=patient, seed=seed, output=output, mesh=output is not None, morphometry=False,
+                 max_memory=max_memory, **params)
+    rep = r.report
+    printed = rep.get("porosity_printed") is not None
+    out = {"seed": int(seed), "voxel": float(params["voxel"]),
+           "porosity": float(rep["porosity_printed"] if printed else rep["porosity_voxel"]),
+           "porosity_measure": "printed (mesh)" if printed else "voxels",
+           "pore_size": float(rep["pore_size_mm"]["mean"]), "min_strut": None,
+           "cells": int(rep["cells_in_scaffold"]), "notes": []}
+    margin = float(d.representative_volume.get("margin", 0.0))
+    if r.field is None or r.patient_sdf is None:
+        out["notes"].append("thinnest strut not measured: the build ran in slabs (the cubes' figure stands)")
+    elif np.asarray(r.field).size > PATIENT_STRUT_VOXELS:
+        out["notes"].append(f"thinnest strut not measured: {np.asarray(r.field).size:,} voxels, over the check's "
+                            f"{PATIENT_STRUT_VOXELS:,} (the cubes' figure stands)")
+    else:
+        # the patient's distance is clamped a little way in (what the run reads), so the depth is the
+        # distance transform of its inside
+        from scipy import ndimage
+
+        inside = ndimage.distance_transform_edt(np.asarray(r.patient_sdf) < 0) * out["voxel"] > margin
+        if inside.any():
+            out["min_strut"] = min_strut_p1(np.asarray(r.field) < 0, inside, out["voxel"])
+        else:
+            out["notes"].append(f"thinnest strut not measured: no solid lies {margin:.4g} mm inside the bone")
+    targets = d.targets
+    met = {"porosity": abs(out["porosity"] - targets["porosity"]) <= POROSITY_POINTS,
+           "pore_size": abs(out["pore_size"] / targets["pore_size"] - 1) <= PORE_SIZE_RELATIVE}
+    if targets.get("min_strut") is not None and out["min_strut"] is not None:
+        met["min_strut"] = out["min_strut"] >= targets["min_strut"]
+    out["met"] = met
+    return out
+
+
+def patient_check_message(check: dict, targets: dict) -> str:
+    """One line: the patient build's measures beside the targets, the missed ones named."""
+    parts = [f"porosity {check['porosity']:.4f} ({check['porosity_measure']}) for {targets['porosity']:g}",
+             f"pore size {check['pore_size']:.4g} mm for {targets['pore_size']:g}"]
+    if check["min_strut"] is not None and targets.get("min_strut") is not None:
+        parts.append(f"thinnest strut {check['min_strut']:.4g} mm for >= {targets['min_strut']:g}")
+    missed = [k for k, ok in check["met"].items() if not ok]
+    verdict = "all met" if not missed else "MISSED: " + ", ".join(missed)
+    return (f"on the patient (seed {check['seed']}, {check['cells']} cells, voxel {check['voxel']:.4g} mm): "
+            + ", ".join(parts) + f"; {verdict}")
+
+
 def _met(targets: Targets, achieved: dict) -> dict:
     met = {"porosity": abs(achieved["porosity"]["mean"] - targets.porosity) <= POROSITY_POINTS,
            "pore_size": abs(achieved["pore_size"]["mean"] / targets.pore_size - 1) <= PORE_SIZE_RELATIVE}

@@ -316,6 +316,7 @@ def test_generate_design_rebuilds_the_ct_design(two_density_design, tmp_path):
     (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--site", "skull"], "unknown --site 'skull'"),
     (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--porosity", "0.7"], "drop --porosity"),
     (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--stiffness", "3GPa"], "give one"),
+    (["--calibration", "0.001", "0", "--patient", "ct.nrrd", "--clip", "0", "0", "0", "1", "1", "1"], "crop the CT"),
 ])
 def test_bad_ct_design_input_one_line_exit_2(tmp_path, capsys, args, message):
     out = tmp_path / "d.json"
@@ -522,3 +523,63 @@ def test_the_seeds_mean_modulus_moves_the_porosity_within_its_tolerance(monkeypa
     assert all(abs(v - 0.7) <= 0.005 for v in d.achieved["porosity"]["values"])
     assert d.feasible and len(d.search) <= D.MAX_BUILDS
     assert d.representative_volume["modulus"] == D.modulus_volume(t, D.representative_volume(t), d.parameters["sv"])
+
+
+# --- the design built on the patient (design --patient, without --stiffness-from-ct) ---------
+
+
+def test_design_on_a_patient_is_built_and_measured(tmp_path, capsys):
+    """`design --patient` builds the design on the patient once more; its porosity is checked here
+    against the written field's voxels inside the ball (the ball's inside from its closed form, not
+    from the build's patient distance) and its thinnest strut against the definition's formula."""
+    import trimesh
+
+    from implicit_scaffold.measure.morphometry import local_thickness
+
+    radius, centre = 1.6, np.array([2.0, 2.0, 2.0])
+    ball = trimesh.creation.icosphere(subdivisions=5, radius=radius)
+    ball.apply_translation(centre)
+    stl = tmp_path / "ball.stl"
+    ball.export(stl)
+    out, field = tmp_path / "d.json", tmp_path / "s.npy"
+    code = main(["design", "--porosity", "0.7", "--pore-size", "0.5", "--min-strut", "0.3", "--seeds", "2",
+                 "--patient", str(stl), "--scaffold", str(field), "-o", str(out)])
+    text = capsys.readouterr().out
+    d = json.loads(out.read_text())
+    check = d["patient_check"]
+    assert code == (0 if d["feasible"] and all(check["met"].values()) else 3)
+    assert "on the patient" in text and f"wrote {field}" in text
+    rep = json.loads(field.with_suffix(".json").read_text())
+    s = np.load(field)
+    h = rep["voxel_mm"]
+    assert h == pytest.approx(d["parameters"]["voxel"]) and check["voxel"] == pytest.approx(h)
+    # voxel centres inside the ball (the icosphere's facets lie within 0.3 % of its radius: keep clear of them)
+    idx = np.indices(s.shape).reshape(3, -1).T
+    r = np.linalg.norm(np.asarray(rep["grid_origin_mm"]) + idx * h - centre, axis=1).reshape(s.shape)
+    deep = r < radius * 0.99
+    porosity = 1.0 - np.count_nonzero((s < 0) & deep) / np.count_nonzero(deep)
+    # written, the scaffold is meshed (as generate -o does), and its printed porosity is the mesh's
+    assert check["porosity_measure"] == "printed (mesh)"
+    assert check["porosity"] == pytest.approx(rep["porosity_printed"])
+    assert check["porosity"] == pytest.approx(porosity, abs=0.01)  # voxels; the shell 1 % in is left out here
+    assert check["met"]["porosity"] == (abs(check["porosity"] - 0.7) <= 0.005)
+    assert check["pore_size"] == pytest.approx(rep["pore_size_mm"]["mean"])
+    core = r < radius - d["representative_volume"]["margin"]
+    thick = local_thickness(s < 0, h)
+    assert check["min_strut"] == pytest.approx(float(np.percentile(thick[(s < 0) & core], 1)) + h, abs=h)
+    assert check["met"]["min_strut"] == (check["min_strut"] >= 0.3)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--scaffold", "s.stl"], "add --patient FILE"),
+    (["--voxel", "0.05"], "add --patient FILE"),
+    (["--clip", "0", "0", "0", "1", "1", "1"], "add --patient FILE"),
+    (["--patient", "missing.stl"], ""),
+    (["--patient", "ball.stl", "--max-memory", "lots"], ""),
+])
+def test_patient_options_need_a_patient(tmp_path, capsys, args, message):
+    out = tmp_path / "d.json"
+    assert main(["design", "--porosity", "0.7", "--pore-size", "0.5", *args, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err, err
+    assert not out.exists()
