@@ -135,3 +135,90 @@ __kernel void stiffness_apply(__global const owner_t *solid, MATS, __global cons
     }
 #endif
 }
+
+#if !PER_ELEMENT
+/* The fine operator again, laid out for a CPU's vector units: a 3-D range (k, j, i), so that
+ * the work items a CPU runtime packs into one vector (consecutive k) read consecutive words.
+ * stiffness_rows covers k = 1 .. n3 - 2 (gid 0 + 1), whose neighbours k - 1, k + 1 need no
+ * wrap (contiguous loads); stiffness_ends covers k = 0 and k = n3 - 1 (gid 0 = 0, 1), wrapped.
+ *
+ * The 27 neighbours are visited once each (three loads a case), and each adds its share to the
+ * eight voxels' row blocks t[b] it is a corner of; a voxel's block is then added to the node's
+ * sum when the voxel is solid (multiplied by its 0/1 flag: no divergent branch, and the sum's
+ * order is fixed, so the result does not depend on how work items are packed). Every node does
+ * 576 multiply-adds per case, void or not, all of them in full vectors (16 floats a vector on
+ * an AVX-512 CPU). Reference: implicit_scaffold.mechanics.apply_stiffness (NumPy). */
+static inline __attribute__((always_inline)) void stiffness_node(__global const uchar *solid, __constant real *ke, __global const real *u,
+                                  __global real *f, const int n1, const int n2, const int n3, const int first,
+                                  const int i, const int j, const int k, const int K0, const int K2)
+{
+    const int n = n1 * n2 * n3;
+    const int I0 = (i == 0 ? n1 : i) - 1, I2 = i + 1 == n1 ? 0 : i + 1;
+    const int J0 = (j == 0 ? n2 : j) - 1, J2 = j + 1 == n2 ? 0 : j + 1;
+    /* the nine rows (i', j') around the node, each + K: uniform over a row's work items */
+    const int R[9] = {(I0 * n2 + J0) * n3, (i * n2 + J0) * n3, (I2 * n2 + J0) * n3,
+                      (I0 * n2 + j) * n3,  (i * n2 + j) * n3,  (I2 * n2 + j) * n3,
+                      (I0 * n2 + J2) * n3, (i * n2 + J2) * n3, (I2 * n2 + J2) * n3};
+    const int K[3] = {K0, k, K2};
+    /* voxel b (this node its corner b) has its low corner at node - offset(b) */
+    real w[8];
+#pragma unroll
+    for (int b = 0; b < 8; ++b)
+        w[b] = solid[R[(1 - (b & 1)) + 3 * (1 - ((b >> 1) & 1))] + K[1 - ((b >> 2) & 1)]] ? (real)1 : (real)0;
+    const int node = R[4] + k;
+    for (int c = first; c < first + NCASE; ++c) {
+        /* size_t offsets: an int sum that may overflow would read as a gather */
+        __global const real *ux = u + (size_t)(3 * c) * n, *uy = ux + n, *uz = uy + n;
+        real t[24];
+#pragma unroll
+        for (int e = 0; e < 24; ++e) t[e] = (real)0;
+#pragma unroll
+        for (int q = 0; q < 27; ++q) {
+            /* neighbour q at offset (q % 3, q / 3 % 3, q / 9) - 1 */
+            const int m = R[q % 9] + K[q / 9];
+            const real vx = ux[m], vy = uy[m], vz = uz[m];
+#pragma unroll
+            for (int b = 0; b < 8; ++b) {
+                /* it is corner a of voxel b when offset(a) = offset(q) - 1 + offset(b) is in {0, 1}^3 */
+                const int ax = q % 3 - 1 + (b & 1), ay = (q / 3) % 3 - 1 + ((b >> 1) & 1), az = q / 9 - 1 + ((b >> 2) & 1);
+                if (ax < 0 || ax > 1 || ay < 0 || ay > 1 || az < 0 || az > 1) continue;
+                __constant const real *row = ke + (3 * b) * 24 + 3 * (ax + 2 * ay + 4 * az);
+                /* fma: one instruction each (a sum of three products was compiled as a multiply
+                   and an add more) */
+                t[3 * b] = fma(row[0], vx, fma(row[1], vy, fma(row[2], vz, t[3 * b])));
+                t[3 * b + 1] = fma(row[24], vx, fma(row[25], vy, fma(row[26], vz, t[3 * b + 1])));
+                t[3 * b + 2] = fma(row[48], vx, fma(row[49], vy, fma(row[50], vz, t[3 * b + 2])));
+            }
+        }
+        real fx = (real)0, fy = (real)0, fz = (real)0;
+#pragma unroll
+        for (int b = 0; b < 8; ++b) {
+            fx = fma(w[b], t[3 * b], fx);
+            fy = fma(w[b], t[3 * b + 1], fy);
+            fz = fma(w[b], t[3 * b + 2], fz);
+        }
+        __global real *f0 = f + (size_t)(3 * c) * n;
+        f0[node] = fx;
+        f0[n + node] = fy;
+        f0[2 * n + node] = fz;
+    }
+}
+
+__kernel void stiffness_rows(__global const uchar *solid, __constant real *ke, __global const real *u,
+                             __global real *f, const int n1, const int n2, const int n3, const int first)
+{
+    const int k = (int)get_global_id(0) + 1;
+    if (k >= n3 - 1) return;
+    stiffness_node(solid, ke, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k, k - 1, k + 1);
+}
+
+__kernel void stiffness_ends(__global const uchar *solid, __constant real *ke, __global const real *u,
+                             __global real *f, const int n1, const int n2, const int n3, const int first)
+{
+    const int g = (int)get_global_id(0);
+    if (g >= 2 || (g == 1 && n3 == 1)) return;
+    const int k = g ? n3 - 1 : 0;
+    stiffness_node(solid, ke, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k,
+                   (k == 0 ? n3 : k) - 1, k + 1 == n3 ? 0 : k + 1);
+}
+#endif
