@@ -58,7 +58,8 @@ def _shared(array, dtype, flags):
 
 
 class _Gather:
-    """``f = A u`` by the gather kernel of ``kernels/mechanics.cl`` on a periodic node grid.
+    """``f = A u`` by the gather kernels of ``kernels/mechanics.cl`` on a periodic node grid (the
+    fine operator's ``stiffness_rows`` and ``stiffness_ends``, a coarse level's ``stiffness_apply``).
 
     The kernel reads and writes host arrays in place (``USE_HOST_PTR`` on :data:`ALIGN`-aligned
     arrays): no device copies of the vectors, the element matrices or the solid flags."""
@@ -81,7 +82,7 @@ class _Gather:
         over the rows' inner nodes, in work groups along a row whose length is a multiple of 16
         (a CPU runtime packs 16 work items into a vector: a row of 126 would leave 14 to run one
         by one), and ``stiffness_ends`` over the rows' two end nodes."""
-        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double), PER_ELEMENT=self.per_element)
+        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
         if self.per_element:
             return [(opencl.kernel("mechanics", "stiffness_apply", **opts), (self.n,), None)]
         n1, n2, n3 = self.shape
