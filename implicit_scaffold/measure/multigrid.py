@@ -61,8 +61,8 @@ def _kernels():
       matrices ``sum over children W^T (F K_child F) W`` of the coarse elements ``elems``;
     - ``apply(index, mats, x, y)``: ``y = A x`` of a coarse level, one node per work item,
       gathering the rows of the (up to eight) elements around it (no races);
-    - ``transfer(src, out, idx, w)``: one axis of a prolongation or a restriction (a separable
-      stencil), on arrays seen as (A, n, B).
+    - ``transfer(src, out, stencils, last_first)``: a prolongation or a restriction (a separable
+      stencil), in two passes.
     """
     import numba as nb
 
@@ -175,33 +175,59 @@ def _kernels():
                         for c in range(m):
                             y[node, d, c] = acc[d, c]
 
-    # the transfers one axis at a time: out[a, i, b] = sum over s of w[i, s] src[a, idx[i, s], b] on
-    # arrays seen as (A, n, B), B the axes after this one (a contiguous run of B words per term,
-    # which LLVM vectorizes; along the last axis B = 1). Each output is two or three terms, zero
-    # weights skipped: three passes over growing (or shrinking) grids, where one pass of the
-    # whole stencil took 8 (prolongation) to 27 (restriction) gathered words per output (on the
-    # 96^3 scaffold, six cases, the machine loaded: 245 and 165 ms a call)
+    # the transfers in two passes of a separable stencil: along the last axis alone (axis_rows,
+    # arrays seen as (A, n, 1)), and along the first two together (plane_rows, arrays seen as
+    # (A, n1, n2, B): each term a contiguous row of B words, which LLVM vectorizes). Zero weights
+    # are skipped. The one intermediate grid is a quarter of the fine one. One pass of the
+    # whole stencil, gathering 8 (prolongation) to 27 (restriction) words per output, took 245 and
+    # 165 ms a call on the 96^3 scaffold, six cases, the machine loaded
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def axis_rows(src, out, idx, w, lo, hi):  # pragma: no cover - compiled
-        n, nb_ = out.shape[1], out.shape[2]
+        n = out.shape[1]
         taps = idx.shape[1]
         for a in range(lo, hi):
             for i in range(n):
-                for b in range(nb_):
-                    out[a, i, b] = 0.0
+                v = 0.0
                 for s in range(taps):
-                    ws = w[i, s]
-                    if ws == 0.0:
-                        continue
-                    j = idx[i, s]
-                    for b in range(nb_):
-                        out[a, i, b] += ws * src[a, j, b]
+                    v += w[i, s] * src[a, idx[i, s]]
+                out[a, i] = v
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def plane_rows(src, out, ia, wa, ib, wb, lo, hi):  # pragma: no cover - compiled
+        m, _, n2, nb_ = out.shape
+        for i in range(lo, hi):
+            for a in range(m):
+                for j in range(n2):
+                    o = out[a, i, j]
+                    o[:] = 0.0
+                    for s in range(ia.shape[1]):
+                        for t in range(ib.shape[1]):
+                            wst = wa[i, s] * wb[j, t]
+                            if wst == 0.0:
+                                continue
+                            v = src[a, ia[i, s], ib[j, t]]
+                            for k in range(nb_):
+                                o[k] += wst * v[k]
 
     def galerkin(fine_index, fine_mats, fine_free, elems, out):
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
-    def transfer(src, out, idx, w):
-        over_rows(axis_rows, out.shape[0], src, out, idx, w)
+    def transfer(src, out, stencils, last_first):
+        # src (m, 3, s1, s2, s3) -> out (m, 3, n1, n2, n3) through stencils[axis] = (idx, w); the
+        # last axis first (a prolongation: the intermediate is the coarse planes' fine rows) or
+        # after the first two (a restriction: the fine rows of the coarse planes)
+        (ia, wa), (ib, wb), (ig, wg) = [(i, w.astype(src.dtype)) for i, w in stencils]
+        m = src.shape[0] * 3
+        s1, s2, s3 = src.shape[2:]
+        n1, n2, n3 = out.shape[2:]
+        if last_first:
+            mid = np.empty((m, s1, s2, n3), src.dtype)
+            over_rows(axis_rows, m * s1 * s2, src.reshape(m * s1 * s2, s3), mid.reshape(m * s1 * s2, n3), ig, wg)
+            over_rows(plane_rows, n1, mid, out.reshape(m, n1, n2, n3), ia, wa, ib, wb)
+        else:
+            mid = np.empty((m, n1, n2, s3), src.dtype)
+            over_rows(plane_rows, n1, src.reshape(m, s1, s2, s3), mid, ia, wa, ib, wb)
+            over_rows(axis_rows, m * n1 * n2, mid.reshape(m * n1 * n2, s3), out.reshape(m * n1 * n2, n3), ig, wg)
 
     return galerkin, by_rows(apply_rows), transfer
 
@@ -246,26 +272,6 @@ def _stencils(n: int):
     return parents, weights, children, shares
 
 
-def _separable(src: np.ndarray, out_shape, stencils, order, out: np.ndarray) -> np.ndarray:
-    """``src`` (m, 3, s1, s2, s3) through a per-axis stencil ``stencils[axis] = (idx, w)`` on each
-    axis, in `order`, into `out` (m, 3, *out_shape): one compiled pass per axis."""
-    transfer = _kernels()[2]
-    cur = np.ascontiguousarray(src)
-    shape = list(cur.shape[2:])
-    m = cur.shape[0]
-    for step, axis in enumerate(order):
-        idx, w = stencils[axis]
-        shape[axis] = int(out_shape[axis])
-        last = step == len(order) - 1
-        dst = out if last else np.empty((m, 3, *shape), cur.dtype)
-        a = int(np.prod(cur.shape[:2 + axis]))
-        b = int(np.prod(shape[axis + 1:]))
-        transfer(cur.reshape(a, cur.shape[2 + axis], b), dst.reshape(a, shape[axis], b), idx,
-                      w.astype(cur.dtype))
-        cur = dst
-    return out
-
-
 def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     """Trilinear interpolation of coarse nodal values (m, 3, Nc) onto the fine grid (m, 3, N)."""
     from .mechanics_cl import aligned_empty
@@ -273,9 +279,8 @@ def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     m = y.shape[0]
     fine_shape = tuple(int(v) for v in fine_shape)
     out = aligned_empty((m, 3) + fine_shape, y.dtype)  # read in place by the OpenCL operator
-    # the last axis first: the passes before the last write the smaller grids
-    _separable(y.reshape((m, 3) + coarse_shape(fine_shape)), fine_shape,
-               [_stencils(n)[:2] for n in fine_shape], (2, 1, 0), out)
+    _kernels()[2](np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)), out,
+                  [_stencils(n)[:2] for n in fine_shape], True)
     return out.reshape(m, 3, -1)
 
 
@@ -287,8 +292,8 @@ def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
     fine_shape = tuple(int(v) for v in fine_shape)
     cshape = coarse_shape(fine_shape)
     out = aligned_empty((m, 3) + cshape, r.dtype)  # read in place by the OpenCL operator
-    # the first axis first: it halves the grid in one contiguous pass
-    _separable(r.reshape((m, 3) + fine_shape), cshape, [_stencils(n)[2:] for n in fine_shape], (0, 1, 2), out)
+    _kernels()[2](np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, [_stencils(n)[2:] for n in fine_shape],
+                  False)
     return out.reshape(m, 3, -1)
 
 
