@@ -29,8 +29,8 @@ is built from the solid itself:
   conjugate gradients need.
 
 The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
-OpenCL one the coarse levels run on the device too (the same gather kernel, one matrix per
-element, a block of load cases a launch); with the NumPy one, compiled (numba) on both cores.
+OpenCL one the coarse levels run on the device too (a gather kernel of the same file, one matrix
+per element, a block of load cases a launch); with the NumPy one, compiled (numba) on both cores.
 Under CG to 1e-6 the cycle runs in float32. Units: mm, GPa.
 """
 from __future__ import annotations
@@ -496,7 +496,7 @@ class Multigrid:
         The fine voxels (:func:`~implicit_scaffold.measure.mechanics.voxel_model`).
     op : callable
         The fine operator, (m, 3, N) -> K u (OpenCL or NumPy). With the OpenCL one, the coarse
-        levels run on the device too (the same gather kernel, one matrix per element).
+        levels run on the device too (a gather kernel of the same file, one matrix per element).
     free : (N,) or (3, N) array of 0 and 1
         The unknowns; the system solved is ``F K F``.
     seed : int
