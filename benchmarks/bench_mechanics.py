@@ -61,8 +61,8 @@ from implicit_scaffold import opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
 # the fine operator's kernels built outside the clock (double one case a launch, float the block's)
-opencl.kernel('mechanics', 'stiffness_apply', NCASE=1, USE_DOUBLE=1, PER_ELEMENT=0)
-opencl.kernel('mechanics', 'stiffness_apply', NCASE={block!r}, USE_DOUBLE=0, PER_ELEMENT=0)
+opencl.program('mechanics', NCASE=1, USE_DOUBLE=1)
+opencl.program('mechanics', NCASE={block!r}, USE_DOUBLE=0)
 import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime
 t = time.perf_counter()

@@ -58,7 +58,8 @@ def _shared(array, dtype, flags):
 
 
 class _Gather:
-    """``f = A u`` by the gather kernel of ``kernels/mechanics.cl`` on a periodic node grid.
+    """``f = A u`` by the gather kernels of ``kernels/mechanics.cl`` on a periodic node grid (the
+    fine operator's ``stiffness_rows`` and ``stiffness_ends``, a coarse level's ``stiffness_apply``).
 
     The kernel reads and writes host arrays in place (``USE_HOST_PTR`` on :data:`ALIGN`-aligned
     arrays): no device copies of the vectors, the element matrices or the solid flags."""
@@ -74,6 +75,26 @@ class _Gather:
         self._mats_host, self.mats = _shared(mats, self.dtype, cl.mem_flags.READ_ONLY)
         self.n = int(np.prod(self.shape))
 
+    def _launches(self, ncase: int) -> list:
+        """The kernel launches of one product of `ncase` load cases: (kernel, global size, local size).
+
+        A coarse level: ``stiffness_apply`` over every node. The fine operator: ``stiffness_rows``
+        over the rows' inner nodes, in work groups along a row whose length is a multiple of 16
+        (a CPU runtime packs 16 work items into a vector: a row of 126 would leave 14 to run one
+        by one), and ``stiffness_ends`` over the rows' two end nodes."""
+        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
+        if self.per_element:
+            return [(opencl.kernel("mechanics", "stiffness_apply", **opts), (self.n,), None)]
+        n1, n2, n3 = self.shape
+        out = []
+        inner = n3 - 2
+        if inner > 0:
+            group = min(16 * -(-inner // 16), 256, opencl.device().max_work_group_size)
+            out.append((opencl.kernel("mechanics", "stiffness_rows", **opts), (group * -(-inner // group), n2, n1),
+                        (group, 1, 1)))
+        out.append((opencl.kernel("mechanics", "stiffness_ends", **opts), (min(n3, 2), n2, n1), None))
+        return out
+
     def __call__(self, u: np.ndarray) -> np.ndarray:
         """A u for (m, 3, N) nodal values, in float64 (or in the operator's own float when
         `u` comes in it). `u` is read in place when it is aligned (:func:`aligned_empty`) and
@@ -84,10 +105,10 @@ class _Gather:
         ctx, queue = opencl.context()
         # the fine operator in double runs one case per launch: a quarter faster per case than
         # six together on the 128^3 scaffold of the benchmark (307 against 408 ms a case, and
-        # 413 against 576 in another run; in float the two were within 10 %, either way)
+        # 413 against 576 in another run; in float the two were within 10 %, either way; with
+        # stiffness_rows, 559 against 740 ms of CPU time for the six cases, the machine loaded)
         step = 1 if self.double and not self.per_element else m
-        k = opencl.kernel("mechanics", "stiffness_apply", NCASE=step, USE_DOUBLE=int(self.double),
-                          PER_ELEMENT=self.per_element)
+        launches = self._launches(step)
         native = u.dtype == self.dtype
         host = _aligned(u, self.dtype)
         out = aligned_empty(host.shape, self.dtype)
@@ -96,8 +117,9 @@ class _Gather:
         f_buf = cl.Buffer(ctx, flags.WRITE_ONLY | flags.USE_HOST_PTR, hostbuf=out)
         n1, n2, n3 = self.shape
         for first in range(0, m, step):
-            k(queue, (self.n,), None, self.owner, self.mats, u_buf, f_buf, np.int32(n1), np.int32(n2), np.int32(n3),
-              np.int32(first))
+            for k, global_size, local_size in launches:
+                k(queue, global_size, local_size, self.owner, self.mats, u_buf, f_buf, np.int32(n1), np.int32(n2),
+                  np.int32(n3), np.int32(first))
         # mapping the result makes the host array current (a no-op on a CPU device)
         view, _ = cl.enqueue_map_buffer(queue, f_buf, cl.map_flags.READ, 0, out.shape, out.dtype)
         del view
