@@ -551,6 +551,16 @@ def _apply_design(args) -> None:
             setattr(args, key, value)
 
 
+def _design_min_strut(args) -> float | None:
+    """`--min-strut`, raised to `--printer`'s profile's ``min_strut`` (mm) when one is named."""
+    if args.printer is None:
+        return args.min_strut
+    from .measure.printability import printer_profile
+
+    floor = printer_profile(args.printer).min_strut_mm
+    return floor if args.min_strut is None else max(args.min_strut, floor)
+
+
 def _design(args) -> int:
     from .design import (Targets, check_on_patient, check_targets, conflict_message, design, parse_stiffness,
                          patient_check_message)
@@ -581,12 +591,7 @@ def _design(args) -> int:
                             "drop them")
     if args.porosity is None:
         raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
-    min_strut = args.min_strut
-    if args.printer is not None:
-        from .measure.printability import printer_profile
-
-        floor = printer_profile(args.printer).min_strut_mm
-        min_strut = floor if min_strut is None else max(min_strut, floor)
+    min_strut = _design_min_strut(args)
     targets = Targets(porosity=args.porosity, pore_size=args.pore_size, min_strut=min_strut,
                       stiffness=None if args.stiffness is None else parse_stiffness(args.stiffness),
                       material=args.material)
@@ -662,10 +667,9 @@ def _design_from_ct(args, t0: float) -> int:
     calibration = parse_calibration(args.calibration)
     density_modulus(args.site)
     source = _ct_source(args.patient, "--stiffness-from-ct reads the patient's CT (--patient)")
-    if args.printer is not None:
-        raise ScaffoldError("--printer is not taken with --stiffness-from-ct yet; give its strut as --min-strut")
+    min_strut = _design_min_strut(args)
     # the porosity is the CT's: 0.5 stands in for it where only the pore size, strut and material are checked
-    check_targets(Targets(porosity=0.5, pore_size=args.pore_size, min_strut=args.min_strut, material=args.material))
+    check_targets(Targets(porosity=0.5, pore_size=args.pore_size, min_strut=min_strut, material=args.material))
     if args.scaffold is not None:
         check_writable(args.scaffold)
     patient = load_patient(source, label=args.label, threshold=args.threshold, spacing=args.spacing)
@@ -674,9 +678,10 @@ def _design_from_ct(args, t0: float) -> int:
     with prog.stage("design", "forward builds of a representative cube (the modulus-porosity law), then the "
                               "graded build on the patient"):
         d = design_from_ct(ct, patient, calibration=calibration, site=args.site, pore_size=args.pore_size,
-                           material=args.material, min_strut=args.min_strut, voxel=args.voxel,
+                           material=args.material, min_strut=min_strut, voxel=args.voxel,
                            output=args.scaffold, progress=prog)
-    out = {"version": __version__, **d.to_json(), "timings_s": {"design": round(time.perf_counter() - t0, 3)}}
+    out = {"version": __version__, **d.to_json(), "printer": args.printer,
+           "timings_s": {"design": round(time.perf_counter() - t0, 3)}}
     write_json(out, args.output)
     if not args.quiet:
         rel = d.representative_volume["modulus_porosity"]

@@ -583,3 +583,30 @@ def test_patient_options_need_a_patient(tmp_path, capsys, args, message):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err, err
     assert not out.exists()
+
+
+@pytest.mark.parametrize("extra, floor", [([], 0.2), (["--min-strut", "0.3"], 0.3), (["--min-strut", "0.1"], 0.2)])
+def test_ct_design_takes_the_printers_min_strut(tmp_path, monkeypatch, extra, floor):
+    """--printer with --stiffness-from-ct: the profile's min_strut (lpbf-ti64: 0.2 mm in printers.json) is the
+    strut floor handed to the CT design, the larger of the two when --min-strut is given too."""
+    import implicit_scaffold.design as design_module
+    from implicit_scaffold.measure.printability import printer_profile
+
+    assert printer_profile("lpbf-ti64").min_strut_mm == 0.2
+    ct_path = tmp_path / "two.nrrd"
+    _write_two_density_ct(ct_path)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def fake(ct, patient, **kwargs):
+        seen.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(design_module, "design_from_ct", fake)
+    with pytest.raises(Stop):
+        main(["design", "--stiffness-from-ct", "--calibration", "0.001", "0", "--patient", str(ct_path),
+              "--threshold", "0", "--pore-size", "0.6", "--printer", "lpbf-ti64", *extra, "-o",
+              str(tmp_path / "d.json"), "-q"])
+    assert seen["min_strut"] == floor
