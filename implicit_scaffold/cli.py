@@ -551,6 +551,11 @@ def _apply_design(args) -> None:
             setattr(args, key, value)
 
 
+def _given(args, *options: str) -> list[str]:
+    """Those of `options` (as typed: ``"--cut-planes"``) that the command line set."""
+    return [o for o in options if getattr(args, o[2:].replace("-", "_")) is not None]
+
+
 def _design_min_strut(args) -> float | None:
     """`--min-strut`, raised to `--printer`'s profile's ``min_strut`` (mm) when one is named."""
     if args.printer is None:
@@ -573,19 +578,12 @@ def _design(args) -> int:
     check_writable(args.output, formats=(".json",))
     if args.stiffness_from_ct:
         return _design_from_ct(args, t0)
-    ct_only = [name for name, given in (("--calibration", args.calibration is not None),
-                                        ("--site", args.site != "pooled")) if given]
+    ct_only = _given(args, "--calibration") + (["--site"] if args.site != "pooled" else [])
     if ct_only:
         raise ScaffoldError(f"{', '.join(ct_only)} apply to a design graded from the CT; add --stiffness-from-ct "
                             "or drop them")
-    patient_only = [name for name, given in (("--scaffold", args.scaffold is not None),
-                                             ("--voxel", args.voxel is not None),
-                                             ("--max-memory", args.max_memory is not None),
-                                             ("--units", args.units is not None), ("--clip", args.clip is not None),
-                                             ("--cut-planes", args.cut_planes is not None),
-                                             ("--threshold", args.threshold is not None),
-                                             ("--label", args.label is not None),
-                                             ("--spacing", args.spacing is not None)) if given]
+    patient_only = _given(args, "--scaffold", "--voxel", "--max-memory", "--units", "--clip", "--cut-planes",
+                          "--threshold", "--label", "--spacing")
     if patient_only and args.patient is None:
         raise ScaffoldError(f"{', '.join(patient_only)} apply to the build on the patient; add --patient FILE or "
                             "drop them")
@@ -654,9 +652,7 @@ def _design_from_ct(args, t0: float) -> int:
 
     if args.stiffness is not None:
         raise ScaffoldError("--stiffness is one modulus, --stiffness-from-ct the bone's everywhere: give one")
-    not_ct = [name for name, given in (("--units", args.units is not None), ("--clip", args.clip is not None),
-                                       ("--cut-planes", args.cut_planes is not None),
-                                       ("--max-memory", args.max_memory is not None)) if given]
+    not_ct = _given(args, "--units", "--clip", "--cut-planes", "--max-memory")
     if not_ct:
         raise ScaffoldError(f"{', '.join(not_ct)} are not taken with --stiffness-from-ct yet; crop the CT or drop them")
     if args.porosity is not None:
