@@ -101,6 +101,19 @@ def peak_memory(children: bool = False) -> int:
 _LIBC = None
 
 
+def _glibc(name: str, *args) -> None:
+    """Call glibc's `name` with `args` on Linux; nothing on another C library or system."""
+    global _LIBC
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        if _LIBC is None:
+            _LIBC = ctypes.CDLL("libc.so.6")
+        getattr(_LIBC, name)(*args)
+    except (OSError, AttributeError):  # another C library
+        pass
+
+
 def release() -> int:
     """Give the memory freed so far back to the system; return what the process holds then.
 
@@ -109,17 +122,10 @@ def release() -> int:
     resident set keeps counting them; glibc's ``malloc_trim`` hands them back. Called
     between stages and slabs, so that what a slab may take is measured on what is held.
     """
-    global _LIBC
     # the young generations only: a stage's cyclic garbage is recent, and a full collection
     # walks every object the imported libraries hold (30 ms a call, three calls a run)
     gc.collect(1)
-    if sys.platform.startswith("linux"):
-        try:
-            if _LIBC is None:
-                _LIBC = ctypes.CDLL("libc.so.6")
-            _LIBC.malloc_trim(0)
-        except (OSError, AttributeError):  # another C library: nothing to trim
-            pass
+    _glibc("malloc_trim", 0)
     return process_memory()
 
 
@@ -139,17 +145,9 @@ def keep_freed_memory() -> None:
     slabs is then its largest slab's, which is what its memory budget counts anyway.
     Nothing on other C libraries.
     """
-    global _LIBC
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        if _LIBC is None:
-            _LIBC = ctypes.CDLL("libc.so.6")
-        # (mallopt takes a C int) blocks above 1 GiB are still mapped on their own
-        _LIBC.mallopt(_M_MMAP_THRESHOLD, 2**30)
-        _LIBC.mallopt(_M_TRIM_THRESHOLD, 2**31 - 1)
-    except (OSError, AttributeError):  # another C library
-        pass
+    # (mallopt takes a C int) blocks above 1 GiB are still mapped on their own
+    _glibc("mallopt", _M_MMAP_THRESHOLD, 2**30)
+    _glibc("mallopt", _M_TRIM_THRESHOLD, 2**31 - 1)
 
 
 def check_memory(grid, bytes_per_voxel: int, available: int | None = None) -> int:
