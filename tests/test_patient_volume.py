@@ -268,6 +268,43 @@ def test_bad_inputs_give_one_line(tmp_path):
     _one_line(e, "nan.mhd", "spacing")
 
 
+def test_a_ct_given_as_labels_is_refused_in_one_line(tmp_path):
+    """A CT (air at -1000 HU) or a grey-level scan read with --label, or with no selection,
+    would keep scattered voxels of one intensity or almost the whole box: refused, naming
+    --threshold; the same CT with --threshold, and label maps, still load."""
+    spacing = (0.5, 0.5, 0.5)
+    shape = (24, 20, 20)
+    p = _physical(shape, spacing, (0, 0, 0))
+    ball = np.linalg.norm(p - np.array([6.0, 5.0, 5.0]), axis=-1) <= 3.0
+    ct = np.full(shape, -1000, np.int16)
+    ct[ball] = 700
+    ct[0, 0, :3] = 31  # three voxels a label 31 would keep
+    _write(tmp_path / "ct.nrrd", ct, spacing, (0, 0, 0))
+    for label in (31, None):
+        with pytest.raises(ScaffoldError) as e:
+            load_volume(tmp_path / "ct.nrrd", label=label)
+        _one_line(e, "ct.nrrd", "intensities", "-1000 to 700", "--threshold")
+    assert load_volume(tmp_path / "ct.nrrd", threshold=200).mask_voxels == int(ball.sum())
+    # grey levels with no negative value: more distinct values than any label map holds
+    grey = (np.arange(np.prod(shape)).reshape(shape) % 3000).astype(np.uint16)
+    _write(tmp_path / "grey.nii.gz", grey, spacing, (0, 0, 0))
+    with pytest.raises(ScaffoldError) as e:
+        load_volume(tmp_path / "grey.nii.gz")
+    _one_line(e, "intensities", "0 to 2999")
+    # a probability map: fractional values
+    prob = np.where(ball, 0.9, 0.05).astype(np.float32)
+    _write(tmp_path / "prob.nii.gz", prob, spacing, (0, 0, 0))
+    with pytest.raises(ScaffoldError) as e:
+        load_volume(tmp_path / "prob.nii.gz", label=1)
+    _one_line(e, "intensities", "--label 1")
+    assert load_volume(tmp_path / "prob.nii.gz", threshold=0.5).mask_voxels == int(ball.sum())
+    # a label map of a hundred labels is a label map
+    labels = (np.arange(np.prod(shape)).reshape(shape) % 100).astype(np.uint8)
+    labels[ball] = 101
+    _write(tmp_path / "many.nii.gz", labels, spacing, (0, 0, 0))
+    assert load_volume(tmp_path / "many.nii.gz", label=101).mask_voxels == int(ball.sum())
+
+
 @pytest.mark.data
 @pytest.mark.slow
 def test_dicom_series_with_threshold(data_dir):

@@ -72,10 +72,49 @@ def _read_image(path: Path):
     return read_image(path, folder="dicom", what="a volume (NIfTI, NRRD, MHA/MHD or a DICOM folder)")
 
 
+#: a label map holds at most this many distinct labels (TotalSegmentator's has 117); an image
+#: with more, or with a negative or fractional value, holds intensities (a CT's Hounsfield units)
+MAX_LABELS = 1000
+#: voxels sampled to count an image's distinct values: a stride over the flat array, so that a
+#: 512 x 512 x 500 CT is judged in milliseconds, not by sorting all of it
+_LABEL_SAMPLE = 2_000_000
+
+
+def intensity_range(array: np.ndarray) -> tuple[float, float] | None:
+    """``(min, max)`` of `array` when it holds intensities (a CT or a grey-level scan), not labels.
+
+    A label map holds whole, non-negative values, at most :data:`MAX_LABELS` distinct ones. A CT
+    in Hounsfield units holds air at about -1000; a grey-level scan, or a probability map, holds
+    many distinct or fractional values. Judged on a strided sample of the voxels (the minimum
+    and the fractional check on all of them). None for a label map or a binary mask.
+    """
+    flat = array.reshape(-1)
+    floating = np.issubdtype(array.dtype, np.floating)
+    finite = flat[np.isfinite(flat)] if floating else flat
+    if finite.size == 0:
+        return None
+    lo, hi = float(finite.min()), float(finite.max())
+    sample = finite[::max(1, finite.size // _LABEL_SAMPLE)]
+    if lo < 0 or (floating and np.any(finite != np.round(finite))) or np.unique(sample).size > MAX_LABELS:
+        return lo, hi
+    return None
+
+
 def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
     """The bone voxels of `array` and a phrase saying how they were chosen."""
     if label is not None and threshold is not None:
         raise ScaffoldError("give --label (a segmentation) or --threshold (a CT), not both")
+    if threshold is None:
+        # a CT given as if it were a segmentation: a label would keep the voxels of exactly that
+        # many HU (scattered soft tissue), no selection every voxel but those of 0 HU
+        span = intensity_range(array)
+        if span is not None:
+            what = f"--label {label} would keep only its voxels of exactly {label}" if label is not None \
+                else "every non-zero voxel would be bone"
+            ct = " (bone is about 200 HU and above in a CT)" if span[0] < 0 else ""
+            raise ScaffoldError(f"{name} holds intensities ({span[0]:g} to {span[1]:g}), not labels, so {what}; "
+                                f"pass --threshold with the bone's lowest intensity{ct}, e.g. --threshold 200, "
+                                "or give its segmentation's label map with --label N")
     if label is not None:
         try:
             lab = float(label)
