@@ -400,8 +400,9 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
 
     graded = _graded_density(params, patient, ct, prog)
     n = graded.density.count if graded else _seed_count(params, patient)
-    _plan_before_cells(run, params, patient, n, graded is not None)
-    built = _seeds_and_cells(params, patient, n, graded, run, prog)
+    seeding = _seeding_grid(params, patient, n, graded is not None)
+    _plan_before_cells(run, params, patient, n, graded is not None, seeding)
+    built = _seeds_and_cells(params, patient, n, graded, run, prog, seeding)
     printed_wall = _printed_wall(built.wall, params)
     if params.voxel is not None:
         _check_resolved(printed_wall, params.voxel)
@@ -486,7 +487,7 @@ def _seed_count(params: Params, patient) -> int:
     return max(2, int(round(density_for_pore_size(params.pore_size, params.sv) * volume)))
 
 
-def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool) -> int | None:
+def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: bool, seeding=None) -> int | None:
     """Refuse, before the cells, a run that cannot fit: the grid's plan (when the voxel is given)
     and the cells' own memory. Returns the plan's slab voxels (None: the whole grid, or no voxel given)."""
     planned = None
@@ -503,18 +504,63 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
                            halo=halo if params.style == "paper" else 0,
                            reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
                            slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
-    _check_cells_memory(run, params, n, graded)
+    count_at = None
+    if seeding is not None and params.seeds is None and not graded and params.seeds_in == "patient":
+        # the seeds in the patient's margin too (seeds_in_patient draws n per patient volume
+        # over the patient grown by a cell): in a CT's thin bones they can outnumber the n
+        count_at = _margin_count(seeding[0], n, n, params.pore_size, (float(patient.volume) / n) ** (1 / 3),
+                                 inside=True)
+    _check_cells_memory(run, params, int(math.ceil(count_at(params.pore_size))) if count_at else n, graded,
+                        count_at=count_at)
     return planned
 
 
-def _check_cells_memory(run: _RunPlan, params: Params, n: int, graded: bool) -> None:
-    """Refuse `n` seeds whose cells cannot be built within what --max-memory leaves (:func:`~implicit_scaffold.geometry.cells.check_seed_memory`)."""
+def _check_cells_memory(run: _RunPlan, params: Params, n: int, graded: bool, count_at=None) -> None:
+    """Refuse `n` seeds whose cells cannot be built within what --max-memory leaves (:func:`~implicit_scaffold.geometry.cells.check_seed_memory`;
+    `count_at`, the seed count at another pore size)."""
     from .geometry.cells import check_seed_memory
     from .run.memory import process_memory
 
     check_seed_memory(n, None if params.seeds is not None or graded else params.pore_size,
                       available=min(run.max_memory - process_memory(), available_memory()),
-                      seeds_given=params.seeds is not None)
+                      seeds_given=params.seeds is not None, count_at=count_at)
+
+
+def _margin_count(coarse: np.ndarray, drawn: int, n: int, pore_size: float, margin: float, *, inside: bool = False):
+    """The seeds that :func:`~implicit_scaffold.geometry.seeds.seeds_in_patient` draws at another
+    pore size (mm), as a function: the patient's own `n` scale as ``pore**-3``, the patient grown
+    by a margin of one cell (`margin` mm at `pore_size`) grows with the cell. `drawn` seeds were
+    drawn at `pore_size`; with `inside`, none was yet, and they are estimated as the draw makes
+    them, `n` over the share of the grown patient inside.
+
+    The shares are those of the seeding grid's distance `coarse` (mm) at its cells' centres, the
+    trilinear values that the draw samples: counted at the grid's own points, a 0.6 mm plate on a
+    0.2 mm grid was grown by 23 % more than the draw grew it (3 % at the centres).
+    """
+    c = coarse
+    centres = (c[:-1, :-1, :-1] + c[1:, :-1, :-1] + c[:-1, 1:, :-1] + c[:-1, :-1, 1:]
+               + c[1:, 1:, :-1] + c[1:, :-1, 1:] + c[:-1, 1:, 1:] + c[1:, 1:, 1:]) / 8
+    if centres.size == 0:
+        centres = c
+    region0 = max(int(np.count_nonzero(centres < margin)), 1)
+    if inside:
+        held = int(np.count_nonzero(centres < 0))
+        drawn = n * region0 / held if held else n  # no point inside: n seeds in the margin
+
+    def count_at(pore: float) -> float:
+        r = pore / pore_size
+        return drawn * r ** -3 * max(int(np.count_nonzero(centres < margin * r)), 1) / region0
+
+    return count_at
+
+
+def _seeding_grid(params: Params, patient, n: int, graded: bool):
+    """The patient's distance on the seeding grid (:func:`_coarse_patient`) and that grid, where the
+    seeds are drawn in the patient or their count solved for the pore size; else None."""
+    solving = not graded and params.seeds is None and params.seed_rule == "pore-size"
+    if params.seeds_in == "patient" or solving or graded:
+        return _coarse_patient(patient, (float(patient.volume) / n) ** (1 / 3))
+    return None
 
 
 @dataclass(frozen=True)
@@ -531,7 +577,8 @@ class _Built:
     window_p25: float
 
 
-def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, run: _RunPlan, prog) -> _Built:
+def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, run: _RunPlan, prog,
+                     seeding=None) -> _Built:
     """Stages ``seeds`` and ``cells``: the seeds drawn for `n` (for the pore size, the count
     corrected until the cells measure it) and their Voronoi (or power) cells; the walls and
     windows of the cells near the patient."""
@@ -544,9 +591,7 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
     # solve the seed count for the measured pore size: the Poisson-Voronoi estimate, then
     # corrected for what the cells measure (cells cut by the box walls are smaller)
     solving = graded is None and params.seeds is None and params.seed_rule == "pore-size"
-    coarse = coarse_grid = None
-    if params.seeds_in == "patient" or solving or graded is not None:
-        coarse, coarse_grid = _coarse_patient(patient, (float(patient.volume) / n) ** (1 / 3))
+    coarse, coarse_grid = seeding if seeding is not None else (None, None)
     weighted = graded is not None and params.weighted
     if graded is not None:
         from .geometry import grade as grading
@@ -568,7 +613,9 @@ def _seeds_and_cells(params: Params, patient, n: int, graded: _Graded | None, ru
         if len(seeds) > n:
             # a patient's margin holds seeds beyond the count checked before the work started
             # (431,627 drawn for 235,495 in the CT's thin bones): checked again before their cells
-            _check_cells_memory(run, params, len(seeds), graded is not None)
+            _check_cells_memory(run, params, len(seeds), graded is not None,
+                                count_at=_margin_count(coarse, len(seeds), n, params.pore_size,
+                                                       (float(patient.volume) / n) ** (1 / 3)))
         if graded is not None and params.relax:
             with prog.stage("relax", f"{params.relax} Lloyd iterations"):
                 seeds = grading.lloyd_relax(seeds, graded.density, params.relax)

@@ -68,6 +68,15 @@ def test_too_many_seeds_for_memory_fail_before_the_work():
         assert check_seed_memory(most, available=2**30, chunked=chunked) <= 2**30
         with pytest.raises(ScaffoldError):
             check_seed_memory(most + 1, available=2**30, chunked=chunked)
+    # the pore size it suggests holds the seeds counted at it, by the count's own law (a thin
+    # patient's margin: here pore**-2), with a tenth of the memory spare; 2 % smaller does not
+    law = lambda pore: 3_000_000 * (0.6 / pore) ** 2  # noqa: E731
+    with pytest.raises(ScaffoldError, match=r"--pore-size \(e\.g\. ([0-9.]+) mm\)") as exc:
+        check_seed_memory(3_000_000, pore_size=0.6, available=2**30, count_at=law)
+    pore = float(re.search(r"--pore-size \(e\.g\. ([0-9.]+) mm\)", str(exc.value)).group(1))
+    assert check_seed_memory(int(np.ceil(law(pore))), available=2**30) <= 2**30
+    with pytest.raises(ScaffoldError):
+        check_seed_memory(int(np.ceil(law(0.98 * pore))), available=int(0.9 * 2**30))
     # a graded run's count is not the user's: it is told what budget would do
     with pytest.raises(ScaffoldError, match=r"pass --max-memory \S+ or more, or use larger pores"):
         check_seed_memory(100_000, available=2**30, chunked=False, seeds_given=False)

@@ -215,6 +215,28 @@ def test_seeds_fill_thin_parts_of_a_large_box():
     assert d.max() < cell + grid.spacing
 
 
+def test_the_seeds_of_a_thin_patients_margin_are_counted_before_they_are_drawn():
+    """The memory check counts the seeds seeds_in_patient will draw in the patient's margin:
+    on thin plates (a CT's ribs) they outnumber those inside and grow faster than pore**-3 as
+    the pores grow. The oracle is the draw itself, at the pore size asked and at 1.5 times it
+    (the patient's count scaled by pore**-3, the margin by the cell)."""
+    from implicit_scaffold.pipeline import _coarse_patient, _margin_count
+    from implicit_scaffold.geometry.seeds import seeds_in_patient
+
+    patient, n = _TwoPlates(), 2000
+    cell = (patient.volume / n) ** (1 / 3)
+    coarse, grid = _coarse_patient(patient, cell)
+    count_at = _margin_count(coarse, n, n, 0.6, cell, inside=True)
+    for r in (1.0, 1.5):
+        n_r = int(round(n / r ** 3))
+        drawn = len(seeds_in_patient(coarse, grid, patient.lo, patient.hi, n_r, np.random.default_rng(5),
+                                     margin=cell * r))
+        assert drawn > 1.5 * n_r  # the margin holds a third of them or more
+        assert abs(count_at(0.6 * r) - drawn) < 4 * np.sqrt(drawn) + 0.03 * drawn, (r, count_at(0.6 * r), drawn)
+    # pore**-3 alone (what the refusal's pore size assumed) misses the larger pores' draw by a quarter
+    assert count_at(0.6) / 1.5 ** 3 < 0.85 * count_at(0.9)
+
+
 def test_a_voxel_that_cannot_hold_the_walls_is_refused_before_the_lattice(monkeypatch):
     # 2 mm pores at 0.8 mm voxels: walls about 0.85 mm thick as printed, 1.06 voxels across; at
     # that resolution every wall breaks into fragments (a CT label at 0.83-1.03 voxels across came

@@ -12,6 +12,7 @@ seed outshone by its neighbours has no cell at all (it is dropped).
 from __future__ import annotations
 
 import contextlib
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -136,7 +137,7 @@ CELLS_PEAK_BYTES_PER_SEED = 7 * 1024
 
 
 def check_seed_memory(n: int, pore_size: float | None = None, available: int | None = None, *,
-                      chunked: bool = True, seeds_given: bool = True) -> int:
+                      chunked: bool = True, seeds_given: bool = True, count_at=None) -> int:
     """Raise a :class:`ScaffoldError` before building cells for more seeds than memory holds.
 
     Parameters
@@ -153,6 +154,11 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     seeds_given : bool
         Whether the count came from ``--seeds`` (a refusal then suggests fewer); a graded
         run's count comes from its pore-size field.
+    count_at : callable, optional
+        The seed count at another pore size (mm), for the pore size a refusal suggests; by
+        default ``n * (pore_size / pore)**3``. Seeds drawn in a patient's margin (one cell
+        wide around it) scale otherwise: a shell's as ``pore**-2``, a speckle's not at all, and
+        in a thresholded CT's thin bones they can be most of the seeds.
 
     Returns
     -------
@@ -163,9 +169,7 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
 
     # voro++'s cells of one chunk (and its margins' seeds) at a time beside the arrays of all of
     # them, then the arrays' copies
-    need = (min(int(n), 2 * CHUNK_SEEDS) if chunked else int(n)) * BYTES_PER_SEED + int(n) * CELLS_BYTES_PER_SEED
-    if chunked:
-        need = max(need, int(n) * CELLS_PEAK_BYTES_PER_SEED)
+    need = _seed_memory(n, chunked)
     have = available_memory() if available is None else int(available)
     if need > have:
         if have < 64 * 2**20:  # the budget is spent before the cells: only a larger one helps
@@ -180,13 +184,35 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
         if chunked and most > 2 * CHUNK_SEEDS:
             most = min((have - 2 * CHUNK_SEEDS * BYTES_PER_SEED) // CELLS_BYTES_PER_SEED,
                        have // CELLS_PEAK_BYTES_PER_SEED)
-        fix = (f"use a larger --pore-size (e.g. {pore_size * (need / have) ** (1 / 3) * 1.1:.3g} mm)"
+        fix = (f"use a larger --pore-size (e.g. {_fitting_pore_size(count_at or (lambda pore: n * (pore_size / pore) ** 3), pore_size, have, chunked):.3g} mm)"
                if pore_size else f"use fewer --seeds (at most {max(2, int(most)):,})" if seeds_given
                else "use larger pores")
         raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "
                             f"{have / 2**30:.1f} GiB is free within --max-memory; pass --max-memory "
                             f"{format_size(process_memory() + need)} or more, or {fix}")
     return need
+
+
+def _seed_memory(n: int, chunked: bool) -> int:
+    """Bytes that building the cells of `n` seeds takes (:func:`check_seed_memory`'s estimate)."""
+    need = (min(int(n), 2 * CHUNK_SEEDS) if chunked else int(n)) * BYTES_PER_SEED + int(n) * CELLS_BYTES_PER_SEED
+    return max(need, int(n) * CELLS_PEAK_BYTES_PER_SEED) if chunked else need
+
+
+def _fitting_pore_size(count_at, pore_size: float, have: int, chunked: bool) -> float:
+    """The smallest pore size (mm, within 1e-9 of it) from `pore_size` up whose seeds' cells
+    take at most 0.9 of `have` bytes, ``count_at(pore)`` seeds at a pore size (non-increasing)."""
+
+    def fits(pore: float) -> bool:
+        return _seed_memory(int(math.ceil(count_at(pore))), chunked) <= 0.9 * have
+
+    lo, hi = pore_size, pore_size * 2
+    while not fits(hi):
+        lo, hi = hi, hi * 2
+    for _ in range(40):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (lo, mid) if fits(mid) else (mid, hi)
+    return hi
 
 
 #: polygon vertices whose properties are computed at once (bounds the temporaries, ~0.3 GB)
