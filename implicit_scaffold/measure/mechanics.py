@@ -1118,6 +1118,10 @@ SAMPLE_CHUNK_BYTES = 64 * 2**20
 #: the platens' modulus -3.8 % (periodic Ez -6.3 %, Ex -8.8 %: the issue's 3 % is not met at
 #: generate's default voxel); the finer field sampled at 4 across (solid volume kept), -2.1 %
 #: (-4.8, -7.6); at 2.67 across, +1.5 % (-3.2, -7.4); at 2 across, -12.9 % (-9.7, -16.2).
+#: A finer default would not meet the 3 % either: generated at 4, 5, 6 and 8 across and at twice
+#: each, the platens' modulus moved -3.8, -7.5, -5.0 and -9.5 % from h to h/2 (seed 0; seed 1 at 4,
+#: 6, 8: -4.0, -7.8, -10.4 %; ``bench_mechanics.py --sizes --across 4 5 6 8``; README, "The voxel of
+#: a solve and its memory").
 CONVERGED_VOXELS_PER_WALL = 4.0
 #: below this many voxels across the median wall the default voxel refuses instead of coarsening
 #: (the 2-across sample above was 10-16 % off)
