@@ -256,3 +256,45 @@ def test_paint_labels_writes_what_a_boolean_mask_writes(contiguous):
     got = field.copy() if contiguous else np.asfortranarray(field)
     assert paint_labels(labels, table, got, 7.5) == np.count_nonzero(table[labels]) > 0
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("below", [True, False])
+def test_flood_paint_paints_the_pieces_of_its_seeds(below):
+    from scipy import ndimage
+
+    from implicit_scaffold.run.pieces import flood_paint
+
+    rng = np.random.default_rng(5)
+    # shifted so that the painted side is the sparse one: many pieces of it
+    noise = ndimage.gaussian_filter(rng.normal(size=(30, 21, 17)), 1.2)
+    field = (noise + (0.05 if below else -0.05)).astype(np.float32)
+    mask = field < 0 if below else field >= 0
+    labels, count = ndimage.label(mask)  # the oracle: scipy's 6-connected pieces
+    assert count > 5  # several pieces, most of them left as they are
+    seeds = rng.choice(np.flatnonzero(mask), 4, replace=False)
+    seeds = np.concatenate([seeds, seeds[:3]])  # a seed met twice paints once
+    value = 2.0 if below else -2.0
+    want = field.copy()
+    want[np.isin(labels, labels.ravel()[seeds])] = value
+    got = field.copy()
+    assert flood_paint(got, seeds, value, below=below) == np.count_nonzero(want != field)
+    assert np.array_equal(got, want)
+    with pytest.raises(ValueError):
+        flood_paint(field.copy(), seeds, -value, below=below)
+
+
+def test_label_sizes_first_gives_the_sizes_and_first_voxels():
+    from scipy import ndimage
+
+    from implicit_scaffold.run.pieces import label_sizes_first
+
+    rng = np.random.default_rng(6)
+    labels, count = ndimage.label(ndimage.gaussian_filter(rng.normal(size=(20, 15, 11)), 1.0) < 0)
+    labels = labels.astype(np.int32)
+    labels[labels == 3] = 0  # a label absent: no first voxel
+    sizes, first = label_sizes_first(labels, count)
+    assert np.array_equal(sizes, np.bincount(labels.ravel(), minlength=count + 1))
+    values, where = np.unique(labels.ravel(), return_index=True)
+    want = np.full(count + 1, -1)
+    want[values] = where
+    assert np.array_equal(first, want)

@@ -73,6 +73,118 @@ def _count_labels_where(flat, where, n):  # pragma: no cover - compiled
     return out
 
 
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _count_labels_first(flat, n):  # pragma: no cover - compiled
+    # _count_labels, and where each label's run first starts: its first voxel in C order
+    out = np.zeros(n + 1, np.int64)
+    first = np.full(n + 1, -1, np.int64)
+    if flat.size == 0:
+        return out, first
+    current, run, start = flat[0], 0, 0
+    for i in range(flat.size):
+        x = flat[i]
+        if x == current:
+            run += 1
+        else:
+            out[current] += run
+            if first[current] < 0:
+                first[current] = start
+            current, run, start = x, 1, i
+    out[current] += run
+    if first[current] < 0:
+        first[current] = start
+    return out, first
+
+
+def label_sizes_first(labels: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`label_sizes` and each label's first voxel (its flat index in C order; -1 for a
+    label absent), ``(count + 1,)`` int64 each, in the same one pass.
+
+    The first voxel seeds :func:`flood_paint`, which repaints a piece without labelling the
+    grid again.
+    """
+    return _count_labels_first(np.ascontiguousarray(labels).reshape(-1), int(count))
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _flood(field, seeds, value, below):  # pragma: no cover - compiled
+    nx, ny, nz = field.shape
+    flat = field.reshape(-1)
+    plane = ny * nz
+    stack = np.empty(4096, np.int64)
+    n = 0
+    for seed in seeds:
+        f = flat[seed]
+        if not ((f < 0) if below else (f >= 0)):
+            continue
+        flat[seed] = value
+        n += 1
+        stack[0] = seed
+        top = 1
+        while top > 0:
+            top -= 1
+            i = stack[top]
+            x, y, z = i // plane, (i // nz) % ny, i % nz
+            for k in range(6):
+                if k == 0:
+                    if x == 0:
+                        continue
+                    j = i - plane
+                elif k == 1:
+                    if x == nx - 1:
+                        continue
+                    j = i + plane
+                elif k == 2:
+                    if y == 0:
+                        continue
+                    j = i - nz
+                elif k == 3:
+                    if y == ny - 1:
+                        continue
+                    j = i + nz
+                elif k == 4:
+                    if z == 0:
+                        continue
+                    j = i - 1
+                else:
+                    if z == nz - 1:
+                        continue
+                    j = i + 1
+                f = flat[j]
+                if (f < 0) if below else (f >= 0):
+                    flat[j] = value
+                    n += 1
+                    if top == stack.size:
+                        grown = np.empty(2 * stack.size, np.int64)
+                        grown[:top] = stack
+                        stack = grown
+                    stack[top] = j
+                    top += 1
+    return n
+
+
+def flood_paint(field: np.ndarray, seeds: np.ndarray, value: float, *, below: bool) -> int:
+    """Write `value` into the 6-connected pieces of ``field < 0`` (`below`) or ``field >= 0``
+    that hold the voxels `seeds` (flat indices in C order), in place; returns the voxels written.
+
+    Each piece is :func:`label_pieces`' piece of the seed, painted without labelling the grid:
+    `value` must lie on the other side of 0 (the painted voxels then leave the mask, which is
+    what marks them visited).
+
+    Parameters
+    ----------
+    field : float32 C-contiguous ndarray (3-D), mm
+    seeds : int ndarray
+    value : float, mm
+    below : bool
+    """
+    if field.ndim != 3 or field.dtype != np.float32 or not field.flags.c_contiguous:
+        raise ValueError("flood_paint takes a C-contiguous 3-D float32 field")
+    if (np.float32(value) < 0) == bool(below) or np.isnan(value):
+        raise ValueError(f"the value {value} would stay in the mask it paints")
+    return int(_flood(field, np.ascontiguousarray(seeds, np.int64), np.float32(value), bool(below)))
+
+
 def label_sizes(labels: np.ndarray, count: int, where: np.ndarray | None = None) -> np.ndarray:
     """Voxels per label, ``(count + 1,)`` int64 (label 0 first): ``np.bincount(labels.ravel(),
     minlength=count + 1)``, or of the voxels of `where` alone, in one pass without the 8-byte

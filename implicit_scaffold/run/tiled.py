@@ -447,6 +447,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         check_disk(grid)
         field, patient_file = FieldFile(grid), FieldFile(grid)
     plan = level_field = None
+    known = None  # the patient's pieces on the prism and their count, labelled once for every cut-off
     try:
         for _ in range(6):
             work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k), float(smooth_cut))
@@ -482,24 +483,25 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
-                    pieces = None
-                    if remove_fragments and patient_pieces:
+                    if remove_fragments and patient_pieces and known is None:
                         # each patient piece keeps its main body on the prism, as in the scaffold pass
                         # (a primitive is one piece: its largest body is its main body)
-                        pieces = prism_pieces(patient_file, slabs, ys, zs)
+                        known = _prism_pieces(patient_file, slabs, ys, zs)
                     level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
-                                   level, pieces)
-                    del pieces
+                                   level, None if known is None else known[0])
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
             cutoff = wider
         with prog.stage("scaffold"):
             shift = None if level_field is None else (plan, level_field)
-            solid, fragments, pieces, patient_pieces, removed = _pass_scaffold(
+            # a patient the printed stage found in one piece is not labelled again
+            by_piece = patient_pieces and (known is None or known[1] > 1)
+            del known
+            solid, fragments, pieces, patient_pieces, removed, sealed = _pass_scaffold(
                 slabs, field, patient_file, 0.0 if shift else level, grid.spacing, remove_fragments,
-                prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=patient_pieces, shift=shift)
-            sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
+                prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=by_piece, shift=shift,
+                fill_sealed=fill_sealed_voids, keep_interior=skin > 0)
             if fill_sealed_voids:
                 solid += sealed[1]
     except BaseException:
@@ -524,9 +526,11 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
     -------
     (fragments, sealed void pieces, sealed voxels) found by this pass; `tf`'s counts are updated.
     """
-    solid, fragments, pieces, _, removed = _pass_scaffold(tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing,
-                                                 remove_fragments, progress, patient_pieces=patient_pieces)
-    sealed = _pass_sealed(tf.slabs, tf.field, tf.field.grid.spacing, fill_sealed_voids, keep_interior=keep_interior)
+    # the patient's field is the same: one found in one piece is not labelled again
+    solid, fragments, pieces, _, removed, sealed = _pass_scaffold(
+        tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing, remove_fragments, progress,
+        patient_pieces=patient_pieces and tf.patient_pieces > 1, fill_sealed=fill_sealed_voids,
+        keep_interior=keep_interior)
     if fill_sealed_voids:
         solid += sealed[1]
     tf.solid, tf.pieces = solid, pieces
@@ -540,23 +544,37 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int, int]:
-    """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
+                   patient_pieces: bool = True, shift=None, fill_sealed: bool = True,
+                   keep_interior: bool = False) -> tuple[int, int | None, int, int, int, tuple[int, int]]:
+    """Passes 3 to 5: the scaffold field, its solid pieces, the fragments made void, the
+    sealed void pieces filled.
 
     Each piece of the patient keeps its own main body, as
     :func:`~implicit_scaffold.run.pieces.remove_fragments_by_piece` does on the whole grid:
     the patient's pieces are joined across slabs like the solid's, and each solid piece
     lies in one of them. `shift`, a graded run's ``(LevelPlan, LevelField)``, takes the
     offset field from the lattice first (:func:`~implicit_scaffold.geometry.grade.shift_planes`).
+    The void pieces are joined across slabs the same way and the sealed ones filled, as
+    :func:`~implicit_scaffold.fields.field.fill_sealed_voids` does on the whole grid (`fill_sealed`;
+    with `keep_interior` the largest is kept); they are always counted.
+
+    The void is labelled in the pass that last changes the field: the first when fragments are
+    kept, else the one that drops them (which reads the slabs anyway). Fragments and sealed voids
+    are repainted from their pieces' first voxels (:meth:`~implicit_scaffold.run.tiles.SlabComponents.drop_fragments`),
+    and only the slabs that hold some are written again.
 
     Returns
     -------
-    solid, fragments (None when not removed), bodies, patient pieces, voxels removed
+    solid, fragments (None when not removed), bodies, patient pieces, voxels removed,
+    (sealed void pieces, their voxels) counted before any filling
     """
     by_piece = patient_pieces
-    pieces, patient_pieces = SlabComponents(keep_labels=remove and len(slabs) == 1), SlabComponents()
+    pieces, patient_pieces = SlabComponents(seeds=remove), SlabComponents()
+    voids = SlabComponents(seeds=fill_sealed)
     where = []  # per slab: the patient label (local) of each solid label (local)
     solid = 0
+    last = len(slabs) - 1
+    total_steps = 2 * len(slabs) if remove else len(slabs)
     for done, slab in enumerate(slabs, 1):
         s_p = patient.read(slab.x0, slab.x1)
         base = field.read(slab.x0, slab.x1)
@@ -576,9 +594,13 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
             where.append(piece_of)
             del patient_labels
         solid += int(np.count_nonzero(inside))
-        del s, s_p, labels, inside
+        del s_p, labels, inside
+        if not remove:
+            # nothing more changes the field before the sealed voids: the void is labelled now
+            voids.add(void_mask(s, first_x=done == 1, last_x=done - 1 == last))
+        del s
         if progress is not None:
-            progress(done, 2 * len(slabs) if remove else len(slabs))
+            progress(done, total_steps)
     n_patient = patient_pieces.finish() + 1 if by_piece else 1
     found = pieces.finish()
     if n_patient > 1 and found:
@@ -587,17 +609,31 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
             group[pieces.roots_of(i, np.arange(1, len(piece_of)))] = patient_pieces.roots_of(i, piece_of[1:])
         pieces.keep_largest_per(group)
         found = pieces.fragments()
+    del where, patient_pieces
     total = pieces.piece_count
-    if not remove or found == 0:
-        return solid, (0 if remove else None), total, n_patient, 0
     removed = 0
-    for i, slab in enumerate(slabs):
-        s = field.read(slab.x0, slab.x1)
-        removed += pieces.drop_fragments(i, s, spacing)
-        field.write(slab.x0, s)
-        if progress is not None:
-            progress(len(slabs) + i + 1, 2 * len(slabs))
-    return solid - removed, found, total - found, n_patient, removed
+    if remove:
+        for i, slab in enumerate(slabs):
+            s = field.read(slab.x0, slab.x1)
+            if found and pieces.has_fragments(i):
+                removed += pieces.drop_fragments(i, s, spacing)
+                field.write(slab.x0, s)
+            voids.add(void_mask(s, first_x=i == 0, last_x=i == last))
+            del s
+            if progress is not None:
+                progress(len(slabs) + i + 1, total_steps)
+    del pieces
+    voids.finish()
+    sealed = voids.sealed(keep_interior)
+    if fill_sealed and sealed[0]:
+        for i, slab in enumerate(slabs):
+            if voids.has_sealed(i):
+                s = field.read(slab.x0, slab.x1)
+                voids.fill_sealed(i, None, s, -spacing)
+                field.write(slab.x0, s)
+    if not remove:
+        return solid, None, total, n_patient, 0, sealed
+    return solid - removed, found, total - found, n_patient, removed, sealed
 
 
 def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
@@ -605,10 +641,16 @@ def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
     as whole-grid labelling (:func:`~implicit_scaffold.run.pieces.label_pieces`) numbers them: the
     pieces are joined across the slabs (:class:`~implicit_scaffold.run.tiles.SlabComponents`), each numbered by its
     first voxel in C order."""
+    return _prism_pieces(patient, slabs, ys, zs)[0]
+
+
+def _prism_pieces(patient, slabs, ys: slice, zs: slice) -> tuple[np.ndarray, int]:
+    """:func:`prism_pieces`, and the patient's pieces on the whole grid (found on the way)."""
     if isinstance(patient, ArraySlabs):
         from .pieces import label_pieces
 
-        return label_pieces(patient.field < 0)[0][:, ys, zs]
+        labels, count = label_pieces(patient.field < 0)
+        return labels[:, ys, zs], count
     parts, local = SlabComponents(), []
     for slab in slabs:
         local.append(parts.add(patient.read(slab.x0, slab.x1) < 0)[:, ys, zs].copy())
@@ -619,7 +661,7 @@ def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
     out = np.empty((patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
     for i, (slab, labels) in enumerate(zip(slabs, local)):
         out[slab.x0:slab.x1] = number[parts.roots_of(i, labels) + 1]
-    return out
+    return out, len(roots)
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
@@ -628,27 +670,6 @@ def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
     for slab in slabs:
         out[slab.x0:slab.x1] = source.read(slab.x0, slab.x1)[:, ys, zs]
     return out
-
-
-def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool, keep_interior: bool = False) -> tuple[int, int]:
-    """Passes 5 and 6: the void pieces joined across slabs; the sealed ones filled, as
-    :func:`~implicit_scaffold.fields.field.fill_sealed_voids` does on the whole grid."""
-    voids = SlabComponents(keep_labels=fill and len(slabs) == 1)
-    last = len(slabs) - 1
-
-    def mask(i, s):
-        return void_mask(s, first_x=i == 0, last_x=i == last)
-
-    for i, slab in enumerate(slabs):
-        voids.add(mask(i, field.read(slab.x0, slab.x1)))
-    voids.finish()
-    count, voxels = voids.sealed(keep_interior)
-    if fill and count:
-        for i, slab in enumerate(slabs):
-            s = field.read(slab.x0, slab.x1)
-            voids.fill_sealed(i, lambda: mask(i, s), s, -spacing)
-            field.write(slab.x0, s)
-    return count, voxels
 
 
 def sample_slabs(source, grid: Grid, points) -> np.ndarray:
