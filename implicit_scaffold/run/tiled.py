@@ -483,12 +483,25 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
+                    from ..fields.printed import face_bands
+
+                    # the prism and the grid's y-face bands the search reads, from one pass over each field
+                    bands = [(ys, zs)] + [(band, zs) for band in face_bands(grid.shape, ys)]
+                    labeller = None
                     if remove_fragments and patient_pieces and known is None:
                         # each patient piece keeps its main body on the prism, as in the scaffold pass
-                        # (a primitive is one piece: its largest body is its main body)
-                        known = _prism_pieces(patient_file, slabs, ys, zs)
-                    level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
-                                   level, None if known is None else known[0])
+                        # (a primitive is one piece: its largest body is its main body); labelled as
+                        # the patient's planes are read for the bands
+                        labeller = _PrismPieces(patient_file, ys, zs)
+                    read = dict(zip(map(_band_key, bands),
+                                    zip(_read_bands(field, slabs, bands),
+                                        _read_bands(patient_file, slabs, bands, labeller))))
+                    if labeller is not None:
+                        known = labeller.finish()
+                    level = search(lambda y, z: read.pop(_band_key((y, z)), None) or (
+                        read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
+                        level, None if known is None else known[0])
+                    del read
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
@@ -641,34 +654,68 @@ def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
     as whole-grid labelling (:func:`~implicit_scaffold.run.pieces.label_pieces`) numbers them: the
     pieces are joined across the slabs (:class:`~implicit_scaffold.run.tiles.SlabComponents`), each numbered by its
     first voxel in C order."""
-    return _prism_pieces(patient, slabs, ys, zs)[0]
+    labeller = _PrismPieces(patient, ys, zs)
+    _read_bands(patient, slabs, [], labeller)
+    return labeller.finish()[0]
 
 
-def _prism_pieces(patient, slabs, ys: slice, zs: slice) -> tuple[np.ndarray, int]:
-    """:func:`prism_pieces`, and the patient's pieces on the whole grid (found on the way)."""
-    if isinstance(patient, ArraySlabs):
-        from .pieces import label_pieces
+class _PrismPieces:
+    """:func:`prism_pieces` fed the patient's planes slab by slab (:meth:`add`, in order of x), as
+    another pass reads them; :meth:`finish` gives the prism's labels and the patient's piece count
+    on the whole grid (found on the way)."""
 
-        labels, count = label_pieces(patient.field < 0)
-        return labels[:, ys, zs], count
-    parts, local = SlabComponents(), []
-    for slab in slabs:
-        local.append(parts.add(patient.read(slab.x0, slab.x1) < 0)[:, ys, zs].copy())
-    parts.finish()
-    roots = np.flatnonzero(parts.sizes > 0)
-    number = np.zeros(len(parts.sizes) + 1, np.int32)
-    number[roots + 1] = np.arange(1, len(roots) + 1)
-    out = np.empty((patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
-    for i, (slab, labels) in enumerate(zip(slabs, local)):
-        out[slab.x0:slab.x1] = number[parts.roots_of(i, labels) + 1]
-    return out, len(roots)
+    def __init__(self, patient, ys: slice, zs: slice):
+        self.patient, self.ys, self.zs = patient, ys, zs
+        self.parts, self.local = SlabComponents(), []
+
+    def add(self, planes: np.ndarray) -> None:
+        if not isinstance(self.patient, ArraySlabs):
+            self.local.append(self.parts.add(planes < 0)[:, self.ys, self.zs].copy())
+
+    def finish(self) -> tuple[np.ndarray, int]:
+        ys, zs = self.ys, self.zs
+        if isinstance(self.patient, ArraySlabs):
+            from .pieces import label_pieces
+
+            labels, count = label_pieces(self.patient.field < 0)
+            return labels[:, ys, zs], count
+        parts = self.parts
+        parts.finish()
+        roots = np.flatnonzero(parts.sizes > 0)
+        number = np.zeros(len(parts.sizes) + 1, np.int32)
+        number[roots + 1] = np.arange(1, len(roots) + 1)
+        out = np.empty((self.patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
+        x0 = 0
+        for i, labels in enumerate(self.local):
+            out[x0:x0 + len(labels)] = number[parts.roots_of(i, labels) + 1]
+            x0 += len(labels)
+        self.local = []
+        return out, len(roots)
+
+
+def _band_key(band) -> tuple[int, int, int, int]:
+    """A ``(ys, zs)`` band as a key (slices are not hashable before Python 3.12)."""
+    ys, zs = band
+    return ys.start, ys.stop, zs.start, zs.stop
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
     """``source[:, ys, zs]`` of a field on disk, slab by slab, float32."""
-    out = np.empty((source.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.float32)
+    return _read_bands(source, slabs, [(ys, zs)])[0]
+
+
+def _read_bands(source, slabs, bands, labeller: _PrismPieces | None = None) -> list[np.ndarray]:
+    """``source[:, ys, zs]`` for each ``(ys, zs)`` of `bands`, float32, from one read of each slab;
+    each slab's planes are given to `labeller` too."""
+    nx = source.grid.shape[0]
+    out = [np.empty((nx, ys.stop - ys.start, zs.stop - zs.start), np.float32) for ys, zs in bands]
     for slab in slabs:
-        out[slab.x0:slab.x1] = source.read(slab.x0, slab.x1)[:, ys, zs]
+        planes = source.read(slab.x0, slab.x1)
+        for got, (ys, zs) in zip(out, bands):
+            got[slab.x0:slab.x1] = planes[:, ys, zs]
+        if labeller is not None:
+            labeller.add(planes)
+        del planes
     return out
 
 
