@@ -1552,7 +1552,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                      one_piece: bool, slab_voxels: int) -> Result:
     """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
-    from .run.pieces import one_piece_table, piece_table_by_slabs
+    from .run.pieces import one_piece_table, piece_table_by_slabs, seeds_in_one_piece
 
     if one_piece and params.remove_fragments:
         # a primitive keeping its main body: its one row from what the passes counted, without
@@ -1560,6 +1560,13 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
         small_pieces = _pieces_report(report, one_piece_table(
             tf.n_inside, tf.solid, int(np.count_nonzero(cells_in)),
             min(tf.pieces, 1), tf.inside_box, grid))
+    elif params.remove_fragments and tf.patient_pieces == 1 and tf.solid_inside is not None:
+        # a patient the passes found in one piece, keeping its main body: its row from their counts
+        # (its voxels, its solid voxels, their bounds) and its cells from the voxels around the seeds
+        # (the rows piece_table_by_slabs gives, without another pass over the slabs)
+        small_pieces = _pieces_report(report, one_piece_table(
+            tf.n_inside, tf.solid_inside, seeds_in_one_piece(tf.patient, grid, cells.seeds[cells_in]),
+            int(tf.solid_inside > 0), tf.inside_box, grid))
     else:
         with prog.stage("pieces", "by slabs"):
             small_pieces = _pieces_report(report, piece_table_by_slabs(

@@ -462,6 +462,32 @@ def one_piece_table(voxels: int, solid_voxels: int, cells: int, bodies: int, box
     return _rows(np.array([voxels]), np.array([solid_voxels]), np.array([cells]), np.array([bodies]), lo, hi, grid)
 
 
+def seeds_in_one_piece(patient, grid, seeds: np.ndarray) -> int:
+    """The cells of a patient in one piece, as :func:`piece_table_by_slabs` counts them: the seeds
+    with a patient voxel among those :func:`seed_pieces` reads, read from the field where they are.
+
+    Parameters
+    ----------
+    patient : FieldFile or ArraySlabs
+        The patient's signed distance, mm (a file is mapped: only the pages around the seeds are read).
+    grid : Grid
+    seeds : (n, 3) float ndarray, mm
+    """
+    values = patient.field if getattr(patient, "path", None) is None else \
+        np.memmap(patient.path, np.float32, mode="r", shape=tuple(grid.shape))
+    return int(np.count_nonzero(seed_pieces(_Inside(values), grid, seeds)))
+
+
+class _Inside:
+    """A field read as the labels of one piece: 1 where negative, else 0 (for :func:`seed_pieces`)."""
+
+    def __init__(self, values):
+        self.values = values
+
+    def __getitem__(self, index):
+        return (np.asarray(self.values[index]) < 0).astype(np.int64)
+
+
 def _seed_probes(grid, seeds: np.ndarray) -> np.ndarray:
     """The voxels :func:`seed_pieces` reads for each seed: ``(9, n, 3)`` indices, its nearest first."""
     shape = np.asarray(grid.shape) - 1

@@ -184,6 +184,8 @@ class TiledField:
         Voxels of the solid fragments removed.
     inside_box : ((3,) int ndarray, (3,) int ndarray) or None
         The bounds of the patient's voxels (indices, inclusive).
+    solid_inside : int or None
+        Solid voxels inside the patient, when counted (fragments removed, a sharp cut).
     """
 
     field: FieldFile
@@ -201,6 +203,7 @@ class TiledField:
     level_field: Any = None
     fragments_voxels: int = 0
     inside_box: Any = None
+    solid_inside: int | None = None
 
     def close(self) -> None:
         """Remove the files (or let the arrays go)."""
@@ -511,10 +514,11 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             # a patient the printed stage found in one piece is not labelled again
             by_piece = patient_pieces and (known is None or known[1] > 1)
             del known
-            solid, fragments, pieces, patient_pieces, removed, sealed = _pass_scaffold(
+            solid, fragments, pieces, patient_pieces, removed, sealed, solid_inside = _pass_scaffold(
                 slabs, field, patient_file, 0.0 if shift else level, grid.spacing, remove_fragments,
                 prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=by_piece, shift=shift,
-                fill_sealed=fill_sealed_voids, keep_interior=skin > 0)
+                fill_sealed=fill_sealed_voids, keep_interior=skin > 0,
+                count_inside=remove_fragments and smooth_cut <= 0)
             if fill_sealed_voids:
                 solid += sealed[1]
     except BaseException:
@@ -526,7 +530,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed, box)
+                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed, box, solid_inside)
 
 
 def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sealed_voids: bool,
@@ -540,10 +544,11 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
     (fragments, sealed void pieces, sealed voxels) found by this pass; `tf`'s counts are updated.
     """
     # the patient's field is the same: one found in one piece is not labelled again
-    solid, fragments, pieces, _, removed, sealed = _pass_scaffold(
+    # s = max(s - step, s_P): the solid lies inside the patient, and its voxels there are counted again
+    solid, fragments, pieces, _, removed, sealed, tf.solid_inside = _pass_scaffold(
         tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing, remove_fragments, progress,
         patient_pieces=patient_pieces and tf.patient_pieces > 1, fill_sealed=fill_sealed_voids,
-        keep_interior=keep_interior)
+        keep_interior=keep_interior, count_inside=tf.solid_inside is not None)
     if fill_sealed_voids:
         solid += sealed[1]
     tf.solid, tf.pieces = solid, pieces
@@ -558,7 +563,7 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
                    patient_pieces: bool = True, shift=None, fill_sealed: bool = True,
-                   keep_interior: bool = False) -> tuple[int, int | None, int, int, int, tuple[int, int]]:
+                   keep_interior: bool = False, count_inside: bool = False) -> tuple:
     """Passes 3 to 5: the scaffold field, its solid pieces, the fragments made void, the
     sealed void pieces filled.
 
@@ -576,10 +581,15 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     are repainted from their pieces' first voxels (:meth:`~implicit_scaffold.run.tiles.SlabComponents.drop_fragments`),
     and only the slabs that hold some are written again.
 
+    `count_inside` counts the solid voxels inside the patient at the end (the piece table's): for a
+    field whose solid lies inside the patient after the scaffold field (``s >= s_P``: every cut
+    but the smooth one), only the sealed voids filled can lie outside it.
+
     Returns
     -------
-    solid, fragments (None when not removed), bodies, patient pieces, voxels removed,
-    (sealed void pieces, their voxels) counted before any filling
+    solid (without the sealed voids filled), fragments (None when not removed), bodies, patient
+    pieces, voxels removed, (sealed void pieces, their voxels) counted before any filling, solid
+    voxels inside the patient at the end (None unless `count_inside`)
     """
     by_piece = patient_pieces
     pieces, patient_pieces = SlabComponents(seeds=remove), SlabComponents()
@@ -638,15 +648,22 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
     del pieces
     voids.finish()
     sealed = voids.sealed(keep_interior)
+    filled_outside = 0
     if fill_sealed and sealed[0]:
         for i, slab in enumerate(slabs):
             if voids.has_sealed(i):
                 s = field.read(slab.x0, slab.x1)
                 voids.fill_sealed(i, None, s, -spacing)
                 field.write(slab.x0, s)
+                if count_inside:
+                    # the solid lay inside the patient before: what is outside now was filled
+                    filled_outside += int(np.count_nonzero((s < 0) & (patient.read(slab.x0, slab.x1) >= 0)))
+                del s
+    solid -= removed
+    inside = solid + (sealed[1] if fill_sealed else 0) - filled_outside if count_inside else None
     if not remove:
-        return solid, None, total, n_patient, 0, sealed
-    return solid - removed, found, total - found, n_patient, removed, sealed
+        return solid, None, total, n_patient, 0, sealed, inside
+    return solid, found, total - found, n_patient, removed, sealed, inside
 
 
 def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
