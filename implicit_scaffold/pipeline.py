@@ -1166,8 +1166,11 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
     # slabs of the size asked for (tiled=<voxels>), whatever the halo
     planes = max(1, run.forced_voxels // (grid.shape[1] * grid.shape[2])) if run.forced_voxels else None
     with prog.stage("metrics", "by slabs"):
+        # one solid piece left (or none) stays one when sealed voids are filled: each lies against the
+        # solid all round. More are labelled again (filling may join two)
         found = morphometry_by_slabs(tf.field, tf.patient, grid.spacing, max_voxels=max_voxels, halo=halo,
-                                     planes=planes, progress=prog.bar("metrics"))
+                                     planes=planes, progress=prog.bar("metrics"),
+                                     solid_pieces=tf.pieces if tf.pieces <= 1 else None)
     found.pop("morphometry_halo_planes", None)
     return found
 

@@ -464,28 +464,29 @@ def one_piece_table(voxels: int, solid_voxels: int, cells: int, bodies: int, box
 
 def seeds_in_one_piece(patient, grid, seeds: np.ndarray) -> int:
     """The cells of a patient in one piece, as :func:`piece_table_by_slabs` counts them: the seeds
-    with a patient voxel among those :func:`seed_pieces` reads, read from the field where they are.
+    with a patient voxel among those :func:`seed_pieces` reads (its piece is then the one).
 
     Parameters
     ----------
     patient : FieldFile or ArraySlabs
-        The patient's signed distance, mm (a file is mapped: only the pages around the seeds are read).
+        The patient's signed distance, mm. From a file only those voxels are read, one by one
+        (not mapped: the pages a map touches would count in the process's memory).
     grid : Grid
     seeds : (n, 3) float ndarray, mm
     """
-    values = patient.field if getattr(patient, "path", None) is None else \
-        np.memmap(patient.path, np.float32, mode="r", shape=tuple(grid.shape))
-    return int(np.count_nonzero(seed_pieces(_Inside(values), grid, seeds)))
+    import os
 
-
-class _Inside:
-    """A field read as the labels of one piece: 1 where negative, else 0 (for :func:`seed_pieces`)."""
-
-    def __init__(self, values):
-        self.values = values
-
-    def __getitem__(self, index):
-        return (np.asarray(self.values[index]) < 0).astype(np.int64)
+    probes = _seed_probes(grid, seeds)  # (9, n, 3)
+    if getattr(patient, "path", None) is None:
+        values = patient.field[probes[..., 0], probes[..., 1], probes[..., 2]]
+    else:
+        flat = np.ravel_multi_index(tuple(probes.reshape(-1, 3).T), tuple(grid.shape))
+        where, back = np.unique(flat, return_inverse=True)
+        size = np.dtype(np.float32).itemsize
+        with open(patient.path, "rb", buffering=0) as f:
+            got = b"".join(os.pread(f.fileno(), size, int(i) * size) for i in where)
+        values = np.frombuffer(got, np.float32)[back].reshape(probes.shape[:2])
+    return int(np.count_nonzero((values < 0).any(axis=0)))
 
 
 def _seed_probes(grid, seeds: np.ndarray) -> np.ndarray:
