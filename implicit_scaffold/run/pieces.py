@@ -106,6 +106,23 @@ def label_sizes_first(labels: np.ndarray, count: int) -> tuple[np.ndarray, np.nd
     return _count_labels_first(np.ascontiguousarray(labels).reshape(-1), int(count))
 
 
+@nb.njit(cache=True, nogil=True, inline="always")
+def face_neighbour(q, t, i, j, k, nx, ny, nz):  # pragma: no cover - compiled
+    """The flat index of voxel `q` (indices ``i, j, k``)'s face neighbour `t` (0 to 5: -x, +x, -y,
+    +y, -z, +z) in a C-ordered ``(nx, ny, nz)`` grid; -1 beyond the grid."""
+    if t == 0:
+        return q - ny * nz if i > 0 else -1
+    if t == 1:
+        return q + ny * nz if i < nx - 1 else -1
+    if t == 2:
+        return q - nz if j > 0 else -1
+    if t == 3:
+        return q + nz if j < ny - 1 else -1
+    if t == 4:
+        return q - 1 if k > 0 else -1
+    return q + 1 if k < nz - 1 else -1
+
+
 @nb.njit(cache=True, nogil=True, boundscheck=False)
 def _flood(field, seeds, value, below):  # pragma: no cover - compiled
     nx, ny, nz = field.shape
@@ -126,30 +143,9 @@ def _flood(field, seeds, value, below):  # pragma: no cover - compiled
             i = stack[top]
             x, y, z = i // plane, (i // nz) % ny, i % nz
             for k in range(6):
-                if k == 0:
-                    if x == 0:
-                        continue
-                    j = i - plane
-                elif k == 1:
-                    if x == nx - 1:
-                        continue
-                    j = i + plane
-                elif k == 2:
-                    if y == 0:
-                        continue
-                    j = i - nz
-                elif k == 3:
-                    if y == ny - 1:
-                        continue
-                    j = i + nz
-                elif k == 4:
-                    if z == 0:
-                        continue
-                    j = i - 1
-                else:
-                    if z == nz - 1:
-                        continue
-                    j = i + 1
+                j = face_neighbour(i, k, x, y, z, nx, ny, nz)
+                if j < 0:
+                    continue
                 f = flat[j]
                 if (f < 0) if below else (f >= 0):
                     flat[j] = value
