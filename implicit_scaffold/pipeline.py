@@ -1213,8 +1213,11 @@ def _slab_morphometry(tf, grid: Grid, cells, run: _RunPlan, prog) -> dict:
     # slabs of the size asked for (tiled=<voxels>), whatever the halo
     planes = max(1, run.forced_voxels // (grid.shape[1] * grid.shape[2])) if run.forced_voxels else None
     with prog.stage("metrics", "by slabs"):
+        # one solid piece left (or none) stays one when sealed voids are filled: each lies against the
+        # solid all round. More are labelled again (filling may join two)
         found = morphometry_by_slabs(tf.field, tf.patient, grid.spacing, max_voxels=max_voxels, halo=halo,
-                                     planes=planes, progress=prog.bar("metrics"))
+                                     planes=planes, progress=prog.bar("metrics"),
+                                     solid_pieces=tf.pieces if tf.pieces <= 1 else None)
     found.pop("morphometry_halo_planes", None)
     return found
 
@@ -1599,7 +1602,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
                      calibration: dict, prog, mesh: bool, out_path, morphometry: bool, printer, *,
                      one_piece: bool, slab_voxels: int) -> Result:
     """The outputs of a run in slabs on disk: each streamed from the fields slab by slab."""
-    from .run.pieces import one_piece_table, piece_table_by_slabs
+    from .run.pieces import one_piece_table, piece_table_by_slabs, seeds_in_one_piece
 
     if one_piece and params.remove_fragments:
         # a primitive keeping its main body: its one row from what the passes counted, without
@@ -1607,6 +1610,13 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
         small_pieces = _pieces_report(report, one_piece_table(
             tf.n_inside, tf.solid, int(np.count_nonzero(cells_in)),
             min(tf.pieces, 1), tf.inside_box, grid))
+    elif params.remove_fragments and tf.patient_pieces == 1 and tf.solid_inside is not None:
+        # a patient the passes found in one piece, keeping its main body: its row from their counts
+        # (its voxels, its solid voxels, their bounds) and its cells from the voxels around the seeds
+        # (the rows piece_table_by_slabs gives, without another pass over the slabs)
+        small_pieces = _pieces_report(report, one_piece_table(
+            tf.n_inside, tf.solid_inside, seeds_in_one_piece(tf.patient, grid, cells.seeds[cells_in]),
+            int(tf.solid_inside > 0), tf.inside_box, grid))
     else:
         with prog.stage("pieces", "by slabs"):
             small_pieces = _pieces_report(report, piece_table_by_slabs(

@@ -321,3 +321,9 @@ def test_morphometry_by_slabs_gives_the_whole_grid_figures(planes, halo):
     assert halo_used >= whole["pore_diameter_mm"]["max"] / grid.spacing - 1e-9 or planes >= grid.shape[0]
     assert whole["interconnected_porosity"] < 1
     assert got == whole
+    # the solid's pieces given (a run's passes counted them): the same figures without labelling it
+    pieces = whole["fragments"] + 1
+    known = M.morphometry_by_slabs(ArraySlabs(s, grid), ArraySlabs(s_p, grid), grid.spacing,
+                                   max_voxels=planes * plane, halo=halo, planes=planes, solid_pieces=pieces)
+    known.pop("morphometry_halo_planes")
+    assert known == whole

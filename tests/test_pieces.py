@@ -256,3 +256,83 @@ def test_paint_labels_writes_what_a_boolean_mask_writes(contiguous):
     got = field.copy() if contiguous else np.asfortranarray(field)
     assert paint_labels(labels, table, got, 7.5) == np.count_nonzero(table[labels]) > 0
     np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize("below", [True, False])
+def test_flood_paint_paints_the_pieces_of_its_seeds(below):
+    from scipy import ndimage
+
+    from implicit_scaffold.run.pieces import flood_paint
+
+    rng = np.random.default_rng(5)
+    # shifted so that the painted side is the sparse one: many pieces of it
+    noise = ndimage.gaussian_filter(rng.normal(size=(30, 21, 17)), 1.2)
+    field = (noise + (0.05 if below else -0.05)).astype(np.float32)
+    mask = field < 0 if below else field >= 0
+    labels, count = ndimage.label(mask)  # the oracle: scipy's 6-connected pieces
+    assert count > 5  # several pieces, most of them left as they are
+    seeds = rng.choice(np.flatnonzero(mask), 4, replace=False)
+    seeds = np.concatenate([seeds, seeds[:3]])  # a seed met twice paints once
+    value = 2.0 if below else -2.0
+    want = field.copy()
+    want[np.isin(labels, labels.ravel()[seeds])] = value
+    got = field.copy()
+    assert flood_paint(got, seeds, value, below=below) == np.count_nonzero(want != field)
+    assert np.array_equal(got, want)
+    with pytest.raises(ValueError):
+        flood_paint(field.copy(), seeds, -value, below=below)
+
+
+def test_label_sizes_first_gives_the_sizes_and_first_voxels():
+    from scipy import ndimage
+
+    from implicit_scaffold.run.pieces import label_sizes_first
+
+    rng = np.random.default_rng(6)
+    labels, count = ndimage.label(ndimage.gaussian_filter(rng.normal(size=(20, 15, 11)), 1.0) < 0)
+    labels = labels.astype(np.int32)
+    labels[labels == 3] = 0  # a label absent: no first voxel
+    sizes, first = label_sizes_first(labels, count)
+    assert np.array_equal(sizes, np.bincount(labels.ravel(), minlength=count + 1))
+    values, where = np.unique(labels.ravel(), return_index=True)
+    want = np.full(count + 1, -1)
+    want[values] = where
+    assert np.array_equal(first, want)
+
+
+def _hollow_ball(c, r_out, r_in):
+    """A ball with a closed spherical cavity: outside the patient, yet enclosed by it."""
+    c = np.asarray(c, float)
+
+    def sdf(x, y, z):
+        d = np.sqrt((x - c[0]) ** 2 + (y - c[1]) ** 2 + (z - c[2]) ** 2)
+        return np.maximum(d - r_out, r_in - d)
+
+    return sdf, c - r_out, c + r_out, 4 / 3 * np.pi * (r_out ** 3 - r_in ** 3)
+
+
+@pytest.mark.parametrize("skin", [0.0, 0.12])
+def test_a_one_piece_patients_row_from_the_passes_counts_is_the_whole_grids(skin):
+    # a patient (not a primitive) the passes find in one piece: its row from their counts; with a
+    # skin, its closed cavity (outside the patient) is a sealed void filled, which the row must not
+    # count as the patient's solid. The oracle labels the finished grid's patient and reads the table
+    from implicit_scaffold.fields.field import sample
+    from implicit_scaffold.run.pieces import label_pieces, piece_table
+
+    patient = _Union([_hollow_ball([3, 3, 3], 2.6, 0.9)])
+    kw = dict(pore_size=0.8, porosity=0.7, voxel=0.08, mesh=False, morphometry=False, skin=skin)
+    whole = implicit_scaffold.generate(patient=patient, tiled=False, **kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    tiled = implicit_scaffold.generate(patient=patient, tiled=14 * plane, **kw)
+    assert tiled.report["tiled"]["slabs"] > 2
+    assert "pieces" not in tiled.timings  # the row from the passes' counts, without the stage
+    s, s_p = np.asarray(whole.field), np.asarray(whole.patient_sdf)
+    assert np.array_equal(np.asarray(tiled.field), s)
+    if skin:
+        assert np.count_nonzero((s < 0) & (s_p >= 0)) > 0  # the cavity, filled
+    labels, count = label_pieces(s_p < 0)
+    seeds = whole.cells.seeds[sample(s_p, whole.grid, whole.cells.seeds) < 0]
+    want = piece_table(labels, count, s < 0, whole.grid, seeds)
+    assert count == 1
+    assert whole.report["patient_pieces"] == want
+    assert tiled.report["patient_pieces"] == want

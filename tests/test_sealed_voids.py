@@ -126,6 +126,20 @@ def test_sealed_voids_across_slabs_match_the_whole_grid(thickness):
     for i, s in enumerate(slabs):
         tiled[s.x0:s.x1][comp.sealed_mask(i, masks[i])] = -0.5
     assert np.array_equal(tiled, whole)
+    # seeds: each sealed piece flooded from its first voxel, without labelling the slab again
+    seeded = SlabComponents(seeds=True)
+    for m in masks:
+        seeded.add(m)
+    seeded.finish()
+    assert seeded.sealed() == found
+    painted, written = field.copy(), 0
+    for i, s in enumerate(slabs):
+        slab = np.ascontiguousarray(painted[s.x0:s.x1])
+        assert seeded.has_sealed(i) == bool(np.any(whole[s.x0:s.x1] != field[s.x0:s.x1]))
+        written += seeded.fill_sealed(i, None, slab, -0.5)
+        painted[s.x0:s.x1] = slab
+    assert np.array_equal(painted, whole)
+    assert written == found[1]
 
 
 # struts at 0.8 leave the void open; thick ones (porosity 0.3) seal some

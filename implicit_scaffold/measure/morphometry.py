@@ -659,7 +659,7 @@ SLAB_MORPHOMETRY_BYTES_PER_VOXEL = 28
 
 
 def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo: int, planes: int | None = None,
-                         progress=None) -> dict:
+                         progress=None, solid_pieces: int | None = None) -> dict:
     """:func:`morphometry`'s voxel measures of the solid ``source < 0`` within the region
     ``patient < 0``, read slab by slab: the same figures as on the whole grid.
 
@@ -690,6 +690,9 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         Planes each slab owns, whatever its halo (by default as many as `max_voxels` leaves
         beside the halo).
     progress : callable(done, total), optional
+    solid_pieces : int, optional
+        The solid's 6-connected pieces when the caller knows them (a run's passes counted them):
+        the fragments are then those but one, and the solid is not labelled here.
 
     Returns
     -------
@@ -734,7 +737,8 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         halo = max(2 * halo, int(math.ceil(max(strut.max_voxels, pore.max_voxels))) + 2)
     out["strut_thickness_mm"] = None if strut is None else strut.stats()
     out["pore_diameter_mm"] = None if pore is None else pore.stats()
-    solids, opens = SlabComponents(), SlabComponents()
+    solids = SlabComponents() if solid_pieces is None else None
+    opens = SlabComponents()
     n_region = chi = 0
     for x0, x1 in ranges(0):
         # one read serves the Euler characteristic (with the plane before the slab, as
@@ -745,7 +749,8 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
         solid = both[x0 - lo:]
         region = patient.read(x0, x1) < 0
         n_region += int(np.count_nonzero(region))
-        solids.add(solid)
+        if solids is not None:
+            solids.add(solid)
         # the void and the outside together; the outside (beyond the region) opens its piece
         opens.add(~solid, opens=~region & ~solid, tally=region & ~solid)
     if n_region == 0:
@@ -755,7 +760,7 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
     opens.finish()
     reached, total = opens.open_tally()
     out["interconnected_porosity"] = reached / total if total else None
-    out["fragments"] = solids.finish()
+    out["fragments"] = solids.finish() if solids is not None else max(int(solid_pieces) - 1, 0)
     out["morphometry_halo_planes"] = halo
     return out
 

@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ScaffoldError
-from ..run.pieces import label_pieces, label_sizes
+from ..run.pieces import face_neighbour, label_pieces, label_sizes
 
 #: cells need windows of about 100 um to grow in (the issue's figure; Karageorgiou & Kaplan 2005)
 INFILTRATION_MM = 0.1
@@ -147,30 +147,9 @@ def _flood_kernels():
             i = q // sx
             v = fr[q]
             for t in range(6):
-                if t == 0:
-                    if i == 0:
-                        continue
-                    u = q - sx
-                elif t == 1:
-                    if i == nx - 1:
-                        continue
-                    u = q + sx
-                elif t == 2:
-                    if j == 0:
-                        continue
-                    u = q - nz
-                elif t == 3:
-                    if j == ny - 1:
-                        continue
-                    u = q + nz
-                elif t == 4:
-                    if k == 0:
-                        continue
-                    u = q - 1
-                else:
-                    if k == nz - 1:
-                        continue
-                    u = q + 1
+                u = face_neighbour(q, t, i, j, k, nx, ny, nz)
+                if u < 0:
+                    continue
                 if fr[u] < v and fr[u] < fd[u]:
                     fr[u] = min(v, fd[u])
                     queue[qt] = u

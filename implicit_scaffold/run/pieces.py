@@ -73,6 +73,114 @@ def _count_labels_where(flat, where, n):  # pragma: no cover - compiled
     return out
 
 
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _count_labels_first(flat, n):  # pragma: no cover - compiled
+    # _count_labels, and where each label's run first starts: its first voxel in C order
+    out = np.zeros(n + 1, np.int64)
+    first = np.full(n + 1, -1, np.int64)
+    if flat.size == 0:
+        return out, first
+    current, run, start = flat[0], 0, 0
+    for i in range(flat.size):
+        x = flat[i]
+        if x == current:
+            run += 1
+        else:
+            out[current] += run
+            if first[current] < 0:
+                first[current] = start
+            current, run, start = x, 1, i
+    out[current] += run
+    if first[current] < 0:
+        first[current] = start
+    return out, first
+
+
+def label_sizes_first(labels: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`label_sizes` and each label's first voxel (its flat index in C order; -1 for a
+    label absent), ``(count + 1,)`` int64 each, in the same one pass.
+
+    The first voxel seeds :func:`flood_paint`, which repaints a piece without labelling the
+    grid again.
+    """
+    return _count_labels_first(np.ascontiguousarray(labels).reshape(-1), int(count))
+
+
+@nb.njit(cache=True, nogil=True, inline="always")
+def face_neighbour(q, t, i, j, k, nx, ny, nz):  # pragma: no cover - compiled
+    """The flat index of voxel `q` (indices ``i, j, k``)'s face neighbour `t` (0 to 5: -x, +x, -y,
+    +y, -z, +z) in a C-ordered ``(nx, ny, nz)`` grid; -1 beyond the grid."""
+    if t == 0:
+        return q - ny * nz if i > 0 else -1
+    if t == 1:
+        return q + ny * nz if i < nx - 1 else -1
+    if t == 2:
+        return q - nz if j > 0 else -1
+    if t == 3:
+        return q + nz if j < ny - 1 else -1
+    if t == 4:
+        return q - 1 if k > 0 else -1
+    return q + 1 if k < nz - 1 else -1
+
+
+@nb.njit(cache=True, nogil=True, boundscheck=False)
+def _flood(field, seeds, value, below):  # pragma: no cover - compiled
+    nx, ny, nz = field.shape
+    flat = field.reshape(-1)
+    plane = ny * nz
+    stack = np.empty(4096, np.int64)
+    n = 0
+    for seed in seeds:
+        f = flat[seed]
+        if not ((f < 0) if below else (f >= 0)):
+            continue
+        flat[seed] = value
+        n += 1
+        stack[0] = seed
+        top = 1
+        while top > 0:
+            top -= 1
+            i = stack[top]
+            x, y, z = i // plane, (i // nz) % ny, i % nz
+            for k in range(6):
+                j = face_neighbour(i, k, x, y, z, nx, ny, nz)
+                if j < 0:
+                    continue
+                f = flat[j]
+                if (f < 0) if below else (f >= 0):
+                    flat[j] = value
+                    n += 1
+                    if top == stack.size:
+                        grown = np.empty(2 * stack.size, np.int64)
+                        grown[:top] = stack
+                        stack = grown
+                    stack[top] = j
+                    top += 1
+    return n
+
+
+def flood_paint(field: np.ndarray, seeds: np.ndarray, value: float, *, below: bool) -> int:
+    """Write `value` into the 6-connected pieces of ``field < 0`` (`below`) or ``field >= 0``
+    that hold the voxels `seeds` (flat indices in C order), in place; returns the voxels written.
+
+    Each piece is :func:`label_pieces`' piece of the seed, painted without labelling the grid:
+    `value` must lie on the other side of 0 (the painted voxels then leave the mask, which is
+    what marks them visited).
+
+    Parameters
+    ----------
+    field : float32 C-contiguous ndarray (3-D), mm
+    seeds : int ndarray
+    value : float, mm
+    below : bool
+    """
+    if field.ndim != 3 or field.dtype != np.float32 or not field.flags.c_contiguous:
+        raise ValueError("flood_paint takes a C-contiguous 3-D float32 field")
+    if (np.float32(value) < 0) == bool(below) or np.isnan(value):
+        raise ValueError(f"the value {value} would stay in the mask it paints")
+    return int(_flood(field, np.ascontiguousarray(seeds, np.int64), np.float32(value), bool(below)))
+
+
 def label_sizes(labels: np.ndarray, count: int, where: np.ndarray | None = None) -> np.ndarray:
     """Voxels per label, ``(count + 1,)`` int64 (label 0 first): ``np.bincount(labels.ravel(),
     minlength=count + 1)``, or of the voxels of `where` alone, in one pass without the 8-byte
@@ -348,6 +456,33 @@ def one_piece_table(voxels: int, solid_voxels: int, cells: int, bodies: int, box
     its solid bodies and the bounds ``box`` (voxel indices, inclusive) of its voxels."""
     lo, hi = (np.asarray(b, np.int64).reshape(1, 3) for b in box)
     return _rows(np.array([voxels]), np.array([solid_voxels]), np.array([cells]), np.array([bodies]), lo, hi, grid)
+
+
+def seeds_in_one_piece(patient, grid, seeds: np.ndarray) -> int:
+    """The cells of a patient in one piece, as :func:`piece_table_by_slabs` counts them: the seeds
+    with a patient voxel among those :func:`seed_pieces` reads (its piece is then the one).
+
+    Parameters
+    ----------
+    patient : FieldFile or ArraySlabs
+        The patient's signed distance, mm. From a file only those voxels are read, one by one
+        (not mapped: the pages a map touches would count in the process's memory).
+    grid : Grid
+    seeds : (n, 3) float ndarray, mm
+    """
+    import os
+
+    probes = _seed_probes(grid, seeds)  # (9, n, 3)
+    if getattr(patient, "path", None) is None:
+        values = patient.field[probes[..., 0], probes[..., 1], probes[..., 2]]
+    else:
+        flat = np.ravel_multi_index(tuple(probes.reshape(-1, 3).T), tuple(grid.shape))
+        where, back = np.unique(flat, return_inverse=True)
+        size = np.dtype(np.float32).itemsize
+        with open(patient.path, "rb", buffering=0) as f:
+            got = b"".join(os.pread(f.fileno(), size, int(i) * size) for i in where)
+        values = np.frombuffer(got, np.float32)[back].reshape(probes.shape[:2])
+    return int(np.count_nonzero((values < 0).any(axis=0)))
 
 
 def _seed_probes(grid, seeds: np.ndarray) -> np.ndarray:

@@ -184,6 +184,8 @@ class TiledField:
         Voxels of the solid fragments removed.
     inside_box : ((3,) int ndarray, (3,) int ndarray) or None
         The bounds of the patient's voxels (indices, inclusive).
+    solid_inside : int or None
+        Solid voxels inside the patient, when counted (fragments removed, a sharp cut).
     """
 
     field: FieldFile
@@ -201,6 +203,7 @@ class TiledField:
     level_field: Any = None
     fragments_voxels: int = 0
     inside_box: Any = None
+    solid_inside: int | None = None
 
     def close(self) -> None:
         """Remove the files (or let the arrays go)."""
@@ -447,6 +450,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
         check_disk(grid)
         field, patient_file = FieldFile(grid), FieldFile(grid)
     plan = level_field = None
+    known = None  # the patient's pieces on the prism and their count, labelled once for every cut-off
     try:
         for _ in range(6):
             work = SlabWork(style, skeleton, edges, patient, grid, float(cutoff), float(k), float(smooth_cut))
@@ -482,24 +486,39 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
             if printed is not None:
                 (ys, zs), search = printed
                 with prog.stage("printed"):
-                    pieces = None
-                    if remove_fragments and patient_pieces:
+                    from ..fields.printed import face_bands
+
+                    # the prism and the grid's y-face bands the search reads, from one pass over each field
+                    bands = [(ys, zs)] + [(band, zs) for band in face_bands(grid.shape, ys)]
+                    labeller = None
+                    if remove_fragments and patient_pieces and known is None:
                         # each patient piece keeps its main body on the prism, as in the scaffold pass
-                        # (a primitive is one piece: its largest body is its main body)
-                        pieces = prism_pieces(patient_file, slabs, ys, zs)
-                    level = search(lambda y, z: (read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
-                                   level, pieces)
-                    del pieces
+                        # (a primitive is one piece: its largest body is its main body); labelled as
+                        # the patient's planes are read for the bands
+                        labeller = _PrismPieces(patient_file, ys, zs)
+                    read = dict(zip(map(_band_key, bands),
+                                    zip(_read_bands(field, slabs, bands),
+                                        _read_bands(patient_file, slabs, bands, labeller))))
+                    if labeller is not None:
+                        known = labeller.finish()
+                    level = search(lambda y, z: read.pop(_band_key((y, z)), None) or (
+                        read_prism(field, slabs, y, z), read_prism(patient_file, slabs, y, z)),
+                        level, None if known is None else known[0])
+                    del read
             wider = next_cutoff(level, cutoff)
             if wider is None:
                 break
             cutoff = wider
         with prog.stage("scaffold"):
             shift = None if level_field is None else (plan, level_field)
-            solid, fragments, pieces, patient_pieces, removed = _pass_scaffold(
+            # a patient the printed stage found in one piece is not labelled again
+            by_piece = patient_pieces and (known is None or known[1] > 1)
+            del known
+            solid, fragments, pieces, patient_pieces, removed, sealed, solid_inside = _pass_scaffold(
                 slabs, field, patient_file, 0.0 if shift else level, grid.spacing, remove_fragments,
-                prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=patient_pieces, shift=shift)
-            sealed = _pass_sealed(slabs, field, grid.spacing, fill_sealed_voids, keep_interior=skin > 0)
+                prog.bar("scaffold"), skin=skin, smooth_cut=smooth_cut, patient_pieces=by_piece, shift=shift,
+                fill_sealed=fill_sealed_voids, keep_interior=skin > 0,
+                count_inside=remove_fragments and smooth_cut <= 0)
             if fill_sealed_voids:
                 solid += sealed[1]
     except BaseException:
@@ -511,7 +530,7 @@ def tiled_scaffold(*, style: str, skeleton, edges, patient, grid: Grid, porosity
 
         release_packed()
     return TiledField(field, patient_file, float(level), float(cutoff), int(n_inside), solid, fragments,
-                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed, box)
+                      pieces, slabs, sealed, patient_pieces, plan, level_field, removed, box, solid_inside)
 
 
 def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sealed_voids: bool,
@@ -524,9 +543,12 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
     -------
     (fragments, sealed void pieces, sealed voxels) found by this pass; `tf`'s counts are updated.
     """
-    solid, fragments, pieces, _, removed = _pass_scaffold(tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing,
-                                                 remove_fragments, progress, patient_pieces=patient_pieces)
-    sealed = _pass_sealed(tf.slabs, tf.field, tf.field.grid.spacing, fill_sealed_voids, keep_interior=keep_interior)
+    # the patient's field is the same: one found in one piece is not labelled again
+    # s = max(s - step, s_P): the solid lies inside the patient, and its voxels there are counted again
+    solid, fragments, pieces, _, removed, sealed, tf.solid_inside = _pass_scaffold(
+        tf.slabs, tf.field, tf.patient, float(step), tf.field.grid.spacing, remove_fragments, progress,
+        patient_pieces=patient_pieces and tf.patient_pieces > 1, fill_sealed=fill_sealed_voids,
+        keep_interior=keep_interior, count_inside=tf.solid_inside is not None)
     if fill_sealed_voids:
         solid += sealed[1]
     tf.solid, tf.pieces = solid, pieces
@@ -540,23 +562,42 @@ def shift_level(tf: TiledField, step: float, *, remove_fragments: bool, fill_sea
 
 def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, spacing: float,
                    remove: bool, progress, *, skin: float = 0.0, smooth_cut: float = 0.0,
-                   patient_pieces: bool = True, shift=None) -> tuple[int, int | None, int, int, int]:
-    """Passes 3 and 4: the scaffold field, its solid pieces, and the fragments made void.
+                   patient_pieces: bool = True, shift=None, fill_sealed: bool = True,
+                   keep_interior: bool = False, count_inside: bool = False) -> tuple:
+    """Passes 3 to 5: the scaffold field, its solid pieces, the fragments made void, the
+    sealed void pieces filled.
 
     Each piece of the patient keeps its own main body, as
     :func:`~implicit_scaffold.run.pieces.remove_fragments_by_piece` does on the whole grid:
     the patient's pieces are joined across slabs like the solid's, and each solid piece
     lies in one of them. `shift`, a graded run's ``(LevelPlan, LevelField)``, takes the
     offset field from the lattice first (:func:`~implicit_scaffold.geometry.grade.shift_planes`).
+    The void pieces are joined across slabs the same way and the sealed ones filled, as
+    :func:`~implicit_scaffold.fields.field.fill_sealed_voids` does on the whole grid (`fill_sealed`;
+    with `keep_interior` the largest is kept); they are always counted.
+
+    The void is labelled in the pass that last changes the field: the first when fragments are
+    kept, else the one that drops them (which reads the slabs anyway). Fragments and sealed voids
+    are repainted from their pieces' first voxels (:meth:`~implicit_scaffold.run.tiles.SlabComponents.drop_fragments`),
+    and only the slabs that hold some are written again.
+
+    `count_inside` counts the solid voxels inside the patient at the end (the piece table's): for a
+    field whose solid lies inside the patient after the scaffold field (``s >= s_P``: every cut
+    but the smooth one), only the sealed voids filled can lie outside it.
 
     Returns
     -------
-    solid, fragments (None when not removed), bodies, patient pieces, voxels removed
+    solid (without the sealed voids filled), fragments (None when not removed), bodies, patient
+    pieces, voxels removed, (sealed void pieces, their voxels) counted before any filling, solid
+    voxels inside the patient at the end (None unless `count_inside`)
     """
     by_piece = patient_pieces
-    pieces, patient_pieces = SlabComponents(keep_labels=remove and len(slabs) == 1), SlabComponents()
+    pieces, patient_pieces = SlabComponents(seeds=remove), SlabComponents()
+    voids = SlabComponents(seeds=fill_sealed)
     where = []  # per slab: the patient label (local) of each solid label (local)
     solid = 0
+    last = len(slabs) - 1
+    total_steps = 2 * len(slabs) if remove else len(slabs)
     for done, slab in enumerate(slabs, 1):
         s_p = patient.read(slab.x0, slab.x1)
         base = field.read(slab.x0, slab.x1)
@@ -576,9 +617,13 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
             where.append(piece_of)
             del patient_labels
         solid += int(np.count_nonzero(inside))
-        del s, s_p, labels, inside
+        del s_p, labels, inside
+        if not remove:
+            # nothing more changes the field before the sealed voids: the void is labelled now
+            voids.add(void_mask(s, first_x=done == 1, last_x=done - 1 == last))
+        del s
         if progress is not None:
-            progress(done, 2 * len(slabs) if remove else len(slabs))
+            progress(done, total_steps)
     n_patient = patient_pieces.finish() + 1 if by_piece else 1
     found = pieces.finish()
     if n_patient > 1 and found:
@@ -587,17 +632,38 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
             group[pieces.roots_of(i, np.arange(1, len(piece_of)))] = patient_pieces.roots_of(i, piece_of[1:])
         pieces.keep_largest_per(group)
         found = pieces.fragments()
+    del where, patient_pieces
     total = pieces.piece_count
-    if not remove or found == 0:
-        return solid, (0 if remove else None), total, n_patient, 0
     removed = 0
-    for i, slab in enumerate(slabs):
-        s = field.read(slab.x0, slab.x1)
-        removed += pieces.drop_fragments(i, s, spacing)
-        field.write(slab.x0, s)
-        if progress is not None:
-            progress(len(slabs) + i + 1, 2 * len(slabs))
-    return solid - removed, found, total - found, n_patient, removed
+    if remove:
+        for i, slab in enumerate(slabs):
+            s = field.read(slab.x0, slab.x1)
+            if found and pieces.has_fragments(i):
+                removed += pieces.drop_fragments(i, s, spacing)
+                field.write(slab.x0, s)
+            voids.add(void_mask(s, first_x=i == 0, last_x=i == last))
+            del s
+            if progress is not None:
+                progress(len(slabs) + i + 1, total_steps)
+    del pieces
+    voids.finish()
+    sealed = voids.sealed(keep_interior)
+    filled_outside = 0
+    if fill_sealed and sealed[0]:
+        for i, slab in enumerate(slabs):
+            if voids.has_sealed(i):
+                s = field.read(slab.x0, slab.x1)
+                voids.fill_sealed(i, None, s, -spacing)
+                field.write(slab.x0, s)
+                if count_inside:
+                    # the solid lay inside the patient before: what is outside now was filled
+                    filled_outside += int(np.count_nonzero((s < 0) & (patient.read(slab.x0, slab.x1) >= 0)))
+                del s
+    solid -= removed
+    inside = solid + (sealed[1] if fill_sealed else 0) - filled_outside if count_inside else None
+    if not remove:
+        return solid, None, total, n_patient, 0, sealed, inside
+    return solid, found, total - found, n_patient, removed, sealed, inside
 
 
 def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
@@ -605,50 +671,69 @@ def prism_pieces(patient, slabs, ys: slice, zs: slice) -> np.ndarray:
     as whole-grid labelling (:func:`~implicit_scaffold.run.pieces.label_pieces`) numbers them: the
     pieces are joined across the slabs (:class:`~implicit_scaffold.run.tiles.SlabComponents`), each numbered by its
     first voxel in C order."""
-    if isinstance(patient, ArraySlabs):
-        from .pieces import label_pieces
+    labeller = _PrismPieces(patient, ys, zs)
+    _read_bands(patient, slabs, [], labeller)
+    return labeller.finish()[0]
 
-        return label_pieces(patient.field < 0)[0][:, ys, zs]
-    parts, local = SlabComponents(), []
-    for slab in slabs:
-        local.append(parts.add(patient.read(slab.x0, slab.x1) < 0)[:, ys, zs].copy())
-    parts.finish()
-    roots = np.flatnonzero(parts.sizes > 0)
-    number = np.zeros(len(parts.sizes) + 1, np.int32)
-    number[roots + 1] = np.arange(1, len(roots) + 1)
-    out = np.empty((patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
-    for i, (slab, labels) in enumerate(zip(slabs, local)):
-        out[slab.x0:slab.x1] = number[parts.roots_of(i, labels) + 1]
-    return out
+
+class _PrismPieces:
+    """:func:`prism_pieces` fed the patient's planes slab by slab (:meth:`add`, in order of x), as
+    another pass reads them; :meth:`finish` gives the prism's labels and the patient's piece count
+    on the whole grid (found on the way)."""
+
+    def __init__(self, patient, ys: slice, zs: slice):
+        self.patient, self.ys, self.zs = patient, ys, zs
+        self.parts, self.local = SlabComponents(), []
+
+    def add(self, planes: np.ndarray) -> None:
+        if not isinstance(self.patient, ArraySlabs):
+            self.local.append(self.parts.add(planes < 0)[:, self.ys, self.zs].copy())
+
+    def finish(self) -> tuple[np.ndarray, int]:
+        ys, zs = self.ys, self.zs
+        if isinstance(self.patient, ArraySlabs):
+            from .pieces import label_pieces
+
+            labels, count = label_pieces(self.patient.field < 0)
+            return labels[:, ys, zs], count
+        parts = self.parts
+        parts.finish()
+        roots = np.flatnonzero(parts.sizes > 0)
+        number = np.zeros(len(parts.sizes) + 1, np.int32)
+        number[roots + 1] = np.arange(1, len(roots) + 1)
+        out = np.empty((self.patient.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.int32)
+        x0 = 0
+        for i, labels in enumerate(self.local):
+            out[x0:x0 + len(labels)] = number[parts.roots_of(i, labels) + 1]
+            x0 += len(labels)
+        self.local = []
+        return out, len(roots)
+
+
+def _band_key(band) -> tuple[int, int, int, int]:
+    """A ``(ys, zs)`` band as a key (slices are not hashable before Python 3.12)."""
+    ys, zs = band
+    return ys.start, ys.stop, zs.start, zs.stop
 
 
 def read_prism(source, slabs, ys: slice, zs: slice) -> np.ndarray:
     """``source[:, ys, zs]`` of a field on disk, slab by slab, float32."""
-    out = np.empty((source.grid.shape[0], ys.stop - ys.start, zs.stop - zs.start), np.float32)
+    return _read_bands(source, slabs, [(ys, zs)])[0]
+
+
+def _read_bands(source, slabs, bands, labeller: _PrismPieces | None = None) -> list[np.ndarray]:
+    """``source[:, ys, zs]`` for each ``(ys, zs)`` of `bands`, float32, from one read of each slab;
+    each slab's planes are given to `labeller` too."""
+    nx = source.grid.shape[0]
+    out = [np.empty((nx, ys.stop - ys.start, zs.stop - zs.start), np.float32) for ys, zs in bands]
     for slab in slabs:
-        out[slab.x0:slab.x1] = source.read(slab.x0, slab.x1)[:, ys, zs]
+        planes = source.read(slab.x0, slab.x1)
+        for got, (ys, zs) in zip(out, bands):
+            got[slab.x0:slab.x1] = planes[:, ys, zs]
+        if labeller is not None:
+            labeller.add(planes)
+        del planes
     return out
-
-
-def _pass_sealed(slabs, field: FieldFile, spacing: float, fill: bool, keep_interior: bool = False) -> tuple[int, int]:
-    """Passes 5 and 6: the void pieces joined across slabs; the sealed ones filled, as
-    :func:`~implicit_scaffold.fields.field.fill_sealed_voids` does on the whole grid."""
-    voids = SlabComponents(keep_labels=fill and len(slabs) == 1)
-    last = len(slabs) - 1
-
-    def mask(i, s):
-        return void_mask(s, first_x=i == 0, last_x=i == last)
-
-    for i, slab in enumerate(slabs):
-        voids.add(mask(i, field.read(slab.x0, slab.x1)))
-    voids.finish()
-    count, voxels = voids.sealed(keep_interior)
-    if fill and count:
-        for i, slab in enumerate(slabs):
-            s = field.read(slab.x0, slab.x1)
-            voids.fill_sealed(i, lambda: mask(i, s), s, -spacing)
-            field.write(slab.x0, s)
-    return count, voxels
 
 
 def sample_slabs(source, grid: Grid, points) -> np.ndarray:

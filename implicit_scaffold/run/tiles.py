@@ -372,10 +372,16 @@ class SlabComponents:
     :meth:`sealed_mask`), as :func:`~implicit_scaffold.fields.field.fill_sealed_voids` finds them.
     """
 
-    def __init__(self, keep_labels: bool = False, connectivity: int = 6):
+    def __init__(self, keep_labels: bool = False, connectivity: int = 6, seeds: bool = False):
         # a run of one slab held in memory keeps its labels for the second pass (4 bytes a
         # voxel) instead of labelling the same mask again
         self._keep_labels = bool(keep_labels)
+        # with `seeds`, each label's first voxel (8 bytes a label): pass 2 then repaints the few
+        # pieces it changes from them (:func:`~implicit_scaffold.run.pieces.flood_paint`) instead
+        # of labelling the slab again, and skips the slabs that hold none
+        self._firsts: list[np.ndarray] | None = [] if seeds else None
+        if seeds and connectivity != 6:
+            raise ValueError("seeds repaint 6-connected pieces only")
         if connectivity not in (6, 26):
             raise ValueError(f"connectivity {connectivity}: 6 (faces) or 26 (faces, edges and corners)")
         # 26: pieces joined across edges and corners too, as scipy.ndimage.label with a 3x3x3 structure
@@ -418,14 +424,19 @@ class SlabComponents:
         the void: the space outside the patient); `tally` marks voxels counted per piece
         (:meth:`open_tally`). Returns the slab's labels (1-based, 0 for none).
         """
-        from .pieces import label_sizes
+        from .pieces import label_sizes, label_sizes_first
 
         labels, count = self._label(solid)
         offset = len(self._parent)
         if self._keep_labels:
             self._labels_of[len(self._offsets)] = labels
         self._offsets.append(offset)
-        self._sizes.append(label_sizes(labels, count)[1:])
+        if self._firsts is None:
+            self._sizes.append(label_sizes(labels, count)[1:])
+        else:
+            sizes, first = label_sizes_first(labels, count)
+            self._sizes.append(sizes[1:])
+            self._firsts.append(first[1:])
         if tally is not None:
             self._tallies.append(label_sizes(labels, count, where=tally)[1:])
         self._parent = np.concatenate([self._parent, np.arange(offset, offset + count, dtype=np.int64)])
@@ -515,9 +526,44 @@ class SlabComponents:
         the labels were kept). Returns the voxels written."""
         from .pieces import paint_labels
 
+        if self._seeded(index):
+            table = self._sealed_table(index, self._count(index))
+            if self._floods(index, table, field):
+                return self._flood(index, table, field, value, below=False)
         labels, count = self._labels_again(index, mask)
         return paint_labels(labels, self._sealed_table(index, count), field, value)
 
+    def has_sealed(self, index: int) -> bool:
+        """After :meth:`sealed`: whether slab `index` holds a voxel that :meth:`fill_sealed` fills."""
+        return bool(len(self._parent)) and bool(self._sealed_table(index, self._count(index)).any())
+
+    def _count(self, index: int) -> int:
+        """Labels of slab `index`."""
+        nxt = self._offsets[index + 1] if index + 1 < len(self._offsets) else len(self._parent)
+        return nxt - self._offsets[index]
+
+    def _seeded(self, index: int) -> bool:
+        """Whether pass 2 on slab `index` paints from the first voxels (no labels kept for it)."""
+        return self._firsts is not None and index not in self._labels_of
+
+    def _floods(self, index: int, table: np.ndarray, field: np.ndarray) -> bool:
+        """Whether to paint the labels `table` picks from their first voxels: when the field is one
+        :func:`~implicit_scaffold.run.pieces.flood_paint` takes and the voxels to paint are few, so that
+        its stack (8 bytes a painted voxel at most) stays within a byte a voxel of the slab, less than
+        labelling it again holds."""
+        if not (field.dtype == np.float32 and field.flags.c_contiguous and field.ndim == 3):
+            return False
+        return int(self._sizes[index][table[1:]].sum()) * 8 <= field.size
+
+    def _flood(self, index: int, table: np.ndarray, field: np.ndarray, value: float, *, below: bool) -> int:
+        """Paint the labels of slab `index` that `table` (0 first) picks, from their first voxels: the
+        same voxels as painting the slab's labels (each label is the piece of its first voxel in the
+        slab's mask, ``field < 0`` for the solid, :func:`~implicit_scaffold.fields.field.void_mask` for the
+        void, whose forced outer layer no sealed piece reaches)."""
+        from .pieces import flood_paint
+
+        seeds = self._firsts[index][table[1:]]
+        return flood_paint(field, seeds, value, below=below) if seeds.size else 0
     def _sealed_table(self, index: int, count: int) -> np.ndarray:
         root = self._roots[self._offsets[index]:self._offsets[index] + count]
         return np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
@@ -587,8 +633,16 @@ class SlabComponents:
         given to :meth:`add`) that lie in a fragment, in place. Returns the voxels written."""
         from .pieces import paint_labels
 
+        if self._seeded(index):
+            table = self._fragment_table(index, self._count(index))
+            if self._floods(index, table, field):
+                return self._flood(index, table, field, value, below=True)
         labels, count = self._labels_again(index, lambda: field < 0)
         return paint_labels(labels, self._fragment_table(index, count), field, value)
+
+    def has_fragments(self, index: int) -> bool:
+        """After :meth:`finish`: whether slab `index` holds a voxel that :meth:`drop_fragments` drops."""
+        return bool(len(self._parent)) and bool(self._fragment_table(index, self._count(index)).any())
 
     def _fragment_table(self, index: int, count: int) -> np.ndarray:
         """Whether each label of slab `index` (0 first: never) lies in a fragment."""
