@@ -1184,6 +1184,20 @@ class _RunPlan:
             planes = max(1, int(planes * 0.7))
 
 
+def _steady_voxels(voxels: int, plane: int) -> int:
+    """`voxels` rounded down to whole planes of `plane` voxels, their count to the ladder
+    1, 2, 3, 4, 6, 8, 12, 16, 24, ... (a power of two, or one and a half of one).
+
+    The mesh's bytes depend on its slabs (:func:`~implicit_scaffold.mesh.stream.write_mesh_slabs`), and its
+    slabs on what memory is left, which moves by some MiB from one run to the next (the femoral
+    shaft's 4 mm clip at 0.02 mm gave two STL files from the same code and seed): on the ladder
+    the same inputs and budget give the same slabs, at the cost of at most a third of a slab.
+    """
+    planes = max(1, int(voxels) // max(1, int(plane)))
+    top = 1 << (planes.bit_length() - 1)
+    return (top + top // 2 if planes >= top + top // 2 and top >= 2 else top) * int(plane)
+
+
 def _worst_slab(grid: Grid, halo: int, planes: int, slab_bytes) -> int:
     """The bytes of the most crowded slab of the lattice pass when slabs own `planes` planes:
     its voxels and, by `slab_bytes(h0, h1)`, its primitives."""
@@ -1707,7 +1721,8 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     # reads more planes than the lattice's slabs may hold (a CT at 0.25 mm: 19 planes, 18 planned)
     per_voxel = mesh_slab_bytes_per_voxel(field)
     thinnest = (1 + 2 * MESH_HALO_PLANES) * field.grid.shape[1] * field.grid.shape[2]
-    slab_voxels = run.forced_voxels or max(thinnest, min(slab_voxels, int((run.max_memory - release()) // per_voxel)))
+    slab_voxels = run.forced_voxels or max(thinnest, _steady_voxels(
+        min(slab_voxels, int((run.max_memory - release()) // per_voxel)), field.grid.shape[1] * field.grid.shape[2]))
     ext = output_format(out_path)
     if tolerance <= 0 and ext in MESH_STREAMED:
         with prog.stage("mesh", "streamed to " + out_path.name):

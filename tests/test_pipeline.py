@@ -320,3 +320,20 @@ def test_a_run_in_slabs_gives_its_mesh_read_back_when_it_fits(tmp_path, recwarn)
     assert small.mesh is None
     assert any(f"{small.report['triangles']:,} triangles" in str(w.message) for w in recwarn
                if issubclass(w.category, ScaffoldWarning))
+
+
+def test_the_mesh_slabs_do_not_move_with_a_few_mib_of_memory():
+    """The mesh's slabs (and so its bytes) are planned from what memory is left, which moves by
+    some MiB between runs of the same inputs: the planes a slab may hold are rounded down to the
+    ladder 1, 2, 3, 4, 6, 8, 12, ... so that nearby budgets plan the same slabs, keeping at
+    least two thirds of the planes the memory allows."""
+    from implicit_scaffold.pipeline import _steady_voxels
+
+    plane = 1312 * 1247  # the femoral shaft's plane at 0.02 mm
+    ladder = [1, 2, 3, 4, 6, 8, 12, 16, 24, 32, 48, 64, 96, 128]
+    for planes in range(1, 129):
+        for extra in (0, plane // 3, plane - 1):  # some MiB more or less within a plane
+            got = _steady_voxels(planes * plane + extra, plane)
+            assert got % plane == 0
+            assert got // plane == max(v for v in ladder if v <= planes)
+            assert got <= planes * plane + extra and 3 * got >= 2 * planes * plane
