@@ -66,19 +66,26 @@ def test_level_equals_solve_level_bit_for_bit():
         assert level_between(*q.values()) == solve_level(field, inside, porosity)
 
 
-@pytest.mark.parametrize("thickness", [1, 3, 8, 40])
-def test_fragments_across_slabs_match_the_whole_grid(thickness):
+def _blobs_in_slabs(thickness: int, seeds: bool = False):
+    """A shifted smooth noise (many separate blobs of solid, some spanning slab faces), its
+    fragments removed on the whole grid (the oracle), and its solid joined across slabs of
+    `thickness` planes: (field, whole, slabs, components)."""
     rng = np.random.default_rng(thickness)
-    # a shifted smooth noise: many separate blobs of solid, some spanning slab faces
     field = (ndimage.gaussian_filter(rng.normal(size=(40, 24, 18)), 1.5) + 0.05).astype(np.float32)
     whole = field.copy()
     removed = remove_fragments(whole, outside=1.0)
     assert removed > 3    # the oracle has fragments to remove
     slabs = plan_slabs(field.shape, max_voxels=thickness * 24 * 18, halo=0)
-    comp = SlabComponents()
+    comp = SlabComponents(seeds=seeds)
     for s in slabs:
         comp.add(field[s.x0:s.x1] < 0)
     assert comp.finish() == removed
+    return field, whole, slabs, comp
+
+
+@pytest.mark.parametrize("thickness", [1, 3, 8, 40])
+def test_fragments_across_slabs_match_the_whole_grid(thickness):
+    field, whole, slabs, comp = _blobs_in_slabs(thickness)
     tiled = field.copy()
     for i, s in enumerate(slabs):
         drop = comp.fragment_mask(i, field[s.x0:s.x1] < 0)
@@ -95,16 +102,7 @@ def test_fragments_across_slabs_match_the_whole_grid(thickness):
 @pytest.mark.parametrize("thickness", [1, 3, 8, 40])
 def test_fragments_painted_from_first_voxels_match_the_whole_grid(thickness):
     # seeds: the pass-2 painting floods each fragment from its first voxel, without labelling again
-    rng = np.random.default_rng(thickness)
-    field = (ndimage.gaussian_filter(rng.normal(size=(40, 24, 18)), 1.5) + 0.05).astype(np.float32)
-    whole = field.copy()
-    removed = remove_fragments(whole, outside=1.0)
-    assert removed > 3
-    slabs = plan_slabs(field.shape, max_voxels=thickness * 24 * 18, halo=0)
-    comp = SlabComponents(seeds=True)
-    for s in slabs:
-        comp.add(field[s.x0:s.x1] < 0)
-    assert comp.finish() == removed
+    field, whole, slabs, comp = _blobs_in_slabs(thickness, seeds=True)
     painted, written = field.copy(), 0
     for i, s in enumerate(slabs):
         slab = np.ascontiguousarray(painted[s.x0:s.x1])
