@@ -142,6 +142,40 @@ def test_sealed_voids_across_slabs_match_the_whole_grid(thickness):
     assert written == found[1]
 
 
+def test_a_sealed_void_too_large_to_flood_is_filled_from_its_labels():
+    """A cavity filling most of every slab is painted by labelling the slab again (its flood's
+    stack would outgrow a byte a voxel), from the mask the caller gives: the same voxels as the
+    whole grid's fill."""
+    n = 30
+    field = np.full((n, n, n), -0.5, np.float32)  # a solid block
+    field[2:-2, 2:-2, 2:-2] = 0.5  # a cavity of 26^3 voxels, 65 % of the block
+    field[10:12, 10:12, 10:12] = -0.5  # a solid island inside it
+    whole = field.copy()
+    found = fill_sealed_voids(whole, inside=0.5)
+    assert found == (1, 26 ** 3 - 8)
+    slabs = plan_slabs(field.shape, max_voxels=6 * n * n, halo=0)
+    last = len(slabs) - 1
+
+    def mask(i, part):
+        return void_mask(part, first_x=i == 0, last_x=i == last)
+
+    comp = SlabComponents(seeds=True)
+    for i, s in enumerate(slabs):
+        comp.add(mask(i, field[s.x0:s.x1]))
+    comp.finish()
+    assert comp.sealed() == found
+    painted = field.copy()
+    big = 0
+    for i, s in enumerate(slabs):
+        slab = np.ascontiguousarray(painted[s.x0:s.x1])
+        before = slab.copy()
+        written = comp.fill_sealed(i, lambda i=i, before=before: mask(i, before), slab, -0.5)
+        big = max(big, written * 8 - slab.size)  # over a byte a voxel: labelled again, not flooded
+        painted[s.x0:s.x1] = slab
+    assert big > 0
+    assert np.array_equal(painted, whole)
+
+
 # struts at 0.8 leave the void open; thick ones (porosity 0.3) seal some
 @pytest.mark.parametrize("style, porosity", [("paper", 0.8), ("struts", 0.3)])
 def test_the_mesh_is_one_closed_body_without_cavities(tmp_path, style, porosity):

@@ -653,7 +653,8 @@ def _pass_scaffold(slabs, field: FieldFile, patient: FieldFile, level: float, sp
         for i, slab in enumerate(slabs):
             if voids.has_sealed(i):
                 s = field.read(slab.x0, slab.x1)
-                voids.fill_sealed(i, None, s, -spacing)
+                # the mask for when the sealed voids are too large to flood (labelled again)
+                voids.fill_sealed(i, lambda s=s, i=i: void_mask(s, first_x=i == 0, last_x=i == last), s, -spacing)
                 field.write(slab.x0, s)
                 if count_inside:
                     # the solid lay inside the patient before: what is outside now was filled

@@ -564,6 +564,7 @@ class SlabComponents:
 
         seeds = self._firsts[index][table[1:]]
         return flood_paint(field, seeds, value, below=below) if seeds.size else 0
+
     def _sealed_table(self, index: int, count: int) -> np.ndarray:
         root = self._roots[self._offsets[index]:self._offsets[index] + count]
         return np.concatenate([[False], ~self._open[root] & (root != getattr(self, "_kept", -1))])
