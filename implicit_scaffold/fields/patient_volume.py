@@ -85,17 +85,22 @@ def intensity_range(array: np.ndarray) -> tuple[float, float] | None:
 
     A label map holds whole, non-negative values, at most :data:`MAX_LABELS` distinct ones. A CT
     in Hounsfield units holds air at about -1000; a grey-level scan, or a probability map, holds
-    many distinct or fractional values. Judged on a strided sample of the voxels (the minimum
-    and the fractional check on all of them). None for a label map or a binary mask.
+    many distinct or fractional values. The minimum and maximum are the whole array's; the
+    distinct and fractional values are judged on a strided sample of its voxels (no copy of a
+    float CT, which can be half a GB). None for a label map or a binary mask.
     """
     flat = array.reshape(-1)
-    floating = np.issubdtype(array.dtype, np.floating)
-    finite = flat[np.isfinite(flat)] if floating else flat
-    if finite.size == 0:
-        return None
-    lo, hi = float(finite.min()), float(finite.max())
-    sample = finite[::max(1, finite.size // _LABEL_SAMPLE)]
-    if lo < 0 or (floating and np.any(finite != np.round(finite))) or np.unique(sample).size > MAX_LABELS:
+    sample = flat[::max(1, flat.size // _LABEL_SAMPLE)]
+    if np.issubdtype(array.dtype, np.floating):
+        sample = sample[np.isfinite(sample)]
+        if sample.size == 0:
+            return None
+        lo, hi = float(np.nanmin(flat)), float(np.nanmax(flat))
+        fractional = bool(np.any(sample != np.round(sample)))
+    else:
+        lo, hi = float(flat.min()), float(flat.max())
+        fractional = False
+    if lo < 0 or fractional or np.unique(sample).size > MAX_LABELS:
         return lo, hi
     return None
 
