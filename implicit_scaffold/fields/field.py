@@ -149,6 +149,56 @@ def _blend_kernels():
     return _BLEND
 
 
+def mirror_sources(origin: float, spacing: float, n: int, wall_lo: float, wall_hi: float, reach: float,
+                   first: int, last: int):
+    """Where each plane ``first <= i < last`` along one axis takes its value when the field is mirrored
+    in the walls ``wall_lo`` and ``wall_hi`` (mm) for `reach` mm beyond them.
+
+    A plane whose centre lies beyond a wall by at most `reach` takes the value at its mirror image
+    (linear between the two planes around it); every other plane keeps its own value, and a plane
+    beyond the grid (``i < 0`` or ``i >= n``) that of the nearest grid plane, as the blend's mode
+    "nearest" reads it.
+
+    Returns
+    -------
+    j : (last - first,) int64 ndarray
+        The first source plane (grid index).
+    t : (last - first,) float32 ndarray
+        The weight of plane ``j + 1``; 0 where the plane is copied.
+    mirrored : (last - first,) bool ndarray
+    """
+    i = np.arange(first, last)
+    c = origin + spacing * i
+    below, above = wall_lo - c, c - wall_hi
+    mirrored = ((below > 0) & (below <= reach)) | ((above > 0) & (above <= reach))
+    if n < 2:
+        mirrored[:] = False
+    q = (np.where(below > 0, 2 * wall_lo - c, 2 * wall_hi - c) - origin) / spacing
+    j = np.where(mirrored, np.clip(np.floor(q), 0, max(n - 2, 0)), np.clip(i, 0, n - 1)).astype(np.int64)
+    t = np.where(mirrored, np.clip(q - j, 0.0, 1.0), 0.0).astype(np.float32)
+    return j, t, mirrored
+
+
+def mirror_along(values: np.ndarray, axis: int, start: int, j: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """The planes of `values` (which hold grid planes ``start, start + 1, ...`` along `axis`)
+    taken as :func:`mirror_sources` says: ``(1 - t) v[j] + t v[j + 1]`` in float32."""
+    j = j - start
+    if j.min() < 0 or (j + (t > 0)).max() >= values.shape[axis]:
+        raise ValueError("the mirror's source planes lie beyond the planes given")
+    out = np.take(values, j, axis=axis)
+    moved = np.nonzero(t > 0)[0]
+    if moved.size:
+        shape = [1, 1, 1]
+        shape[axis] = moved.size
+        w = t[moved].reshape(shape)
+        a = np.take(values, j[moved], axis=axis)
+        b = np.take(values, j[moved] + 1, axis=axis)
+        idx = [slice(None)] * 3
+        idx[axis] = moved
+        out[tuple(idx)] = a * (np.float32(1) - w) + b * w
+    return out
+
+
 def blend_support(k: float) -> float:
     """Distance over which :func:`blend_field` mixes values, mm."""
     return max(k, 0.0)

@@ -123,10 +123,18 @@ class Blend:
     child : FieldNode
     k : float, mm
         0 gives `child` unchanged.
+    mirror : ((3,), (3,)) tuple of float, mm, optional
+        The box the lattice's cells fill (``Cells.lo``, ``Cells.hi``). Beyond its walls the
+        cells end and the lattice is solid; a wall that lies on the patient's surface (a cube's
+        or a cylinder's faces) would then blend that solid into the windows that open there,
+        and close them with a film thinner than a voxel. So the filter reads the field mirrored
+        in the walls, as if the cells went on in their mirror images, and a window on a wall
+        stays as open as its channel.
     """
 
     child: Any
     k: float
+    mirror: Any = None
 
     def halo(self, grid: Grid) -> int:
         """Planes the blend reads on either side."""
@@ -134,19 +142,51 @@ class Blend:
 
         return blend_halo(grid.spacing, self.k)
 
+    def _reach(self, grid: Grid) -> float:
+        # beyond a wall, the planes the filter of any plane inside the box reads
+        return (self.halo(grid) + 1) * grid.spacing
+
+    def _plan(self, grid: Grid, x0: int, x1: int):
+        """The filter's input planes ``o0..o1`` (beyond the grid where a wall is mirrored), the
+        child's planes ``c0..c1`` they come from, and the mirror's sources along x (or None)."""
+        from .field import mirror_sources
+
+        r, n = self.halo(grid), grid.shape[0]
+        h0, h1 = max(0, x0 - r), min(n, x1 + r)
+        if self.mirror is not None and r > 0:
+            lo, hi = self.mirror
+            j, t, moved = mirror_sources(grid.origin[0], grid.spacing, n, lo[0], hi[0], self._reach(grid),
+                                         x0 - r, x1 + r)
+            if moved.any():
+                # the halo's planes too, mirrored or not: a caller reads its other fields there
+                need = np.concatenate([j, j[t > 0] + 1, [h0, h1 - 1]])
+                return x0 - r, x1 + r, int(need.min()), int(need.max()) + 1, (j, t)
+        return h0, h1, h0, h1, None
+
     def reads(self, grid: Grid, x_range=None) -> tuple[int, int]:
         x0, x1 = _planes(grid, x_range)
-        h = self.halo(grid)
-        return self.child.reads(grid, (max(0, x0 - h), min(grid.shape[0], x1 + h)))
+        return self.child.reads(grid, self._plan(grid, x0, x1)[2:4])
 
     def evaluate(self, grid: Grid, x_range=None, skip=None) -> np.ndarray:
-        from .field import blend_field
+        from .field import blend_field, mirror_along, mirror_sources
 
         x0, x1 = _planes(grid, x_range)
-        h = self.halo(grid)
-        h0, h1 = max(0, x0 - h), min(grid.shape[0], x1 + h)
-        return np.ascontiguousarray(blend_field(self.child.evaluate(grid, (h0, h1), skip=skip), grid.spacing,
-                                                self.k, planes=(x0 - h0, x1 - h0)))
+        o0, o1, c0, c1, along_x = self._plan(grid, x0, x1)
+        values = self.child.evaluate(grid, (c0, c1), skip=skip)
+        if along_x is not None:
+            values = mirror_along(values, 0, c0, *along_x)
+        pad = [0, 0, 0]
+        if self.mirror is not None and self.halo(grid) > 0:
+            r, (lo, hi) = self.halo(grid), self.mirror
+            for axis in (1, 2):
+                n = grid.shape[axis]
+                j, t, moved = mirror_sources(grid.origin[axis], grid.spacing, n, lo[axis], hi[axis],
+                                             self._reach(grid), -r, n + r)
+                if moved.any():
+                    values, pad[axis] = mirror_along(values, axis, 0, j, t), r
+        out = blend_field(values, grid.spacing, self.k, planes=(x0 - o0, x1 - o0))
+        ny, nz = grid.shape[1:]
+        return np.ascontiguousarray(out[:, pad[1]:pad[1] + ny, pad[2]:pad[2] + nz])
 
 
 @dataclass(frozen=True)

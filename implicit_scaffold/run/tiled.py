@@ -99,6 +99,12 @@ class SlabWork:
         return blend_halo(self.grid.spacing, self.k) if self.style == "paper" else 0
 
 
+def _cells_box(skeleton):
+    """The box of the skeleton's cells, mm: ``((3,), (3,))`` tuples."""
+    cells = skeleton.cells
+    return tuple(map(float, cells.lo)), tuple(map(float, cells.hi))
+
+
 def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarray]:
     """Pass 1 for one slab: its blended lattice field and its patient field, owned planes only.
 
@@ -123,7 +129,7 @@ def slab_fields(work: SlabWork, slab: Slab) -> tuple[Slab, np.ndarray, np.ndarra
         skeleton = work.skeleton
         if hasattr(skeleton, "near"):
             skeleton = skeleton.near(*_band(grid, (slab.h0, slab.h1), work.cutoff))
-        lattice = Blend(PaperLattice(skeleton, work.cutoff), work.k)
+        lattice = Blend(PaperLattice(skeleton, work.cutoff), work.k, mirror=_cells_box(work.skeleton))
         del skeleton
     else:
         lattice = Struts(work.edges, work.cutoff, work.k)
