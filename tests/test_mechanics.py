@@ -154,6 +154,26 @@ def test_spherical_pore_is_within_3_percent_of_a_finer_grid():
     assert fine.iterations <= 1.5 * coarse.iterations
 
 
+def test_the_apparent_modulus_moves_under_3_percent_from_the_default_voxel_to_half_of_it():
+    # issue 14's criterion, on the cube of `bench_mechanics.py --across`: generated at generate's
+    # default voxel (4 across the median wall) and again at half of it, each compressed between
+    # platens; the finer cube is the oracle
+    from implicit_scaffold.pipeline import VOXELS_PER_WALL, generate
+
+    def platens(voxel):
+        r = generate(size=1.6, voxel=voxel, pore_size=0.6, porosity=0.7, seed=0, mesh=False, morphometry=False)
+        inside = r.patient_sdf < 0
+        box = tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(inside))
+        solid = (r.field < 0)[box]
+        c = m.compress(solid, r.grid.spacing, TI, axis=2, tol=1e-6, backend="opencl")
+        return c.apparent_modulus_gpa, r.grid.spacing, r.report["wall_thickness_mm"]["median"]
+
+    coarse, h, wall = platens(None)
+    assert abs(wall / h - VOXELS_PER_WALL) < 0.05 * VOXELS_PER_WALL  # the default voxel it is
+    fine, _, _ = platens(h / 2)
+    assert abs(coarse / fine - 1) < 0.03, (coarse, fine)
+
+
 @pytest.fixture(scope="module")
 def small_scaffold():
     from implicit_scaffold.pipeline import generate

@@ -1113,18 +1113,16 @@ def held_margin(held: int) -> int:
 SAMPLE_CHUNK_BYTES = 64 * 2**20
 #: Voxels across the median Voronoi wall (the report's ``wall_thickness_mm``): generate's own
 #: default voxel (``pipeline.VOXELS_PER_WALL``). Coarser, the report warns. Measured on a 1.6 mm
-#: cube, 0.6 mm pores, porosity 0.7, Ti-6Al-4V (``python benchmarks/bench_mechanics.py --sizes
-#: --coarsen 1.6``), against the cube built at half the voxel (8 across): built at 4 across,
-#: the platens' modulus -3.8 % (periodic Ez -6.3 %, Ex -8.8 %: the issue's 3 % is not met at
-#: generate's default voxel); the finer field sampled at 4 across (solid volume kept), -2.1 %
-#: (-4.8, -7.6); at 2.67 across, +1.5 % (-3.2, -7.4); at 2 across, -12.9 % (-9.7, -16.2).
-#: A finer default would not meet the 3 % either: generated at 4, 5, 6 and 8 across and at twice
-#: each, the platens' modulus moved -3.8, -7.5, -5.0 and -9.5 % from h to h/2 (seed 0; seed 1 at 4,
-#: 6, 8: -4.0, -7.8, -10.4 %; ``bench_mechanics.py --sizes --across 4 5 6 8``; README, "The voxel of
-#: a solve and its memory").
+#: cube, 0.6 mm pores, porosity 0.7, Ti-6Al-4V, generated at 4 across and at 8 (h/2): the
+#: platens' modulus +0.96 % (seed 0) and -0.06 % (seed 1), the periodic moduli at most +2.94 %
+#: (``python benchmarks/bench_mechanics.py --sizes --across 4 5 6 8``); the field built at 8
+#: across and sampled at 4, +2.6 % (``--coarsen 1.6``); at 2.67 across, +9.1 %; at 2, -6.9 %.
+#: (Before the blend read the lattice mirrored in the cells' walls, a film on the cube's faces
+#: made the modulus climb with every refinement: -3.8 % at 4 across, -9.5 % at 8. README, "The
+#: voxel of a solve and its memory".)
 CONVERGED_VOXELS_PER_WALL = 4.0
 #: below this many voxels across the median wall the default voxel refuses instead of coarsening
-#: (the 2-across sample above was 10-16 % off)
+#: (the 2.67- and 2-across samples above were 4.7-9.1 % and 1.2-6.9 % off; before the mirror, 2 across was 10-16 % off)
 MIN_VOXELS_PER_WALL = 2.5
 
 
