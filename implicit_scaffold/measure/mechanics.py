@@ -551,7 +551,11 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = take(apply(put(p, live, n, ones)), live, ones)  # masked to the free unknowns below
+        # K p one load case at a time: the whole-grid vectors (p spread, K p) are one case's, not
+        # the block's (the OpenCL operator in double runs a case a launch anyway)
+        q = np.empty_like(p)  # masked to the free unknowns below
+        for c in range(len(p)):
+            take(apply(put(p[c:c + 1], live, n, ones)), live, ones, out=q[c:c + 1])
         pq = wdot(p, q, wl)
         live_cases = (res > tol) & (pq > 0)
         alpha = np.where(live_cases, rz / np.where(pq > 0, pq, 1), 0.0)
