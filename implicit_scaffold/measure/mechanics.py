@@ -695,12 +695,10 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
             x, its, r = pcg(op, precond, element_loads(model, -(model.ke @ u0e[list(cases)].T).T), free,
                             scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
         else:
-            base = _affine(model.shape, h, cases)
-            x, its, r = pcg(op, precond, np.negative(op(base)), free, scale=scale[list(cases)], tol=tol,
-                            maxiter=maxiter, progress=progress)
-        if not periodic:
-            x += base
-            del base
+            x, its, r = pcg(op, precond, _kinematic_loads(op, model.shape, h, cases), free,
+                            scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
+            for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
+                x[c] += _affine(model.shape, h, [k])[0]
         ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
         del x
         iterations, res[list(cases)] = max(iterations, its), r
@@ -713,6 +711,16 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
                           time.perf_counter() - t0, backend)
+
+
+def _kinematic_loads(op, shape, h: float, cases) -> np.ndarray:
+    """(m, 3, N) right-hand sides ``-K (E x)`` of the unit Voigt strains `cases`, made a case at a time
+    (one case's ``E x`` and product at once, not the block's: three (m, 3, N) arrays in float64 were
+    the kinematic solve's peak)."""
+    out = np.empty((len(cases), 3, int(np.prod(shape))))
+    for c, k in enumerate(cases):
+        np.negative(op(_affine(shape, h, [k]))[0], out=out[c])
+    return out
 
 
 def _affine(shape, h: float, cases) -> np.ndarray:
