@@ -507,7 +507,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     another gets and gives whole-grid ones. The product and the step run one case at a time (a
     converged case gets no product), and the preconditioned residual is folded into p case by case
     as the preconditioner hands it over: besides x, r and p the CG holds one case's vector, not
-    the block's (at six cases a block that halved the 128^3 scaffold's peak above its start).
+    the block's (with the V-cycle's fine level a case at a time, six cases a block of the 128^3
+    scaffold peaked 1,281 bytes per solid voxel above the start, against 2,144 before).
 
     Parameters
     ----------
