@@ -67,8 +67,10 @@ from implicit_scaffold.measure import mechanics as M
 from implicit_scaffold import opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
-# the fine operator's kernels built outside the clock (double one case a launch, float the block's)
+# the operators' kernels built outside the clock (double and the cycle's fine level one case a launch,
+# the coarse levels the block's)
 opencl.program('mechanics', NCASE=1, USE_DOUBLE=1)
+opencl.program('mechanics', NCASE=1, USE_DOUBLE=0)
 opencl.program('mechanics', NCASE={block!r}, USE_DOUBLE=0)
 import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime

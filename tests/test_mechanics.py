@@ -84,6 +84,34 @@ def test_load_cases_in_blocks_give_the_exact_laminate(block):
     assert hom.residual <= 1e-8
 
 
+@pytest.mark.parametrize("preconditioner", ["multigrid", "fft"])
+def test_a_block_of_cases_solves_each_as_alone(preconditioner):
+    # each case of a block is its own CG (product, step and preconditioned residual a case at a time):
+    # the block's solutions and residuals are each case's solved alone, and each solves K x = b (the
+    # NumPy operator's product, the oracle); a case converged early stops moving
+    rng = np.random.default_rng(11)
+    solid = rng.random((10, 9, 8)) < 0.85  # one piece, held on one face
+    model = m.voxel_model(solid, 0.1, TI, periodic=False)
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    free[:, : model.shape[1] * model.shape[2]] = 0  # one face held: no rigid motion
+    b = rng.standard_normal((3, 3, free.shape[1])) * free
+    b[1] *= 1e-3  # the same relative tolerance: its own scale
+    scale = np.sqrt((b ** 2).sum(axis=(1, 2)))
+    pre = m.make_preconditioner(preconditioner, model, op, free, 1e-10)
+    x, its, res = m.pcg(op, pre, b.copy(), free, scale=scale, tol=1e-10)
+    assert np.all(res <= 1e-10)
+    alone = []
+    for c in range(3):
+        xc, itc, rc = m.pcg(op, pre, b[c:c + 1].copy(), free, scale=scale[c:c + 1], tol=1e-10)
+        alone.append(itc)
+        # the bits may differ (the coarsest level's product of a block and of one case round differently)
+        assert np.allclose(x[c], xc[0], rtol=0, atol=1e-8 * np.abs(xc).max())
+    assert abs(max(alone) - its) <= 1  # the block stops when its last case converges
+    for c in range(3):
+        assert np.abs(op(x[c:c + 1])[0] * free - b[c]).max() <= 1e-8 * np.abs(b[c]).max()
+
+
 @pytest.mark.parametrize("periodic", [True, False])
 def test_corner_sums_match_the_gathered_element_displacements(periodic):
     # the solver's per-node sums (no per-voxel arrays) against the NumPy reference's gather

@@ -504,7 +504,11 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     K p or the preconditioned residual. A product spreads p over the whole grid for `apply`
     and keeps K p's live nodes; a preconditioner with a ``compact(live)`` method
     (:class:`~implicit_scaffold.measure.multigrid.Multigrid`) takes and gives live-node vectors itself,
-    another gets and gives whole-grid ones.
+    another gets and gives whole-grid ones. The product and the step run one case at a time (a
+    converged case gets no product), and the preconditioned residual is folded into p case by case
+    as the preconditioner hands it over: besides x, r and p the CG holds one case's vector, not
+    the block's (with the V-cycle's fine level a case at a time, six cases a block of the 128^3
+    scaffold peaked 1,281 bytes per solid voxel above the start, against 2,144 before).
 
     Parameters
     ----------
@@ -531,9 +535,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     from .fused import cg_update, put, take, wdot, xpby
 
     n = b.shape[2]
-    w = np.asarray(free, float).reshape(-1, n)
+    w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
     live = np.flatnonzero(w.any(axis=0))
-    wl = np.ascontiguousarray(w[:, live])
+    wl = np.ascontiguousarray(w[:, live], np.float64)
     ones = np.ones((1, live.size))
     r = take(b, live, wl)  # F b on the live nodes
     del b
@@ -541,27 +545,49 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if compact is not None:
         pre = compact(live)
     else:
-        def pre(v):
-            return take(precond(put(v, live, n, ones)), live, ones)
+        def pre(v, sink):
+            z = take(precond(put(v, live, n, ones)), live, ones)
+            for c in range(len(z)):
+                sink(c, z[c:c + 1])
+    # the preconditioned residual z is handed over one case at a time (pre's sink) and folded into
+    # p at once, so that the block's z is never held beside x, r and p
+    m = len(r)
+    p = np.empty_like(r)
+    rz = np.zeros(m)
+
+    # the dot products by einsum, not np.vdot: a BLAS call leaves OpenBLAS's threads spinning, and
+    # beside them the OpenCL operator ran 1.8 times slower (64^3 scaffold, one case a block: 34 s of
+    # CPU against 23)
+    def first(c, z):
+        p[c] = z[0]
+        rz[c] = np.einsum("dn,dn->", r[c], z[0])
+
+    pre(r, first)
     x = np.zeros_like(r)
-    z = pre(r)
-    p = z
-    del z
-    rz = np.einsum("mcn,mcn->m", r, p)
     res = _norms(r) / scale
     it = 0
     while np.any(res > tol) and it < maxiter:
-        q = take(apply(put(p, live, n, ones)), live, ones)  # masked to the free unknowns below
-        pq = wdot(p, q, wl)
-        live_cases = (res > tol) & (pq > 0)
-        alpha = np.where(live_cases, rz / np.where(pq > 0, pq, 1), 0.0)
-        rr = cg_update(x, p, r, q, wl, alpha)  # x += alpha p, r -= alpha F q: one pass
-        del q
-        z = pre(r)
-        rz_new = np.einsum("mcn,mcn->m", r, z)
-        beta = np.where(live_cases, rz_new / np.where(rz != 0, rz, 1), 0.0)
-        xpby(z, p, beta)
-        del z
+        # K p and the step one load case at a time (each case is its own CG): the whole-grid
+        # vectors (p spread, K p) and q are one case's, not the block's (the OpenCL operator in
+        # double runs a case a launch anyway), and a converged case costs no product
+        live_cases = np.zeros(len(p), bool)
+        rr = np.zeros(len(p))
+        for c in np.flatnonzero(res > tol):
+            one = slice(c, c + 1)
+            q = take(apply(put(p[one], live, n, ones)), live, ones)  # masked to the free unknowns below
+            pq = wdot(p[one], q, wl)[0]
+            if pq > 0:
+                live_cases[c] = True
+                rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
+            del q
+        rz_new = np.zeros(m)
+
+        def step(c, z):
+            rz_new[c] = np.einsum("dn,dn->", r[c], z[0])
+            beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
+            xpby(z, p[c:c + 1], [beta])  # p = z + beta p
+
+        pre(r, step)
         rz = rz_new
         res = np.where(live_cases, np.sqrt(rr) / scale, res)
         it += 1
@@ -650,13 +676,14 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     ns = model.solid_voxels
     u0e = macro_displacements(h)  # (6, 24)
     op = _operator(model, backend)
+    # the free mask in float32 (0 and 1 exactly), which the float32 V-cycle shares rather than copies
     if periodic:
-        free = model.active.astype(float)
+        free = model.active.astype(np.float32)
     else:
         # u = E x at every node; the box's faces keep it, the inside nodes are solved for
         inner = np.zeros(model.shape, bool)
         inner[1:-1, 1:-1, 1:-1] = True
-        free = (model.active & inner.ravel()).astype(float)
+        free = (model.active & inner.ravel()).astype(np.float32)
         del inner
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
     precond = make_preconditioner(preconditioner, model, op, free, tol)
@@ -672,12 +699,10 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
             x, its, r = pcg(op, precond, element_loads(model, -(model.ke @ u0e[list(cases)].T).T), free,
                             scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
         else:
-            base = _affine(model.shape, h, cases)
-            x, its, r = pcg(op, precond, np.negative(op(base)), free, scale=scale[list(cases)], tol=tol,
-                            maxiter=maxiter, progress=progress)
-        if not periodic:
-            x += base
-            del base
+            x, its, r = pcg(op, precond, _kinematic_loads(op, model.shape, h, cases), free,
+                            scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
+            for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
+                x[c] += _affine(model.shape, h, [k])[0]
         ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
         del x
         iterations, res[list(cases)] = max(iterations, its), r
@@ -690,6 +715,16 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
                           time.perf_counter() - t0, backend)
+
+
+def _kinematic_loads(op, shape, h: float, cases) -> np.ndarray:
+    """(m, 3, N) right-hand sides ``-K (E x)`` of the unit Voigt strains `cases`, made a case at a time
+    (one case's ``E x`` and product at once, not the block's: three (m, 3, N) arrays in float64 were
+    the kinematic solve's peak)."""
+    out = np.empty((len(cases), 3, int(np.prod(shape))))
+    for c, k in enumerate(cases):
+        np.negative(op(_affine(shape, h, [k]))[0], out=out[c])
+    return out
 
 
 def _affine(shape, h: float, cases) -> np.ndarray:
@@ -1092,10 +1127,29 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: the table above (1.05-1.11), which held more; for six periodic cases it is below them (0.92 at
 #: 96^3, 0.84 at 128^3), where this code holds less (the 128^3 figure just given). A full refit
 #: (the fixed part, per node, per solid voxel) waits for those points.
+#: Since the CG's product and step, the V-cycle's fine level and a kinematic right-hand side run one
+#: load case at a time (dab06cf), the per-node-and-case part is 50 / 60 (from 100 / 135); the rest is
+#: kept. ``python benchmarks/bench_mechanics.py --sizes --memory 64 96 --memory-solves measure
+#: --preconditioners multigrid --memory-blocks 1,6`` on it (2026-12-05, MiB above the start, the new
+#: estimate in brackets):
+#:
+#: ======  =====  ================  ================  ================  ================
+#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
+#: ======  =====  ================  ================  ================  ================
+#: 64^3    0.3    66.2 (147)        66.2 (144)        85.1 (210)        92.7 (222)
+#: 64^3    0.6    84.5 (162)        84.7 (159)        112.8 (225)       138.1 (237)
+#: 96^3    0.3    212.4 (260)       197.4 (246)       288.5 (471)       252.2 (507)
+#: 96^3    0.6    254.2 (311)       254.2 (297)       370.9 (522)       383.0 (558)
+#: 128^3   0.3    440.0 (480)                         768.8 (980)
+#: ======  =====  ================  ================  ================  ================
+#:
+#: (128^3: the Voronoi scaffold of the README's benchmark, homogenization alone, 733 and 1,281 bytes
+#: per solid voxel: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners
+#: multigrid --peers-up-to 0 [--cases-per-block 1]``.) The tightest, 1.09, is the 128^3 one case.
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 100, "kinematic": 135},
+SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 50, "kinematic": 60},
                              "fft": {"periodic": 0, "kinematic": 0}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)

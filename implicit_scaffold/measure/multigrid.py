@@ -498,7 +498,8 @@ class Multigrid:
         The fine operator, (m, 3, N) -> K u (OpenCL or NumPy). With the OpenCL one, the coarse
         levels run on the device too (a gather kernel of the same file, one matrix per element).
     free : (N,) or (3, N) array of 0 and 1
-        The unknowns; the system solved is ``F K F``.
+        The unknowns; the system solved is ``F K F``. Kept as given (not copied) when it comes in
+        `dtype`.
     seed : int
         For the eigenvalue estimates' start vectors (the preconditioner is deterministic).
     dtype : numpy float type
@@ -510,10 +511,12 @@ class Multigrid:
         from .mechanics import diagonal
 
         n = int(np.prod(model.shape))
-        free = np.asarray(free, float)
+        free = np.asarray(free)
         self.dtype = np.dtype(dtype)
-        self.free = np.broadcast_to(free.reshape(-1, n), (3, n)).astype(self.dtype)
-        # the mask the result is multiplied by in the solver's float (the caller's own array)
+        # (1, N) for a mask per node (every use broadcasts it), (3, N) per unknown; the caller's own
+        # array when it comes in the cycle's float (the solver's free mask is float32: 4 bytes a node)
+        self.free = free.reshape(-1, n).astype(self.dtype, copy=False)
+        # the mask the result is multiplied by (the caller's own array)
         self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
         self.op = op
@@ -525,7 +528,7 @@ class Multigrid:
         if 3 * n > COARSEST_UNKNOWNS and min(shape) >= 4:
             # float32 matrices for a float32 cycle: the second level's, one per element, are
             # its largest array (about 36 bytes per fine voxel)
-            level = _first_coarse(model, self.free, self.dtype)
+            level = _first_coarse(model, np.broadcast_to(self.free, (3, n)), self.dtype)
             self.levels.append(level)
             while 3 * np.prod(level.shape) > COARSEST_UNKNOWNS and min(level.shape) >= 4:
                 level = _next_coarse(level)
@@ -619,19 +622,87 @@ class Multigrid:
     def compact(self, live: np.ndarray):
         """The same preconditioner on vectors kept on the nodes `live` only, (m, 3, len(live)):
         the residual is spread over the grid in the cycle's float, the result's live nodes
-        taken back in the residual's (one pass each, no whole-grid vector in the solver's float)."""
+        taken back in the residual's (one pass each, no whole-grid vector in the solver's float).
+        ``apply(r, sink)`` hands each case's result to ``sink(case, z)`` ((1, 3, len(live))) as soon as
+        it is made, and returns None: the caller need not hold the block's result.
+
+        With degree-1 fine smoothing (the default) the fine level runs one load case at a time
+        (:meth:`_fine_cases`): the whole-grid vectors are one case's, not the block's."""
         from .fused import put, take
 
         n = self.free.shape[1]
         w = np.ascontiguousarray(self._free_out[:, live])
 
-        def apply(r: np.ndarray) -> np.ndarray:
+        def apply(r: np.ndarray, sink=None):
+            if FINE_DEGREE == 1 and self.levels:
+                return self._fine_cases(r, live, w, sink)
             b = put(r, live, n, w, self.dtype)
             x = self._cycle(0, b)
             del b
-            return take(x, live, w, r.dtype)
+            z = take(x, live, w, r.dtype)
+            if sink is None:
+                return z
+            for c in range(len(z)):
+                sink(c, z[c:c + 1])
 
         return apply
+
+    def _fine_cases(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, sink=None):
+        """:meth:`_fine_jacobi` on live-node residuals (m, 3, len(live)), the fine level one load case
+        at a time and the coarse levels on the block, with the same arithmetic per case.
+
+        The fine level of a block of six held six cases of each of its whole-grid vectors (b, x, the
+        residual, the correction: 72 bytes a node each in float32); one case at a time holds one,
+        and b and the smoothed x are not kept between the two passes but made again from `r` (x is
+        ``s D^-1 b`` there: two cheap passes). In float, six launches of one case and one of six
+        took within 10 % of each other (:class:`~implicit_scaffold.measure.mechanics_cl._Gather`);
+        the 128^3 benchmark took 59.7 s against 63.8 s before, one run each. With `sink`,
+        each case's result goes to ``sink(case, z)`` as it is made (None is returned)."""
+        from .fused import add_weighted, put, take, weighted
+        from .mechanics_cl import aligned_empty
+
+        n = self.free.shape[1]
+        m = r.shape[0]
+        s = 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
+        shape = self.fine_shape
+
+        def smoothed(c):
+            b = put(r[c:c + 1], live, n, w, self.dtype)
+            return b, weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
+
+        rc = None
+        for c in range(m):
+            b, x = smoothed(c)
+            res = self.op(x)
+            del x
+            weighted(res, b, self.free, y=res)  # F (b - K x): the restriction sees the free unknowns only
+            del b
+            one = restrict(res, shape)
+            del res
+            if rc is None:
+                rc = aligned_empty((m,) + one.shape[1:], one.dtype)
+            rc[c] = one[0]
+            del one
+        coarse = self._cycle(1, rc)
+        del rc
+        z = None
+        for c in range(m):
+            corr = prolong(coarse[c:c + 1], shape)
+            b, x = smoothed(c)
+            add_weighted(x, corr, self.free)
+            del corr
+            ax = self.op(x)
+            add_weighted(x, b, self.inv_diag, s, y=ax)
+            del ax, b
+            if sink is not None:
+                sink(c, take(x, live, w, r.dtype))
+                del x
+                continue
+            if z is None:  # made here, beside one whole-grid vector only
+                z = np.empty(r.shape, r.dtype)
+            take(x, live, w, out=z[c:c + 1])
+            del x
+        return z
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
