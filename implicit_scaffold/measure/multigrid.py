@@ -602,22 +602,37 @@ class Multigrid:
     def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
         """The fine level of the cycle with degree-1 smoothing (damped Jacobi, :func:`_chebyshev`'s
         degree 1), each vector update one fused pass (:mod:`~implicit_scaffold.measure.fused`)."""
-        from .fused import add_weighted, weighted
+        x = self._jacobi_start(b)
+        return self._jacobi_up(b, x, self._cycle(1, self._jacobi_down(b, x)))
+
+    def _jacobi_start(self, b: np.ndarray) -> np.ndarray:
+        """The fine level's pre-smoothed ``x = s D^-1 b`` (one damped Jacobi step from zero)."""
+        from .fused import weighted
         from .mechanics_cl import aligned_empty
 
-        s = 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
-        x = weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
+        return weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, self._jacobi_step())
+
+    def _jacobi_down(self, b: np.ndarray, x: np.ndarray) -> np.ndarray:
+        """The restricted residual ``R F (b - K x)`` the coarse levels solve for."""
+        from .fused import weighted
+
         r = self.op(x)
         weighted(r, b, self.free, y=r)  # F (b - K x): the restriction sees the free unknowns only
-        rc = restrict(r, self.fine_shape)
-        del r
-        corr = prolong(self._cycle(1, rc), self.fine_shape)
-        del rc
+        return restrict(r, self.fine_shape)
+
+    def _jacobi_up(self, b: np.ndarray, x: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+        """`x` corrected by the prolonged coarse solution, then post-smoothed (in place)."""
+        from .fused import add_weighted
+
+        corr = prolong(coarse, self.fine_shape)
         add_weighted(x, corr, self.free)
         del corr
         ax = self.op(x)
-        add_weighted(x, b, self.inv_diag, s, y=ax)
+        add_weighted(x, b, self.inv_diag, self._jacobi_step(), y=ax)
         return x
+
+    def _jacobi_step(self) -> float:
+        return 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
 
     def compact(self, live: np.ndarray):
         """The same preconditioner on vectors kept on the nodes `live` only, (m, 3, len(live)):
@@ -658,27 +673,16 @@ class Multigrid:
         took within 10 % of each other (:class:`~implicit_scaffold.measure.mechanics_cl._Gather`);
         the 128^3 benchmark took 59.7 s against 63.8 s before, one run each. With `sink`,
         each case's result goes to ``sink(case, z)`` as it is made (None is returned)."""
-        from .fused import add_weighted, put, take, weighted
+        from .fused import put, take
         from .mechanics_cl import aligned_empty
 
         n = self.free.shape[1]
         m = r.shape[0]
-        s = 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
-        shape = self.fine_shape
-
-        def smoothed(c):
-            b = put(r[c:c + 1], live, n, w, self.dtype)
-            return b, weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
-
         rc = None
         for c in range(m):
-            b, x = smoothed(c)
-            res = self.op(x)
-            del x
-            weighted(res, b, self.free, y=res)  # F (b - K x): the restriction sees the free unknowns only
+            b = put(r[c:c + 1], live, n, w, self.dtype)
+            one = self._jacobi_down(b, self._jacobi_start(b))
             del b
-            one = restrict(res, shape)
-            del res
             if rc is None:
                 rc = aligned_empty((m,) + one.shape[1:], one.dtype)
             rc[c] = one[0]
@@ -687,13 +691,9 @@ class Multigrid:
         del rc
         z = None
         for c in range(m):
-            corr = prolong(coarse[c:c + 1], shape)
-            b, x = smoothed(c)
-            add_weighted(x, corr, self.free)
-            del corr
-            ax = self.op(x)
-            add_weighted(x, b, self.inv_diag, s, y=ax)
-            del ax, b
+            b = put(r[c:c + 1], live, n, w, self.dtype)
+            x = self._jacobi_up(b, self._jacobi_start(b), coarse[c:c + 1])
+            del b
             if sink is not None:
                 sink(c, take(x, live, w, r.dtype))
                 del x
