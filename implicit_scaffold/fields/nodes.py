@@ -146,44 +146,48 @@ class Blend:
         # beyond a wall, the planes the filter of any plane inside the box reads
         return (self.halo(grid) + 1) * grid.spacing
 
+    def _sources(self, grid: Grid, axis: int, first: int, last: int):
+        """The mirror's sources ``(j, t)`` of the planes ``first..last`` along `axis`
+        (:func:`~implicit_scaffold.fields.field.mirror_sources`), or None when none is mirrored."""
+        from .field import mirror_sources
+
+        if self.mirror is None or self.halo(grid) == 0:
+            return None
+        lo, hi = self.mirror
+        j, t, moved = mirror_sources(grid.origin[axis], grid.spacing, grid.shape[axis], lo[axis], hi[axis],
+                                     self._reach(grid), first, last)
+        return (j, t) if moved.any() else None
+
     def _plan(self, grid: Grid, x0: int, x1: int):
         """The filter's input planes ``o0..o1`` (beyond the grid where a wall is mirrored), the
         child's planes ``c0..c1`` they come from, and the mirror's sources along x (or None)."""
-        from .field import mirror_sources
-
         r, n = self.halo(grid), grid.shape[0]
         h0, h1 = max(0, x0 - r), min(n, x1 + r)
-        if self.mirror is not None and r > 0:
-            lo, hi = self.mirror
-            j, t, moved = mirror_sources(grid.origin[0], grid.spacing, n, lo[0], hi[0], self._reach(grid),
-                                         x0 - r, x1 + r)
-            if moved.any():
-                # the halo's planes too, mirrored or not: a caller reads its other fields there
-                need = np.concatenate([j, j[t > 0] + 1, [h0, h1 - 1]])
-                return x0 - r, x1 + r, int(need.min()), int(need.max()) + 1, (j, t)
-        return h0, h1, h0, h1, None
+        along_x = self._sources(grid, 0, x0 - r, x1 + r)
+        if along_x is None:
+            return h0, h1, h0, h1, None
+        j, t = along_x
+        # the halo's planes too, mirrored or not: a caller reads its other fields there
+        need = np.concatenate([j, j[t > 0] + 1, [h0, h1 - 1]])
+        return x0 - r, x1 + r, int(need.min()), int(need.max()) + 1, along_x
 
     def reads(self, grid: Grid, x_range=None) -> tuple[int, int]:
         x0, x1 = _planes(grid, x_range)
         return self.child.reads(grid, self._plan(grid, x0, x1)[2:4])
 
     def evaluate(self, grid: Grid, x_range=None, skip=None) -> np.ndarray:
-        from .field import blend_field, mirror_along, mirror_sources
+        from .field import blend_field, mirror_along
 
         x0, x1 = _planes(grid, x_range)
         o0, o1, c0, c1, along_x = self._plan(grid, x0, x1)
         values = self.child.evaluate(grid, (c0, c1), skip=skip)
         if along_x is not None:
             values = mirror_along(values, 0, c0, *along_x)
-        pad = [0, 0, 0]
-        if self.mirror is not None and self.halo(grid) > 0:
-            r, (lo, hi) = self.halo(grid), self.mirror
-            for axis in (1, 2):
-                n = grid.shape[axis]
-                j, t, moved = mirror_sources(grid.origin[axis], grid.spacing, n, lo[axis], hi[axis],
-                                             self._reach(grid), -r, n + r)
-                if moved.any():
-                    values, pad[axis] = mirror_along(values, axis, 0, j, t), r
+        pad, r = [0, 0, 0], self.halo(grid)
+        for axis in (1, 2):
+            along = self._sources(grid, axis, -r, grid.shape[axis] + r)
+            if along is not None:
+                values, pad[axis] = mirror_along(values, axis, 0, *along), r
         out = blend_field(values, grid.spacing, self.k, planes=(x0 - o0, x1 - o0))
         ny, nz = grid.shape[1:]
         return np.ascontiguousarray(out[:, pad[1]:pad[1] + ny, pad[2]:pad[2] + nz])
