@@ -232,8 +232,12 @@ k = {{'x': 0.0, 'y': 0.0, 'z': 0.0}}
 if {kinematic!r}:
     kin = M.homogenize(solid, r.grid.spacing, mat, boundary='kinematic', tol=1e-6, backend='opencl')
     k = M.engineering_constants(kin.stiffness)['youngs_modulus_gpa']
+# the solid share of the first and second planes inside the cube's six faces (a window on a face
+# as open as its channel: the first no more solid than the second)
+face = [[float(np.take(solid, k, axis=a).mean()) for a in range(3) for k in ks] for ks in ((0, -1), (1, -2))]
 _out = {{'voxel': r.grid.spacing, 'wall': r.report['wall_thickness_mm']['median'],
          'grid': 'x'.join(map(str, solid.shape)), 'solid_fraction': float(solid.mean()),
+         'face_planes': [float(np.mean(f)) for f in face],
          'compression_gpa': c.apparent_modulus_gpa, 'periodic': [e['x'], e['y'], e['z']],
          'kinematic': [k['x'], k['y'], k['z']], 'iterations': [hom.iterations, c.iterations],
          'seconds': time.perf_counter() - t}}
@@ -354,10 +358,11 @@ def across(size: float, walls, porosity: float, seed: int, kinematic: bool = Fal
                       *[f"{kind} E_{x} GPa at h (change)" for kind in kinds for x in "xyz"]]))
     # every voxel's figures, finest last: whether they settle as h falls
     print()
-    print(table([[f"{n:g}", f"{r['voxel']:.5f}", r["grid"], f"{r['solid_fraction']:.4f}", f"{r['compression_gpa']:.4g}"]
+    print(table([[f"{n:g}", f"{r['voxel']:.5f}", r["grid"], f"{r['solid_fraction']:.4f}",
+                  f"{r['face_planes'][0]:.3f} / {r['face_planes'][1]:.3f}", f"{r['compression_gpa']:.4g}"]
                  + [f"{r[kind][i]:.4g}" for kind in kinds for i in range(3)] + [f"{r['seconds']:.0f}"]
                  for n, r in sorted(runs.items())],
-                ["N across wall", "h mm", "grid", "solid", "platens E_z GPa",
+                ["N across wall", "h mm", "grid", "solid", "faces' 1st / 2nd plane solid", "platens E_z GPa",
                  *[f"{kind} E_{x} GPa" for kind in kinds for x in "xyz"], "s (build and solves)"]))
 
 
