@@ -392,6 +392,50 @@ def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
                 assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), check.name
 
 
+def test_the_pool_hands_out_again_only_memory_nothing_refers_to():
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    n = mc.POOLED_BYTES // 8  # float64 elements of the smallest pooled array
+    outside = mc.aligned_empty(n)
+    assert mc._pool is None
+    with mc.reusing():
+        a = mc.aligned_empty(n)
+        a[...] = 1.0
+        view = a[: n // 2].reshape(-1, 2)  # a view keeps the memory in use after `a` is dropped
+        del a
+        b = mc.aligned_empty(n)
+        assert not np.shares_memory(b, view) and np.all(view == 1.0)
+        address = view.__array_interface__["data"][0]
+        del view
+        c = mc.aligned_empty((2, n // 2))  # the same bytes, another shape: the first array's memory
+        assert c.__array_interface__["data"][0] == address and c.ctypes.data % mc.ALIGN == 0
+        assert not np.shares_memory(c, b)
+        small = mc.aligned_empty(8)  # below POOLED_BYTES: never pooled
+        assert all(raw.size >= mc.POOLED_BYTES for raw in mc._pool)
+        del b, c, small
+        # a miss frees at least as many bytes of free buffers as it takes: the pool does not grow
+        held = sum(raw.size for raw in mc._pool)
+        d = mc.aligned_empty(n + 1)
+        assert sum(raw.size for raw in mc._pool) <= held + mc.ALIGN
+        del d
+    assert mc._pool is None and not np.shares_memory(outside, mc.aligned_empty(n))
+
+
+def test_a_solve_with_the_pool_gives_the_bits_of_one_without(monkeypatch):
+    # an array handed out while something still used it would change the iterates: the tensors of a
+    # Voronoi-like random solid, pooled and not, must be the same bits
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(5)
+    solid = rng.random((22, 20, 18)) < 0.5
+    monkeypatch.setattr(mc, "POOLED_BYTES", 1)  # every array pooled (these vectors are small)
+    pooled = m.homogenize(solid, 0.05, TI, backend="opencl", tol=1e-6)
+    monkeypatch.setattr(mc, "POOLED_BYTES", 1 << 62)  # none
+    fresh = m.homogenize(solid, 0.05, TI, backend="opencl", tol=1e-6)
+    assert pooled.iterations == fresh.iterations > 3
+    assert np.array_equal(pooled.stiffness, fresh.stiffness)
+
+
 def test_opencl_backend_gives_the_exact_laminate():
     solid = np.zeros((7, 9, 11), bool)
     solid[:, :, 2:5] = True

@@ -533,6 +533,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     x (m, 3, N), iterations, relative residuals (m,)
     """
     from .fused import cg_update, put, take, wdot, xpby
+    from .mechanics_cl import reusing
 
     n = b.shape[2]
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
@@ -566,33 +567,34 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     x = np.zeros_like(r)
     res = _norms(r) / scale
     it = 0
-    while np.any(res > tol) and it < maxiter:
-        # K p and the step one load case at a time (each case is its own CG): the whole-grid
-        # vectors (p spread, K p) and q are one case's, not the block's (the OpenCL operator in
-        # double runs a case a launch anyway), and a converged case costs no product
-        live_cases = np.zeros(len(p), bool)
-        rr = np.zeros(len(p))
-        for c in np.flatnonzero(res > tol):
-            one = slice(c, c + 1)
-            q = take(apply(put(p[one], live, n, ones)), live, ones)  # masked to the free unknowns below
-            pq = wdot(p[one], q, wl)[0]
-            if pq > 0:
-                live_cases[c] = True
-                rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
-            del q
-        rz_new = np.zeros(m)
+    with reusing():
+        while np.any(res > tol) and it < maxiter:
+            # K p and the step one load case at a time (each case is its own CG): the whole-grid
+            # vectors (p spread, K p) and q are one case's, not the block's (the OpenCL operator in
+            # double runs a case a launch anyway), and a converged case costs no product
+            live_cases = np.zeros(len(p), bool)
+            rr = np.zeros(len(p))
+            for c in np.flatnonzero(res > tol):
+                one = slice(c, c + 1)
+                q = take(apply(put(p[one], live, n, ones)), live, ones)  # masked to the free unknowns below
+                pq = wdot(p[one], q, wl)[0]
+                if pq > 0:
+                    live_cases[c] = True
+                    rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
+                del q
+            rz_new = np.zeros(m)
 
-        def step(c, z):
-            rz_new[c] = np.einsum("dn,dn->", r[c], z[0])
-            beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
-            xpby(z, p[c:c + 1], [beta])  # p = z + beta p
+            def step(c, z):
+                rz_new[c] = np.einsum("dn,dn->", r[c], z[0])
+                beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
+                xpby(z, p[c:c + 1], [beta])  # p = z + beta p
 
-        pre(r, step)
-        rz = rz_new
-        res = np.where(live_cases, np.sqrt(rr) / scale, res)
-        it += 1
-        if progress is not None:
-            progress(it, float(res.max()))
+            pre(r, step)
+            rz = rz_new
+            res = np.where(live_cases, np.sqrt(rr) / scale, res)
+            it += 1
+            if progress is not None:
+                progress(it, float(res.max()))
     del r, p
     return put(x, live, n, ones), it, res
 

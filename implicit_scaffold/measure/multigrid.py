@@ -213,6 +213,8 @@ def _kernels():
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
     def transfer(src, out, stencils, last_first):
+        from .mechanics_cl import aligned_empty
+
         # src (m, 3, s1, s2, s3) -> out (m, 3, n1, n2, n3) through stencils[axis] = (idx, w); the
         # last axis first (a prolongation: the intermediate is the coarse planes' fine rows) or
         # after the first two (a restriction: the fine rows of the coarse planes)
@@ -221,11 +223,11 @@ def _kernels():
         s1, s2, s3 = src.shape[2:]
         n1, n2, n3 = out.shape[2:]
         if last_first:
-            mid = np.empty((m, s1, s2, n3), src.dtype)
+            mid = aligned_empty((m, s1, s2, n3), src.dtype)  # from the solver's pool (reusing)
             over_rows(axis_rows, m * s1 * s2, src.reshape(m * s1 * s2, s3), mid.reshape(m * s1 * s2, n3), ig, wg)
             over_rows(plane_rows, n1, mid, out.reshape(m, n1, n2, n3), ia, wa, ib, wb)
         else:
-            mid = np.empty((m, n1, n2, s3), src.dtype)
+            mid = aligned_empty((m, n1, n2, s3), src.dtype)
             over_rows(plane_rows, n1, src.reshape(m, s1, s2, s3), mid, ia, wa, ib, wb)
             over_rows(axis_rows, m * n1 * n2, mid.reshape(m * n1 * n2, s3), out.reshape(m * n1 * n2, n3), ig, wg)
 
