@@ -190,3 +190,18 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     spread[:, :, idx] = w[:, idx] * b[:, :, idx]
     got = fused.put(b[:, :, idx], idx, n, w[:, idx], np.float64)
     assert got.dtype == np.float64 and close(got, spread)
+    # the V-cycle's fine level on live-node vectors: a Jacobi step from zero spread, a right-hand side
+    # added on the live nodes, a Jacobi step from x taken back
+    g = rng.random((3, n)).astype(dtype)
+    src = rng.standard_normal((m, 3, len(idx)))  # the CG's float64 residual
+    want = np.zeros((m, 3, n))
+    want[:, :, idx] = 0.7 * g[:, idx] * (w[:, idx] * src)
+    got = fused.put_smoothed(src, idx, n, w[:, idx], g, 0.7, dtype)
+    assert got.dtype == dtype and close(got, want)
+    want = y.astype(float)
+    want[:, :, idx] += w[:, idx] * src
+    fused.put_add(y, src, idx, w[:, idx])
+    assert close(y, want)
+    want = w[:, idx] * (x[:, :, idx] + 0.7 * g[:, idx] * (w[:, idx] * src - b[:, :, idx]))
+    got = fused.take_smoothed(x, b, src, idx, w[:, idx], g, 0.7)
+    assert got.dtype == np.float64 and close(got, want)

@@ -106,7 +106,40 @@ def _kernels():
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
 
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows
+    # the fine level of the V-cycle on live-node residuals: the pre-smoothed x = s g (w src) spread
+    # onto the grid (g the inverse diagonal, read at the live nodes), w src added onto a grid
+    # vector, and the post-smoothed result's live nodes w (x + s g (w src - ax)) taken back; each
+    # piece writes its own entries of idx (distinct nodes)
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def spread_rows(src, idx, w, g, s, out, add, pieces, lo, hi):  # pragma: no cover - compiled
+        m, n = src.shape[0], idx.shape[0]
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
+                    if add:
+                        for i in range(n0, n1):
+                            out[c, d, idx[i]] += wd[i] * src[c, d, i]
+                    else:
+                        for i in range(n0, n1):
+                            j = idx[i]
+                            out[c, d, j] = wd[i] * src[c, d, i]
+                            out[c, d, j] = s * gd[j] * out[c, d, j]
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def smoothed_rows(x, ax, src, idx, w, g, s, out, pieces, lo, hi):  # pragma: no cover - compiled
+        m, n = src.shape[0], idx.shape[0]
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
+                    for i in range(n0, n1):
+                        j = idx[i]
+                        out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[j] * (wd[i] * src[c, d, i] - ax[c, d, j]))
+
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, spread_rows, smoothed_rows
 
 
 def _weight(w, n: int) -> np.ndarray:
@@ -195,4 +228,45 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[4], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, True, pieces)
+    return out
+
+
+def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: float, dtype=None) -> np.ndarray:
+    """The whole grid's (m, 3, n) vector ``s g w src`` on the nodes `idx` and 0 elsewhere: one damped
+    Jacobi step from zero on the right-hand side :func:`put` would spread (`g` the inverse diagonal,
+    (1, n) or (3, n), read at `idx`), in `dtype` (default `src`'s), page-aligned."""
+    from .mechanics_cl import aligned_empty
+    from ..run.threads import over_rows
+
+    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)
+    out.fill(0)
+    k = len(idx)
+    pieces = _pieces(k)
+    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False),
+              _weight(g, int(n)).astype(out.dtype, copy=False), out.dtype.type(s), out, False, pieces)
+    return out
+
+
+def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w) -> None:
+    """``out[:, :, idx] += w * src``, in place (`out` a whole grid's (m, 3, n) vector)."""
+    from ..run.threads import over_rows
+
+    k = len(idx)
+    pieces = _pieces(k)
+    wk = _weight(w, k).astype(out.dtype, copy=False)
+    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, True, pieces)
+
+
+def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float,
+                  dtype=None) -> np.ndarray:
+    """``w (x + s g (w src - ax))`` on the nodes `idx`, (m, 3, len(idx)) in `dtype` (default `src`'s):
+    a damped Jacobi step on the right-hand side ``w src`` from `x` (``ax = A x``, whole grids; `g`
+    the inverse diagonal), and its live nodes taken, in one pass."""
+    from ..run.threads import over_rows
+
+    k = len(idx)
+    out = np.empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)
+    pieces = _pieces(k)
+    over_rows(_kernels()[6], pieces, x, ax, src, idx, _weight(w, k).astype(x.dtype, copy=False),
+              _weight(g, x.shape[2]).astype(x.dtype, copy=False), x.dtype.type(s), out, pieces)
     return out

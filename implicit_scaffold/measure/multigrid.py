@@ -669,22 +669,27 @@ class Multigrid:
         at a time and the coarse levels on the block, with the same arithmetic per case.
 
         The fine level of a block of six held six cases of each of its whole-grid vectors (b, x, the
-        residual, the correction: 72 bytes a node each in float32); one case at a time holds one,
-        and b and the smoothed x are not kept between the two passes but made again from `r` (x is
-        ``s D^-1 b`` there: two cheap passes). In float, six launches of one case and one of six
-        took within 10 % of each other (:class:`~implicit_scaffold.measure.mechanics_cl._Gather`);
-        the 128^3 benchmark took 59.7 s against 63.8 s before, one run each. With `sink`,
-        each case's result goes to ``sink(case, z)`` as it is made (None is returned)."""
-        from .fused import put, take
+        residual, the correction: 72 bytes a node each in float32); one case at a time holds one.
+        The right-hand side ``b = F r`` is never spread over the grid: the pre-smoothed ``x = s D^-1 b``
+        is spread from `r` at once (twice, once a pass: cheaper than keeping it), the residual is
+        ``-F K x`` with ``b`` added on the live nodes, and the post-smoothing step and the taking of
+        the live nodes are one pass (:mod:`~implicit_scaffold.measure.fused`). With `sink`, each case's
+        result goes to ``sink(case, z)`` as it is made (None is returned)."""
+        from .fused import add_weighted, put_add, put_smoothed, take_smoothed, weighted
         from .mechanics_cl import aligned_empty
 
         n = self.free.shape[1]
         m = r.shape[0]
+        s = self._jacobi_step()
         rc = None
         for c in range(m):
-            b = put(r[c:c + 1], live, n, w, self.dtype)
-            one = self._jacobi_down(b, self._jacobi_start(b))
-            del b
+            x = put_smoothed(r[c:c + 1], live, n, w, self.inv_diag, s, self.dtype)
+            res = self.op(x)
+            del x
+            weighted(res, res, self.free, -1.0)  # -F K x
+            put_add(res, r[c:c + 1], live, w)  # + F b: the residual F (b - K x), for the restriction
+            one = restrict(res, self.fine_shape)
+            del res
             if rc is None:
                 rc = aligned_empty((m,) + one.shape[1:], one.dtype)
             rc[c] = one[0]
@@ -693,17 +698,19 @@ class Multigrid:
         del rc
         z = None
         for c in range(m):
-            b = put(r[c:c + 1], live, n, w, self.dtype)
-            x = self._jacobi_up(b, self._jacobi_start(b), coarse[c:c + 1])
-            del b
+            x = put_smoothed(r[c:c + 1], live, n, w, self.inv_diag, s, self.dtype)
+            corr = prolong(coarse[c:c + 1], self.fine_shape)
+            add_weighted(x, corr, self.free)
+            del corr
+            ax = self.op(x)
+            one = take_smoothed(x, ax, r[c:c + 1], live, w, self.inv_diag, s, r.dtype)
+            del x, ax
             if sink is not None:
-                sink(c, take(x, live, w, r.dtype))
-                del x
+                sink(c, one)
                 continue
             if z is None:  # made here, beside one whole-grid vector only
                 z = np.empty(r.shape, r.dtype)
-            take(x, live, w, out=z[c:c + 1])
-            del x
+            z[c] = one[0]
         return z
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
