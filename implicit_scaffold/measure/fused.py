@@ -106,40 +106,33 @@ def _kernels():
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
 
-    # the fine level of the V-cycle on live-node residuals: the pre-smoothed x = s g (w src) spread
-    # onto the grid (g the inverse diagonal, read at the live nodes), w src added onto a grid
-    # vector, and the post-smoothed result's live nodes w (x + s g (w src - ax)) taken back; each
-    # piece writes its own entries of idx (distinct nodes)
+    # the fine level of the V-cycle on live-node residuals src: mode 0, the pre-smoothed
+    # x = s g (w src) spread onto the grid vector out (g the inverse diagonal, read at the live
+    # nodes); mode 1, w src added onto out; mode 2, the post-smoothed result's live nodes
+    # out = w (x + s g (w src - ax)) taken back (x, ax whole grids). Each piece writes its own
+    # entries of idx (distinct nodes)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def spread_rows(src, idx, w, g, s, out, add, pieces, lo, hi):  # pragma: no cover - compiled
+    def live_rows(src, idx, w, g, s, out, x, ax, mode, pieces, lo, hi):  # pragma: no cover - compiled
         m, n = src.shape[0], idx.shape[0]
         for piece in range(lo, hi):
             n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
             for c in range(m):
                 for d in range(3):
                     wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
-                    if add:
+                    if mode == 0:
+                        for i in range(n0, n1):
+                            j = idx[i]
+                            out[c, d, j] = wd[i] * src[c, d, i]
+                            out[c, d, j] = s * gd[j] * out[c, d, j]
+                    elif mode == 1:
                         for i in range(n0, n1):
                             out[c, d, idx[i]] += wd[i] * src[c, d, i]
                     else:
                         for i in range(n0, n1):
                             j = idx[i]
-                            out[c, d, j] = wd[i] * src[c, d, i]
-                            out[c, d, j] = s * gd[j] * out[c, d, j]
+                            out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[j] * (wd[i] * src[c, d, i] - ax[c, d, j]))
 
-    @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def smoothed_rows(x, ax, src, idx, w, g, s, out, pieces, lo, hi):  # pragma: no cover - compiled
-        m, n = src.shape[0], idx.shape[0]
-        for piece in range(lo, hi):
-            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
-            for c in range(m):
-                for d in range(3):
-                    wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
-                    for i in range(n0, n1):
-                        j = idx[i]
-                        out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[j] * (wd[i] * src[c, d, i] - ax[c, d, j]))
-
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, spread_rows, smoothed_rows
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows
 
 
 def _weight(w, n: int) -> np.ndarray:
@@ -243,7 +236,7 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False),
-              _weight(g, int(n)).astype(out.dtype, copy=False), out.dtype.type(s), out, False, pieces)
+              _weight(g, int(n)).astype(out.dtype, copy=False), out.dtype.type(s), out, out, out, 0, pieces)
     return out
 
 
@@ -254,7 +247,7 @@ def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w) -> None:
     k = len(idx)
     pieces = _pieces(k)
     wk = _weight(w, k).astype(out.dtype, copy=False)
-    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, True, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 1, pieces)
 
 
 def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float,
@@ -267,6 +260,6 @@ def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarra
     k = len(idx)
     out = np.empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)
     pieces = _pieces(k)
-    over_rows(_kernels()[6], pieces, x, ax, src, idx, _weight(w, k).astype(x.dtype, copy=False),
-              _weight(g, x.shape[2]).astype(x.dtype, copy=False), x.dtype.type(s), out, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(x.dtype, copy=False),
+              _weight(g, x.shape[2]).astype(x.dtype, copy=False), x.dtype.type(s), out, x, ax, 2, pieces)
     return out
