@@ -174,7 +174,7 @@ def test_child_matrices_are_the_interpolated_element_matrix():
 @pytest.mark.parametrize("shape, periodic, fix", [((10, 12, 14), True, None), ((9, 10, 11), True, None),
                                                   ((9, 12, 11), False, "kinematic"), ((8, 9, 38), False, "platens"),
                                                   ((5, 6, 4), False, "kinematic")])
-@pytest.mark.parametrize("cases", [1, 6])
+@pytest.mark.parametrize("cases", [1, 2, 6])  # one case a launch: the per-element kernel alone
 def test_the_first_levels_pattern_product_matches_the_dense_level(shape, periodic, fix, cases):
     # PatternLevelOperator (8 child matrices on the elements with no fixed unknown and full length,
     # a matrix per element added for the others) against the level's dense matrix and against the

@@ -210,7 +210,15 @@ class PatternLevelOperator(LevelOperator):
         self._rest_host, self.rest = _shared(rest if self.any_rest else np.zeros(1, np.int32), np.int32,
                                              cl.mem_flags.READ_ONLY)
 
+    #: fewer cases a launch than this run the per-element kernel alone: the 27 stencil blocks cost
+    #: the same for any number of cases (64^3 first level of the 128^3 benchmark, the machine shared,
+    #: ms a call, per-element against pattern: one case 72.5 against 79.6, two 86.8 against 83.6,
+    #: three 105.8 against 91.5, six 160 against 120)
+    MIN_CASES = 2
+
     def _launches(self, ncase: int) -> list:
+        if ncase < self.MIN_CASES:
+            return super()._launches(ncase)
         opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
         out = self._rows("pattern", opts, (self.code, self.children))
         if self.any_rest:
