@@ -1,7 +1,7 @@
 /* The voxel finite-element operator f = K u over solid voxels (issue 14), and the product of a
  * coarse level of the multigrid preconditioner.
  *
- * Both gather: one work item per node of a periodic node grid (n1, n2, n3) (a box sample is
+ * All gather: one work item per node of a periodic node grid (n1, n2, n3) (a box sample is
  * padded with one void layer by the host, so it never wraps). A node is corner b of the eight
  * voxels (elements) around it; for each one it adds row block b of that element's matrix times
  * the element's 24 corner displacements. No atomics, and the sum's order is fixed, so the
@@ -23,7 +23,9 @@ typedef float real;
 #endif
 
 /* A coarse level: each element has its own 24 x 24 matrix; `owner` holds its row in `mats`
- * (-1: no solid under it). One work item per node of a 1-D range.
+ * (-1: no solid under it). One work item per node of a 1-D range. With -DADD=1 the product is
+ * added to f, and a node no element of `owner` touches is left as it is (the first coarse level's
+ * elements that pattern_rows does not cover: see there).
  * Reference: implicit_scaffold.multigrid.Level.apply (numba). */
 __kernel void stiffness_apply(__global const int *owner, __global const real *mats, __global const real *u,
                               __global real *f, const int n1, const int n2, const int n3, const int first)
@@ -47,6 +49,9 @@ __kernel void stiffness_apply(__global const int *owner, __global const real *ma
         s[b] = owner[(I[1 - (b & 1)] * n2 + J[1 - ((b >> 1) & 1)]) * n3 + K[1 - ((b >> 2) & 1)]];
         any |= s[b] >= 0;
     }
+#if defined(ADD) && ADD
+    if (!any) return;
+#endif
     real acc[3 * NCASE];
 #pragma unroll
     for (int t = 0; t < 3 * NCASE; ++t) acc[t] = (real)0;
@@ -77,11 +82,50 @@ __kernel void stiffness_apply(__global const int *owner, __global const real *ma
         }
     }
     for (int c = 0; c < NCASE; ++c) {
+#if defined(ADD) && ADD
+        f[(3 * c + 0) * n + node] += acc[c];
+        f[(3 * c + 1) * n + node] += acc[NCASE + c];
+        f[(3 * c + 2) * n + node] += acc[2 * NCASE + c];
+#else
         f[(3 * c + 0) * n + node] = acc[c];
         f[(3 * c + 1) * n + node] = acc[NCASE + c];
         f[(3 * c + 2) * n + node] = acc[2 * NCASE + c];
+#endif
     }
 }
+
+/* The start of a node function of the 3-D kernels (stiffness_node, pattern_node): n, and the
+ * nine rows (i', j') around node (i, j, k), each + K: uniform over a row's work items */
+#define NODE_ROWS                                                                                          \
+    const int n = n1 * n2 * n3;                                                                            \
+    const int I0 = (i == 0 ? n1 : i) - 1, I2 = i + 1 == n1 ? 0 : i + 1;                                    \
+    const int J0 = (j == 0 ? n2 : j) - 1, J2 = j + 1 == n2 ? 0 : j + 1;                                    \
+    const int R[9] = {(I0 * n2 + J0) * n3, (i * n2 + J0) * n3, (I2 * n2 + J0) * n3,                        \
+                      (I0 * n2 + j) * n3,  (i * n2 + j) * n3,  (I2 * n2 + j) * n3,                         \
+                      (I0 * n2 + J2) * n3, (i * n2 + J2) * n3, (I2 * n2 + J2) * n3};                       \
+    const int K[3] = {K0, k, K2};
+
+/* The 3-D kernels' arguments, and their bodies over a node function: <name>_rows covers
+ * k = 1 .. n3 - 2 (gid 0 + 1), whose neighbours k - 1, k + 1 need no wrap (contiguous loads);
+ * <name>_ends covers k = 0 and k = n3 - 1 (gid 0 = 0, 1), wrapped. */
+#define NODE_ARGS                                                                                          \
+    __global const uchar *flags, __constant real *mat, __global const real *u, __global real *f, const int n1, \
+        const int n2, const int n3, const int first
+#define ROWS_BODY(node_fn)                                                                                 \
+    {                                                                                                      \
+        const int k = (int)get_global_id(0) + 1;                                                           \
+        if (k >= n3 - 1) return;                                                                           \
+        node_fn(flags, mat, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k, k - 1, \
+                k + 1);                                                                                    \
+    }
+#define ENDS_BODY(node_fn)                                                                                 \
+    {                                                                                                      \
+        const int g = (int)get_global_id(0);                                                               \
+        if (g >= 2 || (g == 1 && n3 == 1)) return;                                                         \
+        const int k = g ? n3 - 1 : 0;                                                                      \
+        node_fn(flags, mat, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k,      \
+                (k == 0 ? n3 : k) - 1, k + 1 == n3 ? 0 : k + 1);                                           \
+    }
 
 /* The fine operator: one element matrix `ke` (in constant memory) for every solid voxel, `solid`
  * its 0/1 flags. Laid out for a CPU's vector units: a 3-D range (k, j, i), so that the work
@@ -102,14 +146,7 @@ static inline __attribute__((always_inline)) void stiffness_node(
     __global const uchar *solid, __constant real *ke, __global const real *u, __global real *f, const int n1,
     const int n2, const int n3, const int first, const int i, const int j, const int k, const int K0, const int K2)
 {
-    const int n = n1 * n2 * n3;
-    const int I0 = (i == 0 ? n1 : i) - 1, I2 = i + 1 == n1 ? 0 : i + 1;
-    const int J0 = (j == 0 ? n2 : j) - 1, J2 = j + 1 == n2 ? 0 : j + 1;
-    /* the nine rows (i', j') around the node, each + K: uniform over a row's work items */
-    const int R[9] = {(I0 * n2 + J0) * n3, (i * n2 + J0) * n3, (I2 * n2 + J0) * n3,
-                      (I0 * n2 + j) * n3,  (i * n2 + j) * n3,  (I2 * n2 + j) * n3,
-                      (I0 * n2 + J2) * n3, (i * n2 + J2) * n3, (I2 * n2 + J2) * n3};
-    const int K[3] = {K0, k, K2};
+    NODE_ROWS
     /* voxel b (this node its corner b) has its low corner at node - offset(b) */
     real w[8];
 #pragma unroll
@@ -158,20 +195,112 @@ static inline __attribute__((always_inline)) void stiffness_node(
     }
 }
 
-__kernel void stiffness_rows(__global const uchar *solid, __constant real *ke, __global const real *u,
-                             __global real *f, const int n1, const int n2, const int n3, const int first)
+__kernel void stiffness_rows(NODE_ARGS) ROWS_BODY(stiffness_node)
+__kernel void stiffness_ends(NODE_ARGS) ENDS_BODY(stiffness_node)
+
+/* The first coarse level of the multigrid, on its elements whose matrix is a 0/1 sum of eight
+ * fixed ones: an element with no fixed unknown and full length along every axis has the Galerkin
+ * matrix  A_e = sum over its children c (fine voxels a + 2b + 4c) of solid_c M_c,  with
+ * M_c = W_c^T Ke W_c (W_c: trilinear interpolation from the element's corners to child c's).
+ * `code` holds each element's 8 child bits (0: not covered here; stiffness_apply -DADD=1 adds
+ * those elements after), `pm` the eight M_c (8 x 24 x 24, in constant memory).
+ *
+ * The structure of stiffness_node (one constant matrix, 0/1 flags), laid out the same way
+ * (3-D range, rows and ends): per node, each of the 27 neighbours q gets its 3 x 3 stencil block
+ * S_q = sum over the elements b around the node that contain q of sum_c w_{b,c} M_c[b, a(q, b)]
+ * (64 * 72 multiply-adds a node, whatever the number of cases), then each case in turn adds
+ * S_q u_q over the 27 neighbours, as stiffness_node does a case at a time. The matrices' words
+ * are the same for every work item (broadcasts), the 0/1 weights and the vectors differ: the
+ * runtime runs it in full vectors, where stiffness_apply gathers a matrix per node.
+ * Variants measured on the 64^3 first level of the 128^3 benchmark, six cases, as a share of
+ * stiffness_apply's time in the same process (Intel CPU runtime, AVX-512; the machine shared):
+ * - the 27 neighbours as a loop (even under #pragma unroll): the runtime rolled it back up and
+ *   read u through per-lane index arrays (gathers): 2.0 to 4.4 times stiffness_apply; hence the
+ *   macros below, where q is a literal;
+ * - the children's loop unrolled as well: 1.77 times (and minutes to build); by two: no gain;
+ * - each neighbour's block applied to the six cases at once (18 sums): 0.88; the 27 blocks kept
+ *   (S, 243 words) and the cases a loop over them, as here: 0.71;
+ * - without the skip of untouched nodes: slower (172 against 144 ms; 0.90 against 0.71), though
+ *   only 0.6 % of the vectors of 16 are untouched there.
+ * Reference: implicit_scaffold.multigrid.Level.apply (numba). */
+/* S_q of neighbour q (offset (q % 3, q / 3 % 3, q / 9) - 1): the children in a loop (the same for
+   every work item), the elements unrolled: q, b and a are constants, so the matrices' words are
+   read at constant offsets from pm + 576 c */
+#define PATTERN_S(q)                                                                                      \
+    {                                                                                                     \
+        real *s = S + 9 * (q);                                                                            \
+        for (int e = 0; e < 9; ++e) s[e] = (real)0;                                                       \
+        _Pragma("unroll 1") for (int c = 0; c < 8; ++c)                                                   \
+        {                                                                                                 \
+            __constant const real *mc = pm + 576 * c;                                                     \
+            _Pragma("unroll") for (int b = 0; b < 8; ++b)                                                 \
+            {                                                                                             \
+                const int ax = (q) % 3 - 1 + (b & 1), ay = ((q) / 3) % 3 - 1 + ((b >> 1) & 1),            \
+                          az = (q) / 9 - 1 + ((b >> 2) & 1);                                              \
+                if (ax < 0 || ax > 1 || ay < 0 || ay > 1 || az < 0 || az > 1) continue;                   \
+                __constant const real *row = mc + (3 * b) * 24 + 3 * (ax + 2 * ay + 4 * az);              \
+                const real x = (real)((cb[b] >> c) & 1);                                                  \
+                s[0] = fma(row[0], x, s[0]);                                                              \
+                s[1] = fma(row[1], x, s[1]);                                                              \
+                s[2] = fma(row[2], x, s[2]);                                                              \
+                s[3] = fma(row[24], x, s[3]);                                                             \
+                s[4] = fma(row[25], x, s[4]);                                                             \
+                s[5] = fma(row[26], x, s[5]);                                                             \
+                s[6] = fma(row[48], x, s[6]);                                                             \
+                s[7] = fma(row[49], x, s[7]);                                                             \
+                s[8] = fma(row[50], x, s[8]);                                                             \
+            }                                                                                             \
+        }                                                                                                 \
+    }
+/* one case's S_q u_q (contiguous loads in pattern_rows: q is a literal) */
+#define PATTERN_A(q)                                                                                      \
+    {                                                                                                     \
+        const real *s = S + 9 * (q);                                                                      \
+        const size_t m = (size_t)(R[(q) % 9] + K[(q) / 9]);                                               \
+        const real vx = ux[m], vy = uy[m], vz = uz[m];                                                    \
+        fx = fma(s[0], vx, fma(s[1], vy, fma(s[2], vz, fx)));                                             \
+        fy = fma(s[3], vx, fma(s[4], vy, fma(s[5], vz, fy)));                                             \
+        fz = fma(s[6], vx, fma(s[7], vy, fma(s[8], vz, fz)));                                             \
+    }
+
+static inline __attribute__((always_inline)) void pattern_node(
+    __global const uchar *code, __constant real *pm, __global const real *u, __global real *f, const int n1,
+    const int n2, const int n3, const int first, const int i, const int j, const int k, const int K0, const int K2)
 {
-    const int k = (int)get_global_id(0) + 1;
-    if (k >= n3 - 1) return;
-    stiffness_node(solid, ke, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k, k - 1, k + 1);
+    NODE_ROWS
+    /* element b (this node its corner b) has its low corner at node - offset(b) */
+    int cb[8];
+    int any = 0;
+#pragma unroll
+    for (int b = 0; b < 8; ++b) {
+        cb[b] = code[R[(1 - (b & 1)) + 3 * (1 - ((b >> 1) & 1))] + K[1 - ((b >> 2) & 1)]];
+        any |= cb[b];
+    }
+    const int node = R[4] + k;
+    /* a node no pattern element touches is 0 here (a vector of such nodes skips the products) */
+    real S[243];
+    if (any) {
+        PATTERN_S(0) PATTERN_S(1) PATTERN_S(2) PATTERN_S(3) PATTERN_S(4) PATTERN_S(5) PATTERN_S(6) PATTERN_S(7)
+        PATTERN_S(8) PATTERN_S(9) PATTERN_S(10) PATTERN_S(11) PATTERN_S(12) PATTERN_S(13) PATTERN_S(14)
+        PATTERN_S(15) PATTERN_S(16) PATTERN_S(17) PATTERN_S(18) PATTERN_S(19) PATTERN_S(20) PATTERN_S(21)
+        PATTERN_S(22) PATTERN_S(23) PATTERN_S(24) PATTERN_S(25) PATTERN_S(26)
+    }
+    for (int c = first; c < first + NCASE; ++c) {
+        /* size_t offsets: an int sum that may overflow would read as a gather */
+        __global const real *ux = u + (size_t)(3 * c) * n, *uy = ux + n, *uz = uy + n;
+        real fx = (real)0, fy = (real)0, fz = (real)0;
+        if (any) {
+            PATTERN_A(0) PATTERN_A(1) PATTERN_A(2) PATTERN_A(3) PATTERN_A(4) PATTERN_A(5) PATTERN_A(6) PATTERN_A(7)
+            PATTERN_A(8) PATTERN_A(9) PATTERN_A(10) PATTERN_A(11) PATTERN_A(12) PATTERN_A(13) PATTERN_A(14)
+            PATTERN_A(15) PATTERN_A(16) PATTERN_A(17) PATTERN_A(18) PATTERN_A(19) PATTERN_A(20) PATTERN_A(21)
+            PATTERN_A(22) PATTERN_A(23) PATTERN_A(24) PATTERN_A(25) PATTERN_A(26)
+        }
+        __global real *f0 = f + (size_t)(3 * c) * n;
+        f0[node] = fx;
+        f0[(size_t)n + node] = fy;
+        f0[(size_t)2 * n + node] = fz;
+    }
 }
 
-__kernel void stiffness_ends(__global const uchar *solid, __constant real *ke, __global const real *u,
-                             __global real *f, const int n1, const int n2, const int n3, const int first)
-{
-    const int g = (int)get_global_id(0);
-    if (g >= 2 || (g == 1 && n3 == 1)) return;
-    const int k = g ? n3 - 1 : 0;
-    stiffness_node(solid, ke, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k,
-                   (k == 0 ? n3 : k) - 1, k + 1 == n3 ? 0 : k + 1);
-}
+__kernel void pattern_rows(NODE_ARGS) ROWS_BODY(pattern_node)
+__kernel void pattern_ends(NODE_ARGS) ENDS_BODY(pattern_node)

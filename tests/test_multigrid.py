@@ -152,6 +152,102 @@ def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one(cases):
                 assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
 
 
+def test_child_matrices_are_the_interpolated_element_matrix():
+    # M_c = W_c^T Ke W_c, W_c built here from its definition: fine corner q of child c = (a, b, c)
+    # sits at ((a, b, c) + offset(q)) / 2 in the coarse element, where coarse corner r weighs the
+    # product over the axes of t (r's bit 1) or 1 - t (bit 0)
+    ke = M.voxel_model(np.ones((2, 2, 2), bool), 0.1, MAT, periodic=True).ke
+    bits = np.array([[(v >> ax) & 1 for ax in range(3)] for v in range(8)])  # (8, 3)
+    got = G.child_matrices(ke)
+    assert got.shape == (8, 24, 24)
+    for c in range(8):
+        t = (bits[c][None, :] + bits) / 2  # (q, axis)
+        W = np.prod(np.where(bits[None, :, :] == 1, t[:, None, :], 1 - t[:, None, :]), axis=2)  # (q, r)
+        W24 = np.kron(W, np.eye(3))  # unknown 3 corner + d
+        expect = W24.T @ ke @ W24
+        assert np.abs(got[c] - expect).max() < 1e-12 * np.abs(expect).max()
+    # a full element (all eight children) is the whole element's Galerkin product: the sum
+    # over the children of W_c^T Ke W_c, whose rigid translations it keeps in its null space
+    assert np.abs(got.sum(axis=0) @ np.tile(np.eye(3), (8, 1))).max() < 1e-12 * np.abs(got).max()
+
+
+@pytest.mark.parametrize("shape, periodic, fix", [((10, 12, 14), True, None), ((9, 10, 11), True, None),
+                                                  ((9, 12, 11), False, "kinematic"), ((8, 9, 38), False, "platens"),
+                                                  ((5, 6, 4), False, "kinematic")])
+@pytest.mark.parametrize("cases", [1, 2, 6])  # one case a launch: the per-element kernel alone
+def test_the_first_levels_pattern_product_matches_the_dense_level(shape, periodic, fix, cases):
+    # PatternLevelOperator (8 child matrices on the elements with no fixed unknown and full length,
+    # a matrix per element added for the others) against the level's dense matrix and against the
+    # per-element kernel, on even and odd axes (odd: short end elements), with a face's unknowns
+    # held (kinematic-like) or a component of some (platens-like); 38 fine voxels along z make
+    # rows of 17 inner coarse nodes (two vectors of 16), 4 none (the row ends alone)
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure.mechanics_cl import LevelOperator, PatternLevelOperator, has_double
+
+    rng = np.random.default_rng(sum(shape) + cases)
+    solid = rng.random(shape) < 0.4
+    model = M.voxel_model(solid, 0.1, MAT, periodic=periodic)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    if fix == "kinematic":
+        free[:, : model.shape[1] * model.shape[2]] = 0
+    elif fix == "platens":
+        free[2, 1:: 5] = 0
+    devices = opencl.working_devices()
+    assert devices, "no working OpenCL device"
+    for dtype, tol in ((np.float32, 1e-6), (np.float64, 1e-12)):
+        level = G._first_coarse(model, free, dtype)
+        pattern = level.pattern
+        built = level.index >= 0
+        # both kinds of element are there, except on a periodic grid of even axes (patterns only)
+        assert (pattern[built] > 0).any()
+        assert (pattern[built] == 0).any() == (fix is not None or any(n % 2 for n in shape))
+        assert not pattern[~built].any()
+        nc = int(np.prod(level.shape))
+        x = rng.standard_normal((cases, 3, nc)).astype(dtype)
+        ref = (x.astype(np.float64).reshape(cases, -1) @ level.matrix().T).reshape(cases, 3, nc)
+        scale = np.abs(ref).max()
+        children = G.child_matrices(model.ke).astype(dtype)
+        for check in devices:
+            with opencl.using(check):
+                if dtype == np.float64 and not has_double():
+                    continue
+                got = PatternLevelOperator(level, pattern, children)(x)
+                assert got.dtype == dtype
+                assert np.abs(got - ref).max() <= tol * scale, check.name
+                assert np.abs(got - LevelOperator(level)(x)).max() <= tol * scale, check.name
+
+
+@pytest.mark.parametrize("boundary, tol", [("periodic", 1e-6), ("kinematic", 1e-6), ("periodic", 1e-8)])
+def test_the_first_levels_pattern_product_leaves_the_solve_as_it_was(scaffolds, monkeypatch, boundary, tol):
+    # the same tensor and the same iteration count with the per-element kernel on the first
+    # level (the code before): the two products differ by rounding only (float cycle at 1e-6,
+    # double at 1e-8)
+    solid = scaffolds[0.08]
+    got = {}
+    for flag in (False, True):
+        monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", flag)
+        got[flag] = M.homogenize(solid, 0.08, MAT, boundary=boundary, tol=tol, backend="opencl")
+    assert got[True].iterations == got[False].iterations
+    C = got[False].stiffness
+    assert np.abs(got[True].stiffness - C).max() < tol * np.abs(C).max()
+
+
+def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monkeypatch):
+    from implicit_scaffold.measure.mechanics_cl import LevelOperator, PatternLevelOperator, StiffnessOperator
+
+    model = M.voxel_model(scaffolds[0.08], 0.08, MAT, periodic=False)
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    free[:, : model.shape[1] * model.shape[2]] = 0
+    op = StiffnessOperator(model, double=False)
+    mg = G.Multigrid(model, op, free, dtype=np.float32)
+    assert type(mg.levels[0].device) is PatternLevelOperator
+    assert all(type(level.device) is LevelOperator for level in mg.levels[1:])
+    # the level keeps the one copy of its matrices the device reads (the per-element ones)
+    assert np.shares_memory(mg.levels[0].mats, mg.levels[0].device._mats_host)
+    monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", False)
+    assert type(G.Multigrid(model, op, free, dtype=np.float32).levels[0].device) is LevelOperator
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("rows", [1, 3])
 def test_fused_vector_passes_match_numpy(dtype, rows):

@@ -132,23 +132,29 @@ class _Gather:
         self.n = int(np.prod(self.shape))
 
     def _launches(self, ncase: int) -> list:
-        """The kernel launches of one product of `ncase` load cases: (kernel, global size, local size).
+        """The kernel launches of one product of `ncase` load cases: (kernel, global size, local size,
+        its two first arguments).
 
         A coarse level: ``stiffness_apply`` over every node. The fine operator: ``stiffness_rows``
-        over the rows' inner nodes, in work groups along a row whose length is a multiple of 16
-        (a CPU runtime packs 16 work items into a vector: a row of 126 would leave 14 to run one
-        by one), and ``stiffness_ends`` over the rows' two end nodes."""
+        and ``stiffness_ends`` (:meth:`_rows`)."""
         opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
         if self.per_element:
-            return [(opencl.kernel("mechanics", "stiffness_apply", **opts), (self.n,), None)]
+            return [(opencl.kernel("mechanics", "stiffness_apply", **opts), (self.n,), None, (self.owner, self.mats))]
+        return self._rows("stiffness", opts, (self.owner, self.mats))
+
+    def _rows(self, name: str, opts: dict, args: tuple) -> list:
+        """The launches of a 3-D gather kernel pair: ``<name>_rows`` over the rows' inner nodes, in
+        work groups along a row whose length is a multiple of 16 (a CPU runtime packs 16 work items
+        into a vector: a row of 126 would leave 14 to run one by one), and ``<name>_ends`` over the
+        rows' two end nodes; `args` are the kernels' first two arguments."""
         n1, n2, n3 = self.shape
         out = []
         inner = n3 - 2
         if inner > 0:
             group = min(16 * -(-inner // 16), 256, opencl.device().max_work_group_size)
-            out.append((opencl.kernel("mechanics", "stiffness_rows", **opts), (group * -(-inner // group), n2, n1),
-                        (group, 1, 1)))
-        out.append((opencl.kernel("mechanics", "stiffness_ends", **opts), (min(n3, 2), n2, n1), None))
+            out.append((opencl.kernel("mechanics", f"{name}_rows", **opts), (group * -(-inner // group), n2, n1),
+                        (group, 1, 1), args))
+        out.append((opencl.kernel("mechanics", f"{name}_ends", **opts), (min(n3, 2), n2, n1), None, args))
         return out
 
     def __call__(self, u: np.ndarray) -> np.ndarray:
@@ -173,8 +179,8 @@ class _Gather:
         f_buf = cl.Buffer(ctx, flags.WRITE_ONLY | flags.USE_HOST_PTR, hostbuf=out)
         n1, n2, n3 = self.shape
         for first in range(0, m, step):
-            for k, global_size, local_size in launches:
-                k(queue, global_size, local_size, self.owner, self.mats, u_buf, f_buf, np.int32(n1), np.int32(n2),
+            for k, global_size, local_size, (owner, mats) in launches:
+                k(queue, global_size, local_size, owner, mats, u_buf, f_buf, np.int32(n1), np.int32(n2),
                   np.int32(n3), np.int32(first))
         # mapping the result makes the host array current (a no-op on a CPU device)
         view, _ = cl.enqueue_map_buffer(queue, f_buf, cl.map_flags.READ, 0, out.shape, out.dtype)
@@ -224,3 +230,54 @@ class LevelOperator(_Gather):
     def host_mats(self, shape) -> np.ndarray:
         """The host array the device reads the level's matrices from (to keep as the level's own)."""
         return self._mats_host.reshape(shape)
+
+
+class PatternLevelOperator(LevelOperator):
+    """``A u`` of the first coarse multigrid level on the device, its pattern elements by
+    ``pattern_rows`` / ``pattern_ends`` and the others by ``stiffness_apply`` (added after).
+
+    An element of the first level with no fixed unknown and full length along every axis has the
+    matrix ``sum_c solid_c M_c`` over its eight children (fine voxels), with the same eight
+    ``M_c`` everywhere: the product then needs only the element's 8 child bits and runs in full
+    vectors, like the fine operator (``stiffness_apply`` gathers a matrix per node).
+
+    Parameters
+    ----------
+    level : Level
+        The first coarse level (its `index` and `mats` cover every element, as for
+        :class:`LevelOperator`).
+    pattern : (n1, n2, n3) uint8 ndarray
+        Each element's child bits (``a + 2b + 4c``) when its matrix is ``sum_c solid_c M_c``, else 0.
+    children : (8, 24, 24) float ndarray, GPa mm
+        The matrices ``M_c`` (cast to the float of `level.mats`).
+    """
+
+    def __init__(self, level, pattern: np.ndarray, children: np.ndarray):
+        import pyopencl as cl
+
+        super().__init__(level)
+        pattern = np.asarray(pattern, np.uint8)
+        self._code_host, self.code = _shared(pattern, np.uint8, cl.mem_flags.READ_ONLY)
+        self._children_host, self.children = _shared(children, self.dtype, cl.mem_flags.READ_ONLY)
+        # the other elements' matrices by the per-element kernel, added over the pattern's product;
+        # none (a periodic solve on even axes) saves its launch
+        rest = np.where(pattern.reshape(level.index.shape) == 0, level.index, -1)
+        self.any_rest = bool((rest >= 0).any())
+        self._rest_host, self.rest = _shared(rest if self.any_rest else np.zeros(1, np.int32), np.int32,
+                                             cl.mem_flags.READ_ONLY)
+
+    #: fewer cases a launch than this run the per-element kernel alone: the 27 stencil blocks cost
+    #: the same for any number of cases (64^3 first level of the 128^3 benchmark, the machine shared,
+    #: ms a call, per-element against pattern: one case 72.5 against 79.6, two 86.8 against 83.6,
+    #: three 105.8 against 91.5, six 160 against 120)
+    MIN_CASES = 2
+
+    def _launches(self, ncase: int) -> list:
+        if ncase < self.MIN_CASES:
+            return super()._launches(ncase)
+        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
+        out = self._rows("pattern", opts, (self.code, self.children))
+        if self.any_rest:
+            out.append((opencl.kernel("mechanics", "stiffness_apply", ADD=1, **opts), (self.n,), None,
+                        (self.rest, self.mats)))
+        return out

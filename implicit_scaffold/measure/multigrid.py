@@ -30,7 +30,9 @@ is built from the solid itself:
 
 The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
 OpenCL one the coarse levels run on the device too (a gather kernel of the same file, one matrix
-per element, a block of load cases a launch); with the NumPy one, compiled (numba) on both cores.
+per element, a block of load cases a launch; on the first level, the elements that are a 0/1 sum
+of eight fixed child matrices by a kernel of the fine operator's kind, :func:`child_matrices`);
+with the NumPy one, compiled (numba) on both cores.
 Under CG to 1e-6 the cycle runs in float32. Units: mm, GPa.
 """
 from __future__ import annotations
@@ -48,6 +50,9 @@ FINE_DEGREE = 1
 LOWER = 0.1
 UPPER = 1.1
 POWER_ITERATIONS = 12
+#: the first coarse level's device product takes its elements' child patterns (8 fixed matrices,
+#: :func:`child_matrices`) where it can; False: one gathered matrix per element everywhere
+FIRST_LEVEL_PATTERNS = True
 
 
 # ----------------------------------------------------------------------------- compiled kernels
@@ -331,6 +336,10 @@ class Level:
     device : callable or None
         The same product on the OpenCL device
         (:class:`~implicit_scaffold.measure.mechanics_cl.LevelOperator`), used (for one load case or a block) when set.
+    pattern : (n1, n2, n3) uint8 ndarray or None
+        The first level's: each element's child bits (``a + 2b + 4c``) when its matrix is
+        ``sum_c solid_c M_c`` (:func:`child_matrices`: no fixed unknown, full length along every
+        axis), else 0 (its matrix is its own, in `mats`).
     """
 
     shape: tuple
@@ -339,6 +348,7 @@ class Level:
     inv_diag: np.ndarray
     lmax: float = 2.0
     device: object = None
+    pattern: np.ndarray | None = None
 
     def apply(self, x: np.ndarray) -> np.ndarray:
         """``A x`` for (m, 3, N) nodal values."""
@@ -401,7 +411,27 @@ def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
     mats = mats.astype(dtype, copy=False)
     index = np.full(flat.shape, -1, np.int32)
     index[keep] = inverse.astype(np.int32)
-    return _level(cshape, index.reshape(cshape), mats)
+    level = _level(cshape, index.reshape(cshape), mats)
+    level.pattern = np.where((code >= 0) & (code < 256), code, 0).astype(np.uint8)
+    return level
+
+
+def child_matrices(ke: np.ndarray) -> np.ndarray:
+    """The eight matrices ``M_c = W_c^T Ke W_c`` of the first coarse level (8, 24, 24) float64, GPa mm.
+
+    ``W_c`` interpolates a full coarse element's eight corners trilinearly onto the corners of its
+    child c (fine voxel ``a + 2b + 4c``), so an element with no fixed unknown has the matrix
+    ``sum_c solid_c M_c``. Made by the Galerkin kernel on eight elements of one child each."""
+    galerkin = _kernels()[0]
+    # coarse element (e, 0, 0) has child e alone: fine voxel (2 e + a, b, c), e = a + 2b + 4c
+    fine_index = np.full((16, 2, 2), -1, np.int32)
+    for e in range(8):
+        fine_index[2 * e + (e & 1), (e >> 1) & 1, (e >> 2) & 1] = 0
+    elems = np.zeros((8, 3), np.int64)
+    elems[:, 0] = np.arange(8)
+    out = np.empty((8, 24, 24))
+    galerkin(fine_index, np.asarray(ke, np.float64)[None], np.ones((3, fine_index.size)), elems, out)
+    return out
 
 
 def _next_coarse(level: Level) -> Level:
@@ -539,9 +569,13 @@ class Multigrid:
         for level in self.levels:
             level.inv_diag = level.inv_diag.astype(self.dtype)
             if on_device:
-                from .mechanics_cl import LevelOperator
+                from .mechanics_cl import LevelOperator, PatternLevelOperator
 
-                level.device = LevelOperator(level)
+                if level.pattern is not None and FIRST_LEVEL_PATTERNS:
+                    level.device = PatternLevelOperator(level, level.pattern,
+                                                        child_matrices(model.ke).astype(level.mats.dtype))
+                else:
+                    level.device = LevelOperator(level)
                 # the device reads the matrices in place: the level keeps that one copy
                 level.mats = level.device.host_mats(level.mats.shape)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
