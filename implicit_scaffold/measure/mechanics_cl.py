@@ -7,6 +7,7 @@ is NumPy/SciPy); only ``K p`` runs here, in double when the device has ``cl_khr_
 from __future__ import annotations
 
 import contextlib
+import functools
 import sys
 
 import numpy as np
@@ -56,24 +57,37 @@ def reusing():
             _pool = None
 
 
+def _counts(buffers: list) -> list:
+    """``sys.getrefcount`` of each buffer, always seen from this one place."""
+    return [sys.getrefcount(raw) for raw in buffers]
+
+
+@functools.lru_cache(maxsize=None)
+def _free_count() -> int:
+    """The count :func:`_counts` gives for a buffer that only its list refers to (measured, not
+    assumed: what an interpreter adds for its own frames differs between versions)."""
+    return _counts([np.empty(1, np.uint8)])[0]
+
+
 def _raw(nbytes: int) -> np.ndarray:
     """A byte buffer of `nbytes` (+ :data:`ALIGN`): a free one of the pool's, or a new one."""
     if _pool is None or nbytes < POOLED_BYTES:
         return np.empty(nbytes + ALIGN, np.uint8)
-    for raw in _pool:
-        # 3: the pool's list, this loop's name, getrefcount's argument
-        if raw.size == nbytes + ALIGN and sys.getrefcount(raw) == 3:
+    free = [count == _free_count() for count in _counts(_pool)]
+    for raw, idle in zip(_pool, free):
+        if idle and raw.size == nbytes + ALIGN:
             return raw
     # a miss: free buffers of other sizes go first, oldest first, as many bytes as the new one
     # takes, so that the pool never holds more than the peak of the arrays alive
     freed, keep = 0, []
-    for raw in _pool:
-        if freed < nbytes and sys.getrefcount(raw) == 3:
+    for raw, idle in zip(_pool, free):
+        if idle and freed < nbytes:
             freed += raw.size
         else:
             keep.append(raw)
     _pool[:] = keep
     del keep
+    raw = None  # the loop's last buffer, if freed, goes before the new one is made
     raw = np.empty(nbytes + ALIGN, np.uint8)
     _pool.append(raw)
     return raw
