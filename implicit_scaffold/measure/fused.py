@@ -197,14 +197,12 @@ def add_weighted(x: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray 
     _weighted(x, b, w, s, y, True)
 
 
-def take(src: np.ndarray, idx: np.ndarray, w, dtype=None, out: np.ndarray | None = None) -> np.ndarray:
-    """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass; into `out`
-    (C-contiguous, of that shape) when given."""
+def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
+    """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass."""
     from ..run.threads import over_rows
 
     n = len(idx)
-    if out is None:
-        out = np.empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
+    out = np.empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
     over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
     return out

@@ -638,33 +638,21 @@ class Multigrid:
     def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
         """The fine level of the cycle with degree-1 smoothing (damped Jacobi, :func:`_chebyshev`'s
         degree 1), each vector update one fused pass (:mod:`~implicit_scaffold.measure.fused`)."""
-        x = self._jacobi_start(b)
-        return self._jacobi_up(b, x, self._cycle(1, self._jacobi_down(b, x)))
-
-    def _jacobi_start(self, b: np.ndarray) -> np.ndarray:
-        """The fine level's pre-smoothed ``x = s D^-1 b`` (one damped Jacobi step from zero)."""
-        from .fused import weighted
+        from .fused import add_weighted, weighted
         from .mechanics_cl import aligned_empty
 
-        return weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, self._jacobi_step())
-
-    def _jacobi_down(self, b: np.ndarray, x: np.ndarray) -> np.ndarray:
-        """The restricted residual ``R F (b - K x)`` the coarse levels solve for."""
-        from .fused import weighted
-
+        s = self._jacobi_step()
+        x = weighted(aligned_empty(b.shape, b.dtype), b, self.inv_diag, s)
         r = self.op(x)
         weighted(r, b, self.free, y=r)  # F (b - K x): the restriction sees the free unknowns only
-        return restrict(r, self.fine_shape)
-
-    def _jacobi_up(self, b: np.ndarray, x: np.ndarray, coarse: np.ndarray) -> np.ndarray:
-        """`x` corrected by the prolonged coarse solution, then post-smoothed (in place)."""
-        from .fused import add_weighted
-
-        corr = prolong(coarse, self.fine_shape)
+        rc = restrict(r, self.fine_shape)
+        del r
+        corr = prolong(self._cycle(1, rc), self.fine_shape)
+        del rc
         add_weighted(x, corr, self.free)
         del corr
         ax = self.op(x)
-        add_weighted(x, b, self.inv_diag, self._jacobi_step(), y=ax)
+        add_weighted(x, b, self.inv_diag, s, y=ax)
         return x
 
     def _jacobi_step(self) -> float:
