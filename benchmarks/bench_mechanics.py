@@ -5,7 +5,7 @@
                                          [--across 4 5 6 8 [--across-size 1.6] [--across-porosity 0.7]
                                           [--across-seed 0]]
                                          [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
-                                         [--femur] [--femur-tol 1e-6] [--femur-maxiter N]
+                                         [--femur] [--femur-tol 1e-6] [--femur-maxiter N] [--split]
 
 - **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
@@ -32,6 +32,11 @@
   the box's cross-section (the command's figure) and over the bone's mean cross-section (its
   volume over its length: the shaft is round, the box is not), beside bone's bands. Needs
   ../shared/data.
+
+- **split** (``--split``): one more run of each size's solve with a timer around every OpenCL
+  product, grouped by operator (the fine one in float or double, each coarse level) and the
+  number of load cases a call, the rest of the solve's seconds, and its user and system CPU
+  seconds (system time: mostly fresh pages the kernel zeroes).
 
 Timings on a shared 2-core machine are noisy (other jobs run beside): read them as such.
 """
@@ -79,6 +84,35 @@ hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, back
                    preconditioner={preconditioner!r}, cases_per_block={block!r})
 _out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'residual': hom.residual,
          'C': hom.stiffness.tolist(), 'solid_voxels': int(solid.sum()), 'rss_before_mb': before}}
+"""
+
+SPLIT = """
+import collections, resource, time
+import numpy as np
+from implicit_scaffold.measure import mechanics as M, mechanics_cl as MC
+from implicit_scaffold import opencl
+solid = np.load({solid!r})
+mat = M.material('ti64')
+for nc, d in ((1, 1), (1, 0), ({block!r}, 0)):
+    opencl.program('mechanics', NCASE=nc, USE_DOUBLE=d)
+stats = collections.defaultdict(lambda: [0, 0.0])
+product = MC._Gather.__call__
+def timed(self, u):
+    t = time.perf_counter()
+    out = product(self, u)
+    key = ('level ' + 'x'.join(map(str, self.shape)) if self.per_element
+           else 'fine, ' + ('double' if self.double else 'float'), int(u.shape[0]))
+    stats[key][0] += 1
+    stats[key][1] += time.perf_counter() - t
+    return out
+MC._Gather.__call__ = timed
+r0 = resource.getrusage(resource.RUSAGE_SELF)
+t = time.perf_counter()
+hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl',
+                   cases_per_block={block!r})
+r1 = resource.getrusage(resource.RUSAGE_SELF)
+_out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'user': r1.ru_utime - r0.ru_utime,
+         'system': r1.ru_stime - r0.ru_stime, 'products': [[k[0], k[1], v[0], v[1]] for k, v in stats.items()]}}
 """
 
 MUGRID = """
@@ -387,6 +421,18 @@ def memory(sizes, preconditioners, solves, blocks) -> None:
                        "peak above start MiB", "B/solid voxel", "estimate MiB", "estimate/measured"]))
 
 
+def split(path: Path, n: int, voxel: float, tol: float, block: int) -> None:
+    """One solve of `path` with every OpenCL product timed (``--split``), printed as a table."""
+    r = run_isolated(SPLIT.format(solid=str(path), voxel=voxel, tol=tol, block=block))
+    rows = [[name, cases, calls, f"{s:.2f}", f"{1000 * s / calls:.1f}"]
+            for name, cases, calls, s in sorted(r["products"], key=lambda p: -p[3])]
+    rest = r["seconds"] - sum(p[3] for p in r["products"])
+    rows.append(["everything else (vector passes, transfers, set-up)", "", "", f"{rest:.2f}", ""])
+    print(f"{n}^3: {r['seconds']:.1f} s, {r['iterations']} iterations, CPU {r['user']:.1f} s user, "
+          f"{r['system']:.1f} s system")
+    print(table(rows, ["operator", "cases a call", "calls", "s", "ms a call"]))
+
+
 def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "paper", pore: float = 0.6,
           seed: int = 0) -> tuple[Path, dict]:
     out = tmp / f"solid_{style}_{n}_{porosity}.npy"
@@ -440,6 +486,7 @@ def main(argv=None) -> int:
                          "commands run them)")
     ap.add_argument("--memory-blocks", default="1,6",
                     help="--memory's load cases per CG block (comma-separated)")
+    ap.add_argument("--split", action="store_true", help="one more run of each size with every OpenCL product timed")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
     ap.add_argument("--femur-maxiter", type=int, default=5000,
@@ -481,6 +528,8 @@ def main(argv=None) -> int:
             if first is None:
                 first, first_runs = med, runs
             print(f"  {n}^3 {pc} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+        if args.split:
+            split(path, n, voxel, args.tol, args.cases_per_block)
         if args.mugrid and n <= args.peers_up_to:
             try:
                 mg, mruns = median_runs(MUGRID.format(solid=str(path), voxel=voxel, tol=args.tol), args.peer_runs,
