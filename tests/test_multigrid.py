@@ -301,3 +301,34 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     want = w[:, idx] * (x[:, :, idx] + 0.7 * g[:, idx] * (w[:, idx] * src - b[:, :, idx]))
     got = fused.take_smoothed(x, b, src, idx, w[:, idx], g, 0.7)
     assert got.dtype == np.float64 and close(got, want)
+
+
+@pytest.mark.parametrize("kind", ["sparse", "all"])
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_spreading_onto_used_memory_zeroes_every_other_node(kind, dtype):
+    # put and put_smoothed write the grid's other nodes themselves (no zeroing pass first): on
+    # memory a dropped array held (the pool of reusing hands it out again, NaN-filled here) every
+    # node off idx must read 0
+    from implicit_scaffold.measure import fused
+    from implicit_scaffold.measure.mechanics_cl import aligned_empty, reusing
+
+    rng = np.random.default_rng(5)
+    n = 300_001  # (1, 3, n) of float32 is over the pool's 1 MiB
+    idx = {"sparse": np.flatnonzero(rng.random(n) < 0.3)[3:-3],  # neither end live, uneven gaps
+           "all": np.arange(n)}[kind]
+    src = rng.standard_normal((1, 3, len(idx)))
+    w = rng.random((1, len(idx)))
+    g = rng.random((3, n))
+    want = np.zeros((1, 3, n))
+    want[:, :, idx] = w * src
+    with reusing():
+        for spread, scale in ((lambda: fused.put(src, idx, n, w, dtype), 1.0),
+                              (lambda: fused.put_smoothed(src, idx, n, w, g, 0.5, dtype), 0.5 * g)):
+            dirty = aligned_empty((1, 3, n), dtype)
+            dirty.fill(np.nan)
+            where = dirty.ctypes.data
+            del dirty
+            got = spread()
+            assert got.ctypes.data == where  # the used memory itself
+            assert np.allclose(got, scale * want, rtol=1e-6, atol=0)
+            del got

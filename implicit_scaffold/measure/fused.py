@@ -90,7 +90,9 @@ def _kernels():
 
     # a vector on the live nodes only, (m, 3, len(idx)), from the whole grid's (m, 3, N), or
     # spread back onto it; each piece reads or writes its own entries of idx (distinct nodes), so
-    # no two pieces race
+    # no two pieces race. Spread, a piece also zeroes the nodes from the one after its previous
+    # piece's last live node to its own last (the last piece: to the grid's end), so that `out`
+    # need not be zeroed first (one pass over the grid, not two: the idx are increasing)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def move_rows(src, idx, w, out, spread, pieces, lo, hi):  # pragma: no cover - compiled
         m, n = src.shape[0], idx.shape[0]
@@ -100,8 +102,15 @@ def _kernels():
                 for d in range(3):
                     wd = w[d if w.shape[0] == 3 else 0]
                     if spread:
+                        od = out[c, d]
+                        k = idx[n0 - 1] + 1 if n0 > 0 else 0
                         for i in range(n0, n1):
-                            out[c, d, idx[i]] = wd[i] * src[c, d, i]
+                            j = idx[i]
+                            od[k:j] = 0
+                            od[j] = wd[i] * src[c, d, i]
+                            k = j + 1
+                        if piece == pieces - 1:
+                            od[k:] = 0
                     else:
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
@@ -110,7 +119,7 @@ def _kernels():
     # x = s g (w src) spread onto the grid vector out (g the inverse diagonal, read at the live
     # nodes); mode 1, w src added onto out; mode 2, the post-smoothed result's live nodes
     # out = w (x + s g (w src - ax)) taken back (x, ax whole grids). Each piece writes its own
-    # entries of idx (distinct nodes)
+    # entries of idx (distinct nodes); mode 0 zeroes the other nodes as move_rows spreads
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def live_rows(src, idx, w, g, s, out, x, ax, mode, pieces, lo, hi):  # pragma: no cover - compiled
         m, n = src.shape[0], idx.shape[0]
@@ -120,10 +129,16 @@ def _kernels():
                 for d in range(3):
                     wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
                     if mode == 0:
+                        od = out[c, d]
+                        k = idx[n0 - 1] + 1 if n0 > 0 else 0
                         for i in range(n0, n1):
                             j = idx[i]
-                            out[c, d, j] = wd[i] * src[c, d, i]
-                            out[c, d, j] = s * gd[j] * out[c, d, j]
+                            od[k:j] = 0
+                            od[j] = wd[i] * src[c, d, i]
+                            od[j] = s * gd[j] * od[j]
+                            k = j + 1
+                        if piece == pieces - 1:
+                            od[k:] = 0
                     elif mode == 1:
                         for i in range(n0, n1):
                             out[c, d, idx[i]] += wd[i] * src[c, d, i]
@@ -214,8 +229,7 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
-    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)
-    out.fill(0)
+    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[4], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, True, pieces)
@@ -229,8 +243,7 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
-    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)
-    out.fill(0)
+    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False),
