@@ -22,11 +22,15 @@ is built from the solid itself:
   with averaged moduli would smear it over its neighbours' void.
 - **Smoothing**: Chebyshev polynomials in ``D^-1 A`` on the upper part ``[0.1, 1.1] x`` the
   largest eigenvalue (estimated by power iterations), the smoother of PETSc's GAMG: degree 1
-  (damped Jacobi) on the fine grid, where every product costs a pass of the OpenCL operator,
-  and degree 3 on the coarse ones, where it is cheap (on a 30 % Voronoi scaffold at 32^3:
-  23 iterations with 3 fine products each, against 25 with 5 for degree 2 everywhere). A
-  polynomial in ``D^-1 A`` is symmetric, so the V-cycle is a symmetric preconditioner, as
-  conjugate gradients need.
+  (damped Jacobi) on the fine grid, where every product costs a pass of the OpenCL operator
+  (on a 30 % Voronoi scaffold at 32^3: 23 iterations with 3 fine products each, against 25
+  with 5 for degree 2 everywhere), degree 1 on the first coarse level too, whose product builds
+  27 stencil blocks per node (six cases: 64.5 ms against 24.5 for one case of the fine product,
+  128^3 benchmark scaffold), and degree 3 below, where it is cheap. On that scaffold, the CG's
+  products in float, the first level's degree 3, 2 and 1 took 35, 37 and 41 iterations and
+  50.1, 46.6 and 45.2 s (a throw-away script; 59.1, 48.1 and 45.7 s in a second round, the
+  machine shared in part). A polynomial in ``D^-1 A`` is symmetric, so the V-cycle is a
+  symmetric preconditioner, as conjugate gradients need.
 
 The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
 OpenCL one the coarse levels run on the device too (a gather kernel of the same file, one matrix
@@ -44,9 +48,11 @@ import numpy as np
 
 #: the coarsest level is solved exactly when it has at most this many unknowns
 COARSEST_UNKNOWNS = 1000
-#: Chebyshev smoothing: degree and the share of the largest eigenvalue it targets
+#: Chebyshev smoothing: degree (coarse levels below the first; the fine level; the first
+#: coarse level) and the share of the largest eigenvalue it targets
 DEGREE = 3
 FINE_DEGREE = 1
+FIRST_DEGREE = 1
 LOWER = 0.1
 UPPER = 1.1
 POWER_ITERATIONS = 12
@@ -617,7 +623,7 @@ class Multigrid:
             for _ in range(4):
                 x = _chebyshev(apply, inv_diag, lmax, b, x)
             return x
-        degree = FINE_DEGREE if depth == 0 else DEGREE
+        degree = FINE_DEGREE if depth == 0 else (FIRST_DEGREE if depth == 1 else DEGREE)
         if depth == 0 and degree == 1:
             return self._fine_jacobi(b)
         x = _chebyshev(apply, inv_diag, lmax, b, degree=degree)
