@@ -362,6 +362,80 @@ def _devices():
     return opencl.working_devices()
 
 
+def _held_block(seed=11):
+    """A random one-piece solid held on one face, its NumPy operator, free mask and three loads."""
+    rng = np.random.default_rng(seed)
+    solid = rng.random((10, 9, 8)) < 0.85
+    model = m.voxel_model(solid, 0.1, TI, periodic=False)
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    free[:, : model.shape[1] * model.shape[2]] = 0
+    b = rng.standard_normal((3, 3, free.shape[1])) * free
+    return model, free, b
+
+
+def _true_residuals(model, free, b, x):
+    """|F (b - K x)| / |b| per case, by the NumPy operator (the oracle)."""
+    r = (b - m.apply_stiffness(model, x)) * free
+    return np.sqrt((r ** 2).sum(axis=(1, 2))) / np.sqrt((b ** 2).sum(axis=(1, 2)))
+
+
+@pytest.mark.parametrize("err", [1e-3, "float32"])
+def test_pcg_with_a_fast_operator_ends_on_the_true_residual(err):
+    # the iterations run on a cheaper operator (1e-3 too stiff, or the same in float32 arithmetic):
+    # its own recurrence converges to the wrong x (1e-3: off by 1e-3), so the true residual, made
+    # again with the exact operator and the right-hand side, must take over and finish the solve
+    model, free, b = _held_block()
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    if err == "float32":
+        ke32 = m.VoxelModel(model.shape, model.solid, model.ke.astype(np.float32), model.h, model.material)
+        fast = lambda u: m.apply_stiffness(ke32, u.astype(np.float32)).astype(np.float64)  # noqa: E731
+        tol = 1e-6
+    else:
+        fast = lambda u: (1 + err) * m.apply_stiffness(model, u)  # noqa: E731
+        tol = 1e-8
+    scale = np.sqrt((b ** 2).sum(axis=(1, 2)))
+    pre = m.make_preconditioner("multigrid", model, op, free, tol)
+    calls = []
+    x, its, res = m.pcg(op, pre, b.copy(), free, scale=scale, tol=tol, fast=fast,
+                        rhs=lambda c: (calls.append(c), b[c:c + 1].copy())[1])
+    assert sorted(calls) == [0, 1, 2]  # each case's right-hand side made again once
+    true = _true_residuals(model, free, b, x)
+    assert np.all(true <= tol)
+    assert np.allclose(res, true, rtol=1e-3, atol=0)  # the residuals returned are the true ones
+    plain, its_plain, _ = m.pcg(op, pre, b.copy(), free, scale=scale, tol=tol)
+    assert np.abs(x - plain).max() <= 1e3 * tol * np.abs(plain).max()
+
+
+def test_pcg_leaves_a_fast_operator_that_stalls():
+    # a fast operator blind to one direction w (projected out: singular where K is not) leaves
+    # the loads' share along w unsolvable, so its residual cannot fall under that share (some 2e-2):
+    # the cases must leave it when they stop improving and finish on the exact operator, well
+    # before maxiter
+    model, free, b = _held_block()
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    w = np.random.default_rng(0).standard_normal(free.shape) * free
+    w /= np.linalg.norm(w)
+
+    def fast(u):
+        qu = u - np.einsum("mdn,dn->m", u, w)[:, None, None] * w
+        f = op(qu)
+        return f - np.einsum("mdn,dn->m", f, w)[:, None, None] * w
+
+    scale = np.sqrt((b ** 2).sum(axis=(1, 2)))
+    pre = m.make_preconditioner("multigrid", model, op, free, 1e-8)
+    x, its, res = m.pcg(op, pre, b.copy(), free, scale=scale, tol=1e-8, maxiter=300, fast=fast,
+                        rhs=lambda c: b[c:c + 1].copy())
+    assert its < 300
+    assert np.all(_true_residuals(model, free, b, x) <= 1e-8)
+
+
+def test_pcg_with_a_fast_operator_needs_the_right_hand_side():
+    model, free, b = _held_block()
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    with pytest.raises(ValueError, match="rhs"):
+        m.pcg(op, lambda r: r, b, free, scale=np.ones(3), fast=op)
+
+
 @pytest.mark.parametrize("periodic", [True, False])
 def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
     from implicit_scaffold import opencl

@@ -8,7 +8,9 @@ preconditioners (:func:`make_preconditioner`):
 - ``multigrid`` (the default): a V-cycle over Galerkin coarse grids of the solid itself
   (:mod:`~implicit_scaffold.measure.multigrid`, ParOSol's approach for bone micro-FE). Its count
   stays flat where struts are thin: a 30 % solid Voronoi scaffold at 0.04 mm took 23, 28
-  and 34 iterations at 32^3, 64^3 and 128^3 (six load cases).
+  and 34 iterations at 32^3, 64^3 and 128^3 (six load cases) with degree-3 smoothing on every
+  coarse level; with degree 1 on the first one (cheaper cycles) and the CG's products in float
+  before a check in double, 38 at 64^3 and 41 at 128^3.
 - ``fft``: the inverse of the same finite-element operator on the full (all-solid)
   periodic grid, which Fourier diagonalises, with Green-Jacobi scaling ("Fourier-accelerated
   nodal solvers": Leuschner & Fritzen 2018, Comput Mech 62:359; Ladecky et al. 2023). Flat
@@ -344,13 +346,21 @@ def element_loads(model: VoxelModel, fe: np.ndarray) -> np.ndarray:
     """(m, 3, N) nodal sums of one element force vector per load case, the same in every solid
     voxel (``fe``: (m, 24), corner-major), as ``apply_stiffness`` assembles a uniform ``element_extra``."""
     m = fe.shape[0]
-    out = np.zeros((m, 3) + tuple(model.shape))
+    # a node's load is the sum of fe's corner blocks over the corners it is of solid voxels: one of
+    # 256 values per case and component, by its 8 corner bits (one lookup pass, not 8 masked adds
+    # a case and component: 0.19 s a case on the 128^3 benchmark scaffold, and the solver makes
+    # each case's again to check its residual)
+    code = np.zeros(model.shape, np.uint8)
     for a in range(8):
-        mask = model.corner(a)
-        for c in range(m):
-            for d in range(3):
-                np.add(out[c, d], fe[c, 3 * a + d], out=out[c, d], where=mask)
-    return out.reshape(m, 3, -1)
+        code |= model.corner(a).view(np.uint8) << np.uint8(a)
+    bits = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
+    table = np.einsum("ka,mad->mdk", bits.astype(float), np.asarray(fe, float).reshape(m, 8, 3))
+    out = np.empty((m, 3, code.size))
+    flat = code.ravel()
+    for c in range(m):
+        for d in range(3):
+            np.take(table[c, d], flat, out=out[c, d])
+    return out
 
 
 def apply_stiffness(model: VoxelModel, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
@@ -494,7 +504,7 @@ def _norms(v: np.ndarray) -> np.ndarray:
 
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None):
+        maxiter: int = 2000, progress=None, fast=None, rhs=None):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -527,11 +537,23 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
         Called after every iteration with (iteration, largest relative residual).
+    fast : callable, optional
+        A cheaper approximation of `apply` (the OpenCL operator in float: half the time of
+        double) for the iterations, to :data:`FAST_GOAL` times `tol` (or until a case stalls on
+        its rounding, :data:`FAST_STALL`). Then each case's residual ``F (b - K x)`` is computed
+        anew with `apply` and `rhs` and replaces the recurrence's; a case still above `tol`
+        restarts from there on `apply`'s products. The residuals returned are then `apply`'s
+        true ones.
+    rhs : callable, optional
+        ``rhs(c)`` -> (1, 3, N): the right-hand side of case `c` of `b` again (needed with `fast`:
+        `b` itself is not kept).
 
     Returns
     -------
     x (m, 3, N), iterations, relative residuals (m,)
     """
+    if fast is not None and rhs is None:
+        raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
     from .fused import cg_update, put, take, wdot, xpby
     from .mechanics_cl import reusing
 
@@ -567,16 +589,27 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     x = np.zeros_like(r)
     res = _norms(r) / scale
     it = 0
-    with reusing():
-        while np.any(res > tol) and it < maxiter:
-            # K p and the step one load case at a time (each case is its own CG): the whole-grid
-            # vectors (p spread, K p) and q are one case's, not the block's (the OpenCL operator in
-            # double runs a case a launch anyway), and a converged case costs no product
-            live_cases = np.zeros(len(p), bool)
-            rr = np.zeros(len(p))
-            for c in np.flatnonzero(res > tol):
+
+    def iterate(product, goal: float, stall: int = 0):
+        """CG steps until every case is below `goal` (or maxiter); with `stall`, a case also stops
+        once its residual has not reached a new low for that many steps (the fast products'
+        rounding floor)."""
+        # K p and the step one load case at a time (each case is its own CG): the whole-grid
+        # vectors (p spread, K p) and q are one case's, not the block's (the OpenCL operator in
+        # double runs a case a launch anyway), and a converged case costs no product
+        nonlocal rz, res, it
+        spread = getattr(product, "dtype", None)  # p spread in the operator's own float: no cast there
+        best, stale = res.copy(), np.zeros(m, int)
+        while it < maxiter:
+            going = (res > goal) & ((stale < stall) if stall else True)
+            if not going.any():
+                break
+            live_cases = np.zeros(m, bool)
+            rr = np.zeros(m)
+            for c in np.flatnonzero(going):
                 one = slice(c, c + 1)
-                q = take(apply(put(p[one], live, n, ones)), live, ones)  # masked to the free unknowns below
+                # masked to the free unknowns below
+                q = take(product(put(p[one], live, n, ones, spread)), live, ones, np.float64)
                 pq = wdot(p[one], q, wl)[0]
                 if pq > 0:
                     live_cases[c] = True
@@ -592,9 +625,43 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             pre(r, step)
             rz = rz_new
             res = np.where(live_cases, np.sqrt(rr) / scale, res)
+            stale = np.where(live_cases & (res >= best), stale + 1, np.where(live_cases, 0, stale))
+            best = np.minimum(best, res)
             it += 1
             if progress is not None:
                 progress(it, float(res.max()))
+
+    with reusing():
+        if fast is None:
+            iterate(apply, tol)
+        else:
+            iterate(fast, FAST_GOAL * tol, FAST_STALL)
+    if fast is not None:
+        # the recurrence's r drifted from F (b - K x) by the fast products' rounding (on the 128^3
+        # benchmark scaffold, float: up to 1.16e-6 where r said under 1e-6); each case's true
+        # residual replaces it, and a case still above tol goes on with `apply`. Out of the pool:
+        # its idle buffers are gone before the right-hand sides' whole grids are made
+        for c in range(m):
+            one = slice(c, c + 1)
+            r[one] = take(rhs(c), live, wl)
+            r[one] -= take(apply(put(x[one], live, n, ones)), live, wl)
+        res = _norms(r) / scale
+        # a case still above tol restarts (p = z): its directions and steps belong to the recurrence's
+        # r. Kept (residual replacement), a drift of 1e-3 stalled the CG, its next beta some 1e10,
+        # and on a 64^3 scaffold under platens one of 3.3 times (2.9e-6 against 8.7e-7) took 238
+        # more iterations where the restart took a few
+        again = res > tol
+        with reusing():
+            if again.any():
+                # the whole block preconditioned, as every iteration does (a block of another size
+                # would build the coarse levels' kernels for it)
+                def restart(c, z):
+                    if again[c]:
+                        p[c] = z[0]
+                        rz[c] = np.einsum("dn,dn->", r[c], z[0])
+
+                pre(r, restart)
+            iterate(apply, tol)
     del r, p
     return put(x, live, n, ones), it, res
 
@@ -623,6 +690,28 @@ def _operator(model, backend):
 
         return StiffnessOperator(model)
     raise ValueError(f"backend must be 'numpy' or 'opencl', got {backend!r}")
+
+
+#: the CG's products run in float (the OpenCL operator's, then the true residuals in double) for a
+#: tolerance of at least this: float's rounding, some 1e-7 of a product, stays under it
+FAST_TOL = 1e-7
+
+
+#: the fast products aim at this share of the tolerance: their recurrence's residual reads low by up
+#: to a fifth (128^3 benchmark scaffold, float), and a case above tol after them restarts, in double
+#: (aiming at tol itself: 38 iterations, then 3 in double for three cases; at half: 41, none after)
+FAST_GOAL = 0.5
+#: a case leaves the fast products when its residual has not reached a new low for this many
+#: iterations (their rounding's floor: a block under lubricated platens stalled near 3e-4 in float)
+FAST_STALL = 5
+
+
+def _fast(op, tol: float):
+    """The float operator for the CG's iterations (:func:`pcg`'s `fast`), or None: an OpenCL
+    operator in double and a tolerance of at least :data:`FAST_TOL`."""
+    if tol >= FAST_TOL and getattr(op, "double", False) and hasattr(op, "single"):
+        return op.single()
+    return None
 
 
 def check_solid(solid) -> np.ndarray:
@@ -689,6 +778,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         del inner
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
     precond = make_preconditioner(preconditioner, model, op, free, tol)
+    fast = _fast(op, tol)
     block = max(1, min(6, int(cases_per_block)))
     ue_sum = np.empty((6, 24))
     iterations, res = 0, np.zeros(6)
@@ -698,11 +788,14 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         # released once pcg has read its live nodes
         if periodic:
             # the macroscopic strain's element forces Ke E x, the same in every solid voxel
-            x, its, r = pcg(op, precond, element_loads(model, -(model.ke @ u0e[list(cases)].T).T), free,
-                            scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
+            def loads(ks):
+                return element_loads(model, -(model.ke @ u0e[list(ks)].T).T)
         else:
-            x, its, r = pcg(op, precond, _kinematic_loads(op, model.shape, h, cases), free,
-                            scale=scale[list(cases)], tol=tol, maxiter=maxiter, progress=progress)
+            def loads(ks):
+                return _kinematic_loads(op, model.shape, h, ks)
+        x, its, r = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
+                        progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]))
+        if not periodic:
             for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
                 x[c] += _affine(model.shape, h, [k])[0]
         ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
@@ -848,6 +941,9 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     unit = macro_displacements(h)[axis] * strain
     scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
+    # no fast products here: in float this system's residual stalls some 3 times over the
+    # recurrence's, and the restart in double costs more than float saves (64^3 benchmark
+    # scaffold along z: 44 iterations, 2.4 and 3.0 s, against 40 and 2.2 and 2.3 s in double)
     x, iterations, res = pcg(op, precond, -op(base) * free, free, scale=scale, tol=tol, maxiter=maxiter,
                              progress=progress)
     u = base + x
