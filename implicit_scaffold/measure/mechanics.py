@@ -356,7 +356,8 @@ def element_loads(model: VoxelModel, fe: np.ndarray) -> np.ndarray:
     bits = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
     table = np.einsum("ka,mad->mdk", bits.astype(float), np.asarray(fe, float).reshape(m, 8, 3))
     out = np.empty((m, 3, code.size))
-    flat = code.ravel()
+    flat = code.ravel().astype(np.intp)  # np.take casts any other index array on every call
+    del code
     for c in range(m):
         for d in range(3):
             np.take(table[c, d], flat, out=out[c, d])
