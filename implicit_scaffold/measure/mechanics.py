@@ -9,8 +9,8 @@ preconditioners (:func:`make_preconditioner`):
   (:mod:`~implicit_scaffold.measure.multigrid`, ParOSol's approach for bone micro-FE). Its count
   stays flat where struts are thin: a 30 % solid Voronoi scaffold at 0.04 mm took 23, 28
   and 34 iterations at 32^3, 64^3 and 128^3 (six load cases) with degree-3 smoothing on every
-  coarse level; with degree 1 on the first one (cheaper cycles) and the CG's products in float
-  before a check in double, 38 at 64^3 and 41 at 128^3.
+  coarse level; with degree 1 on the first one (cheaper cycles) and the CG's first products in
+  float, 40 at 128^3 and 46 at 200^3.
 - ``fft``: the inverse of the same finite-element operator on the full (all-solid)
   periodic grid, which Fourier diagonalises, with Green-Jacobi scaling ("Fourier-accelerated
   nodal solvers": Leuschner & Fritzen 2018, Comput Mech 62:359; Ladecky et al. 2023). Flat
@@ -540,11 +540,10 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Called after every iteration with (iteration, largest relative residual).
     fast : callable, optional
         A cheaper approximation of `apply` (the OpenCL operator in float: half the time of
-        double) for the iterations, to :data:`FAST_GOAL` times `tol` (or until a case stalls on
-        its rounding, :data:`FAST_STALL`). Then each case's residual ``F (b - K x)`` is computed
-        anew with `apply` and `rhs` and replaces the recurrence's; a case still above `tol`
-        restarts from there on `apply`'s products. The residuals returned are then `apply`'s
-        true ones.
+        double) for the first iterations, to :data:`FAST_GOAL` times `tol` (or until a case
+        stalls on its rounding, :data:`FAST_STALL`). Then each case's residual ``F (b - K x)``
+        is computed anew with `apply` and `rhs` and replaces the recurrence's, and a case still
+        above `tol` restarts from there (p = z) on `apply`'s products.
     rhs : callable, optional
         ``rhs(c)`` -> (1, 3, N): the right-hand side of case `c` of `b` again (needed with `fast`:
         `b` itself is not kept).
@@ -640,8 +639,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if fast is not None:
         # the recurrence's r drifted from F (b - K x) by the fast products' rounding (on the 128^3
         # benchmark scaffold, float: up to 1.16e-6 where r said under 1e-6); each case's true
-        # residual replaces it, and a case still above tol goes on with `apply`. Out of the pool:
-        # its idle buffers are gone before the right-hand sides' whole grids are made
+        # residual replaces it, and a case above tol goes on with `apply`. Out of the pool: its
+        # idle buffers are gone before the right-hand sides' whole grids are made
         for c in range(m):
             one = slice(c, c + 1)
             r[one] = take(rhs(c), live, wl)
@@ -698,10 +697,12 @@ def _operator(model, backend):
 FAST_TOL = 1e-7
 
 
-#: the fast products aim at this share of the tolerance: their recurrence's residual reads low by up
-#: to a fifth (128^3 benchmark scaffold, float), and a case above tol after them restarts, in double
-#: (aiming at tol itself: 38 iterations, then 3 in double for three cases; at half: 41, none after)
-FAST_GOAL = 0.5
+#: the fast products go on to this many times the tolerance, then each case restarts from its true
+#: residual in double. Their rounding floors the residual, higher on larger grids: on the 200^3
+#: benchmark scaffold, float stalled near 1.3e-6 (a goal of half the tolerance: 58 iterations,
+#: 215.3 s; of 100 times it: 46, 185.8 s, the last 22 in double); on the 128^3 one it reached
+#: 5e-7 (41 iterations, 42.1 s, against 40 and 44.3 s for 100 times), one run each
+FAST_GOAL = 100.0
 #: a case leaves the fast products when its residual has not reached a new low for this many
 #: iterations (their rounding's floor: a block under lubricated platens stalled near 3e-4 in float)
 FAST_STALL = 5
