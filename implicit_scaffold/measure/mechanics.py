@@ -360,7 +360,7 @@ def element_loads(model: VoxelModel, fe: np.ndarray) -> np.ndarray:
     del code
     for c in range(m):
         for d in range(3):
-            np.take(table[c, d], flat, out=out[c, d])
+            np.take(table[c, d], flat, out=out[c, d], mode="clip")  # every code is in range; "raise" buffers
     return out
 
 
