@@ -23,6 +23,9 @@ PIECES = 64
 
 @functools.lru_cache(maxsize=None)
 def _kernels():
+    # the helper _own is a module global, not a closure cell: numba keys its disk cache on a
+    # closure's cells, and a dispatcher pickles differently in every process (a fresh compile each run)
+    global _own
     import numba as nb
 
     # each inner loop runs over one contiguous row piece (1-D slices, no branch inside), which
