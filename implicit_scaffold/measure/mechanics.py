@@ -467,6 +467,12 @@ def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = Fa
     return apply
 
 
+#: a solve to a tolerance of at least this runs its preconditioner in float, and a homogenization
+#: its first CG products too (then the true residuals in double): float's rounding, some 1e-7 of a
+#: product, stays under it
+FLOAT_TOL = 1e-7
+
+
 def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol: float):
     """The conjugate gradients' preconditioner for the system ``F K F`` of `model`.
 
@@ -480,7 +486,7 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     free : (N,) or (3, N) array of 0 and 1
         The unknowns.
     tol : float
-        The solve's tolerance (above 1e-7 the preconditioner runs in float32: it need only be
+        The solve's tolerance (from :data:`FLOAT_TOL` the preconditioner runs in float32: it need only be
         close to ``K^-1``, and CG to 1e-6 does not feel its rounding).
     """
     if kind == "multigrid":
@@ -489,12 +495,12 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
         # a grid too thin to coarsen (an axis under 4 nodes, too many unknowns to solve
         # exactly) would get smoothing only: the FFT one serves it better
         if min(model.shape) >= 4 or 3 * np.prod(model.shape) <= COARSEST_UNKNOWNS:
-            if tol >= 1e-7 and hasattr(op, "single"):
+            if tol >= FLOAT_TOL and hasattr(op, "single"):
                 return Multigrid(model, op.single(), free, dtype=np.float32)
             return Multigrid(model, op, free)
         kind = "fft"
     if kind == "fft":
-        return fft_preconditioner(model, free, single=tol >= 1e-7)
+        return fft_preconditioner(model, free, single=tol >= FLOAT_TOL)
     raise ValueError(f"preconditioner must be 'multigrid' or 'fft', got {kind!r}")
 
 
@@ -659,12 +665,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             if again.any():
                 # the whole block preconditioned, as every iteration does (a block of another size
                 # would build the coarse levels' kernels for it)
-                def restart(c, z):
-                    if again[c]:
-                        p[c] = z[0]
-                        rz[c] = np.einsum("dn,dn->", r[c], z[0])
-
-                pre(r, restart)
+                pre(r, lambda c, z: first(c, z) if again[c] else None)
             iterate(apply, tol)
     del r, p
     return put(x, live, n, ones), it, res
@@ -696,11 +697,6 @@ def _operator(model, backend):
     raise ValueError(f"backend must be 'numpy' or 'opencl', got {backend!r}")
 
 
-#: the CG's products run in float (the OpenCL operator's, then the true residuals in double) for a
-#: tolerance of at least this: float's rounding, some 1e-7 of a product, stays under it
-FAST_TOL = 1e-7
-
-
 #: the fast products go on to this many times the tolerance, then each case restarts from its true
 #: residual in double. Their rounding floors the residual, higher on larger grids: on the 200^3
 #: benchmark scaffold, float stalled near 1.3e-6 (a goal of half the tolerance: 58 iterations,
@@ -714,8 +710,8 @@ FAST_STALL = 5
 
 def _fast(op, tol: float):
     """The float operator for the CG's iterations (:func:`pcg`'s `fast`), or None: an OpenCL
-    operator in double and a tolerance of at least :data:`FAST_TOL`."""
-    if tol >= FAST_TOL and getattr(op, "double", False) and hasattr(op, "single"):
+    operator in double and a tolerance of at least :data:`FLOAT_TOL`."""
+    if tol >= FLOAT_TOL and getattr(op, "double", False) and hasattr(op, "single"):
         return op.single()
     return None
 
