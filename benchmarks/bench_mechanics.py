@@ -6,6 +6,7 @@
                                           [--across-seed 0]]
                                          [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
                                          [--femur] [--femur-tol 1e-6] [--femur-maxiter N] [--split]
+                                         [--tolerances 1e-2 1e-3 1e-4 1e-5 1e-6 [--tolerance-size 128]]
 
 - **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
@@ -32,6 +33,10 @@
   the box's cross-section (the command's figure) and over the bone's mean cross-section (its
   volume over its length: the shaft is round, the box is not), beside bone's bands. Needs
   ../shared/data.
+
+- **tolerances** (``--tolerances``): the solve above at each CG tolerance (``--mechanics-tol``), medians
+  of --runs, against one solve of the same voxels to 1e-10: its seconds and iterations, and how far
+  its tensor and its Young's moduli lie from the reference's (what a looser tolerance saves and costs).
 
 - **split** (``--split``): one more run of each size's solve with a timer around every OpenCL
   product, grouped by operator (the fine one in float or double, each coarse level) and the
@@ -441,6 +446,42 @@ def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "pap
     return out, info
 
 
+#: the tolerance of the reference solve of --tolerances
+REFERENCE_TOL = 1e-10
+
+
+def tolerances(tmp: Path, n: int, voxel: float, tols, runs: int, block: int) -> None:
+    """The multigrid solve of the N^3 scaffold at each tolerance, against one to :data:`REFERENCE_TOL`."""
+    from implicit_scaffold.measure.mechanics import engineering_constants
+
+    path, info = build(tmp, n, voxel=voxel, porosity=0.7)
+
+    def solve(tol, count):
+        return median_runs(OURS.format(solid=str(path), voxel=voxel, tol=tol, maxiter=5000,
+                                       preconditioner="multigrid", block=block), count, warmup=0)
+
+    ref, _ = solve(REFERENCE_TOL, 1)
+    C_ref = np.array(ref["C"])
+    E_ref = np.array(list(engineering_constants(C_ref)["youngs_modulus_gpa"].values()))
+    print(f"  {n}^3 reference to {REFERENCE_TOL:g}: {ref['seconds']:.1f} s, {ref['iterations']} iterations, "
+          f"residual {ref['residual']:.1e}", file=sys.stderr, flush=True)
+    rows = []
+    for tol in tols:
+        med, results = solve(tol, runs)
+        # the tensor of the first run (every run solves the same voxels to the same iterate)
+        C = np.array(results[0]["C"])
+        E = np.array(list(engineering_constants(C)["youngs_modulus_gpa"].values()))
+        rows.append([f"{tol:g}", f"{med['seconds']:.1f}", ", ".join(f"{r['seconds']:.1f}" for r in results),
+                     med["iterations"], f"{med['residual']:.1e}",
+                     f"{np.abs(C - C_ref).max() / np.abs(C_ref).max():.1e}",
+                     f"{np.abs(E / E_ref - 1).max():.1e}", f"{med['peak_rss_mb']:.0f}"])
+        print(f"  {n}^3 tol {tol:g} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+    print(f"\n{info['grid']} scaffold, solid fraction {info['solid_fraction']:.3f}, six load cases (periodic); "
+          f"reference: one solve to {REFERENCE_TOL:g} ({ref['seconds']:.1f} s, {ref['iterations']} iterations)")
+    print(table(rows, ["tolerance", "s (median)", "runs (s)", "CG its", "residual", "max |dC|/max|C|",
+                       "max |dE/E| (x, y, z)", "peak MiB"]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[64, 128], help="grid sizes N (none: skip the timing)")
@@ -486,6 +527,9 @@ def main(argv=None) -> int:
                          "commands run them)")
     ap.add_argument("--memory-blocks", default="1,6",
                     help="--memory's load cases per CG block (comma-separated)")
+    ap.add_argument("--tolerances", type=float, nargs="*", default=None, metavar="R",
+                    help="the solve at each of these CG tolerances against one to 1e-10")
+    ap.add_argument("--tolerance-size", type=int, default=128, metavar="N", help="the grid of --tolerances")
     ap.add_argument("--split", action="store_true", help="one more run of each size with every OpenCL product timed")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
@@ -591,6 +635,8 @@ def main(argv=None) -> int:
     if args.memory:
         memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","),
                [int(b) for b in args.memory_blocks.split(",")])
+    if args.tolerances:
+        tolerances(tmp, args.tolerance_size, voxel, args.tolerances, args.runs, args.cases_per_block)
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0

@@ -214,6 +214,9 @@ def _add_mechanics_options(p) -> None:
     mg.add_argument("--boundary", choices=["auto", "periodic", "kinematic"], default="auto",
                     help="homogenization: periodic (a box sample), kinematic (a shaped one); auto tells them apart")
     mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
+    mg.add_argument("--mechanics-tol", dest="mechanics_tol", type=float, default=None, metavar="R",
+                    help="the CG's relative residual, 1e-12 to 1e-2 (default 1e-6; the README's mechanics section "
+                         "measures what a looser one saves and costs)")
     mg.add_argument("--mechanics-voxel", type=float, default=None, metavar="MM",
                     help="the solve's voxel, sampled (trilinear) from the signed distance (generate's, or a .npy "
                          "field's); default: the field's own voxel when the solve fits --max-memory, else the "
@@ -221,9 +224,10 @@ def _add_mechanics_options(p) -> None:
 
 
 def _mechanics_setup(args):
-    """The material of a mechanics run, checked before any work."""
-    from .measure.mechanics import material
+    """The material of a mechanics run, checked before any work (and its --mechanics-tol)."""
+    from .measure.mechanics import check_tol, material
 
+    check_tol(args.mechanics_tol)
     return material(args.material, E=args.young, nu=args.nu)
 
 
@@ -269,10 +273,10 @@ def _mechanics(args) -> int:
     sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
                                max_memory=args.max_memory, boundary=args.boundary)
     solid, h = sample.solid, sample.voxel
-    from .measure.mechanics import measure_sample
+    from .measure.mechanics import check_tol, measure_sample
 
     report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
-                                  progress=_solver_progress(args))
+                                  progress=_solver_progress(args), tol=check_tol(args.mechanics_tol))
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .io.files import write_json
@@ -432,7 +436,7 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
         from .specs import MechanicsSpec
 
         mechanics = MechanicsSpec(args.material, E=args.young, nu=args.nu, voxel=args.mechanics_voxel,
-                                  boundary=args.boundary, axis=args.axis)
+                                  boundary=args.boundary, axis=args.axis, tol=args.mechanics_tol)
     outputs = Outputs(output, mesh=mesh, morphometry=morphometry, slices=slices, printer=args.printer,
                       repair=getattr(args, "repair", False), tolerance=getattr(args, "tolerance", None),
                       mechanics=mechanics)
@@ -707,6 +711,8 @@ def _generate(args) -> int:
         _check_report(args.report)
     if args.mechanics_voxel is not None and not args.mechanics:
         raise ScaffoldError("--mechanics-voxel sets the voxel of --mechanics' solve; add --mechanics or drop it")
+    if args.mechanics_tol is not None and not args.mechanics:
+        raise ScaffoldError("--mechanics-tol sets the tolerance of --mechanics' solve; add --mechanics or drop it")
     result = _build(args, output=args.output)
     comp = result.compression
     if args.report is not None:

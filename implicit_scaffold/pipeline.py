@@ -1435,7 +1435,8 @@ def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
     sample = solid_for_solve(result.field, result.grid, max_memory=max_memory, voxel=spec.voxel, wall=wall,
                              boundary=boundary)
     result.report["mechanics"], result.compression = measure_sample(sample, spec.material, boundary=boundary,
-                                                                    axis="xyz".index(spec.axis), progress=progress)
+                                                                    axis="xyz".index(spec.axis), progress=progress,
+                                                                    tol=spec.tol)
     if sample.report["warning"]:
         result.report.setdefault("warnings", []).append(sample.report["warning"])
 

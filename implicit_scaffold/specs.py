@@ -273,11 +273,13 @@ class MechanicsSpec:
         The homogenization's boundary conditions (auto: periodic for a box patient).
     axis : {"x", "y", "z"}
         The platen compression's axis.
+    tol : float, optional
+        The CG's relative residual (default :data:`~implicit_scaffold.measure.mechanics.TOL`).
 
     Raises
     ------
     ScaffoldError
-        An unknown material or boundary, a bad modulus, nu or voxel, in one line.
+        An unknown material or boundary, a bad modulus, nu, voxel or tol, in one line.
     """
 
     material: Any = "ti64"
@@ -286,9 +288,10 @@ class MechanicsSpec:
     voxel: float | None = None
     boundary: str = "auto"
     axis: str = "z"
+    tol: float | None = None
 
     def __post_init__(self):
-        from .measure.mechanics import Material, material
+        from .measure.mechanics import Material, check_tol, material
 
         mat = self.material
         if not isinstance(mat, Material):
@@ -303,6 +306,7 @@ class MechanicsSpec:
         voxel = None if self.voxel is None else positive_mm("mechanics-voxel", self.voxel, example="0.05")
         _set(self, "material", mat)
         _set(self, "voxel", voxel)
+        _set(self, "tol", check_tol(self.tol))
 
 
 @dataclass(frozen=True)

@@ -223,6 +223,47 @@ def test_a_voronoi_scaffold_stays_under_the_hashin_shtrikman_upper_bound(small_s
         assert np.all(np.diag(hom.stiffness) <= hom.solid_fraction * np.diag(m.isotropic_tensor(TI.E_gpa, TI.nu)))
 
 
+def test_a_looser_tolerance_stops_sooner_near_the_converged_tensor(small_scaffold):
+    # the oracle: the same voxels solved by the NumPy reference operator to 1e-11
+    solid, h = small_scaffold
+    ref = m.homogenize(solid, h, TI, boundary="periodic", tol=1e-11).stiffness
+    loose, _ = m.measure(solid, h, TI, boundary="periodic", tol=1e-3)
+    tight, _ = m.measure(solid, h, TI, boundary="periodic", tol=1e-8)
+    assert loose["solver"]["tolerance"] == 1e-3 and tight["solver"]["tolerance"] == 1e-8
+    assert loose["solver"]["residual"] <= 1e-3 and tight["solver"]["residual"] <= 1e-8
+    for key in ("homogenization", "compression"):
+        assert loose["solver"]["iterations"][key] < tight["solver"]["iterations"][key]
+    scale = np.abs(ref).max()
+    assert np.abs(np.array(tight["stiffness_tensor_gpa"]) - ref).max() < 1e-6 * scale
+    # the looser solve's tensor is still within 1e-2 of the converged one (the stiffness error of a CG
+    # iterate falls with its residual; the voxels' own error is a few per cent)
+    assert np.abs(np.array(loose["stiffness_tensor_gpa"]) - ref).max() < 1e-2 * scale
+
+
+def test_cli_mechanics_tolerance_reaches_the_report(tmp_path, capsys):
+    import json
+
+    solid = np.zeros((8, 7, 10), bool)
+    solid[:, 2:5, :] = True
+    solid[3, :, 4] = True  # a bar across the plates: not a one-iteration solve
+    src = _field(tmp_path / "p.npy", solid)
+    iterations = {}
+    for tol in ("1e-3", "1e-9"):
+        out = tmp_path / f"r{tol}.json"
+        code, cap = _run(["mechanics", src, "--voxel", 0.1, "--mechanics-tol", tol, "-o", out, "-q"], capsys)
+        assert code == 0, cap.err
+        solver = json.loads(out.read_text())["solver"]
+        assert solver["tolerance"] == float(tol) and solver["residual"] <= float(tol)
+        iterations[tol] = solver["iterations"]["homogenization"]
+    assert iterations["1e-3"] < iterations["1e-9"]
+
+
+def test_generate_mechanics_tolerance_needs_mechanics(tmp_path, capsys):
+    code, cap = _run(["generate", "--size", "1", "--voxel", "0.1", "-o", tmp_path / "s.npy", "--mechanics-tol", "1e-4"],
+                     capsys)
+    assert code == 2 and "add --mechanics" in cap.err and cap.err.count("\n") == 1
+
+
 def test_kinematic_is_stiffer_than_periodic(small_scaffold):
     # uniform displacement on the faces over-constrains the sample: its energy bounds the
     # periodic one from above (Hill), component by component on the diagonal
@@ -341,6 +382,8 @@ def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys
     ("block", ["--voxel", "0.1", "--E", "2", "--nu", "0.5"], "--nu"),
     ("block", ["--voxel", "0.1", "--mechanics-voxel", "-1"], "--mechanics-voxel must be a positive"),
     ("block", ["--voxel", "0.1", "--max-memory", "lots"], "--max-memory must be a size"),
+    ("block", ["--voxel", "0.1", "--mechanics-tol", "0"], "--mechanics-tol must be a relative residual"),
+    ("block", ["--voxel", "0.1", "--mechanics-tol", "0.5"], "--mechanics-tol must be a relative residual"),
 ])
 def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
     solid = np.zeros((6, 6, 9), bool)
@@ -585,10 +628,11 @@ def test_generate_mechanics_puts_the_keys_in_its_report(tmp_path, capsys):
 
     out = tmp_path / "s.npy"
     code, cap = _run(["generate", "--shape", "cylinder", "--size", "1.6", "--voxel", "0.1", "--porosity", "0.6",
-                      "-o", out, "--mechanics", "--material", "peek"], capsys)
+                      "-o", out, "--mechanics", "--material", "peek", "--mechanics-tol", "1e-4"], capsys)
     assert code == 0, cap.err
     mech = json.loads((tmp_path / "s.json").read_text())["mechanics"]
     assert mech["material"]["E_gpa"] == 3.6
+    assert mech["solver"]["tolerance"] == 1e-4 and mech["solver"]["residual"] <= 1e-4
     assert mech["boundary_conditions"].startswith("kinematic")  # a cylinder is not a box sample
     assert 0 < mech["compression"]["apparent_modulus_gpa"] < 3.6
     assert "mechanics: PEEK" in cap.out
@@ -648,7 +692,9 @@ def test_a_mechanics_spec_checks_its_values():
     assert MechanicsSpec().material.name == m.material("ti64").name
     assert MechanicsSpec("pcl", E=1.0).material.E_gpa == 1.0
     assert MechanicsSpec(m.material("peek"), nu=0.3).material.nu == 0.3
-    for bad in (dict(material="steel"), dict(nu=0.5), dict(boundary="free"), dict(axis="w"), dict(voxel=-1)):
+    assert MechanicsSpec().tol == m.TOL and MechanicsSpec(tol=1e-4).tol == 1e-4
+    for bad in (dict(material="steel"), dict(nu=0.5), dict(boundary="free"), dict(axis="w"), dict(voxel=-1),
+                dict(tol=0), dict(tol=1.0), dict(tol="loose")):
         with pytest.raises(ScaffoldError):
             MechanicsSpec(**bad)
 

@@ -182,6 +182,34 @@ def material(name: str | None = None, *, E: float | None = None, nu: float | Non
     return Material(base.name, E_gpa, nu_v, base.source)
 
 
+#: the CG's relative residual by default (the benchmark's 128^3 scaffold: its tensor within 2.6e-7 of a
+#: solve to 1e-10, far below the voxel discretisation's error; README, Mechanics, Tolerance)
+TOL = 1e-6
+#: the tolerances a user may ask for (``--mechanics-tol``): below 1e-12 the residual meets double
+#: precision's rounding; above 1e-2 the CG stops after a handful of iterations
+TOL_RANGE = (1e-12, 1e-2)
+
+
+def check_tol(tol) -> float:
+    """The CG's relative residual `tol` as a float, or None as :data:`TOL`.
+
+    Raises
+    ------
+    ScaffoldError
+        `tol` outside :data:`TOL_RANGE`, in one line.
+    """
+    if tol is None:
+        return TOL
+    lo, hi = TOL_RANGE
+    try:
+        value = float(tol)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not lo <= value <= hi:
+        raise ScaffoldError(f"--mechanics-tol must be a relative residual in [{lo:g}, {hi:g}] (e.g. 1e-4), got {tol!r}")
+    return value
+
+
 # ----------------------------------------------------------------------------- the element
 
 
@@ -1090,7 +1118,7 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
     return out
 
 
-def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = 1e-6,
+def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = TOL,
             backend: str = "numpy", origin=(0.0, 0.0, 0.0),
             preconditioner: str = "multigrid", progress=None,
             cases_per_block: int = CASES_PER_BLOCK) -> tuple[dict, Compression]:
@@ -1106,8 +1134,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     axis : int
         The compression axis (0, 1, 2 for x, y, z).
     tol : float
-        Relative residual of the CG solves (1e-6: moduli to about 1e-6, far below the voxel
-        discretisation's error).
+        Relative residual of the CG solves (:data:`TOL`; the report's ``solver.tolerance``).
     preconditioner : {"multigrid", "fft"}
         See :func:`make_preconditioner`.
     progress : callable, optional
@@ -1153,7 +1180,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
                         "platens": "rigid, lubricated (ISO 13314 setting)", "applied_strain": comp.strain,
                         "most_strained_voxels": most_strained(comp.von_mises_strain, h, origin)},
         "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
-                   "residual": max(hom.residual, comp.residual),
+                   "residual": max(hom.residual, comp.residual), "tolerance": float(tol),
                    "seconds": round(hom.seconds + comp.seconds, 4),
                    "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, "
                              + {"multigrid": "geometric multigrid (Galerkin) preconditioner",
@@ -1721,7 +1748,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
 
 
 def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto", axis: int = 2,
-                   progress=None) -> tuple[dict, "Compression"]:
+                   progress=None, tol: float = TOL) -> tuple[dict, "Compression"]:
     """:func:`measure` on a :class:`SolveSample`: the report's ``mechanics`` section, whose ``voxel``
     entry says which voxel and why (with the process's peak memory so far), and the compression.
 
@@ -1734,7 +1761,7 @@ def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto"
     from ..run.memory import peak_memory
 
     report, comp = measure(sample.solid, sample.voxel, mat, boundary=boundary, axis=axis, backend="opencl",
-                           origin=sample.origin, progress=progress,
+                           origin=sample.origin, progress=progress, tol=tol,
                            cases_per_block=sample.report.get("cases_per_block", 6))
     # the process's peak so far, beside the estimate checked before the solve (the solve's is the larger
     # part of it unless the build before peaked higher)
