@@ -574,7 +574,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Called after every iteration with (iteration, largest relative residual).
     fast : callable, optional
         A cheaper approximation of `apply` (the OpenCL operator in float: half the time of
-        double) for the first iterations, to :data:`FAST_GOAL` times `tol` (or until a case
+        double) for the first iterations, to :func:`fast_goal` (or until a case
         stalls on its rounding, :data:`FAST_STALL`). Then each case's residual ``F (b - K x)``
         is computed anew with `apply` and `rhs` and replaces the recurrence's, and a case still
         above `tol` restarts from there (p = z) on `apply`'s products.
@@ -673,7 +673,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         if fast is None:
             iterate(apply, tol)
         else:
-            iterate(fast, FAST_GOAL * tol, FAST_STALL)
+            iterate(fast, fast_goal(tol), FAST_STALL)
     if fast is not None:
         # the recurrence's r drifted from F (b - K x) by the fast products' rounding (on the 128^3
         # benchmark scaffold, float: up to 1.16e-6 where r said under 1e-6); each case's true
@@ -734,6 +734,16 @@ FAST_GOAL = 100.0
 #: a case leaves the fast products when its residual has not reached a new low for this many
 #: iterations (their rounding's floor: a block under lubricated platens stalled near 3e-4 in float)
 FAST_STALL = 5
+#: ... but they never stop above this residual for a goal of FAST_GOAL times a loose tolerance (float's
+#: rounding floor lies far below it: near 1.3e-6 on the 200^3 scaffold)
+FAST_FLOOR = 1e-4
+
+
+def fast_goal(tol: float) -> float:
+    """Where :func:`pcg`'s fast products hand over to double: :data:`FAST_GOAL` times `tol`, but no
+    higher than :data:`FAST_FLOOR` or `tol` itself, whichever is higher (a tolerance of 1e-4 or looser
+    is met in float, then checked on the true residual)."""
+    return max(tol, min(FAST_GOAL * tol, FAST_FLOOR))
 
 
 def _fast(op, tol: float):
