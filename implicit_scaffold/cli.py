@@ -215,7 +215,7 @@ def _add_mechanics_options(p) -> None:
                     help="homogenization: periodic (a box sample), kinematic (a shaped one); auto tells them apart")
     mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
     mg.add_argument("--mechanics-tol", dest="mechanics_tol", type=float, default=None, metavar="R",
-                    help="the CG's relative residual, 1e-12 to 1e-2 (default 1e-6; the README's mechanics section "
+                    help="the CG's relative residual, 1e-12 to 1e-3 (default 1e-6; the README's mechanics section "
                          "measures what a looser one saves and costs)")
     mg.add_argument("--mechanics-voxel", type=float, default=None, metavar="MM",
                     help="the solve's voxel, sampled (trilinear) from the signed distance (generate's, or a .npy "

@@ -383,7 +383,7 @@ def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys
     ("block", ["--voxel", "0.1", "--mechanics-voxel", "-1"], "--mechanics-voxel must be a positive"),
     ("block", ["--voxel", "0.1", "--max-memory", "lots"], "--max-memory must be a size"),
     ("block", ["--voxel", "0.1", "--mechanics-tol", "0"], "--mechanics-tol must be a relative residual"),
-    ("block", ["--voxel", "0.1", "--mechanics-tol", "0.5"], "--mechanics-tol must be a relative residual"),
+    ("block", ["--voxel", "0.1", "--mechanics-tol", "1e-2"], "--mechanics-tol must be a relative residual"),
 ])
 def test_cli_mechanics_bad_input_is_one_line_and_exit_2(tmp_path, capsys, case, argv, words):
     solid = np.zeros((6, 6, 9), bool)
