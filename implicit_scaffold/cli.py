@@ -224,11 +224,10 @@ def _add_mechanics_options(p) -> None:
 
 
 def _mechanics_setup(args):
-    """The material of a mechanics run, checked before any work (and its --mechanics-tol)."""
+    """The material and the CG tolerance of a mechanics run, checked before any work."""
     from .measure.mechanics import check_tol, material
 
-    check_tol(args.mechanics_tol)
-    return material(args.material, E=args.young, nu=args.nu)
+    return material(args.material, E=args.young, nu=args.nu), check_tol(args.mechanics_tol)
 
 
 def _mechanics_lines(mech: dict) -> list[str]:
@@ -261,7 +260,7 @@ def _mechanics(args) -> int:
     from .measure.mechanics import load_sample
 
     t0 = time.perf_counter()
-    mat = _mechanics_setup(args)
+    mat, tol = _mechanics_setup(args)
     for path, fmt in ((args.output, (".json",)), (args.report, None)):
         if path is not None:
             if fmt is None:
@@ -273,10 +272,10 @@ def _mechanics(args) -> int:
     sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
                                max_memory=args.max_memory, boundary=args.boundary)
     solid, h = sample.solid, sample.voxel
-    from .measure.mechanics import check_tol, measure_sample
+    from .measure.mechanics import measure_sample
 
     report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
-                                  progress=_solver_progress(args), tol=check_tol(args.mechanics_tol))
+                                  progress=_solver_progress(args), tol=tol)
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .io.files import write_json
