@@ -240,6 +240,39 @@ def test_a_looser_tolerance_stops_sooner_near_the_converged_tensor(small_scaffol
     assert np.abs(np.array(loose["stiffness_tensor_gpa"]) - ref).max() < 1e-2 * scale
 
 
+def test_pcg_crosses_each_solution_with_each_residual():
+    # oracle: x_i . F (b_j - K x_j) by the NumPy operator, case by case, from the solutions pcg returns
+    rng = np.random.default_rng(5)
+    solid = rng.random((9, 8, 10)) < 0.8
+    model = m.voxel_model(solid, 0.1, TI, periodic=False)
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    free[:, : model.shape[1] * model.shape[2]] = 0  # one face held: no rigid motion
+    b = rng.standard_normal((3, 3, free.shape[1])) * free
+    scale = np.sqrt((b ** 2).sum(axis=(1, 2)))
+    pre = m.make_preconditioner("multigrid", model, op, free, 1e-3)
+    x, its, res, xr = m.pcg(op, pre, b.copy(), free, scale=scale, tol=1e-3, cross=True)
+    r = (b - op(x)) * free
+    want = np.einsum("idn,jdn->ij", x, r)
+    assert np.abs(xr - want).max() <= 1e-9 * np.abs(x).max() * np.abs(b).max() * x[0].size
+    # not converged to the last digit: the cross terms are there to be taken out
+    assert np.abs(want - np.diag(np.diag(want))).max() > 1e-6 * np.abs(np.diag(x.reshape(3, -1) @ b.reshape(3, -1).T)).max()
+
+
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_a_loose_tolerance_errs_by_the_gram_matrix_of_its_errors(small_scaffold, boundary):
+    # the energy form: a solve with errors e_i gives C + e_i.K e_j / V, so the tensor's error is a Gram
+    # matrix, positive semidefinite (the mean stress alone errs by first-order terms of either sign).
+    # Oracle: the same voxels solved by the NumPy reference operator to 1e-11
+    solid, h = small_scaffold
+    ref = m.homogenize(solid, h, TI, boundary=boundary, tol=1e-11).stiffness
+    scale = np.abs(ref).max()
+    for tol in (1e-2, 1e-3):
+        err = np.linalg.eigvalsh(m.homogenize(solid, h, TI, boundary=boundary, tol=tol).stiffness - ref)
+        assert err.max() > 1e-7 * scale  # a loose solve, not a converged one
+        assert err.min() >= -1e-9 * scale
+
+
 def test_cli_mechanics_tolerance_reaches_the_report(tmp_path, capsys):
     import json
 

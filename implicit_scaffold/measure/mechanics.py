@@ -540,7 +540,7 @@ def _norms(v: np.ndarray) -> np.ndarray:
 
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None, fast=None, rhs=None):
+        maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -582,10 +582,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     rhs : callable, optional
         ``rhs(c)`` -> (1, 3, N): the right-hand side of case `c` of `b` again (needed with `fast`:
         `b` itself is not kept).
+    cross : bool
+        Also return ``x_i . r_j`` (m, m) of the solutions and the final residuals (free unknowns):
+        the first-order term of a quadratic form's error, which :func:`homogenize` takes out.
 
     Returns
     -------
-    x (m, 3, N), iterations, relative residuals (m,)
+    x (m, 3, N), iterations, relative residuals (m,)[, x . r (m, m)]
     """
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
@@ -696,8 +699,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 # would build the coarse levels' kernels for it)
                 pre(r, lambda c, z: first(c, z) if again[c] else None)
             iterate(apply, tol)
-    del r, p
-    return put(x, live, n, ones), it, res
+    del p
+    # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
+    # double (whose drift from it is rounding)
+    xr = np.einsum("idn,jdn->ij", x, r) if cross else None
+    del r
+    out = put(x, live, n, ones), it, res
+    return out + (xr,) if cross else out
 
 
 # ----------------------------------------------------------------------------- homogenization
@@ -800,6 +808,16 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     cases_per_block : int
         The six load cases are solved this many at a time (1-6), with one preconditioner: the
         solve's vectors are held for one block's cases only (:data:`CASES_PER_BLOCK`).
+
+    Notes
+    -----
+    The tensor is the energy form ``C_ij = u_i.K u_j / V`` of the total displacements ``u_i`` (the unit
+    strain's plus the solved part ``x_i``), computed as the mean stress ``w_i.K u_j / V`` (``w_i`` the unit
+    strain's displacements; linear in the solution) less ``x_i.r_j / V`` (``r_j`` the final residual on the
+    free unknowns, :func:`pcg`'s `cross`). The exact ``u_j`` leaves no force on the free unknowns, so an
+    iterate with the error ``e`` gives ``C_ij + e_i.K e_j / V``: second order in the solver's error, where
+    the mean stress alone is first order. Load cases of different blocks (``cases_per_block`` under 6)
+    are never held together: their entries keep the mean stress.
     """
     t0 = time.perf_counter()
     solid = check_solid(solid)
@@ -824,6 +842,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     fast = _fast(op, tol)
     block = max(1, min(6, int(cases_per_block)))
     ue_sum = np.empty((6, 24))
+    cross = np.zeros((6, 6))  # x_i . r_j within each block (Notes: the energy form)
     iterations, res = 0, np.zeros(6)
     for k0 in range(0, 6, block):
         cases = range(k0, min(6, k0 + block))
@@ -836,8 +855,9 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         else:
             def loads(ks):
                 return _kinematic_loads(op, model.shape, h, ks)
-        x, its, r = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
-                        progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]))
+        x, its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
+                            progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True)
+        cross[np.ix_(list(cases), list(cases))] = xr
         if not periodic:
             for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
                 x[c] += _affine(model.shape, h, [k])[0]
@@ -850,6 +870,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     total = solid.size  # the sample's voxels (before the padding layer)
     mean_strain = (Bc @ ue_sum.T) / total  # (6 strain, 6 cases)
     C = isotropic_tensor(mat.E_gpa, mat.nu) @ mean_strain
+    C = C - cross / (total * h ** 3)  # the energy form (Notes)
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
                           time.perf_counter() - t0, backend)
