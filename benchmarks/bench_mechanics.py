@@ -7,6 +7,7 @@
                                          [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
                                          [--femur] [--femur-tol 1e-6] [--femur-maxiter N] [--split]
                                          [--tolerances 1e-2 1e-3 1e-4 1e-5 1e-6 [--tolerance-size 128]]
+                                         [--bone 128 [--bone-tolerances 1e-3 1e-4 1e-6]]
 
 - **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
@@ -38,6 +39,14 @@
   of --runs, against one solve of the same voxels to 1e-10: its seconds and iterations, and how far
   its tensor and its Young's moduli lie from the reference's (what a looser tolerance saves and costs).
 
+- **bone** (``--bone N``): real bone, the central N^3 of the lumbar trabecular micro-CT in
+  ../shared/data (``bonejheadless_lumbar_trabecular_ROI_1_06219.nrrd``, 51.3 um voxels, read as
+  ``implicit-scaffold mechanics`` reads it), compressed along z between lubricated platens and
+  homogenized with kinematic conditions (the sample is not periodic) at each of
+  ``--bone-tolerances``, each against one solve of the same voxels to 1e-10: seconds, CG iterations,
+  how far the apparent modulus and the tensor lie from the reference's (what ``--mechanics-tol``
+  saves and costs where the struts are bone's, not a Voronoi lattice's).
+
 - **split** (``--split``): one more run of each size's solve with a timer around every OpenCL
   product, grouped by operator (the fine one in float or double, each coarse level) and the
   number of load cases a call, the rest of the solve's seconds, and its user and system CPU
@@ -48,6 +57,7 @@ Timings on a shared 2-core machine are noisy (other jobs run beside): read them 
 from __future__ import annotations
 
 import argparse
+import statistics
 import sys
 import tempfile
 from pathlib import Path
@@ -482,6 +492,76 @@ def tolerances(tmp: Path, n: int, voxel: float, tols, runs: int, block: int) -> 
                        "max |dE/E| (x, y, z)", "peak MiB"]))
 
 
+#: the micro-CT of --bone (../shared/data) and its voxel (mm): the header states none, the source's
+#: scripts use 51.3 um
+BONE_CT = "bonejheadless_lumbar_trabecular_ROI_1_06219.nrrd"
+BONE_VOXEL = 0.0513
+
+BONE_BUILD = """
+import numpy as np
+from implicit_scaffold.measure.morphometry import read_scaffold
+s = read_scaffold({ct!r}, spacing={voxel!r})
+n = {n!r}
+lo = [(d - n) // 2 for d in s.solid.shape]
+solid = np.ascontiguousarray(s.solid[lo[0]:lo[0] + n, lo[1]:lo[1] + n, lo[2]:lo[2] + n])
+np.save({out!r}, solid)
+_out = {{'grid': 'x'.join(map(str, solid.shape)), 'of': 'x'.join(map(str, s.solid.shape)),
+        'voxel': float(s.voxel), 'solid_fraction': float(solid.mean())}}
+"""
+
+BONE_SOLVE = """
+import time
+import numpy as np
+from implicit_scaffold.measure import mechanics as M
+solid = np.load({solid!r})
+mat = M.material('ti64')
+t = time.perf_counter()
+c = M.compress(solid, {voxel!r}, mat, axis=2, tol={tol!r}, backend='opencl', maxiter=5000)
+tc = time.perf_counter() - t
+t = time.perf_counter()
+hom = M.homogenize(solid, {voxel!r}, mat, boundary='kinematic', tol={tol!r}, backend='opencl', maxiter=5000)
+_out = {{'seconds': tc + time.perf_counter() - t, 'compression_s': tc, 'homogenization_s': time.perf_counter() - t,
+        'modulus': c.apparent_modulus_gpa, 'compression_its': c.iterations, 'iterations': hom.iterations,
+        'C': hom.stiffness.tolist()}}
+"""
+
+
+def bone(tmp: Path, n: int, tols, runs: int) -> None:
+    """Compression and kinematic homogenization of the micro-CT's central N^3 at each tolerance,
+    against one solve to :data:`REFERENCE_TOL` (``--bone``)."""
+    from _common import DATA
+
+    path = tmp / f"bone_{n}.npy"
+    info = run_isolated(BONE_BUILD.format(ct=str(DATA / BONE_CT), voxel=BONE_VOXEL, n=n, out=str(path)))
+    voxel = info["voxel"]
+
+    def solve(tol, count):
+        return median_runs(BONE_SOLVE.format(solid=str(path), voxel=voxel, tol=tol), count, warmup=0)
+
+    ref, _ = solve(REFERENCE_TOL, 1)
+    C_ref = np.array(ref["C"])
+    print(f"  bone {n}^3 reference to {REFERENCE_TOL:g}: compression {ref['compression_s']:.1f} s, "
+          f"{ref['compression_its']} its; homogenization {ref['homogenization_s']:.1f} s, {ref['iterations']} its",
+          file=sys.stderr, flush=True)
+    rows = []
+    for tol in tols:
+        med, results = solve(tol, runs)
+        first = results[0]  # every run solves the same voxels to the same iterate
+        C = np.array(first["C"])
+        rows.append([f"{tol:g}", f"{statistics.median(r['compression_s'] for r in results):.1f}",
+                     first["compression_its"], f"{abs(first['modulus'] / ref['modulus'] - 1):.1e}",
+                     f"{statistics.median(r['homogenization_s'] for r in results):.1f}", first["iterations"],
+                     f"{np.abs(C - C_ref).max() / np.abs(C_ref).max():.1e}", f"{med['peak_rss_mb']:.0f}"])
+        print(f"  bone {n}^3 tol {tol:g} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+    print(f"\nlumbar trabecular micro-CT, central {info['grid']} of {info['of']} voxels of {voxel:g} mm, solid "
+          f"fraction {info['solid_fraction']:.3f}, Ti-6Al-4V; compression along z (lubricated platens) and "
+          f"kinematic homogenization (six cases), one process per tolerance, runs: {runs}; reference: one solve to "
+          f"{REFERENCE_TOL:g} (compression {ref['compression_s']:.1f} s, {ref['compression_its']} its, "
+          f"E {ref['modulus']:.4g} GPa; homogenization {ref['homogenization_s']:.1f} s, {ref['iterations']} its)")
+    print(table(rows, ["tolerance", "compression s", "CG its", "|dE/E|", "homogenization s", "CG its",
+                       "max |dC|/max|C|", "peak MiB"]))
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[64, 128], help="grid sizes N (none: skip the timing)")
@@ -530,6 +610,10 @@ def main(argv=None) -> int:
     ap.add_argument("--tolerances", type=float, nargs="*", default=None, metavar="R",
                     help="the solve at each of these CG tolerances against one to 1e-10")
     ap.add_argument("--tolerance-size", type=int, default=128, metavar="N", help="the grid of --tolerances")
+    ap.add_argument("--bone", type=int, default=None, metavar="N",
+                    help="the central N^3 of the lumbar trabecular micro-CT in ../shared/data: compression and "
+                         "kinematic homogenization at each --bone-tolerances, against one solve to 1e-10")
+    ap.add_argument("--bone-tolerances", type=float, nargs="+", default=[1e-3, 1e-4, 1e-6], metavar="R")
     ap.add_argument("--split", action="store_true", help="one more run of each size with every OpenCL product timed")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
@@ -637,6 +721,8 @@ def main(argv=None) -> int:
                [int(b) for b in args.memory_blocks.split(",")])
     if args.tolerances:
         tolerances(tmp, args.tolerance_size, voxel, args.tolerances, args.runs, args.cases_per_block)
+    if args.bone:
+        bone(tmp, args.bone, args.bone_tolerances, args.runs)
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0
