@@ -182,12 +182,14 @@ def material(name: str | None = None, *, E: float | None = None, nu: float | Non
     return Material(base.name, E_gpa, nu_v, base.source)
 
 
-#: the CG's relative residual by default (the benchmark's 128^3 scaffold: its tensor within 2.6e-7 of a
-#: solve to 1e-10, far below the voxel discretisation's error; README, Mechanics, Tolerance)
+#: the CG's relative residual by default (the benchmark's 128^3 scaffold: its tensor within 1.5e-11 of a
+#: solve to 1e-10 in the energy form, 2.6e-7 as the mean stress; far below the voxel discretisation's
+#: error; README, Mechanics, Tolerance)
 TOL = 1e-6
 #: the tolerances a user may ask for (``--mechanics-tol``): below 1e-12 the residual meets double
 #: precision's rounding; at 1e-2 a compression of a 128^3 crop of the lumbar trabecular micro-CT
-#: in ../shared/data gave its modulus 1.2 % off (3.7e-4 at 1e-3), as much as the voxels' own error
+#: in ../shared/data gave its modulus 1.2 % off (3.7e-4 at 1e-3; a throw-away script), as much as the
+#: voxels' own error (``bench_mechanics.py --bone 128``: 5.5e-5 at 1e-3 on the central crop)
 TOL_RANGE = (1e-12, 1e-3)
 
 
@@ -702,10 +704,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     del p
     # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
     # double (whose drift from it is rounding)
-    xr = np.einsum("idn,jdn->ij", x, r) if cross else None
+    out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
     del r
-    out = put(x, live, n, ones), it, res
-    return out + (xr,) if cross else out
+    return (put(x, live, n, ones), it, res) + out
 
 
 # ----------------------------------------------------------------------------- homogenization
@@ -745,8 +746,8 @@ FAST_GOAL = 100.0
 FAST_STALL = 5
 #: the fast products' goal is never above this, unless the tolerance is: a tolerance of 1e-4 or looser
 #: is met in float (whose rounding floor lies far below: near 1.3e-6 on the 200^3 scaffold). 128^3
-#: benchmark scaffold at 1e-3: 19.3 s, its tensor 7.4e-5 off, against 20.6 s and 3.6e-4 with the goal at
-#: 100 times the tolerance (README, Mechanics, Tolerance)
+#: benchmark scaffold at 1e-3: 19.3 s, its tensor (as the mean stress) 7.4e-5 off, against 20.6 s and
+#: 3.6e-4 with the goal at 100 times the tolerance (README, Mechanics, Tolerance)
 FAST_FLOOR = 1e-4
 
 
