@@ -6,15 +6,19 @@
                                           [--across-seed 0]]
                                          [--preconditioners multigrid,fft] [--peers-up-to 64] [--peer-runs 1]
                                          [--femur] [--femur-tol 1e-6] [--femur-maxiter N] [--split]
-                                         [--tolerances 1e-2 1e-3 1e-4 1e-5 1e-6 [--tolerance-size 128]]
-                                         [--bone 128 [--bone-tolerances 1e-3 1e-4 1e-6]]
+                                         [--tol 1e-6] [--accuracy 1e-6]
+                                         [--tolerances 1e-2 1e-3 1e-4 1e-5 1e-6] [--accuracies 1e-5 1e-6 1e-7]
+                                         [--tolerance-size 128]
+                                         [--bone 128 [--bone-tolerances 1e-3 1e-4 1e-6] [--bone-accuracies 1e-6]]
 
 - **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
   reference-medium one; the element operator on the OpenCL device in double) of
   a paper-style Voronoi scaffold at porosity 0.7 (about 30 % solid), N^3 voxels of 0.04 mm
   (pore size 0.6 mm), in a fresh process per run (peak memory is that run's own). The
-  scaffold is built once per size, outside the timed region. Medians of --runs runs.
+  scaffold is built once per size, outside the timed region. Medians of --runs runs. Each CG stops
+  at the relative residual --tol or, sooner, at the energy accuracy --accuracy (default
+  ``mechanics.ACCURACY``, as the commands run; ``--accuracy 0``: the residual alone, as muGrid's CG stops).
 - **mugrid** (``--mugrid``, when ``pip install muGrid`` is there): the same six load cases
   on the same voxels with muGrid's fused Q1 stiffness operator, its Green-Jacobi FFT
   preconditioner and its CG, void as lambda = mu = 0, to the same tolerance; every tensor
@@ -35,15 +39,17 @@
   volume over its length: the shaft is round, the box is not), beside bone's bands. Needs
   ../shared/data.
 
-- **tolerances** (``--tolerances``): the solve above at each CG tolerance (``--mechanics-tol``), medians
-  of --runs, against one solve of the same voxels to 1e-10: its seconds and iterations, and how far
-  its tensor and its Young's moduli lie from the reference's (what a looser tolerance saves and costs).
+- **tolerances** (``--tolerances``): the solve above at each CG tolerance (``--mechanics-tol``, the residual
+  alone), and with ``--accuracies`` at the default tolerance with each energy accuracy (the default stop's),
+  medians of --runs, against one solve of the same voxels to 1e-10: its seconds and iterations, the
+  solver's estimate of its energy error, and how far its tensor and its Young's moduli lie from the
+  reference's (what a looser stop saves and costs).
 
 - **bone** (``--bone N``): real bone, the central N^3 of the lumbar trabecular micro-CT in
   ../shared/data (``bonejheadless_lumbar_trabecular_ROI_1_06219.nrrd``, 51.3 um voxels, read as
   ``implicit-scaffold mechanics`` reads it), compressed along z between lubricated platens and
   homogenized with kinematic conditions (the sample is not periodic) at each of
-  ``--bone-tolerances``, each against one solve of the same voxels to 1e-10: seconds, CG iterations,
+  ``--bone-tolerances`` and ``--bone-accuracies`` (as ``--accuracies``), each against one solve of the same voxels to 1e-10: seconds, CG iterations,
   how far the apparent modulus and the tensor lie from the reference's (what ``--mechanics-tol``
   saves and costs where the struts are bone's, not a Voronoi lattice's).
 
@@ -96,9 +102,10 @@ import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime
 t = time.perf_counter()
 hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl', maxiter={maxiter!r},
-                   preconditioner={preconditioner!r}, cases_per_block={block!r})
+                   preconditioner={preconditioner!r}, cases_per_block={block!r}, accuracy={accuracy!r})
 _out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'residual': hom.residual,
-         'C': hom.stiffness.tolist(), 'solid_voxels': int(solid.sum()), 'rss_before_mb': before}}
+         'C': hom.stiffness.tolist(), 'solid_voxels': int(solid.sum()), 'rss_before_mb': before,
+         'energy_error': hom.energy_error}}
 """
 
 SPLIT = """
@@ -124,7 +131,7 @@ MC._Gather.__call__ = timed
 r0 = resource.getrusage(resource.RUSAGE_SELF)
 t = time.perf_counter()
 hom = M.homogenize(solid, {voxel!r}, mat, boundary='periodic', tol={tol!r}, backend='opencl',
-                   cases_per_block={block!r})
+                   cases_per_block={block!r}, accuracy={accuracy!r})
 r1 = resource.getrusage(resource.RUSAGE_SELF)
 _out = {{'seconds': time.perf_counter() - t, 'iterations': hom.iterations, 'user': r1.ru_utime - r0.ru_utime,
          'system': r1.ru_stime - r0.ru_stime, 'products': [[k[0], k[1], v[0], v[1]] for k, v in stats.items()]}}
@@ -436,9 +443,9 @@ def memory(sizes, preconditioners, solves, blocks) -> None:
                        "peak above start MiB", "B/solid voxel", "estimate MiB", "estimate/measured"]))
 
 
-def split(path: Path, n: int, voxel: float, tol: float, block: int) -> None:
+def split(path: Path, n: int, voxel: float, tol: float, block: int, accuracy: float | None) -> None:
     """One solve of `path` with every OpenCL product timed (``--split``), printed as a table."""
-    r = run_isolated(SPLIT.format(solid=str(path), voxel=voxel, tol=tol, block=block))
+    r = run_isolated(SPLIT.format(solid=str(path), voxel=voxel, tol=tol, block=block, accuracy=accuracy))
     rows = [[name, cases, calls, f"{s:.2f}", f"{1000 * s / calls:.1f}"]
             for name, cases, calls, s in sorted(r["products"], key=lambda p: -p[3])]
     rest = r["seconds"] - sum(p[3] for p in r["products"])
@@ -460,15 +467,29 @@ def build(tmp: Path, n: int, *, voxel: float, porosity: float, style: str = "pap
 REFERENCE_TOL = 1e-10
 
 
-def tolerances(tmp: Path, n: int, voxel: float, tols, runs: int, block: int) -> None:
-    """The multigrid solve of the N^3 scaffold at each tolerance, against one to :data:`REFERENCE_TOL`."""
+def stops(tols, accuracies) -> list:
+    """(label, tolerance, accuracy) of each solve of --tolerances / --accuracies (and the bone's): a
+    tolerance alone, or the default tolerance with an energy accuracy (``mechanics.measure``'s stop)."""
+    from implicit_scaffold.measure.mechanics import TOL
+
+    return ([(f"{t:g}", t, None) for t in tols or ()]
+            + [(f"{TOL:g} or energy {a:g}", TOL, a) for a in accuracies or ()])
+
+
+def _error(value) -> str:
+    return "" if value is None or not np.isfinite(value) else f"{value:.1e}"
+
+
+def tolerances(tmp: Path, n: int, voxel: float, solves, runs: int, block: int) -> None:
+    """The multigrid solve of the N^3 scaffold at each stop of `solves` (:func:`stops`), against one to
+    :data:`REFERENCE_TOL`."""
     from implicit_scaffold.measure.mechanics import engineering_constants
 
     path, info = build(tmp, n, voxel=voxel, porosity=0.7)
 
-    def solve(tol, count):
+    def solve(tol, count, accuracy=None):
         return median_runs(OURS.format(solid=str(path), voxel=voxel, tol=tol, maxiter=5000,
-                                       preconditioner="multigrid", block=block), count, warmup=0)
+                                       preconditioner="multigrid", block=block, accuracy=accuracy), count, warmup=0)
 
     ref, _ = solve(REFERENCE_TOL, 1)
     C_ref = np.array(ref["C"])
@@ -476,20 +497,20 @@ def tolerances(tmp: Path, n: int, voxel: float, tols, runs: int, block: int) -> 
     print(f"  {n}^3 reference to {REFERENCE_TOL:g}: {ref['seconds']:.1f} s, {ref['iterations']} iterations, "
           f"residual {ref['residual']:.1e}", file=sys.stderr, flush=True)
     rows = []
-    for tol in tols:
-        med, results = solve(tol, runs)
+    for label, tol, accuracy in solves:
+        med, results = solve(tol, runs, accuracy)
         # the tensor of the first run (every run solves the same voxels to the same iterate)
         C = np.array(results[0]["C"])
         E = np.array(list(engineering_constants(C)["youngs_modulus_gpa"].values()))
-        rows.append([f"{tol:g}", f"{med['seconds']:.1f}", ", ".join(f"{r['seconds']:.1f}" for r in results),
-                     med["iterations"], f"{med['residual']:.1e}",
+        rows.append([label, f"{med['seconds']:.1f}", ", ".join(f"{r['seconds']:.1f}" for r in results),
+                     med["iterations"], f"{med['residual']:.1e}", _error(results[0]["energy_error"]),
                      f"{np.abs(C - C_ref).max() / np.abs(C_ref).max():.1e}",
                      f"{np.abs(E / E_ref - 1).max():.1e}", f"{med['peak_rss_mb']:.0f}"])
-        print(f"  {n}^3 tol {tol:g} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+        print(f"  {n}^3 {label} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
     print(f"\n{info['grid']} scaffold, solid fraction {info['solid_fraction']:.3f}, six load cases (periodic); "
           f"reference: one solve to {REFERENCE_TOL:g} ({ref['seconds']:.1f} s, {ref['iterations']} iterations)")
-    print(table(rows, ["tolerance", "s (median)", "runs (s)", "CG its", "residual", "max |dC|/max|C|",
-                       "max |dE/E| (x, y, z)", "peak MiB"]))
+    print(table(rows, ["stop", "s (median)", "runs (s)", "CG its", "residual", "energy error (est.)",
+                       "max |dC|/max|C|", "max |dE/E| (x, y, z)", "peak MiB"]))
 
 
 #: the micro-CT of --bone (../shared/data) and its voxel (mm): the header states none, the source's
@@ -516,17 +537,18 @@ from implicit_scaffold.measure import mechanics as M
 solid = np.load({solid!r})
 mat = M.material('ti64')
 t = time.perf_counter()
-c = M.compress(solid, {voxel!r}, mat, axis=2, tol={tol!r}, backend='opencl', maxiter=5000)
+c = M.compress(solid, {voxel!r}, mat, axis=2, tol={tol!r}, backend='opencl', maxiter=5000, accuracy={accuracy!r})
 tc = time.perf_counter() - t
 t = time.perf_counter()
-hom = M.homogenize(solid, {voxel!r}, mat, boundary='kinematic', tol={tol!r}, backend='opencl', maxiter=5000)
+hom = M.homogenize(solid, {voxel!r}, mat, boundary='kinematic', tol={tol!r}, backend='opencl', maxiter=5000,
+                   accuracy={accuracy!r})
 _out = {{'seconds': tc + time.perf_counter() - t, 'compression_s': tc, 'homogenization_s': time.perf_counter() - t,
         'modulus': c.apparent_modulus_gpa, 'compression_its': c.iterations, 'iterations': hom.iterations,
-        'C': hom.stiffness.tolist()}}
+        'C': hom.stiffness.tolist(), 'energy_errors': [c.energy_error, hom.energy_error]}}
 """
 
 
-def bone(tmp: Path, n: int, tols, runs: int) -> None:
+def bone(tmp: Path, n: int, solves, runs: int) -> None:
     """Compression and kinematic homogenization of the micro-CT's central N^3 at each tolerance,
     against one solve to :data:`REFERENCE_TOL` (``--bone``)."""
     from _common import DATA
@@ -535,8 +557,9 @@ def bone(tmp: Path, n: int, tols, runs: int) -> None:
     info = run_isolated(BONE_BUILD.format(ct=str(DATA / BONE_CT), voxel=BONE_VOXEL, n=n, out=str(path)))
     voxel = info["voxel"]
 
-    def solve(tol, count):
-        return median_runs(BONE_SOLVE.format(solid=str(path), voxel=voxel, tol=tol), count, warmup=0)
+    def solve(tol, count, accuracy=None):
+        return median_runs(BONE_SOLVE.format(solid=str(path), voxel=voxel, tol=tol, accuracy=accuracy), count,
+                           warmup=0)
 
     ref, _ = solve(REFERENCE_TOL, 1)
     C_ref = np.array(ref["C"])
@@ -544,22 +567,23 @@ def bone(tmp: Path, n: int, tols, runs: int) -> None:
           f"{ref['compression_its']} its; homogenization {ref['homogenization_s']:.1f} s, {ref['iterations']} its",
           file=sys.stderr, flush=True)
     rows = []
-    for tol in tols:
-        med, results = solve(tol, runs)
+    for label, tol, accuracy in solves:
+        med, results = solve(tol, runs, accuracy)
         first = results[0]  # every run solves the same voxels to the same iterate
         C = np.array(first["C"])
-        rows.append([f"{tol:g}", f"{statistics.median(r['compression_s'] for r in results):.1f}",
+        rows.append([label, f"{statistics.median(r['compression_s'] for r in results):.1f}",
                      first["compression_its"], f"{abs(first['modulus'] / ref['modulus'] - 1):.1e}",
                      f"{statistics.median(r['homogenization_s'] for r in results):.1f}", first["iterations"],
-                     f"{np.abs(C - C_ref).max() / np.abs(C_ref).max():.1e}", f"{med['peak_rss_mb']:.0f}"])
-        print(f"  bone {n}^3 tol {tol:g} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+                     f"{np.abs(C - C_ref).max() / np.abs(C_ref).max():.1e}",
+                     " / ".join(_error(e) or "-" for e in first["energy_errors"]), f"{med['peak_rss_mb']:.0f}"])
+        print(f"  bone {n}^3 {label} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
     print(f"\nlumbar trabecular micro-CT, central {info['grid']} of {info['of']} voxels of {voxel:g} mm, solid "
           f"fraction {info['solid_fraction']:.3f}, Ti-6Al-4V; compression along z (lubricated platens) and "
           f"kinematic homogenization (six cases), one process per tolerance, runs: {runs}; reference: one solve to "
           f"{REFERENCE_TOL:g} (compression {ref['compression_s']:.1f} s, {ref['compression_its']} its, "
           f"E {ref['modulus']:.4g} GPa; homogenization {ref['homogenization_s']:.1f} s, {ref['iterations']} its)")
-    print(table(rows, ["tolerance", "compression s", "CG its", "|dE/E|", "homogenization s", "CG its",
-                       "max |dC|/max|C|", "peak MiB"]))
+    print(table(rows, ["stop", "compression s", "CG its", "|dE/E|", "homogenization s", "CG its",
+                       "max |dC|/max|C|", "energy errors (est.)", "peak MiB"]))
 
 
 def main(argv=None) -> int:
@@ -567,6 +591,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sizes", type=int, nargs="*", default=[64, 128], help="grid sizes N (none: skip the timing)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--tol", type=float, default=1e-6)
+    ap.add_argument("--accuracy", type=float, default=None,
+                    help="the solves' energy accuracy beside --tol (default mechanics.ACCURACY, as the commands "
+                         "run them; 0: the tolerance alone)")
     ap.add_argument("--maxiter", type=int, default=2000,
                     help="stop the CG there (a capped run gives the time per iteration and the memory, "
                          "not a converged tensor: its residual says so)")
@@ -609,11 +636,15 @@ def main(argv=None) -> int:
                     help="--memory's load cases per CG block (comma-separated)")
     ap.add_argument("--tolerances", type=float, nargs="*", default=None, metavar="R",
                     help="the solve at each of these CG tolerances against one to 1e-10")
+    ap.add_argument("--accuracies", type=float, nargs="*", default=None, metavar="A",
+                    help="as --tolerances, the default tolerance with each of these energy accuracies")
     ap.add_argument("--tolerance-size", type=int, default=128, metavar="N", help="the grid of --tolerances")
     ap.add_argument("--bone", type=int, default=None, metavar="N",
                     help="the central N^3 of the lumbar trabecular micro-CT in ../shared/data: compression and "
                          "kinematic homogenization at each --bone-tolerances, against one solve to 1e-10")
-    ap.add_argument("--bone-tolerances", type=float, nargs="+", default=[1e-3, 1e-4, 1e-6], metavar="R")
+    ap.add_argument("--bone-tolerances", type=float, nargs="*", default=[1e-3, 1e-4, 1e-6], metavar="R")
+    ap.add_argument("--bone-accuracies", type=float, nargs="*", default=[], metavar="A",
+                    help="as --bone-tolerances, the default tolerance with each of these energy accuracies")
     ap.add_argument("--split", action="store_true", help="one more run of each size with every OpenCL product timed")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6, help="the femur solves' CG tolerance")
@@ -632,6 +663,11 @@ def main(argv=None) -> int:
         from implicit_scaffold.measure.mechanics import CASES_PER_BLOCK
 
         args.cases_per_block = CASES_PER_BLOCK
+    if args.accuracy is None:
+        from implicit_scaffold.measure.mechanics import ACCURACY
+
+        args.accuracy = ACCURACY
+    accuracy = args.accuracy or None
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
     rows = []
@@ -642,22 +678,22 @@ def main(argv=None) -> int:
             if pc != "multigrid" and n > args.peers_up_to:
                 continue
             med, runs = median_runs(OURS.format(solid=str(path), voxel=voxel, tol=args.tol, maxiter=args.maxiter,
-                                                preconditioner=pc, block=args.cases_per_block),
+                                                preconditioner=pc, block=args.cases_per_block, accuracy=accuracy),
                                     args.runs if pc == "multigrid" else args.peer_runs, warmup=0)
             # the solve's own memory: the peak above what the process held before it started
             per_voxel = (med["peak_rss_mb"] - med["rss_before_mb"]) * 2 ** 20 / med["solid_voxels"]
             name = {"multigrid": "multigrid", "fft": "FFT"}[pc]
             ratio = "" if first is None else f"; ratio {med['seconds'] / first['seconds']:.2f}x the first row's"
-            solver = f"ours (OpenCL operator, {name}-PCG{ratio})" + (" capped" if med["residual"] > args.tol else "")
+            solver = f"ours (OpenCL operator, {name}-PCG{ratio})" + (" capped" if med["iterations"] >= args.maxiter else "")
             rows.append([f"{info['grid']}", f"{info['solid_fraction']:.3f}", solver,
                          f"{med['seconds']:.1f}", med["iterations"], f"{med['residual']:.1e}",
-                         f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}",
+                         _error(runs[0]["energy_error"]), f"{med['peak_rss_mb']:.0f}", f"{per_voxel:.0f}",
                          ", ".join(f"{r['seconds']:.1f}" for r in runs)])
             if first is None:
                 first, first_runs = med, runs
             print(f"  {n}^3 {pc} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
         if args.split:
-            split(path, n, voxel, args.tol, args.cases_per_block)
+            split(path, n, voxel, args.tol, args.cases_per_block, accuracy)
         if args.mugrid and n <= args.peers_up_to:
             try:
                 mg, mruns = median_runs(MUGRID.format(solid=str(path), voxel=voxel, tol=args.tol), args.peer_runs,
@@ -669,10 +705,11 @@ def main(argv=None) -> int:
                 dev = np.abs(ours_C - mg_C).max() / np.abs(mg_C).max()
                 ratio = first["seconds"] / mg["seconds"]
                 rows.append([f"{info['grid']}", "", f"muGrid (ratio ours/mugrid {ratio:.2f}; "
-                             f"max |dC|/max|C| {dev:.2e})", f"{mg['seconds']:.1f}", mg["iterations"], "",
+                             f"max |dC|/max|C| {dev:.2e})", f"{mg['seconds']:.1f}", mg["iterations"], "", "",
                              f"{mg['peak_rss_mb']:.0f}", "", ", ".join(f"{r['seconds']:.1f}" for r in mruns)])
     if rows:
-        print(table(rows, ["grid", "solid", "solver", "s (median)", "CG its", "residual", "peak MiB",
+        print(table(rows, ["grid", "solid", "solver", "s (median)", "CG its", "residual", "energy error (est.)",
+                           "peak MiB",
                            "solve B/solid voxel", "runs (s)"]))
     if args.fit and args.fit_tessellation == "periodic":
         pts = []
@@ -719,10 +756,11 @@ def main(argv=None) -> int:
     if args.memory:
         memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","),
                [int(b) for b in args.memory_blocks.split(",")])
-    if args.tolerances:
-        tolerances(tmp, args.tolerance_size, voxel, args.tolerances, args.runs, args.cases_per_block)
+    if args.tolerances or args.accuracies:
+        tolerances(tmp, args.tolerance_size, voxel, stops(args.tolerances, args.accuracies), args.runs,
+                   args.cases_per_block)
     if args.bone:
-        bone(tmp, args.bone, args.bone_tolerances, args.runs)
+        bone(tmp, args.bone, stops(args.bone_tolerances, args.bone_accuracies), args.runs)
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0])
     return 0

@@ -215,8 +215,9 @@ def _add_mechanics_options(p) -> None:
                     help="homogenization: periodic (a box sample), kinematic (a shaped one); auto tells them apart")
     mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
     mg.add_argument("--mechanics-tol", dest="mechanics_tol", type=float, default=None, metavar="R",
-                    help="the CG's relative residual, 1e-12 to 1e-3 (default 1e-6; the README's mechanics section "
-                         "measures what a looser one saves and costs)")
+                    help="the CG's relative residual, 1e-12 to 1e-3, the solves' only stop (default: 1e-6, or sooner "
+                         "each solution's energy within 1e-6 of converged; the README's mechanics section measures "
+                         "what each saves and costs)")
     mg.add_argument("--mechanics-voxel", type=float, default=None, metavar="MM",
                     help="the solve's voxel, sampled (trilinear) from the signed distance (generate's, or a .npy "
                          "field's); default: the field's own voxel when the solve fits --max-memory, else the "
@@ -231,10 +232,11 @@ def _mechanics_setup(args):
 
 
 def _mechanics_lines(mech: dict) -> list[str]:
+    from .io.report import solver_text
+
     E = mech["youngs_modulus_gpa"]
     G = mech["shear_modulus_gpa"]
     comp = mech["compression"]
-    it = mech["solver"]["iterations"]
     lines = [f"  mechanics: {mech['material']['name']} (E {mech['material']['E_gpa']:g} GPa, nu "
              f"{mech['material']['nu']:g}), solid fraction {mech['solid_fraction']:.4f}, "
              f"{mech['boundary_conditions'].split(' (')[0]} boundary conditions",
@@ -243,8 +245,7 @@ def _mechanics_lines(mech: dict) -> list[str]:
              + ("—" if mech["anisotropy_index"] is None else f"{mech['anisotropy_index']:.3g}"),
              f"  compression along {comp['axis']}: apparent modulus {comp['apparent_modulus_gpa']:.4g} GPa",
              f"  bone: {mech['stress_shielding']}",
-             f"  solver: {it['homogenization']} + {it['compression']} CG iterations, residual "
-             f"{mech['solver']['residual']:.1e}, {mech['solver']['seconds']:.1f} s"]
+             f"  solver: {solver_text(mech['solver'])}"]
     lines += [f"  note: {n}" for n in mech["notes"]]
     return lines
 

@@ -274,7 +274,8 @@ class MechanicsSpec:
     axis : {"x", "y", "z"}
         The platen compression's axis.
     tol : float, optional
-        The CG's relative residual (default :data:`~implicit_scaffold.measure.mechanics.TOL`).
+        The CG's relative residual, the solves' only stop; None (the default): the default stop of
+        :func:`~implicit_scaffold.measure.mechanics.measure`.
 
     Raises
     ------

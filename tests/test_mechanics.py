@@ -273,6 +273,97 @@ def test_a_loose_tolerance_errs_by_the_gram_matrix_of_its_errors(small_scaffold,
         assert err.min() >= -1e-9 * scale
 
 
+def _cg_scalars(A, b, steps):
+    """rho_j = r_j.r_j and pq_j = p_j.A p_j of plain CG on A x = b (NumPy, the textbook recurrence)."""
+    x, r = np.zeros_like(b), b.copy()
+    p, rho, pq = r.copy(), [float(r @ r)], []
+    for _ in range(steps):
+        q = A @ p
+        pq.append(float(p @ q))
+        alpha = rho[-1] / pq[-1]
+        x += alpha * p
+        r -= alpha * q
+        rho.append(float(r @ r))
+        p = r + rho[-1] / rho[-2] * p
+    return x, rho, pq
+
+
+def test_energy_error_divides_by_the_smallest_ritz_value_of_the_krylov_space():
+    # oracle: the Ritz values of the Krylov space span{b, A b, ..., A^(k-1) b}, by an orthonormal basis
+    # of it (QR) and the eigenvalues of Q^T A Q, not by CG's scalars
+    rng = np.random.default_rng(3)
+    n, k = 30, 6
+    v = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    A = (v * np.geomspace(1e-2, 1.0, n)) @ v.T
+    b = rng.standard_normal(n)
+    _, rho, pq = _cg_scalars(A, b, k)
+    krylov = np.stack([np.linalg.matrix_power(A, j) @ b for j in range(k)], axis=1)
+    q = np.linalg.qr(krylov)[0]
+    theta = np.linalg.eigvalsh(q.T @ A @ q).min()
+    assert m.energy_error(rho, pq) == pytest.approx(rho[-1] / theta, rel=1e-6)
+    # no estimate from too few steps
+    assert m.energy_error(rho[:m.ENERGY_STEPS], pq[:m.ENERGY_STEPS - 1]) == np.inf
+
+
+def test_energy_error_follows_the_true_error_of_cg():
+    # oracle: the exact solution by np.linalg.solve, and the true e.A e of each iterate. Once the smallest
+    # Ritz value has found the smallest eigenvalue, the estimate lies above the error
+    rng = np.random.default_rng(4)
+    n = 40
+    v = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    A = (v * np.geomspace(1e-3, 1.0, n)) @ v.T
+    b = rng.standard_normal(n)
+    exact = np.linalg.solve(A, b)
+    for steps in (20, 30, 36):
+        x, rho, pq = _cg_scalars(A, b, steps)
+        true = (exact - x) @ A @ (exact - x)
+        assert true <= m.energy_error(rho, pq) <= 1e3 * true
+
+
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_an_energy_accuracy_stops_sooner_within_it(small_scaffold, boundary):
+    # oracle: the same voxels solved by the NumPy reference operator to 1e-11. The tensor's error is the
+    # Gram matrix of the solutions' errors (energy form), its diagonal e_i.K e_i / V: within the asked share
+    # of C_ii, and under the solver's own estimate
+    solid, h = small_scaffold
+    ref = m.homogenize(solid, h, TI, boundary=boundary, tol=1e-11)
+    residual = m.homogenize(solid, h, TI, boundary=boundary, tol=1e-6)
+    for accuracy in (1e-4, 1e-6):
+        hom = m.homogenize(solid, h, TI, boundary=boundary, tol=1e-6, accuracy=accuracy)
+        err = np.diag(hom.stiffness - ref.stiffness) / np.diag(ref.stiffness)
+        assert err.min() >= -1e-9 and err.max() <= accuracy
+        assert err.max() <= hom.energy_error <= accuracy
+        assert hom.iterations < residual.iterations
+    assert err.max() > 0  # not a converged solve: the stop had something to do
+
+
+def test_an_energy_accuracy_bounds_the_compression_modulus():
+    # oracle: the same compression to 1e-11. The modulus is the platens' work over the strain: an energy,
+    # above the converged one by the solution's energy error
+    rng = np.random.default_rng(8)
+    solid = rng.random((14, 14, 16)) < 0.55
+    solid[:, :, :] |= np.arange(16)[None, None, :] % 5 == 0  # plates: a load path whatever the draw
+    ref = m.compress(solid, 0.1, TI, tol=1e-11)
+    tight = m.compress(solid, 0.1, TI, tol=1e-8)
+    for accuracy in (1e-4, 1e-6):
+        comp = m.compress(solid, 0.1, TI, tol=1e-8, accuracy=accuracy)
+        rel = comp.apparent_modulus_gpa / ref.apparent_modulus_gpa - 1
+        assert -1e-9 <= rel <= accuracy and rel <= comp.energy_error
+        assert comp.iterations < tight.iterations
+
+
+def test_measure_stops_on_its_energy_accuracy_unless_given_a_tolerance(small_scaffold):
+    solid, h = small_scaffold
+    default, _ = m.measure(solid, h, TI, boundary="periodic")
+    given, _ = m.measure(solid, h, TI, boundary="periodic", tol=1e-6)
+    assert default["solver"]["accuracy"] == m.ACCURACY and given["solver"]["accuracy"] is None
+    assert default["solver"]["tolerance"] == given["solver"]["tolerance"] == m.TOL
+    assert 0 < default["solver"]["energy_error"] <= m.ACCURACY
+    for key in ("homogenization", "compression"):
+        assert default["solver"]["iterations"][key] <= given["solver"]["iterations"][key]
+    assert default["solver"]["iterations"]["homogenization"] < given["solver"]["iterations"]["homogenization"]
+
+
 def test_cli_mechanics_tolerance_reaches_the_report(tmp_path, capsys):
     import json
 
@@ -747,7 +838,7 @@ def test_a_mechanics_spec_checks_its_values():
     assert MechanicsSpec().material.name == m.material("ti64").name
     assert MechanicsSpec("pcl", E=1.0).material.E_gpa == 1.0
     assert MechanicsSpec(m.material("peek"), nu=0.3).material.nu == 0.3
-    assert MechanicsSpec().tol == m.TOL and MechanicsSpec(tol=1e-4).tol == 1e-4
+    assert MechanicsSpec().tol is None and MechanicsSpec(tol=1e-4).tol == 1e-4
     for bad in (dict(material="steel"), dict(nu=0.5), dict(boundary="free"), dict(axis="w"), dict(voxel=-1),
                 dict(tol=0), dict(tol=1.0), dict(tol="loose")):
         with pytest.raises(ScaffoldError):

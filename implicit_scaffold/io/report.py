@@ -412,6 +412,14 @@ def strain_section_image(compression, h: float) -> bytes:
     return _png(fig)
 
 
+def solver_text(sol: dict) -> str:
+    """The mechanics solve in a few words: its CG iterations, residual, estimated energy error and time."""
+    err = sol.get("energy_error")
+    energy = "" if err is None else f", energy error {err:.1e} (estimated)"
+    return (f"{sol['iterations']['homogenization']} + {sol['iterations']['compression']} CG iterations, residual "
+            f"{sol['residual']:.1e}{energy}, {sol['seconds']:.1f} s")
+
+
 def mechanics_html(mech: dict) -> str:
     """The page's mechanics section: moduli beside bone's bands, the verdict, the solver."""
     E, G = mech["youngs_modulus_gpa"], mech["shear_modulus_gpa"]
@@ -424,8 +432,7 @@ def mechanics_html(mech: dict) -> str:
     rows.append(("anisotropy index", _fmt(mech["anisotropy_index"])))
     rows.append(("solid fraction", _fmt(mech["solid_fraction"])))
     sol = mech["solver"]
-    rows.append(("solver", f"{sol['iterations']['homogenization']} + {sol['iterations']['compression']} CG "
-                           f"iterations, residual {sol['residual']:.1e}, {sol['seconds']:.1f} s"))
+    rows.append(("solver", solver_text(sol)))
     mat = mech["material"]
     out = ["<h2>Mechanics</h2>",
            f"<p><b>{html.escape(mech['stress_shielding'])}</b></p>",

@@ -182,9 +182,10 @@ def material(name: str | None = None, *, E: float | None = None, nu: float | Non
     return Material(base.name, E_gpa, nu_v, base.source)
 
 
-#: the CG's relative residual by default (the benchmark's 128^3 scaffold: its tensor within 1.5e-11 of a
-#: solve to 1e-10 in the energy form, 2.6e-7 as the mean stress; far below the voxel discretisation's
-#: error; README, Mechanics, Tolerance)
+#: the CG's relative residual by default, where the energy accuracy :data:`ACCURACY` has not stopped it
+#: sooner (:func:`measure`); alone, the benchmark's 128^3 scaffold: its tensor within 1.5e-11 of a solve
+#: to 1e-10 in the energy form, 2.6e-7 as the mean stress; far below the voxel discretisation's error
+#: (README, Mechanics, the stop)
 TOL = 1e-6
 #: the tolerances a user may ask for (``--mechanics-tol``): below 1e-12 the residual meets double
 #: precision's rounding; at 1e-2 a compression of a 128^3 crop of the lumbar trabecular micro-CT
@@ -193,8 +194,8 @@ TOL = 1e-6
 TOL_RANGE = (1e-12, 1e-3)
 
 
-def check_tol(tol) -> float:
-    """The CG's relative residual `tol` as a float, or None as :data:`TOL`.
+def check_tol(tol) -> float | None:
+    """The CG's relative residual `tol` as a float, or None: the default stop (:func:`measure`).
 
     Raises
     ------
@@ -202,7 +203,7 @@ def check_tol(tol) -> float:
         `tol` outside :data:`TOL_RANGE`, in one line.
     """
     if tol is None:
-        return TOL
+        return None
     lo, hi = TOL_RANGE
     try:
         value = float(tol)
@@ -542,7 +543,8 @@ def _norms(v: np.ndarray) -> np.ndarray:
 
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
-        maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False):
+        maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False,
+        energy: np.ndarray | None = None, accuracy: float | None = None, info: dict | None = None):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -587,6 +589,16 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     cross : bool
         Also return ``x_i . r_j`` (m, m) of the solutions and the final residuals (free unknowns):
         the first-order term of a quadratic form's error, which :func:`homogenize` takes out.
+    energy : (m,) floats, optional
+        With `accuracy`: the strain energy ``w.K w`` of each case's lifting ``w`` (the right-hand side
+        is ``b = -F K w``, and the total displacement ``w + x``), whose total energy is
+        ``w.K w - x.K x``.
+    accuracy : float, optional
+        Also stop a case once its solution's energy error ``e.K e``, estimated by :func:`energy_error`,
+        is at most `accuracy` times its total energy (whichever of this and `tol` comes first).
+    info : dict, optional
+        Filled with ``energy_error`` (m,): each case's estimated energy error over its total energy at
+        the stop (inf before :data:`ENERGY_STEPS` steps since its last start, NaN without `energy`).
 
     Returns
     -------
@@ -633,6 +645,26 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     x = np.zeros_like(r)
     res = _norms(r) / scale
     it = 0
+    # each case's CG scalars since its last (re)start (energy_error's), and the sum of its steps' energies
+    # alpha rho = |x_{k+1} - x_k|_K^2 over the whole solve (the solved part's energy x.K x: x starts from 0)
+    rhos = [[rz[c]] for c in range(m)]
+    pqs = [[] for _ in range(m)]
+    solved = np.zeros(m)
+    total = None if energy is None else np.asarray(energy, float).reshape(m)
+
+    def relative_error() -> np.ndarray:
+        """(m,) each case's estimated energy error over its total energy (NaN: no energy given)."""
+        out = np.full(m, np.nan)
+        if total is not None:
+            for c in range(m):
+                out[c] = energy_error(rhos[c], pqs[c]) / max(total[c] - solved[c], 1e-300)
+        return out
+
+    def met() -> np.ndarray:
+        """(m,) the cases whose energy error is estimated at most `accuracy` of their energy."""
+        if accuracy is None or total is None:
+            return np.zeros(m, bool)
+        return relative_error() <= accuracy
 
     def iterate(product, goal: float, stall: int = 0):
         """CG steps until every case is below `goal` (or maxiter); with `stall`, a case also stops
@@ -645,7 +677,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         spread = getattr(product, "dtype", None)  # p spread in the operator's own float: no cast there
         best, stale = res.copy(), np.zeros(m, int)
         while it < maxiter:
-            going = (res > goal) & ((stale < stall) if stall else True)
+            going = (res > goal) & ((stale < stall) if stall else True) & ~met()
             if not going.any():
                 break
             live_cases = np.zeros(m, bool)
@@ -658,11 +690,15 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 if pq > 0:
                     live_cases[c] = True
                     rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
+                    pqs[c].append(pq)
+                    solved[c] += rz[c] * rz[c] / pq  # alpha rho
                 del q
             rz_new = np.zeros(m)
 
             def step(c, z):
                 rz_new[c] = np.einsum("dn,dn->", r[c], z[0])
+                if live_cases[c]:
+                    rhos[c].append(rz_new[c])
                 beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
                 xpby(z, p[c:c + 1], [beta])  # p = z + beta p
 
@@ -679,7 +715,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         if fast is None:
             iterate(apply, tol)
         else:
-            iterate(fast, fast_goal(tol), FAST_STALL)
+            # with an energy accuracy, the fast products go on until it is met (or they stall on their
+            # rounding): a looser residual goal would hand over to double before the estimate has a say
+            iterate(fast, tol if accuracy is not None and total is not None else fast_goal(tol), FAST_STALL)
     if fast is not None:
         # the recurrence's r drifted from F (b - K x) by the fast products' rounding (on the 128^3
         # benchmark scaffold, float: up to 1.16e-6 where r said under 1e-6); each case's true
@@ -694,14 +732,21 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         # r. Kept (residual replacement), a drift of 1e-3 stalled the CG, its next beta some 1e10,
         # and on a 64^3 scaffold under platens one of 3.3 times (2.9e-6 against 8.7e-7) took 238
         # more iterations where the restart took a few
-        again = res > tol
+        # (a case whose energy accuracy the fast products met is done: its error against the double
+        # operator's solution is of their rounding, some 1e-7 of a product, squared in the energy)
+        done = met()
+        again = (res > tol) & ~done
         with reusing():
             if again.any():
                 # the whole block preconditioned, as every iteration does (a block of another size
                 # would build the coarse levels' kernels for it)
                 pre(r, lambda c, z: first(c, z) if again[c] else None)
-            iterate(apply, tol)
+                for c in np.flatnonzero(again):
+                    rhos[c], pqs[c] = [rz[c]], []  # a new CG: its scalars estimate its own error
+            iterate(apply, tol)  # a done case stays met (its scalars are kept): no product
     del p
+    if info is not None:
+        info["energy_error"] = relative_error()
     # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
     # double (whose drift from it is rounding)
     out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
@@ -723,6 +768,7 @@ class Homogenization:
     residual: float
     seconds: float
     backend: str = "numpy"
+    energy_error: float = float("nan")  # the largest case's estimated relative energy error (pcg's info)
 
 
 def _operator(model, backend):
@@ -749,6 +795,61 @@ FAST_STALL = 5
 #: benchmark scaffold at 1e-3: 19.3 s, its tensor (as the mean stress) 7.4e-5 off, against 20.6 s and
 #: 3.6e-4 with the goal at 100 times the tolerance (README, Mechanics, Tolerance)
 FAST_FLOOR = 1e-4
+
+
+#: :func:`energy_error` gives no estimate before this many CG steps (from the last start): the smallest
+#: Ritz value of fewer lies too far above the operator's smallest eigenvalue
+ENERGY_STEPS = 4
+#: the default energy accuracy of a solve (:func:`measure`): each solution's energy error ``e.K e`` at most
+#: this share of its total energy, so the stiffness tensor's entries and the apparent modulus (energies,
+#: second order in the error) to some six digits, beside a voxel discretisation error of percents
+ACCURACY = 1e-6
+
+
+def energy_error(rho, pq) -> float:
+    """The energy error ``e.K e`` of a preconditioned CG iterate, estimated from the CG's own scalars.
+
+    Parameters
+    ----------
+    rho : sequence of k + 1 floats
+        ``r_j.z_j`` (the residual times the preconditioned residual) at the start and after each step;
+        the last is the iterate's.
+    pq : sequence of k floats
+        ``p_j.K p_j`` of each step's search direction.
+
+    Returns
+    -------
+    float
+        In the system's energy units; inf before :data:`ENERGY_STEPS` steps.
+
+    Notes
+    -----
+    ``e.K e = r.K^-1 r <= r.M r / lambda_min(M K)`` for the preconditioner ``M``. The smallest eigenvalue is
+    estimated by the smallest eigenvalue (Ritz value) of the Lanczos matrix that CG's step lengths
+    ``alpha_j = rho_j / pq_j`` and ``beta_j = rho_{j+1} / rho_j`` make (Golub and Meurant, Matrices, Moments
+    and Quadrature, 2010, ch. 12), which lies above it and falls towards it as CG finds the slow modes.
+    A stop on the energy error against the energy is Arioli's (Numer. Math. 97 (2004) 1-24): the
+    figures are energies, whose error is ``e.K e``. Not an extrapolation of the steps' own energies
+    ``alpha_j rho_j`` (a geometric series at their slowest recent ratio): on a 64^3 crop of the lumbar
+    trabecular micro-CT in ../shared/data compressed between platens, that stopped at 380 iterations with the
+    modulus 6.6e-5 off for an asked 1e-6 (a plateau of the residual hid a slow mode); this estimate stopped
+    at 452, 5.1e-11 off, where 1e-6 is first met at 422 (README, Mechanics, the default stop measured).
+    """
+    from scipy.linalg import eigvalsh_tridiagonal
+
+    rho = np.asarray(rho, float)
+    pq = np.asarray(pq, float)
+    k = pq.size
+    if k < ENERGY_STEPS or rho.size != k + 1 or not (np.all(pq > 0) and np.all(rho[:-1] > 0)):
+        return float("inf")
+    alpha = rho[:-1] / pq
+    beta = rho[1:-1] / rho[:-2]
+    diag = 1.0 / alpha
+    diag[1:] += beta / alpha[:-1]
+    theta = float(eigvalsh_tridiagonal(diag, np.sqrt(beta) / alpha[:-1], select="i", select_range=(0, 0))[0])
+    if not theta > 0:
+        return float("inf")
+    return max(float(rho[-1]), 0.0) / theta
 
 
 def fast_goal(tol: float) -> float:
@@ -787,7 +888,8 @@ CASES_PER_BLOCK = 6
 
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
                maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid",
-               progress=None, cases_per_block: int = CASES_PER_BLOCK) -> Homogenization:
+               progress=None, cases_per_block: int = CASES_PER_BLOCK,
+               accuracy: float | None = None) -> Homogenization:
     """The effective 6x6 stiffness of a voxel sample (Voigt, GPa).
 
     Parameters
@@ -806,6 +908,10 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         See :func:`make_preconditioner`.
     progress : callable, optional
         (iteration, residual) after every CG iteration.
+    accuracy : float, optional
+        Also stop a load case once its energy error is estimated at most this share of its energy
+        (:func:`pcg`): each diagonal entry ``C_ii`` then lies within that share above the converged one
+        (Notes), the others within it of ``sqrt(C_ii C_jj)``.
     cases_per_block : int
         The six load cases are solved this many at a time (1-6), with one preconditioner: the
         solve's vectors are held for one block's cases only (:data:`CASES_PER_BLOCK`).
@@ -844,7 +950,10 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     block = max(1, min(6, int(cases_per_block)))
     ue_sum = np.empty((6, 24))
     cross = np.zeros((6, 6))  # x_i . r_j within each block (Notes: the energy form)
-    iterations, res = 0, np.zeros(6)
+    iterations, res, err = 0, np.zeros(6), np.full(6, np.nan)
+    # each unit strain's lifting energy (u = E x: every solid voxel holds the same corner displacements,
+    # up to a translation), the total a case's solved part relaxes
+    lifting = ns * np.einsum("ka,ab,kb->k", u0e, model.ke, u0e)
     for k0 in range(0, 6, block):
         cases = range(k0, min(6, k0 + block))
         # the right-hand side is handed to pcg with no reference kept here, so that it is
@@ -856,9 +965,12 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         else:
             def loads(ks):
                 return _kinematic_loads(op, model.shape, h, ks)
+        info = {}
         x, its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
-                            progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True)
+                            progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True,
+                            energy=lifting[list(cases)], accuracy=accuracy, info=info)
         cross[np.ix_(list(cases), list(cases))] = xr
+        err[list(cases)] = info["energy_error"]
         if not periodic:
             for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
                 x[c] += _affine(model.shape, h, [k])[0]
@@ -874,7 +986,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     C = C - cross / (total * h ** 3)  # the energy form (Notes)
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
     return Homogenization(C, boundary, float(solid.mean()), int(iterations), float(res.max()),
-                          time.perf_counter() - t0, backend)
+                          time.perf_counter() - t0, backend, float(err.max()))
 
 
 def _kinematic_loads(op, shape, h: float, cases) -> np.ndarray:
@@ -927,6 +1039,7 @@ class Compression:
     residual: float
     seconds: float
     dropped_voxels: int  # solid voxels not joined to both platens (they carry no load)
+    energy_error: float = float("nan")  # the estimated relative energy error (pcg's info)
 
 
 def load_path(solid: np.ndarray, axis: int) -> np.ndarray:
@@ -957,7 +1070,7 @@ def von_mises_strain(strain: np.ndarray) -> np.ndarray:
 
 def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
              tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy",
-             preconditioner: str = "multigrid", progress=None) -> Compression:
+             preconditioner: str = "multigrid", progress=None, accuracy: float | None = None) -> Compression:
     """Compress a voxel sample between two rigid platens on its faces normal to `axis`.
 
     The lower platen holds its nodes' axial displacement at 0, the upper one moves them by
@@ -966,7 +1079,9 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     ideal ISO 13314 test; ``bonded=True`` holds them laterally too (no slip, the stiff end
     of the friction range). The apparent modulus is the platen force over the box's
     cross-section, over the strain. The sliding system keeps the rigid in-plane motions: it
-    is singular but consistent, which CG solves (they carry no force).
+    is singular but consistent, which CG solves (they carry no force). With `accuracy` the CG
+    also stops once the solution's energy error is estimated at most that share of its energy
+    (:func:`pcg`): the modulus, the platens' work, is then that close above the converged one.
 
     Raises
     ------
@@ -1011,8 +1126,15 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     # scaffold along z: 44 iterations, 2.4 and 3.0 s, against 40 and 2.2 and 2.3 s in double);
     # and to a loose tolerance in float the modulus is further off (a 128^3 crop of the lumbar
     # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double)
-    x, iterations, res = pcg(op, precond, -op(base) * free, free, scale=scale, tol=tol, maxiter=maxiter,
-                             progress=progress)
+    # the platens' displacement is the lifting; the modulus is its energy over the solve's (the reaction
+    # force's work), so `accuracy` bounds the modulus's error as it does the energy's
+    kb = op(base)
+    lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
+    b = -kb * free
+    del kb
+    info = {}
+    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress,
+                             energy=lifting, accuracy=accuracy, info=info)
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
@@ -1021,7 +1143,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     field_vm[model.solid] = von_mises_strain(eps)
     field_vm = field_vm[: solid.shape[0], : solid.shape[1], : solid.shape[2]]
     return Compression(axis, float(force / area / strain), strain, field_vm, int(iterations), float(res.max()),
-                       time.perf_counter() - t0, int(solid.sum() - kept.sum()))
+                       time.perf_counter() - t0, int(solid.sum() - kept.sum()), float(info["energy_error"][0]))
 
 
 # ----------------------------------------------------------------------------- moduli
@@ -1155,7 +1277,7 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
     return out
 
 
-def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float = TOL,
+def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float | None = None,
             backend: str = "numpy", origin=(0.0, 0.0, 0.0),
             preconditioner: str = "multigrid", progress=None,
             cases_per_block: int = CASES_PER_BLOCK) -> tuple[dict, Compression]:
@@ -1170,8 +1292,10 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         ``auto``: :func:`choose_boundary`.
     axis : int
         The compression axis (0, 1, 2 for x, y, z).
-    tol : float
-        Relative residual of the CG solves (:data:`TOL`; the report's ``solver.tolerance``).
+    tol : float, optional
+        Relative residual of the CG solves (the report's ``solver.tolerance``). None, the default:
+        :data:`TOL`, or sooner the energy accuracy :data:`ACCURACY` (the report's ``solver.accuracy``), which
+        stops where the figures have converged; a tolerance given is the stop alone.
     preconditioner : {"multigrid", "fft"}
         See :func:`make_preconditioner`.
     progress : callable, optional
@@ -1192,10 +1316,13 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     def tell(name):
         return None if progress is None else (lambda it, res: progress(name, it, res))
 
+    accuracy = ACCURACY if tol is None else None
+    tol = TOL if tol is None else tol
     comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
-                    progress=tell("compression"))
+                    progress=tell("compression"), accuracy=accuracy)
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
-                     progress=tell("homogenization"), cases_per_block=cases_per_block)
+                     progress=tell("homogenization"), cases_per_block=cases_per_block, accuracy=accuracy)
+    errors = [e for e in (hom.energy_error, comp.energy_error) if np.isfinite(e)]
     consts = engineering_constants(hom.stiffness)
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
@@ -1218,6 +1345,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
                         "most_strained_voxels": most_strained(comp.von_mises_strain, h, origin)},
         "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
                    "residual": max(hom.residual, comp.residual), "tolerance": float(tol),
+                   "accuracy": accuracy, "energy_error": max(errors) if errors else None,
                    "seconds": round(hom.seconds + comp.seconds, 4),
                    "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, "
                              + {"multigrid": "geometric multigrid (Galerkin) preconditioner",
@@ -1785,7 +1913,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
 
 
 def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto", axis: int = 2,
-                   progress=None, tol: float = TOL) -> tuple[dict, "Compression"]:
+                   progress=None, tol: float | None = None) -> tuple[dict, "Compression"]:
     """:func:`measure` on a :class:`SolveSample`: the report's ``mechanics`` section, whose ``voxel``
     entry says which voxel and why (with the process's peak memory so far), and the compression.
 
