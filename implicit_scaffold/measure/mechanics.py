@@ -1130,11 +1130,14 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     # force's work), so `accuracy` bounds the modulus's error as it does the energy's
     kb = op(base)
     lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
-    b = -kb * free
+    np.negative(kb, out=kb)
+    kb *= free  # the right-hand side, in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
+    # handed to pcg with no name left on it here, so that pcg releases it once it has read its live nodes
+    hand = [kb]
     del kb
     info = {}
-    x, iterations, res = pcg(op, precond, b, free, scale=scale, tol=tol, maxiter=maxiter, progress=progress,
-                             energy=lifting, accuracy=accuracy, info=info)
+    x, iterations, res = pcg(op, precond, hand.pop(), free, scale=scale, tol=tol, maxiter=maxiter,
+                             progress=progress, energy=lifting, accuracy=accuracy, info=info)
     u = base + x
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
