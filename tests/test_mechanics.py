@@ -288,7 +288,7 @@ def _cg_scalars(A, b, steps):
     return x, rho, pq
 
 
-def test_energy_error_divides_by_the_smallest_ritz_value_of_the_krylov_space():
+def test_energy_error_takes_the_smallest_ritz_value_of_the_krylov_space():
     # oracle: the Ritz values of the Krylov space span{b, A b, ..., A^(k-1) b}, by an orthonormal basis
     # of it (QR) and the eigenvalues of Q^T A Q, not by CG's scalars
     rng = np.random.default_rng(3)
@@ -300,9 +300,32 @@ def test_energy_error_divides_by_the_smallest_ritz_value_of_the_krylov_space():
     krylov = np.stack([np.linalg.matrix_power(A, j) @ b for j in range(k)], axis=1)
     q = np.linalg.qr(krylov)[0]
     theta = np.linalg.eigvalsh(q.T @ A @ q).min()
-    assert m.energy_error(rho, pq) == pytest.approx(rho[-1] / theta, rel=1e-6)
+    want = min(rho[-1] / theta, m.gauss_radau(rho, pq, m.RADAU_SHARE * theta))
+    assert m.energy_error(rho, pq) == pytest.approx(want, rel=1e-6)
     # no estimate from too few steps
     assert m.energy_error(rho[:m.ENERGY_STEPS], pq[:m.ENERGY_STEPS - 1]) == np.inf
+
+
+def test_gauss_radau_bounds_the_true_error_of_cg_with_its_node_under_the_spectrum():
+    # oracle: the exact solution by np.linalg.solve and the smallest eigenvalue by np.linalg.eigvalsh; the
+    # Gauss-Radau rule with its node at or under the smallest eigenvalue bounds the error from above at
+    # every step, and tightly once CG has found the slow end of the spectrum
+    rng = np.random.default_rng(6)
+    n = 40
+    v = np.linalg.qr(rng.standard_normal((n, n)))[0]
+    lam = np.geomspace(1e-3, 1.0, n)
+    A = (v * lam) @ v.T
+    b = rng.standard_normal(n)
+    exact = np.linalg.solve(A, b)
+    for steps in range(1, 36):
+        x, rho, pq = _cg_scalars(A, b, steps)
+        true = (exact - x) @ A @ (exact - x)
+        assert true <= m.gauss_radau(rho, pq, lam[0]) * (1 + 1e-9)
+        assert true <= m.gauss_radau(rho, pq, 0.5 * lam[0]) * (1 + 1e-9)
+    assert m.gauss_radau(rho, pq, lam[0]) <= 10 * true
+    # a node far above the spectrum's bottom leaves the recurrence no error to share out: no bound, said
+    # as inf (never 0, which would stop a solve)
+    assert m.gauss_radau(rho, pq, 100 * lam[0]) == np.inf
 
 
 def test_energy_error_follows_the_true_error_of_cg():
