@@ -651,6 +651,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     pqs = [[] for _ in range(m)]
     solved = np.zeros(m)
     total = None if energy is None else np.asarray(energy, float).reshape(m)
+    by_energy = accuracy is not None and total is not None  # the energy stop is on
 
     def relative_error() -> np.ndarray:
         """(m,) each case's estimated energy error over its total energy (NaN: no energy given)."""
@@ -662,9 +663,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
 
     def met() -> np.ndarray:
         """(m,) the cases whose energy error is estimated at most `accuracy` of their energy."""
-        if accuracy is None or total is None:
-            return np.zeros(m, bool)
-        return relative_error() <= accuracy
+        return relative_error() <= accuracy if by_energy else np.zeros(m, bool)
 
     def iterate(product, goal: float, stall: int = 0):
         """CG steps until every case is below `goal` (or maxiter); with `stall`, a case also stops
@@ -717,7 +716,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         else:
             # with an energy accuracy, the fast products go on until it is met (or they stall on their
             # rounding): a looser residual goal would hand over to double before the estimate has a say
-            iterate(fast, tol if accuracy is not None and total is not None else fast_goal(tol), FAST_STALL)
+            iterate(fast, tol if by_energy else fast_goal(tol), FAST_STALL)
     if fast is not None:
         # the recurrence's r drifted from F (b - K x) by the fast products' rounding (on the 128^3
         # benchmark scaffold, float: up to 1.16e-6 where r said under 1e-6); each case's true
