@@ -89,15 +89,14 @@ _out = {{'grid': 'x'.join(map(str, solid.shape)), 'solid_fraction': float(solid.
 OURS = """
 import time
 import numpy as np
-from implicit_scaffold.measure import mechanics as M
+from implicit_scaffold.measure import mechanics as M, mechanics_cl as MC
 from implicit_scaffold import opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
 # the operators' kernels built outside the clock (double and the cycle's fine level one case a launch,
 # the coarse levels the block's)
-opencl.program('mechanics', NCASE=1, USE_DOUBLE=1)
-opencl.program('mechanics', NCASE=1, USE_DOUBLE=0)
-opencl.program('mechanics', NCASE={block!r}, USE_DOUBLE=0)
+for nc, d in ((1, 1), (1, 0), ({block!r}, 0)):
+    opencl.program('mechanics', **MC.defines(nc, d))
 import psutil
 before = psutil.Process().memory_info().rss / 2**20  # the interpreter, NumPy, SciPy and the OpenCL runtime
 t = time.perf_counter()
@@ -116,7 +115,7 @@ from implicit_scaffold import opencl
 solid = np.load({solid!r})
 mat = M.material('ti64')
 for nc, d in ((1, 1), (1, 0), ({block!r}, 0)):
-    opencl.program('mechanics', NCASE=nc, USE_DOUBLE=d)
+    opencl.program('mechanics', **MC.defines(nc, d))
 stats = collections.defaultdict(lambda: [0, 0.0])
 product = MC._Gather.__call__
 def timed(self, u):

@@ -678,6 +678,47 @@ def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
                 assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), check.name
 
 
+def _sparse_rows_solid():
+    """A solid whose node rows along z (48 inner nodes: three vectors of 16) hold vectors that no
+    solid voxel touches, vectors that one voxel touches at a single lane, and whole rows of none."""
+    solid = np.zeros((6, 5, 50), bool)
+    solid[2, 1, 20] = True  # touches nodes k = 20, 21 of rows (2..3, 1..2): one vector of each
+    solid[3, 2, 33:35] = True  # the last lane of one vector and the first of the next
+    solid[4, 3, 0] = solid[4, 3, 49] = True  # the rows' ends (the ends kernel), wrapped when periodic
+    return solid
+
+
+@pytest.mark.parametrize("vote", [True, False])
+@pytest.mark.parametrize("periodic", [True, False])
+def test_opencl_operator_skips_untouched_vectors_exactly(periodic, vote, monkeypatch):
+    # the rows kernel skips the products of a vector of nodes no solid voxel touches, decided per
+    # vector by a sub-group vote where the device has one (VOTE=1) or per work item: either way the
+    # product is the NumPy reference's, and a node no solid voxel touches gets exactly 0 even where
+    # its neighbours move
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    if not vote:
+        monkeypatch.setattr(mc, "has_vote", lambda: False)
+    solid = _sparse_rows_solid()
+    model = m.voxel_model(solid, 0.1, TI, periodic=periodic)
+    rng = np.random.default_rng(5)
+    u = rng.standard_normal((2, 3, int(np.prod(model.shape))))
+    ref = m.apply_stiffness(model, u)
+    touched = np.zeros(model.shape, bool)
+    for b in range(8):
+        touched |= np.roll(model.solid.astype(bool), tuple((b >> a) & 1 for a in range(3)), axis=(0, 1, 2))
+    assert touched.any() and (~touched).any()
+    for check in _devices():
+        with opencl.using(check):
+            for double, tol in ((False, 1e-6), (True, 1e-12)):
+                if double and not mc.has_double():
+                    continue
+                got = mc.StiffnessOperator(model, double=double)(u)
+                assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), (check.name, double)
+                assert not got.reshape(2, 3, *model.shape)[:, :, ~touched].any(), (check.name, double)
+
+
 def test_the_pool_hands_out_again_only_memory_nothing_refers_to():
     from implicit_scaffold.measure import mechanics_cl as mc
 

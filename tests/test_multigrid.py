@@ -217,6 +217,39 @@ def test_the_first_levels_pattern_product_matches_the_dense_level(shape, periodi
                 assert np.abs(got - LevelOperator(level)(x)).max() <= tol * scale, check.name
 
 
+@pytest.mark.parametrize("vote", [True, False])
+def test_the_pattern_product_skips_untouched_vectors_exactly(vote, monkeypatch):
+    # pattern_rows skips the products of a vector of coarse nodes no pattern element touches (by a
+    # sub-group vote where the device has one, else per work item): the dense level's product
+    # either way, on a sparse solid whose coarse rows (33 inner nodes along z) hold untouched
+    # vectors, a vector touched at one lane, and rows of none
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    if not vote:
+        monkeypatch.setattr(mc, "has_vote", lambda: False)
+    solid = np.zeros((8, 9, 70), bool)
+    solid[2:4, 4:6, 40:42] = True
+    solid[5, 2, 0:3] = True
+    model = M.voxel_model(solid, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    rng = np.random.default_rng(9)
+    for dtype, tol in ((np.float32, 1e-6), (np.float64, 1e-12)):
+        level = G._first_coarse(model, free, dtype)
+        nc = int(np.prod(level.shape))
+        x = rng.standard_normal((2, 3, nc)).astype(dtype)
+        ref = (x.astype(np.float64).reshape(2, -1) @ level.matrix().T).reshape(2, 3, nc)
+        untouched = ~np.abs(level.matrix()).reshape(3 * nc, 3 * nc).any(axis=1).reshape(3, nc).any(axis=0)
+        assert untouched.mean() > 0.9
+        for check in opencl.working_devices():
+            with opencl.using(check):
+                if dtype == np.float64 and not mc.has_double():
+                    continue
+                got = mc.PatternLevelOperator(level, level.pattern, G.child_matrices(model.ke).astype(dtype))(x)
+                assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
+                assert not got[:, :, untouched].any(), check.name
+
+
 @pytest.mark.parametrize("boundary, tol", [("periodic", 1e-6), ("kinematic", 1e-6), ("periodic", 1e-8)])
 def test_the_first_levels_pattern_product_leaves_the_solve_as_it_was(scaffolds, monkeypatch, boundary, tol):
     # the same tensor and the same iteration count with the per-element kernel on the first

@@ -21,6 +21,19 @@ def has_double() -> bool:
     return "cl_khr_fp64" in ctx.devices[0].extensions
 
 
+def has_vote() -> bool:
+    """Whether the active device's kernels can vote over a vector of work items
+    (``cl_intel_subgroups``: a sub-group is the vector the Intel CPU runtime packs them into)."""
+    ctx, _ = opencl.context()
+    return "cl_intel_subgroups" in ctx.devices[0].extensions.split()
+
+
+def defines(ncase: int, double: bool) -> dict:
+    """The ``-D`` defines of ``kernels/mechanics.cl`` for products of `ncase` load cases a launch:
+    one place, so that a caller building the kernels ahead (the benchmark) builds these."""
+    return dict(NCASE=int(ncase), USE_DOUBLE=int(bool(double)), VOTE=int(has_vote()))
+
+
 #: host arrays the device reads and writes in place are aligned to this many bytes: a CPU
 #: device then uses them as its buffers (``USE_HOST_PTR``, zero copy); at any other address
 #: the Intel CPU runtime keeps a copy of its own (measured: 16-byte-aligned NumPy arrays of
@@ -151,7 +164,7 @@ class _Gather:
 
         A coarse level: ``stiffness_apply`` over every node. The fine operator: ``stiffness_rows``
         and ``stiffness_ends`` (:meth:`_rows`)."""
-        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
+        opts = defines(ncase, self.double)
         if self.per_element:
             return [(opencl.kernel("mechanics", "stiffness_apply", **opts), (self.n,), None, (self.owner, self.mats))]
         return self._rows("stiffness", opts, (self.owner, self.mats))
@@ -294,7 +307,7 @@ class PatternLevelOperator(LevelOperator):
     def _launches(self, ncase: int) -> list:
         if ncase < self.MIN_CASES:
             return super()._launches(ncase)
-        opts = dict(NCASE=ncase, USE_DOUBLE=int(self.double))
+        opts = defines(ncase, self.double)
         out = self._rows("pattern", opts, (self.code, self.children))
         if self.any_rest:
             out.append((opencl.kernel("mechanics", "stiffness_apply", ADD=1, **opts), (self.n,), None,
