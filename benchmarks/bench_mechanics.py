@@ -121,8 +121,9 @@ product = MC._Gather.__call__
 def timed(self, u):
     t = time.perf_counter()
     out = product(self, u)
-    key = ('level ' + 'x'.join(map(str, self.shape)) if self.per_element
-           else 'fine, ' + ('double' if self.double else 'float'), int(u.shape[0]))
+    key = ('fine, ' + ('double' if self.double else 'float') if isinstance(self, MC.StiffnessOperator)
+           else 'level ' + 'x'.join(map(str, self.shape)) + (' (stencils)' if isinstance(self, MC.StencilLevelOperator)
+                                                            else ''), int(u.shape[0]))
     stats[key][0] += 1
     stats[key][1] += time.perf_counter() - t
     return out

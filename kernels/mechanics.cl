@@ -325,3 +325,64 @@ static inline __attribute__((always_inline)) void pattern_node(
 
 __kernel void pattern_rows(NODE_ARGS) ROWS_BODY(pattern_node)
 __kernel void pattern_ends(NODE_ARGS) ENDS_BODY(pattern_node)
+
+/* A coarse level as assembled node stencils: `st` holds, for every node, the 3 x 3 block of each
+ * of its 27 neighbours q (offset (q % 3, q / 3 % 3, q / 9) - 1), entry x = 9 q + 3 d + e (row d,
+ * column e) of node (row r = i n2 + j, k) at st[(243 r + x) n3 + k]: a row's stencils are one
+ * contiguous block, read in order; `live` is 1 at a node some element touches. The same sums as
+ * stiffness_apply (the elements' row blocks added per neighbour by the host,
+ * implicit_scaffold.multigrid.node_stencils), in the structure of the fine kernels (3-D range,
+ * rows and ends, neighbours as literals): a vector's work items read consecutive words of every
+ * stencil entry and of u, where stiffness_apply gathers one element matrix per work item. Each
+ * neighbour's block is read once for all NCASE cases. */
+#define STENCIL_A(q)                                                                                      \
+    {                                                                                                     \
+        __global const real *s = row + (size_t)(9 * (q)) * n3;                                           \
+        const real s0 = s[0], s1 = s[n3], s2 = s[2 * n3], s3 = s[3 * n3], s4 = s[4 * n3], s5 = s[5 * n3], \
+                   s6 = s[6 * n3], s7 = s[7 * n3], s8 = s[8 * n3];                                       \
+        const size_t m = (size_t)(R[(q) % 9] + K[(q) / 9]);                                               \
+        _Pragma("unroll") for (int c = 0; c < NCASE; ++c)                                                 \
+        {                                                                                                 \
+            __global const real *ux = u + (size_t)(3 * (first + c)) * n;                                  \
+            const real vx = ux[m], vy = ux[(size_t)n + m], vz = ux[(size_t)2 * n + m];                    \
+            acc[3 * c] = fma(s0, vx, fma(s1, vy, fma(s2, vz, acc[3 * c])));                               \
+            acc[3 * c + 1] = fma(s3, vx, fma(s4, vy, fma(s5, vz, acc[3 * c + 1])));                       \
+            acc[3 * c + 2] = fma(s6, vx, fma(s7, vy, fma(s8, vz, acc[3 * c + 2])));                       \
+        }                                                                                                 \
+    }
+
+static inline __attribute__((always_inline)) void stencil_node(
+    __global const uchar *live, __global const real *st, __global const real *u, __global real *f, const int n1,
+    const int n2, const int n3, const int first, const int i, const int j, const int k, const int K0, const int K2,
+    const int vote)
+{
+    NODE_ROWS
+    const int node = R[4] + k;
+    const int any = live[node];
+    const int go = vote ? VECTOR_ANY(any) : any;
+    /* this node's row of the stencils: its 243 entries, each a run of the row's n3 nodes */
+    __global const real *row = st + (size_t)R[4] * 243 + k;
+    real acc[3 * NCASE];
+#pragma unroll
+    for (int t = 0; t < 3 * NCASE; ++t) acc[t] = (real)0;
+    /* an untouched node's stencil is 0: in a vector that runs, its sums stay 0 */
+    if (go) {
+        STENCIL_A(0) STENCIL_A(1) STENCIL_A(2) STENCIL_A(3) STENCIL_A(4) STENCIL_A(5) STENCIL_A(6) STENCIL_A(7)
+        STENCIL_A(8) STENCIL_A(9) STENCIL_A(10) STENCIL_A(11) STENCIL_A(12) STENCIL_A(13) STENCIL_A(14)
+        STENCIL_A(15) STENCIL_A(16) STENCIL_A(17) STENCIL_A(18) STENCIL_A(19) STENCIL_A(20) STENCIL_A(21)
+        STENCIL_A(22) STENCIL_A(23) STENCIL_A(24) STENCIL_A(25) STENCIL_A(26)
+    }
+#pragma unroll
+    for (int c = 0; c < NCASE; ++c) {
+        __global real *f0 = f + (size_t)(3 * (first + c)) * n;
+        f0[node] = acc[3 * c];
+        f0[(size_t)n + node] = acc[3 * c + 1];
+        f0[(size_t)2 * n + node] = acc[3 * c + 2];
+    }
+}
+
+#define STENCIL_ARGS                                                                                       \
+    __global const uchar *flags, __global const real *mat, __global const real *u, __global real *f, const int n1, \
+        const int n2, const int n3, const int first
+__kernel void stencil_rows(STENCIL_ARGS) ROWS_BODY(stencil_node)
+__kernel void stencil_ends(STENCIL_ARGS) ENDS_BODY(stencil_node)

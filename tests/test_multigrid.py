@@ -152,6 +152,44 @@ def test_a_coarse_level_on_every_opencl_device_matches_the_compiled_one(cases):
                 assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
 
 
+@pytest.mark.parametrize("vote", [True, False])
+@pytest.mark.parametrize("shape, density", [((10, 12, 40), 0.3), ((9, 10, 11), 0.4), ((8, 8, 70), 0.3),
+                                            ((12, 8, 70), 0.01)])
+def test_a_level_on_node_stencils_is_the_dense_levels_product(shape, density, vote, monkeypatch):
+    # StencilLevelOperator (the elements' matrices assembled per node by node_stencils) against the
+    # level's dense matrix (np.add.at over the element matrices), for one case and six, on the first
+    # and second levels: odd axes, axes of 2 and 3 nodes (a neighbour on both sides is one node),
+    # rows of 33 inner nodes (vectors of 16 and one), and a sparse solid whose rows hold vectors no
+    # element touches; the vote on and off
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    if not vote:
+        monkeypatch.setattr(mc, "has_vote", lambda: False)
+    rng = np.random.default_rng(sum(shape))
+    solid = rng.random(shape) < density
+    model = M.voxel_model(solid, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    first = G._first_coarse(model, free, np.float64)
+    for level in (first, G._next_coarse(first)):
+        nc = int(np.prod(level.shape))
+        A = level.matrix()
+        untouched = ~A.reshape(3, nc, 3 * nc).any(axis=(0, 2))
+        for dtype, tol in ((np.float32, 1e-6), (np.float64, 1e-12)):
+            typed = G.Level(level.shape, level.index, level.mats.astype(dtype), level.inv_diag)
+            for cases in (1, 6):
+                x = rng.standard_normal((cases, 3, nc))
+                ref = (x.reshape(cases, -1) @ A.T).reshape(cases, 3, nc)
+                for check in opencl.working_devices():
+                    with opencl.using(check):
+                        if dtype == np.float64 and not mc.has_double():
+                            continue
+                        got = mc.StencilLevelOperator(typed)(x.astype(dtype))
+                        assert got.dtype == dtype
+                        assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
+                        assert not got[:, :, untouched].any(), check.name
+
+
 def test_child_matrices_are_the_interpolated_element_matrix():
     # M_c = W_c^T Ke W_c, W_c built here from its definition: fine corner q of child c = (a, b, c)
     # sits at ((a, b, c) + offset(q)) / 2 in the coarse element, where coarse corner r weighs the
@@ -250,35 +288,42 @@ def test_the_pattern_product_skips_untouched_vectors_exactly(vote, monkeypatch):
                 assert not got[:, :, untouched].any(), check.name
 
 
+@pytest.mark.parametrize("flag", ["FIRST_LEVEL_PATTERNS", "STENCIL_LEVELS"])
 @pytest.mark.parametrize("boundary, tol", [("periodic", 1e-6), ("kinematic", 1e-6), ("periodic", 1e-8)])
-def test_the_first_levels_pattern_product_leaves_the_solve_as_it_was(scaffolds, monkeypatch, boundary, tol):
+def test_the_device_products_of_the_levels_leave_the_solve_as_it_was(scaffolds, monkeypatch, boundary, tol, flag):
     # the same tensor and the same iteration count with the per-element kernel on the first
-    # level (the code before): the two products differ by rounding only (float cycle at 1e-6,
-    # double at 1e-8)
+    # level, or on the levels under it (the code before): the products differ by rounding only
+    # (float cycle at 1e-6, double at 1e-8)
     solid = scaffolds[0.08]
     got = {}
-    for flag in (False, True):
-        monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", flag)
-        got[flag] = M.homogenize(solid, 0.08, MAT, boundary=boundary, tol=tol, backend="opencl")
+    for on in (False, True):
+        monkeypatch.setattr(G, flag, on)
+        got[on] = M.homogenize(solid, 0.08, MAT, boundary=boundary, tol=tol, backend="opencl")
     assert got[True].iterations == got[False].iterations
     C = got[False].stiffness
     assert np.abs(got[True].stiffness - C).max() < tol * np.abs(C).max()
 
 
 def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monkeypatch):
-    from implicit_scaffold.measure.mechanics_cl import LevelOperator, PatternLevelOperator, StiffnessOperator
+    from implicit_scaffold.measure.mechanics_cl import (LevelOperator, PatternLevelOperator, StencilLevelOperator,
+                                                        StiffnessOperator)
 
     model = M.voxel_model(scaffolds[0.08], 0.08, MAT, periodic=False)
     free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
     free[:, : model.shape[1] * model.shape[2]] = 0
     op = StiffnessOperator(model, double=False)
     mg = G.Multigrid(model, op, free, dtype=np.float32)
+    assert len(mg.levels) >= 2
     assert type(mg.levels[0].device) is PatternLevelOperator
-    assert all(type(level.device) is LevelOperator for level in mg.levels[1:])
-    # the level keeps the one copy of its matrices the device reads (the per-element ones)
+    assert all(type(level.device) is StencilLevelOperator for level in mg.levels[1:])
+    # the level keeps the one copy of its matrices the device reads (the per-element ones); a level
+    # on stencils keeps none
     assert np.shares_memory(mg.levels[0].mats, mg.levels[0].device._mats_host)
+    assert all(level.mats is None for level in mg.levels[1:])
     monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", False)
-    assert type(G.Multigrid(model, op, free, dtype=np.float32).levels[0].device) is LevelOperator
+    monkeypatch.setattr(G, "STENCIL_LEVELS", False)
+    mg = G.Multigrid(model, op, free, dtype=np.float32)
+    assert all(type(level.device) is LevelOperator for level in mg.levels)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

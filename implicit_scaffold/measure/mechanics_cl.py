@@ -313,3 +313,29 @@ class PatternLevelOperator(LevelOperator):
             out.append((opencl.kernel("mechanics", "stiffness_apply", ADD=1, **opts), (self.n,), None,
                         (self.rest, self.mats)))
         return out
+
+
+class StencilLevelOperator(_Gather):
+    """``A u`` of a coarse multigrid level on the device from its assembled node stencils
+    (:func:`~implicit_scaffold.measure.multigrid.node_stencils`, ``stencil_rows`` /
+    ``stencil_ends``), in the float of its matrices.
+
+    Each work item reads its node's 243 stencil words and its 27 neighbours' values at consecutive
+    addresses along a row (full vectors, as the fine operator), where :class:`LevelOperator` gathers
+    one 24 x 24 matrix per element around each node. The stencils take 243 words a node, the
+    element matrices 576 an element."""
+
+    def __init__(self, level):
+        from .multigrid import node_stencils
+
+        stencils, live = node_stencils(level)
+        dtype = level.mats.dtype
+        n1, n2, n3 = level.shape
+        # by row: entry x of node (r, k) at (243 r + x) n3 + k (the kernel reads a row's block in order;
+        # entry-major, 243 streams a vector, the 32^3 level of the 128^3 benchmark took 7.4 ms for six cases)
+        by_row = stencils.reshape(243, n1 * n2, n3).transpose(1, 0, 2)
+        super().__init__(level.shape, live, by_row, double=dtype == np.float64, per_element=False)
+
+    def _launches(self, ncase: int) -> list:
+        return self._rows("stencil", defines(ncase, self.double), (self.owner, self.mats))
+

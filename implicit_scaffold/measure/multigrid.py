@@ -60,6 +60,10 @@ POWER_ITERATIONS = 12
 #: :func:`child_matrices`) where it can; False: one gathered matrix per element everywhere
 FIRST_LEVEL_PATTERNS = True
 
+#: the levels under the first run on the device from assembled node stencils
+#: (:func:`node_stencils`, ``StencilLevelOperator``); False: one gathered matrix per element
+STENCIL_LEVELS = True
+
 
 # ----------------------------------------------------------------------------- compiled kernels
 
@@ -334,7 +338,9 @@ class Level:
         Node grid (= element grid, periodic).
     index : (n1, n2, n3) int32 ndarray
         Each element's matrix in `mats`; -1 for an element with no solid below it.
-    mats : (nm, 24, 24) float ndarray, GPa mm
+    mats : (nm, 24, 24) float ndarray or None, GPa mm
+        None once a :class:`~implicit_scaffold.measure.mechanics_cl.StencilLevelOperator` holds
+        the level's product (its node stencils).
     inv_diag : (3, N) float ndarray
         The inverse of the operator's diagonal (0 on unknowns no solid reaches).
     lmax : float
@@ -382,6 +388,36 @@ class Level:
         M = self.mats[self.index.ravel()[e]]  # (ne, 24, 24)
         np.add.at(A, (dof.T[:, :, None], dof.T[:, None, :]), M)
         return A
+
+
+def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
+    """A level's product as assembled node stencils (the layout of ``stencil_rows`` in
+    ``kernels/mechanics.cl``).
+
+    Returns
+    -------
+    stencils : (243, N) float ndarray of the level's float, GPa mm
+        Entry ``9 q + 3 d + e``: row d, column e of the 3 x 3 block that neighbour q (offset
+        ``(q % 3, q // 3 % 3, q // 9) - 1``) adds to a node's force, summed over the elements
+        around the node (rows ``3 b + d`` and columns ``3 a + e`` of each one's matrix, the node
+        its corner b and the neighbour its corner a).
+    live : (N,) uint8 ndarray
+        1 at a node some element touches.
+    """
+    from .mechanics import CORNERS
+
+    n = int(np.prod(level.shape))
+    out = np.zeros((27, 3, 3, n), level.mats.dtype)
+    live = np.zeros(n, bool)
+    for b in range(8):
+        # the element whose corner b this node is has its low corner at node - offset(b)
+        e = np.roll(level.index, tuple(int(v) for v in CORNERS[b]), axis=(0, 1, 2)).ravel()
+        has = np.flatnonzero(e >= 0)
+        live[has] = True
+        rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
+        for a in range(8):
+            out[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
+    return out.reshape(243, n), live.astype(np.uint8)
 
 
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
@@ -572,20 +608,26 @@ class Multigrid:
                 level = _next_coarse(level)
                 self.levels.append(level)
         on_device = hasattr(op, "single")
+        # the coarsest level's pseudo-inverse first: a level on stencils lets go of its matrices
+        self._coarsest = self._exact(self.levels[-1]) if self.levels else None
         for level in self.levels:
             level.inv_diag = level.inv_diag.astype(self.dtype)
             if on_device:
-                from .mechanics_cl import LevelOperator, PatternLevelOperator
+                from .mechanics_cl import LevelOperator, PatternLevelOperator, StencilLevelOperator
 
                 if level.pattern is not None and FIRST_LEVEL_PATTERNS:
                     level.device = PatternLevelOperator(level, level.pattern,
                                                         child_matrices(model.ke).astype(level.mats.dtype))
+                elif level.pattern is None and STENCIL_LEVELS:
+                    level.device = StencilLevelOperator(level)
+                    # every later use is the device's product (the next level is built already)
+                    level.mats = None
                 else:
                     level.device = LevelOperator(level)
-                # the device reads the matrices in place: the level keeps that one copy
-                level.mats = level.device.host_mats(level.mats.shape)
+                if isinstance(level.device, LevelOperator):
+                    # the device reads the matrices in place: the level keeps that one copy
+                    level.mats = level.device.host_mats(level.mats.shape)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
-        self._coarsest = self._exact(self.levels[-1]) if self.levels else None
 
     @staticmethod
     def _exact(level: Level):
