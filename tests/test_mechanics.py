@@ -748,6 +748,35 @@ def test_the_pool_hands_out_again_only_memory_nothing_refers_to():
     assert mc._pool is None and not np.shares_memory(outside, mc.aligned_empty(n))
 
 
+def test_the_live_node_takes_come_from_the_pool():
+    # the CG's K p and the cycle's result on the live nodes are taken every iteration: inside the pool
+    # they are the pool's memory, and the second take gets what the dropped first one held (np.empty
+    # over glibc's mmap threshold is fresh pages every time), with the values NumPy's indexing gives
+    from implicit_scaffold.measure import fused
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(2)
+    n = 3 * mc.POOLED_BYTES // 24  # (1, 3, n) float64: three times the smallest pooled array
+    grid = rng.standard_normal((1, 3, 2 * n))
+    idx = np.sort(rng.choice(2 * n, n, replace=False))
+    w = rng.random((1, n))
+    g = rng.random((1, 2 * n))
+    x, ax = rng.standard_normal((2, 1, 3, 2 * n))
+    with mc.reusing():
+        for make, expect in ((lambda: fused.take(grid, idx, w), w * grid[:, :, idx]),
+                             (lambda: fused.take_smoothed(x, ax, grid[:, :, :n], idx, w, g, 0.5),
+                              w * (x[:, :, idx] + 0.5 * g[:, idx] * (w * grid[:, :, :n] - ax[:, :, idx])))):
+            first = make()
+            assert np.allclose(first, expect, rtol=1e-12, atol=0)
+            assert any(np.shares_memory(first, raw) for raw in mc._pool)
+            address = first.ctypes.data
+            del first
+            again = make()
+            assert again.ctypes.data == address
+            assert np.allclose(again, expect, rtol=1e-12, atol=0)
+            del again
+
+
 def test_a_solve_with_the_pool_gives_the_bits_of_one_without(monkeypatch):
     # an array handed out while something still used it would change the iterates: the tensors of a
     # Voronoi-like random solid, pooled and not, must be the same bits

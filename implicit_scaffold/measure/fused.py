@@ -217,11 +217,16 @@ def add_weighted(x: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray 
 
 
 def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
-    """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass."""
+    """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass (inside
+    :func:`~implicit_scaffold.measure.mechanics_cl.reusing`, into memory an array dropped before held)."""
+    from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
     n = len(idx)
-    out = np.empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
+    # from the solver's pool, not np.empty: an array over glibc's 32 MiB mmap threshold is fresh
+    # pages every call, which the kernel zeroes (200^3 benchmark scaffold: a case's K p on the live
+    # nodes is 84 MB, taken every iteration; 15.6 s of system time in a 62 s solve)
+    out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
     over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
     return out
@@ -270,10 +275,11 @@ def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarra
     """``w (x + s g (w src - ax))`` on the nodes `idx`, (m, 3, len(idx)) in `dtype` (default `src`'s):
     a damped Jacobi step on the right-hand side ``w src`` from `x` (``ax = A x``, whole grids; `g`
     the inverse diagonal), and its live nodes taken, in one pass."""
+    from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
     k = len(idx)
-    out = np.empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)
+    out = aligned_empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)  # as take's
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(x.dtype, copy=False),
               _weight(g, x.shape[2]).astype(x.dtype, copy=False), x.dtype.type(s), out, x, ax, 2, pieces)
