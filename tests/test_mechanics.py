@@ -745,6 +745,16 @@ def test_the_pool_hands_out_again_only_memory_nothing_refers_to():
         d = mc.aligned_empty(n + 1)
         assert sum(raw.size for raw in mc._pool) <= held + mc.ALIGN
         del d
+        # a smaller array gets the smallest free buffer that holds it, not a new one
+        big, bigger = mc.aligned_empty(2 * n), mc.aligned_empty(4 * n)
+        spans = {name: (a.ctypes.data, a.ctypes.data + a.nbytes) for name, a in (("big", big), ("bigger", bigger))}
+        del big, bigger
+        count = len(mc._pool)
+        e = mc.aligned_empty(n + 7)
+        assert len(mc._pool) == count
+        assert spans["big"][0] <= e.ctypes.data and e.ctypes.data + e.nbytes <= spans["big"][1] + mc.ALIGN
+        assert e.ctypes.data % mc.ALIGN == 0
+        del e
     assert mc._pool is None and not np.shares_memory(outside, mc.aligned_empty(n))
 
 
