@@ -326,6 +326,37 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
     assert all(type(level.device) is LevelOperator for level in mg.levels)
 
 
+def test_the_power_iterations_reuse_their_products_memory():
+    # the largest eigenvalue of D^-1 A by power iterations, against the same iterations in plain
+    # NumPy (the same bits), with every product's output from one pool: a few buffers for the
+    # twelve products, not a new one each (fresh pages, which the kernel zeroes)
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(4)
+    n = mc.POOLED_BYTES // 4  # (1, 3, n) float32 products over the pool's threshold
+    A = rng.random(3 * n).astype(np.float32) + 1.0  # a diagonal operator, D^-1 A's spectrum known
+    inv_diag = (rng.random((3, n)) + 0.5).astype(np.float32)
+    buffers, pooled = set(), []
+
+    def apply(x):
+        y = mc.aligned_empty(x.shape, x.dtype)
+        buffers.add(y.ctypes.data)
+        pooled.append(mc._pool is not None and any(np.shares_memory(y, raw) for raw in mc._pool))
+        np.multiply(x, A.reshape(1, 3, n), out=y)
+        return y
+
+    got = G._largest_eigenvalue(apply, inv_diag, np.random.default_rng(0))
+    x = (np.random.default_rng(0).standard_normal((1, 3, n)) * (inv_diag > 0)).astype(np.float32)
+    for _ in range(G.POWER_ITERATIONS):
+        x /= np.linalg.norm(x)
+        y = inv_diag * (x * A.reshape(1, 3, n))
+        lam = float(np.vdot(x, y))
+        x = y
+    assert got == lam
+    assert lam <= float((A.reshape(3, n) * inv_diag).max()) * (1 + 1e-6)
+    assert len(buffers) <= 3 and len(pooled) == G.POWER_ITERATIONS and all(pooled)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("rows", [1, 3])
 def test_fused_vector_passes_match_numpy(dtype, rows):

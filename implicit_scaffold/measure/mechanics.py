@@ -641,7 +641,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         p[c] = z[0]
         rz[c] = np.einsum("dn,dn->", r[c], z[0])
 
-    pre(r, first)
+    with reusing():  # the cycle's whole-grid vectors, case after case, from one pool
+        pre(r, first)
     x = np.zeros_like(r)
     res = _norms(r) / scale
     it = 0
