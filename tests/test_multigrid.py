@@ -37,6 +37,32 @@ def test_restriction_is_the_transpose_of_prolongation():
     assert np.vdot(G.restrict(r, shape), y) == pytest.approx(np.vdot(r, G.prolong(y, shape)), rel=1e-12)
 
 
+@pytest.mark.parametrize("rows", [1, 3])
+@pytest.mark.parametrize("shape", [(7, 6, 5), (8, 8, 6)])
+def test_the_weighted_transfers_are_the_dense_ones(shape, rows):
+    # restrict(r, w) = P^T (w r) and prolong_add(y, x, w): x + w (P y), P the dense prolongation
+    # (column by column of prolong, which interpolates linear fields exactly); in float32 the
+    # same bits as forming w r, or P y, in a pass of its own first (the V-cycle's claim)
+    rng = np.random.default_rng(sum(shape) + rows)
+    n, nc = int(np.prod(shape)), int(np.prod(G.coarse_shape(shape)))
+    P = _dense(lambda v: G.prolong(v, shape), (nc,))
+    w = (rng.random((rows, n)) < 0.7) * 1.0
+    W = np.broadcast_to(w, (3, n)).ravel()
+    r = rng.standard_normal((2, 3, n))
+    y = rng.standard_normal((2, 3, nc))
+    x = rng.standard_normal((2, 3, n))
+    got = G.restrict(r, shape, w)
+    assert np.allclose(got.reshape(2, -1), (r.reshape(2, -1) * W) @ P, rtol=0, atol=1e-12)
+    added = x.copy()
+    G.prolong_add(y, added, w, shape)
+    assert np.allclose(added.reshape(2, -1), x.reshape(2, -1) + W * (y.reshape(2, -1) @ P.T), rtol=0, atol=1e-12)
+    r32, y32, x32, w32 = (a.astype(np.float32) for a in (r, y, x, w))
+    assert np.array_equal(G.restrict(r32, shape, w32), G.restrict(r32 * w32[None], shape))
+    added = x32.copy()
+    G.prolong_add(y32, added, w32, shape)
+    assert np.array_equal(added, x32 + w32[None] * G.prolong(y32, shape))
+
+
 @pytest.mark.parametrize("shape, periodic, fix", [((6, 5, 7), True, False), ((5, 6, 4), False, True),
                                                   ((8, 8, 8), True, False)])
 def test_coarse_levels_are_galerkin_products_of_the_dense_operator(shape, periodic, fix):
@@ -406,6 +432,9 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     want = y.astype(float)
     want[:, :, idx] += w[:, idx] * src
     fused.put_add(y, src, idx, w[:, idx])
+    assert close(y, want)
+    want[:, :, idx] -= 2 * w[:, idx] * src
+    fused.put_add(y, 2 * src, idx, w[:, idx], subtract=True)
     assert close(y, want)
     want = w[:, idx] * (x[:, :, idx] + 0.7 * g[:, idx] * (w[:, idx] * src - b[:, :, idx]))
     got = fused.take_smoothed(x, b, src, idx, w[:, idx], g, 0.7)

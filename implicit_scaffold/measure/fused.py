@@ -125,7 +125,7 @@ def _kernels():
 
     # the fine level of the V-cycle on live-node residuals src: mode 0, the pre-smoothed
     # x = s g (w src) spread onto the grid vector out (g the inverse diagonal, read at the live
-    # nodes); mode 1, w src added onto out; mode 2, the post-smoothed result's live nodes
+    # nodes); mode 1, w src added onto out (mode 3: subtracted); mode 2, the post-smoothed result's live nodes
     # out = w (x + s g (w src - ax)) taken back (x, ax whole grids). Each piece writes its own
     # entries of idx (distinct nodes); mode 0 zeroes the other nodes as move_rows spreads
     @nb.njit(cache=True, nogil=True, boundscheck=False)
@@ -146,6 +146,9 @@ def _kernels():
                     elif mode == 1:
                         for i in range(n0, n1):
                             out[c, d, idx[i]] += wd[i] * src[c, d, i]
+                    elif mode == 3:
+                        for i in range(n0, n1):
+                            out[c, d, idx[i]] -= wd[i] * src[c, d, i]
                     else:
                         for i in range(n0, n1):
                             j = idx[i]
@@ -260,14 +263,15 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     return out
 
 
-def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w) -> None:
-    """``out[:, :, idx] += w * src``, in place (`out` a whole grid's (m, 3, n) vector)."""
+def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool = False) -> None:
+    """``out[:, :, idx] += w * src`` (``-=`` with `subtract`), in place (`out` a whole grid's (m, 3, n)
+    vector)."""
     from ..run.threads import over_rows
 
     k = len(idx)
     pieces = _pieces(k)
     wk = _weight(w, k).astype(out.dtype, copy=False)
-    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 1, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 3 if subtract else 1, pieces)
 
 
 def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float,

@@ -207,13 +207,20 @@ def _kernels():
                     v += w[i, s] * src[a, idx[i, s]]
                 out[a, i] = v
 
+    # mode 0: out = the plane sums of src's rows; 1: those of src's rows times w's (a restriction of
+    # w r, without the pass that makes w r; w on src's grid); 2: out += w times them (a prolongation
+    # added onto out, without the whole-grid correction and the pass that adds it; w on out's
+    # grid). The sums are in the same order in every mode. w is (1 or 3, n1, n2, n3), a row's
+    # component a % 3 (a (1, 1, 1, 1) dummy in mode 0)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def plane_rows(src, out, ia, wa, ib, wb, lo, hi):  # pragma: no cover - compiled
+    def plane_rows(src, out, ia, wa, ib, wb, w, mode, lo, hi):  # pragma: no cover - compiled
         m, _, n2, nb_ = out.shape
+        row = np.empty(nb_, out.dtype)
         for i in range(lo, hi):
             for a in range(m):
+                wr = w[a % 3 if w.shape[0] == 3 else 0]
                 for j in range(n2):
-                    o = out[a, i, j]
+                    o = row if mode == 2 else out[a, i, j]
                     o[:] = 0.0
                     for s in range(ia.shape[1]):
                         for t in range(ib.shape[1]):
@@ -221,29 +228,44 @@ def _kernels():
                             if wst == 0.0:
                                 continue
                             v = src[a, ia[i, s], ib[j, t]]
-                            for k in range(nb_):
-                                o[k] += wst * v[k]
+                            if mode == 1:
+                                u = wr[ia[i, s], ib[j, t]]
+                                for k in range(nb_):
+                                    o[k] += wst * (v[k] * u[k])
+                            else:
+                                for k in range(nb_):
+                                    o[k] += wst * v[k]
+                    if mode == 2:
+                        oo, u = out[a, i, j], wr[i, j]
+                        for k in range(nb_):
+                            oo[k] += u[k] * row[k]
 
     def galerkin(fine_index, fine_mats, fine_free, elems, out):
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
-    def transfer(src, out, stencils, last_first):
+    def transfer(src, out, stencils, last_first, weight=None):
         from .mechanics_cl import aligned_empty
 
         # src (m, 3, s1, s2, s3) -> out (m, 3, n1, n2, n3) through stencils[axis] = (idx, w); the
         # last axis first (a prolongation: the intermediate is the coarse planes' fine rows) or
-        # after the first two (a restriction: the fine rows of the coarse planes)
+        # after the first two (a restriction: the fine rows of the coarse planes). With `weight` on
+        # the fine grid ((1 or 3, fine nodes)): a prolongation is added onto out times it, a
+        # restriction restricts src times it
         (ia, wa), (ib, wb), (ig, wg) = [(i, w.astype(src.dtype)) for i, w in stencils]
         m = src.shape[0] * 3
         s1, s2, s3 = src.shape[2:]
         n1, n2, n3 = out.shape[2:]
+        if weight is None:
+            mode, w = 0, np.ones((1, 1, 1, 1), src.dtype)
+        else:  # on the fine grid: out's for a prolongation, src's for a restriction
+            mode, w = (2, weight.reshape(-1, n1, n2, n3)) if last_first else (1, weight.reshape(-1, s1, s2, s3))
         if last_first:
             mid = aligned_empty((m, s1, s2, n3), src.dtype)  # from the solver's pool (reusing)
             over_rows(axis_rows, m * s1 * s2, src.reshape(m * s1 * s2, s3), mid.reshape(m * s1 * s2, n3), ig, wg)
-            over_rows(plane_rows, n1, mid, out.reshape(m, n1, n2, n3), ia, wa, ib, wb)
+            over_rows(plane_rows, n1, mid, out.reshape(m, n1, n2, n3), ia, wa, ib, wb, w, mode)
         else:
             mid = aligned_empty((m, n1, n2, s3), src.dtype)
-            over_rows(plane_rows, n1, src.reshape(m, s1, s2, s3), mid, ia, wa, ib, wb)
+            over_rows(plane_rows, n1, src.reshape(m, s1, s2, s3), mid, ia, wa, ib, wb, w, mode)
             over_rows(axis_rows, m * n1 * n2, mid.reshape(m * n1 * n2, s3), out.reshape(m * n1 * n2, n3), ig, wg)
 
     return galerkin, by_rows(apply_rows), transfer
@@ -301,8 +323,19 @@ def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     return out.reshape(m, 3, -1)
 
 
-def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
-    """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid."""
+def prolong_add(y: np.ndarray, x: np.ndarray, w: np.ndarray, fine_shape) -> None:
+    """``x += w * prolong(y)`` in place, in one pass over x (`w` (1, N) or (3, N) on the fine grid;
+    the same arithmetic, without the whole-grid correction)."""
+    fine_shape = tuple(int(v) for v in fine_shape)
+    m = y.shape[0]
+    _kernels()[2](np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)),
+                  x.reshape((m, 3) + fine_shape), [_stencils(n)[:2] for n in fine_shape], True,
+                  np.ascontiguousarray(w, x.dtype))
+
+
+def restrict(r: np.ndarray, fine_shape, w: np.ndarray | None = None) -> np.ndarray:
+    """The transpose of :func:`prolong`: fine nodal values (m, 3, N) summed onto the coarse grid
+    (those of ``w * r`` with `w`, (1, N) or (3, N) on the fine grid, without a pass to make them)."""
     from .mechanics_cl import aligned_empty
 
     m = r.shape[0]
@@ -310,7 +343,7 @@ def restrict(r: np.ndarray, fine_shape) -> np.ndarray:
     cshape = coarse_shape(fine_shape)
     out = aligned_empty((m, 3) + cshape, r.dtype)  # read in place by the OpenCL operator
     _kernels()[2](np.ascontiguousarray(r).reshape((m, 3) + fine_shape), out, [_stencils(n)[2:] for n in fine_shape],
-                  False)
+                  False, None if w is None else np.ascontiguousarray(w, r.dtype))
     return out.reshape(m, 3, -1)
 
 
@@ -751,7 +784,7 @@ class Multigrid:
         ``-F K x`` with ``b`` added on the live nodes, and the post-smoothing step and the taking of
         the live nodes are one pass (:mod:`~implicit_scaffold.measure.fused`). With `sink`, each case's
         result goes to ``sink(case, z)`` as it is made (None is returned)."""
-        from .fused import add_weighted, put_add, put_smoothed, take_smoothed, weighted
+        from .fused import put_add, put_smoothed, take_smoothed
         from .mechanics_cl import aligned_empty
 
         n = self.free.shape[1]
@@ -762,22 +795,22 @@ class Multigrid:
             x = put_smoothed(r[c:c + 1], live, n, w, self.inv_diag, s, self.dtype)
             res = self.op(x)
             del x
-            weighted(res, res, self.free, -1.0)  # -F K x
-            put_add(res, r[c:c + 1], live, w)  # + F b: the residual F (b - K x), for the restriction
-            one = restrict(res, self.fine_shape)
+            # K x - F b on the live nodes, restricted times F and negated: the restriction of the
+            # residual F (b - K x) (F is 0 or 1: the same bits as forming it first), without a pass
+            # over the grid to form it
+            put_add(res, r[c:c + 1], live, w, subtract=True)
+            one = restrict(res, self.fine_shape, self.free)
             del res
             if rc is None:
                 rc = aligned_empty((m,) + one.shape[1:], one.dtype)
-            rc[c] = one[0]
+            np.negative(one[0], out=rc[c])
             del one
         coarse = self._cycle(1, rc)
         del rc
         z = None
         for c in range(m):
             x = put_smoothed(r[c:c + 1], live, n, w, self.inv_diag, s, self.dtype)
-            corr = prolong(coarse[c:c + 1], self.fine_shape)
-            add_weighted(x, corr, self.free)
-            del corr
+            prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
             ax = self.op(x)
             one = take_smoothed(x, ax, r[c:c + 1], live, w, self.inv_diag, s, r.dtype)
             del x, ax
