@@ -25,6 +25,12 @@ def has_vote() -> bool:
     """Whether the active device's kernels can vote over a vector of work items
     (``cl_intel_subgroups``: a sub-group is the vector the Intel CPU runtime packs them into)."""
     ctx, _ = opencl.context()
+    return _lists_subgroups(ctx)
+
+
+@functools.lru_cache(maxsize=None)
+def _lists_subgroups(ctx) -> bool:
+    # asked once per context: defines() runs for every product's launches
     return "cl_intel_subgroups" in ctx.devices[0].extensions.split()
 
 
@@ -90,12 +96,9 @@ def _raw(nbytes: int) -> np.ndarray:
     # the smallest free buffer that holds it: with exact sizes only, the V-cycle's 23 MB transfer
     # intermediates missed every time on the 200^3 benchmark (148 misses), each miss freeing a
     # 96 MB grid vector that the next one then missed in turn (44 more)
-    fits = [raw.size for raw, idle in zip(_pool, free) if idle and raw.size >= nbytes + ALIGN]
+    fits = [raw for raw, idle in zip(_pool, free) if idle and raw.size >= nbytes + ALIGN]
     if fits:
-        best = min(fits)
-        for raw, idle in zip(_pool, free):
-            if idle and raw.size == best:
-                return raw
+        return min(fits, key=lambda raw: raw.size)
     # a miss: free buffers of other sizes go first, oldest first, as many bytes as the new one
     # takes, so that the pool never holds more than the peak of the arrays alive
     freed, keep = 0, []
