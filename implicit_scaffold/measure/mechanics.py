@@ -1017,6 +1017,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
         ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
         del x
         iterations, res[list(cases)] = max(iterations, its), r
+    del precond
     if periodic:
         ue_sum += ns * u0e
     Bc = strain_matrix(h, (0.0, 0.0, 0.0))
@@ -1148,14 +1149,14 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     plane[axis] = shape[axis] - 1
     top[tuple(plane)] = True
     bottom, top = bottom.ravel(), top.ravel()
-    base = np.zeros((1, 3, n))
-    base[0, axis, top] = -strain * length
     platen = bottom | top
     free = np.repeat(model.active[None], 3, axis=0)
     free[axis] &= ~platen
     if bonded:
         free &= ~platen
-    free = free.astype(float)
+    # float32 (0 and 1 exactly), which the float32 V-cycle shares rather than copies: in float64 the
+    # mask and the cycle's copy held 36 bytes a node, 936 MiB on the whole lumbar micro-CT's grid
+    free = free.astype(np.float32)
     op = _operator(model, backend)
     ns = model.solid_voxels
     unit = macro_displacements(h)[axis] * strain
@@ -1168,8 +1169,14 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double)
     # the platens' displacement is the lifting; the modulus is its energy over the solve's (the reaction
     # force's work), so `accuracy` bounds the modulus's error as it does the energy's
+    # the lifting: the platens' displacement, a whole-grid vector needed for its product only (the
+    # total displacement is x with the upper platen's set again): 624 MiB through the solve on the
+    # whole lumbar micro-CT's grid, had it been kept
+    base = np.zeros((1, 3, n))
+    base[0, axis, top] = -strain * length
     kb = op(base)
     lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
+    del base
     np.negative(kb, out=kb)
     kb *= free  # the right-hand side, in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
     # handed to pcg with no name left on it here, so that pcg releases it once it has read its live nodes
@@ -1178,7 +1185,9 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     info = {}
     x, iterations, res = pcg(op, precond, hand.pop(), free, scale=scale, tol=tol, maxiter=maxiter,
                              progress=progress, energy=lifting, accuracy=accuracy, info=info)
-    u = base + x
+    del precond  # the levels' matrices and the cycle's masks, before the whole-grid vectors below
+    u = x
+    u[0, axis, top] = -strain * length  # x is 0 there (a fixed unknown): base + x, bit for bit
     force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
     area = np.prod([solid.shape[a] for a in range(3) if a != axis]) * h * h
     eps = element_strains(model, u[0])  # (6, ns)
@@ -1406,8 +1415,9 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 # ----------------------------------------------------------------------------- memory and the voxel of a solve
 
 
-#: What :func:`measure` holds at its peak over what the process held before it. Its peak is
-#: the homogenization's (the platen compression before it is one load case). A fixed part (the
+#: What :func:`measure` holds at its peak over what the process held before it: the larger of the
+#: homogenization's (below) and the platen compression's (:data:`COMPRESS_BYTES_PER_NODE`: one load case,
+#: but in double, on a large grid of thin bone the larger). The homogenization: a fixed part (the
 #: multigrid's compiled kernels loaded from numba's cache, the device's programs), a part per
 #: node of the solve's grid and one more per node and load case of a CG block (the CG's four
 #: float64 vectors, the V-cycle's float32 ones, a kinematic block's ``u = E x``: every vector
@@ -1487,6 +1497,39 @@ SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
 SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 50, "kinematic": 60},
                              "fft": {"periodic": 0, "kinematic": 0}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
+#: The platen compression's part (:func:`compress`), which :func:`measure` runs first: one load case, but in
+#: double throughout, so that its product spreads p and K p over the whole node grid in float64 (48 bytes a
+#: node). Per node of its grid (one more per axis than the voxels), per live node (a node a solid voxel
+#: touches: the CG's vectors, 150 bytes each) and per solid voxel (the levels). Fitted and rounded up from
+#: fresh-process peaks above the start (kernels loaded before), the central N^3 of the lumbar trabecular
+#: micro-CT (kinematic nodes, live nodes, solid voxels: MiB measured, this estimate), ``python
+#: benchmarks/bench_mechanics.py --sizes --memory --memory-bone 128 200 --memory-solves compress,homogenize
+#: --preconditioners multigrid --memory-blocks 1,6`` and ``--memory-bone 300 --memory-solves compress
+#: --memory-blocks 1 --maxiter 5`` (2026-12-05):
+#:
+#: ======  ==========  =========  =========  =========  ========
+#: grid    nodes       live       solid      measured   estimate
+#: ======  ==========  =========  =========  =========  ========
+#: 128^3   2,146,689   806,968    602,369    386.8      485
+#: 200^3   8,120,601   2,730,411  2,012,423  1,367.9    1,483
+#: 300^3   27,270,901  8,790,719  6,490,901  4,336.0    4,661
+#: ======  ==========  =========  =========  =========  ========
+#:
+#: (Before the compression's mask went to float32 and its lifting was dropped after the right-hand side,
+#: the whole micro-CT's compression held 5.7 GiB against the former estimate's 4.1: the overshoot of
+#: ``--max-memory 4.4G`` in README, "The whole micro-CT as a user runs it, again".)
+COMPRESS_BYTES_PER_NODE = {"multigrid": 100, "fft": 0}
+COMPRESS_BYTES_PER_LIVE_NODE = {"multigrid": 160, "fft": 0}
+COMPRESS_BYTES_PER_SOLID_VOXEL = {"multigrid": 100, "fft": 0}
+#: live nodes per solid voxel where the solid is not at hand (a field's sample before it is sampled): a rod
+#: :data:`MIN_VOXELS_PER_WALL` voxels across touches (3.5 / 2.5)^2 = 1.96 nodes a voxel, a plate 1.4; the
+#: lumbar micro-CT 1.35
+LIVE_NODES_PER_SOLID_VOXEL = 2.0
+#: What a solve's libraries add to a process that has not loaded them before its start: numba's compiled
+#: level kernels (67 MiB) and the OpenCL context with its runtime (126 MiB), each measured in a fresh
+#: process as the resident set after ``malloc_trim`` (the mechanics program and its first products, 90 MiB
+#: more, are inside :data:`SOLVE_FIXED_BYTES`)
+SOLVE_LOAD_BYTES = {"numba": 70 * 2**20, "opencl": 130 * 2**20}
 #: the sampled field (float32), its copy for the level (:func:`keep_volume`) and the solid (bool)
 #: of a solve, per voxel of its grid
 SAMPLE_BYTES_PER_VOXEL = 9
@@ -1515,8 +1558,27 @@ CONVERGED_VOXELS_PER_WALL = 4.0
 MIN_VOXELS_PER_WALL = 2.5
 
 
+def live_nodes(solid) -> int:
+    """The nodes a solid voxel touches on a box sample's node grid (one more per axis than `solid`)."""
+    solid = np.asarray(solid, bool)
+    n1, n2, n3 = solid.shape
+    touched = np.zeros((n1 + 1, n2 + 1, n3 + 1), bool)
+    for a, b, c in CORNERS:
+        touched[a:a + n1, b:b + n2, c:c + n3] |= solid
+    return int(np.count_nonzero(touched))
+
+
+def _load_bytes() -> int:
+    """:data:`SOLVE_LOAD_BYTES` of the libraries this process has not loaded yet."""
+    from .. import opencl
+    from .multigrid import kernels_loaded
+
+    return ((0 if kernels_loaded() else SOLVE_LOAD_BYTES["numba"])
+            + (0 if opencl.active() else SOLVE_LOAD_BYTES["opencl"]))
+
+
 def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid",
-                 cases_per_block: int = 1) -> int:
+                 cases_per_block: int = 1, live: int | None = None) -> int:
     """Bytes :func:`measure` holds at its peak over what the process held before it (an estimate).
 
     Parameters
@@ -1530,29 +1592,41 @@ def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", precon
         The homogenization's load cases per CG block (1-6); the default, 1, is the least a solve
         needs, which the checks before a solve hold it to (:func:`check_solve`, :func:`solid_for_solve`:
         a larger budget then takes larger blocks, :func:`block_for`).
+    live : int, optional
+        The nodes a solid voxel touches (:func:`live_nodes`); default :data:`LIVE_NODES_PER_SOLID_VOXEL`
+        per solid voxel.
 
     Returns
     -------
     int, bytes
-        :data:`SOLVE_FIXED_BYTES`, plus per node :data:`SOLVE_BYTES_PER_NODE` and
-        :data:`SOLVE_BYTES_PER_NODE_CASE` per load case of a block, plus
-        :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel.
+        The larger of the compression's and the homogenization's need, plus :data:`SOLVE_FIXED_BYTES` and
+        the libraries' load (:data:`SOLVE_LOAD_BYTES`, of those not loaded yet). The homogenization: per
+        node :data:`SOLVE_BYTES_PER_NODE` and :data:`SOLVE_BYTES_PER_NODE_CASE` per load case of a block,
+        plus :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel; the compression (on the box's nodes,
+        one more per axis): :data:`COMPRESS_BYTES_PER_NODE`, :data:`COMPRESS_BYTES_PER_LIVE_NODE` and
+        :data:`COMPRESS_BYTES_PER_SOLID_VOXEL`.
     """
     nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
+    box_nodes = int(np.prod([int(s) + 1 for s in shape], dtype=np.int64))
+    count = int(solid_voxels)
+    live = min(box_nodes, int(LIVE_NODES_PER_SOLID_VOXEL * count)) if live is None else int(live)
     block = max(1, min(6, int(cases_per_block)))
     per_node = (SOLVE_BYTES_PER_NODE[preconditioner][boundary]
                 + SOLVE_BYTES_PER_NODE_CASE[preconditioner][boundary] * block)
-    return int(SOLVE_FIXED_BYTES[preconditioner] + per_node * nodes
-               + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * int(solid_voxels))
+    homogenization = per_node * nodes + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * count
+    compression = (COMPRESS_BYTES_PER_NODE[preconditioner] * box_nodes
+                   + COMPRESS_BYTES_PER_LIVE_NODE[preconditioner] * live
+                   + COMPRESS_BYTES_PER_SOLID_VOXEL[preconditioner] * count)
+    return int(SOLVE_FIXED_BYTES[preconditioner] + _load_bytes() + max(homogenization, compression))
 
 
 def block_for(allowance: int, shape, solid_voxels: int, *, boundary: str = "periodic",
-              preconditioner: str = "multigrid") -> int:
+              preconditioner: str = "multigrid", live: int | None = None) -> int:
     """The most load cases per CG block (6, 3, 2 or 1: equal blocks) whose solve fits `allowance` bytes
     (:func:`solve_memory`); 1 when none does (the caller refuses on that)."""
     for block in (6, 3, 2):
         if solve_memory(shape, solid_voxels, boundary=boundary, preconditioner=preconditioner,
-                        cases_per_block=block) <= allowance:
+                        cases_per_block=block, live=live) <= allowance:
             return block
     return 1
 
@@ -1789,12 +1863,14 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
     held = release()
     bc = "kinematic" if boundary == "auto" else boundary
     count = int(np.count_nonzero(solid))
-    need = solve_memory(solid.shape, count, boundary=bc, preconditioner=preconditioner)
+    live = live_nodes(solid)
+    need = solve_memory(solid.shape, count, boundary=bc, preconditioner=preconditioner, live=live)
     if need > total - held:
         fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
                            preconditioner=preconditioner)
         raise ScaffoldError(_refusal(h, need, held, total, fit, option))
-    block = block_for(total - held - held_margin(held), solid.shape, count, boundary=bc, preconditioner=preconditioner)
+    block = block_for(total - held - held_margin(held), solid.shape, count, boundary=bc, preconditioner=preconditioner,
+                      live=live)
     return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
             "note": f"mechanics voxel {h:.4g} mm: the sample's own voxel: its solve fits the budget",
             "memory_estimate_bytes": int(need), "cases_per_block": block, "max_memory_bytes": int(total)}
@@ -1931,7 +2007,8 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
         solid = np.ascontiguousarray(values[tuple(slice(a, b) for a, b in zip(box_lo, box_hi))] < level)
         del values
         origin = tuple(float(sampled.origin[a] + box_lo[a] * h) for a in range(3))
-        estimate = solve_memory(solid.shape, solid_count, boundary=bc, preconditioner=preconditioner)
+        live = live_nodes(solid)
+        estimate = solve_memory(solid.shape, solid_count, boundary=bc, preconditioner=preconditioner, live=live)
         # the estimate took the solid fraction of the field's voxels; the sampled one may hold more
         if voxel is not None or h == h0 or estimate + solid.size <= allowance:
             break
@@ -1949,7 +2026,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
                  f"it keeps the {source}'s solid volume")
     # the load cases per block: as many as the budget holds beside the sampled grid (freed before the solve)
     block = block_for(allowance - held_margin(held), solid.shape, solid_count, boundary=bc,
-                      preconditioner=preconditioner)
+                      preconditioner=preconditioner, live=live)
     report = {"voxel_mm": h, "source_voxel_mm": h0, "note": note, "warning": warning, "level_mm": float(level),
               "memory_estimate_bytes": int(estimate), "cases_per_block": block, "max_memory_bytes": int(total)}
     return SolveSample(solid, h, origin, report)
