@@ -226,27 +226,32 @@ MEMORY = """
 import numpy as np
 from implicit_scaffold.measure import mechanics as M
 from implicit_scaffold.run.memory import peak_memory, release
-n, phi = {n!r}, {phi!r}
-g = (np.arange(n) + 0.5) / n * 2 * np.pi
-x, y, z = np.meshgrid(g, g, g, indexing='ij', sparse=True)
-f = np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x)  # a gyroid: one connected solid
-solid = f < np.quantile(f, phi)
-del f, x, y, z
+n, phi, maxiter = {n!r}, {phi!r}, {maxiter!r}
+if {source!r}:
+    solid = np.load({source!r})
+else:
+    g = (np.arange(n) + 0.5) / n * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing='ij', sparse=True)
+    f = np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x)  # a gyroid: one connected solid
+    solid = f < np.quantile(f, phi)
+    del f, x, y, z
 mat = M.material('ti64')
 M.measure(np.ones((4, 4, 5), bool), 0.05, mat, boundary={boundary!r}, backend='opencl',
           preconditioner={preconditioner!r})  # the kernels built and the libraries loaded outside the count
 before = release()
 if {what!r} == 'compress':
-    M.compress(solid, 0.05, mat, axis=2, tol=1e-6, backend='opencl', preconditioner={preconditioner!r})
+    M.compress(solid, 0.05, mat, axis=2, tol=1e-6, backend='opencl', preconditioner={preconditioner!r},
+               maxiter=maxiter)
 elif {what!r} == 'homogenize':
     M.homogenize(solid, 0.05, mat, boundary={boundary!r}, tol=1e-6, backend='opencl',
-                 preconditioner={preconditioner!r}, cases_per_block={block!r})
+                 preconditioner={preconditioner!r}, cases_per_block={block!r}, maxiter=maxiter)
 else:
     M.measure(solid, 0.05, mat, boundary={boundary!r}, backend='opencl', preconditioner={preconditioner!r},
               cases_per_block={block!r})
 peak = peak_memory()
 nodes = int(np.prod([s + (0 if {boundary!r} == 'periodic' else 1) for s in solid.shape]))
-_out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'solve_bytes': peak - before,
+live = int(M.voxel_model(solid, 0.05, mat, periodic={boundary!r} == 'periodic').active.sum())
+_out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'live_nodes': live, 'solve_bytes': peak - before,
          'estimate': M.solve_memory(solid.shape, int(solid.sum()), boundary={boundary!r},
                                     preconditioner={preconditioner!r}, cases_per_block={block!r})}}
 """
@@ -424,24 +429,36 @@ def across(size: float, walls, porosity: float, seed: int, kinematic: bool = Fal
                  *[f"{kind} E_{x} GPa" for kind in kinds for x in "xyz"], "s (build and solves)"]))
 
 
-def memory(sizes, preconditioners, solves, blocks) -> None:
-    """The solver's own memory on small gyroids, beside the estimate ``mechanics.solve_memory`` checks."""
+def memory(sizes, preconditioners, solves, blocks, *, bones=(), tmp: Path | None = None, maxiter: int = 2000) -> None:
+    """The solver's own memory on small gyroids (and the micro-CT's central N^3 of `bones`, kinematic
+    boundaries), beside the estimate ``mechanics.solve_memory`` checks."""
+    from _common import DATA
+
+    samples = [(n, phi, None) for n in sizes for phi in (0.3, 0.6)]
+    for n in bones:
+        path = tmp / f"bone_{n}.npy"
+        run_isolated(BONE_BUILD.format(ct=str(DATA / BONE_CT), voxel=BONE_VOXEL, n=n, out=str(path)))
+        samples.append((n, "bone", str(path)))
     rows = []
     for pc, block in [(pc, b) for pc in preconditioners for b in blocks]:
         for boundary in ("periodic", "kinematic"):
             for what in solves:
-                for n in sizes:
-                    for phi in (0.3, 0.6):
-                        if what == "compress" and boundary == "kinematic":
-                            continue  # compression has its own boundary: the periodic rows are it
-                        r = run_isolated(MEMORY.format(n=n, phi=phi, boundary=boundary, preconditioner=pc,
-                                                       what=what, block=block), timeout=600)
-                        rows.append([pc, block, boundary if what != "compress" else "platens", what, f"{n}^3",
-                                     f"{r['solid_voxels'] / n ** 3:.2f}", r["solid_voxels"], r["nodes"],
-                                     f"{r['solve_bytes'] / 2 ** 20:.1f}", f"{r['solve_bytes'] / r['solid_voxels']:.0f}",
-                                     f"{r['estimate'] / 2 ** 20:.1f}", f"{r['estimate'] / r['solve_bytes']:.2f}"])
-                        print(" | ".join(map(str, rows[-1])), file=sys.stderr, flush=True)
+                for n, phi, source in samples:
+                    if what == "compress" and boundary == "kinematic":
+                        continue  # compression has its own boundary: the periodic rows are it
+                    if source is not None and boundary == "periodic" and what != "compress":
+                        continue  # bone is not periodic
+                    r = run_isolated(MEMORY.format(n=n, phi=phi, boundary=boundary, preconditioner=pc,
+                                                   what=what, block=block, source=source, maxiter=maxiter),
+                                     timeout=3600)
+                    rows.append([pc, block, boundary if what != "compress" else "platens", what,
+                                 f"{n}^3" + (" bone" if source else ""),
+                                 f"{r['solid_voxels'] / n ** 3:.2f}", r["solid_voxels"], r["nodes"], r["live_nodes"],
+                                 f"{r['solve_bytes'] / 2 ** 20:.1f}", f"{r['solve_bytes'] / r['solid_voxels']:.0f}",
+                                 f"{r['estimate'] / 2 ** 20:.1f}", f"{r['estimate'] / r['solve_bytes']:.2f}"])
+                    print(" | ".join(map(str, rows[-1])), file=sys.stderr, flush=True)
     print(table(rows, ["preconditioner", "cases per block", "boundary", "solve", "grid", "solid", "solid voxels", "nodes",
+                       "live nodes",
                        "peak above start MiB", "B/solid voxel", "estimate MiB", "estimate/measured"]))
 
 
@@ -634,6 +651,8 @@ def main(argv=None) -> int:
     ap.add_argument("--memory-solves", default="compress,homogenize,measure",
                     help="--memory's solves: compress (one load case), homogenize (six), measure (both, as the "
                          "commands run them)")
+    ap.add_argument("--memory-bone", type=int, nargs="*", default=[], metavar="N",
+                    help="--memory also on the central N^3 of the lumbar trabecular micro-CT (kinematic boundaries)")
     ap.add_argument("--memory-blocks", default="1,6",
                     help="--memory's load cases per CG block (comma-separated)")
     ap.add_argument("--tolerances", type=float, nargs="*", default=None, metavar="R",
@@ -756,9 +775,10 @@ def main(argv=None) -> int:
         coarsen(args.coarsen)
     if args.across:
         across(args.across_size, args.across, args.across_porosity, args.across_seed, args.across_kinematic)
-    if args.memory:
-        memory(args.memory, args.preconditioners.split(","), args.memory_solves.split(","),
-               [int(b) for b in args.memory_blocks.split(",")])
+    if args.memory is not None or args.memory_bone:
+        memory(args.memory or [], args.preconditioners.split(","), args.memory_solves.split(","),
+               [int(b) for b in args.memory_blocks.split(",")], bones=args.memory_bone, tmp=tmp,
+               maxiter=args.maxiter)
     if args.tolerances or args.accuracies:
         tolerances(tmp, args.tolerance_size, voxel, stops(args.tolerances, args.accuracies), args.runs,
                    args.cases_per_block)

@@ -437,6 +437,11 @@ def _activate(position) -> dict:
     return {"position": tuple(position), "context": ctx, "queue": cl.CommandQueue(ctx)}
 
 
+def active() -> bool:
+    """Whether this process has made its OpenCL context already (:func:`context`)."""
+    return bool(_ACTIVE)
+
+
 def context():
     """The process-wide ``(context, queue)`` pair of the chosen device."""
     if not _ACTIVE:

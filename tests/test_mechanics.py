@@ -1181,6 +1181,36 @@ def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says
     assert r["solid_fraction"] == pytest.approx(ref.mean(), abs=4 / ref.size)
 
 
+def test_live_nodes_are_the_box_models_unknowns():
+    rng = np.random.default_rng(3)
+    for shape, fraction in (((7, 5, 6), 0.2), ((9, 9, 4), 0.05), ((3, 4, 5), 1.0)):
+        solid = rng.random(shape) < fraction
+        # the oracle: the nodes of the padded (non-wrapping) model that a solid voxel's corner reaches
+        model = m.voxel_model(solid, 0.1, m.material("ti64"), periodic=False)
+        assert m.live_nodes(solid) == int(model.active.sum())
+    assert m.live_nodes(np.ones((2, 3, 4), bool)) == 3 * 4 * 5
+
+
+def test_the_estimate_holds_the_compression_on_thin_bone_and_the_libraries_not_yet_loaded(monkeypatch):
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure import multigrid
+
+    # the whole lumbar micro-CT's grid (300^3, 24 % solid, 8.79 million live nodes): its compression,
+    # in double on 27.3 million nodes, held 4,336 MiB above its start (bench_mechanics --memory-bone 300)
+    shape, count, live = (300, 300, 300), 6_490_901, 8_790_719
+    monkeypatch.setattr(multigrid, "kernels_loaded", lambda: True)
+    monkeypatch.setattr(opencl, "active", lambda: True)
+    loaded = m.solve_memory(shape, count, boundary="kinematic", live=live)
+    assert loaded >= 4336.0 * 2**20
+    # a solid that touches more nodes needs more (the CG's vectors are on them)
+    assert m.solve_memory(shape, count, boundary="kinematic", live=2 * live) > loaded
+    # a fresh process loads numba's kernels and the OpenCL runtime inside the solve
+    monkeypatch.setattr(multigrid, "kernels_loaded", lambda: False)
+    monkeypatch.setattr(opencl, "active", lambda: False)
+    assert m.solve_memory(shape, count, boundary="kinematic", live=live) - loaded == (
+        m.SOLVE_LOAD_BYTES["numba"] + m.SOLVE_LOAD_BYTES["opencl"])
+
+
 def test_a_short_budget_takes_smaller_blocks_of_load_cases():
     shape, count = (40, 40, 40), 20000
     sizes = {b: m.solve_memory(shape, count, cases_per_block=b) for b in (1, 2, 3, 6)}

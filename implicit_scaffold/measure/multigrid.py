@@ -68,6 +68,11 @@ STENCIL_LEVELS = True
 # ----------------------------------------------------------------------------- compiled kernels
 
 
+def kernels_loaded() -> bool:
+    """Whether this process has loaded the compiled level kernels (:func:`_kernels`) already."""
+    return _kernels.cache_info().currsize > 0
+
+
 @functools.lru_cache(maxsize=None)
 def _kernels():
     """The compiled level kernels (numba), built on first use and cached on disk:
