@@ -250,13 +250,6 @@ def _mechanics_lines(mech: dict) -> list[str]:
     return lines
 
 
-def _solver_progress(args):
-    """CG progress notes on stderr (none when quiet)."""
-    from .progress import Progress
-
-    return Progress(not getattr(args, "quiet", False)).solver()
-
-
 def _mechanics(args) -> int:
     from .measure.mechanics import load_sample
 
@@ -270,13 +263,23 @@ def _mechanics(args) -> int:
                 from .io.files import check_writable
 
                 check_writable(path, formats=fmt)
-    sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing, mechanics_voxel=args.mechanics_voxel,
-                               max_memory=args.max_memory, boundary=args.boundary)
+    from .progress import Progress
+
+    # a whole micro-CT reads and sets up for some 40 s before the CG's first note; a quick run's lines
+    # (and an error's) stay as they were
+    progress = Progress(not args.quiet)
+    with progress.stage("reading", Path(args.file).name, after=2.0):
+        sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing,
+                                   mechanics_voxel=args.mechanics_voxel, max_memory=args.max_memory,
+                                   boundary=args.boundary)
     solid, h = sample.solid, sample.voxel
     from .measure.mechanics import measure_sample
 
-    report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
-                                  progress=_solver_progress(args), tol=tol)
+    detail = (f"{'x'.join(str(v) for v in solid.shape)} voxels of {h:.4g} mm: the platens' compression, then the "
+              "homogenization's six load cases")
+    with progress.stage("solving", detail, after=2.0):
+        report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
+                                      progress=progress.solver(), tol=tol)
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if args.output is not None:
         from .io.files import write_json

@@ -35,12 +35,26 @@ class Progress:
         self._bar_enabled = enabled and sys.stderr.isatty()
 
     @contextmanager
-    def stage(self, name: str, detail: str = ""):
-        if self.enabled:
-            print(f"  {name}{' (' + detail + ')' if detail else ''} ...", file=sys.stderr, flush=True)
+    def stage(self, name: str, detail: str = "", *, after: float | None = None):
+        """A stage of the run: its line on stderr as it starts, or, with `after` (seconds), only once it
+        has run that long (a quick run's error then stays the one line on stderr)."""
+        line = f"  {name}{' (' + detail + ')' if detail else ''} ..."
+        timer = None
+        if self.enabled and after is None:
+            print(line, file=sys.stderr, flush=True)
+        elif self.enabled:
+            import threading
+
+            timer = threading.Timer(after, lambda: print(line, file=sys.stderr, flush=True))
+            timer.daemon = True
+            timer.start()
         check_interrupted()
         t0 = time.perf_counter()
-        yield
+        try:
+            yield
+        finally:
+            if timer is not None:
+                timer.cancel()
         self.timings[name] = self.timings.get(name, 0.0) + time.perf_counter() - t0
         from .run.memory import peak_memory
 
