@@ -249,11 +249,12 @@ else:
     M.measure(solid, 0.05, mat, boundary={boundary!r}, backend='opencl', preconditioner={preconditioner!r},
               cases_per_block={block!r})
 peak = peak_memory()
-nodes = int(np.prod([s + (0 if {boundary!r} == 'periodic' else 1) for s in solid.shape]))
-live = int(M.voxel_model(solid, 0.05, mat, periodic={boundary!r} == 'periodic').active.sum())
+# a compression's nodes are the box's (one more per axis), whatever the rows' boundary
+nodes = int(np.prod([s + (0 if {boundary!r} == 'periodic' and {what!r} != 'compress' else 1) for s in solid.shape]))
+live = M.live_nodes(solid)  # the box's, as the checks before a solve count them
 _out = {{'solid_voxels': int(solid.sum()), 'nodes': nodes, 'live_nodes': live, 'solve_bytes': peak - before,
          'estimate': M.solve_memory(solid.shape, int(solid.sum()), boundary={boundary!r},
-                                    preconditioner={preconditioner!r}, cases_per_block={block!r})}}
+                                    preconditioner={preconditioner!r}, cases_per_block={block!r}, live=live)}}
 """
 
 

@@ -1501,18 +1501,18 @@ SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: double throughout, so that its product spreads p and K p over the whole node grid in float64 (48 bytes a
 #: node). Per node of its grid (one more per axis than the voxels), per live node (a node a solid voxel
 #: touches: the CG's vectors, 150 bytes each) and per solid voxel (the levels). Fitted and rounded up from
-#: fresh-process peaks above the start (kernels loaded before), the central N^3 of the lumbar trabecular
-#: micro-CT (kinematic nodes, live nodes, solid voxels: MiB measured, this estimate), ``python
-#: benchmarks/bench_mechanics.py --sizes --memory --memory-bone 128 200 --memory-solves compress,homogenize
-#: --preconditioners multigrid --memory-blocks 1,6`` and ``--memory-bone 300 --memory-solves compress
-#: --memory-blocks 1 --maxiter 5`` (2026-12-05):
+#: fresh-process peaks above the start (kernels loaded before) of the central N^3 of the lumbar trabecular
+#: micro-CT, ``python benchmarks/bench_mechanics.py --sizes --memory --memory-bone 128 200 --memory-solves
+#: compress --preconditioners multigrid --memory-blocks 1`` and ``--memory-bone 300 ... --maxiter 5``
+#: (2026-12-05; MiB above the start, this estimate; the six-case kinematic homogenization of the 128^3,
+#: ``--memory-solves homogenize --memory-blocks 6``, 587.4 against 1,054.3):
 #:
 #: ======  ==========  =========  =========  =========  ========
-#: grid    nodes       live       solid      measured   estimate
+#: grid    box nodes   live       solid      measured   estimate
 #: ======  ==========  =========  =========  =========  ========
-#: 128^3   2,146,689   806,968    602,369    386.8      485
-#: 200^3   8,120,601   2,730,411  2,012,423  1,367.9    1,483
-#: 300^3   27,270,901  8,790,719  6,490,901  4,336.0    4,661
+#: 128^3   2,146,689   813,513    602,369    386.4      486.3
+#: 200^3   8,120,601   2,738,873  2,012,423  1,368.6    1,484.3
+#: 300^3   27,270,901  8,812,035  6,490,901  4,366.2    4,685.4
 #: ======  ==========  =========  =========  =========  ========
 #:
 #: (Before the compression's mask went to float32 and its lifting was dropped after the right-hand side,
