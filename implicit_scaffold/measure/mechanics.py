@@ -1523,7 +1523,7 @@ COMPRESS_BYTES_PER_LIVE_NODE = {"multigrid": 160, "fft": 0}
 COMPRESS_BYTES_PER_SOLID_VOXEL = {"multigrid": 100, "fft": 0}
 #: live nodes per solid voxel where the solid is not at hand (a field's sample before it is sampled): a rod
 #: :data:`MIN_VOXELS_PER_WALL` voxels across touches (3.5 / 2.5)^2 = 1.96 nodes a voxel, a plate 1.4; the
-#: lumbar micro-CT 1.35
+#: lumbar micro-CT 1.36, the 128^3 and 200^3 Voronoi scaffolds of the README's benchmark (30 % solid) 1.51 and 1.50
 LIVE_NODES_PER_SOLID_VOXEL = 2.0
 #: What a solve's libraries add to a process that has not loaded them before its start: numba's compiled
 #: level kernels (67 MiB) and the OpenCL context with its runtime (126 MiB), each measured in a fresh
