@@ -1168,10 +1168,9 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     # and to a loose tolerance in float the modulus is further off (a 128^3 crop of the lumbar
     # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double)
     # the platens' displacement is the lifting; the modulus is its energy over the solve's (the reaction
-    # force's work), so `accuracy` bounds the modulus's error as it does the energy's
-    # the lifting: the platens' displacement, a whole-grid vector needed for its product only (the
-    # total displacement is x with the upper platen's set again): 624 MiB through the solve on the
-    # whole lumbar micro-CT's grid, had it been kept
+    # force's work), so `accuracy` bounds the modulus's error as it does the energy's. A whole-grid
+    # vector needed for its product only (the total displacement is x with the upper platen's plane set
+    # again): kept, it held 624 MiB through the solve on the whole lumbar micro-CT's grid
     base = np.zeros((1, 3, n))
     base[0, axis, top] = -strain * length
     kb = op(base)
