@@ -102,8 +102,9 @@ def build_parser() -> argparse.ArgumentParser:
                        description="Measure a scaffold (from this tool or any other) or bone as bone "
                                    "morphometry does: strut thickness and pore diameter by maximal spheres, "
                                    "connectivity density, interconnected porosity, fragments, BS/BV.")
-    _add_scaffold_file(a, f"a closed mesh ({_listed(MESH_READERS)}) or a binary volume "
-                          f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, or a folder of .tif slices; solid = non-zero)")
+    _add_scaffold_file(a, f"a closed mesh ({_listed(MESH_READERS)}) or a volume "
+                          f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, a folder of .tif slices or a DICOM folder): "
+                          "binary (solid = non-zero), a label map with --label or a CT with --threshold")
     a.add_argument("--region", metavar="FILE", default=None,
                    help="count porosity inside this patient, as generate does: a patient mesh or volume, or the "
                         "run's .json report (its patient, on its grid; then --voxel may be left out); default: "
@@ -118,7 +119,8 @@ def build_parser() -> argparse.ArgumentParser:
                                    "profile: thinnest solid, narrowest throat, drainage, cell infiltration, "
                                    "sealed voids, floating solid, overhangs, and the same as built.")
     _add_scaffold_file(c, f"a closed mesh ({_listed(MESH_READERS)}), a .npy signed distance written by generate "
-                          "(its .json beside it gives the voxel), or a binary volume")
+                          "(its .json beside it gives the voxel), or a volume: binary, a label map with --label or a "
+                          "CT with --threshold")
     c.add_argument("--printer", required=True, metavar="NAME",
                    help=", ".join(_printer_names()) + ", or custom:min_strut=MM,min_throat=MM,...")
     c.add_argument("-o", "--output", metavar="JSON", default=None, help="write the certificate as JSON")
@@ -128,8 +130,9 @@ def build_parser() -> argparse.ArgumentParser:
     me = sub.add_parser("mechanics", help="stiffness tensor, moduli and a platen compression test (voxel FE)",
                         description="The effective stiffness of a scaffold or a bone from its voxels: 6x6 tensor "
                                     "(Voigt, GPa), moduli, a compression between rigid platens, beside bone's.")
-    _add_scaffold_file(me, f"a closed mesh ({_listed(MESH_READERS)}), a binary volume "
-                           f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, or a folder of .tif slices) or a .npy field "
+    _add_scaffold_file(me, f"a closed mesh ({_listed(MESH_READERS)}), a volume "
+                           f"({_listed(VOLUME_READERS + IMAGE_STACKS)}, a folder of .tif slices or a DICOM folder: "
+                           "binary, a label map with --label or a CT with --threshold) or a .npy field "
                            "(negative = solid)")
     _add_mechanics_options(me)
     me.add_argument("--max-memory", default=None, metavar="SIZE",
@@ -202,6 +205,11 @@ def _add_scaffold_file(p, what: str) -> None:
                    help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
                         "resampled to it (default: the volume's own spacing)")
     _add_spacing(p)
+    p.add_argument("--label", type=int, default=None,
+                   help="volume: the solid is this segmentation label (a label map's voxels of other labels are void)")
+    p.add_argument("--threshold", type=float, default=None,
+                   help="volume: the solid is every voxel of intensity >= this (HU, for a CT: bone is about 200 "
+                        "and above)")
 
 
 def _add_mechanics_options(p) -> None:
@@ -271,7 +279,7 @@ def _mechanics(args) -> int:
     with progress.stage("reading", Path(args.file).name, after=2.0):
         sample, kind = load_sample(args.file, voxel=args.voxel, spacing=args.spacing,
                                    mechanics_voxel=args.mechanics_voxel, max_memory=args.max_memory,
-                                   boundary=args.boundary)
+                                   boundary=args.boundary, label=args.label, threshold=args.threshold)
     solid, h = sample.solid, sample.voxel
     from .measure.mechanics import measure_sample
 
@@ -281,6 +289,8 @@ def _mechanics(args) -> int:
         report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
                                       progress=progress.solver(), tol=tol)
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
+    if sample.selection is not None:
+        report["selection"] = sample.selection
     if args.output is not None:
         from .io.files import write_json
 
@@ -291,7 +301,8 @@ def _mechanics(args) -> int:
         write_mechanics_report(report, comp, h, args.report)
     if not args.quiet:
         grid = "x".join(str(v) for v in solid.shape)
-        lines = [f"{report['source']}: {kind}, voxel {h:.4g} mm, grid {grid}"] + _mechanics_lines(report)
+        chosen = f" ({sample.selection})" if sample.selection is not None else ""
+        lines = [f"{report['source']}: {kind}{chosen}, voxel {h:.4g} mm, grid {grid}"] + _mechanics_lines(report)
         written = [p for p in (args.output, args.report) if p]
         if written:
             lines.append("wrote " + " and ".join(written))
@@ -525,7 +536,8 @@ def _check(args) -> int:
         from .io.files import check_writable
 
         check_writable(args.output, formats=(".json",))
-    scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing)
+    scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label,
+                             threshold=args.threshold)
     cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
                        origin=scaffold.origin)
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
@@ -895,7 +907,8 @@ def _analyze(args) -> int:
         check_writable(args.output, formats=(".json",))
     if args.report is not None:
         _check_report(args.report)
-    result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing, region=args.region)
+    result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing, region=args.region, label=args.label,
+                          threshold=args.threshold)
     r = result.report
     r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
     if args.output is not None:
@@ -908,7 +921,8 @@ def _analyze(args) -> int:
         write_analysis_report(result, args.report)
     if not args.quiet:
         grid = "x".join(str(v) for v in r["grid_shape"])
-        head = f"{r['source']}: {r['kind']}, voxel {r['voxel_mm']:.4g} mm, grid {grid}, region {r['region']}"
+        chosen = f" ({r['selection']})" if r.get("selection") else ""
+        head = f"{r['source']}: {r['kind']}{chosen}, voxel {r['voxel_mm']:.4g} mm, grid {grid}, region {r['region']}"
         if r.get("resampled"):
             head += f"; resampled {r['resampled']}"
         written = [p for p in (args.output, args.report) if p]

@@ -69,6 +69,36 @@ def test_periodic_laminate_matches_the_exact_tensor():
     assert np.abs(C[~nonzero]).max() < 0.01 * exact.max()
 
 
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_pieces_that_reach_no_face_carry_nothing(boundary):
+    # the laminate of the test above, with two specks in its void that touch no face (and one that
+    # touches a face, which stays): held by nothing, a speck moves rigidly under every strain and adds
+    # no energy, so the tensor is the laminate's alone (exact, periodic) and the same with or without
+    # the specks (either condition); the fraction reported is the sample's, specks included
+    plates = np.zeros((7, 9, 11), bool)
+    plates[:, :, 2:5] = True
+    plates[3, 0, 8] = True  # a speck on a face: held
+    specks = plates.copy()
+    specks[2:4, 3:5, 7:9] = True  # 8 voxels
+    specks[5, 6, 6] = True
+    assert np.array_equal(m.held_pieces(specks), plates)
+    a = m.homogenize(plates, 0.05, TI, boundary=boundary)
+    b = m.homogenize(specks, 0.05, TI, boundary=boundary)
+    assert b.dropped_voxels == 9 and a.dropped_voxels == 0
+    assert b.solid_fraction == pytest.approx(float(specks.mean()), abs=0) and b.residual <= 1e-8
+    assert np.array_equal(a.stiffness, b.stiffness) and a.iterations == b.iterations
+    if boundary == "periodic":
+        phi, E, nu = 3 / 11, TI.E_gpa, TI.nu
+        assert b.stiffness[0, 0] == pytest.approx(phi * E / (1 - nu ** 2), rel=0.01)
+        assert b.stiffness[5, 5] == pytest.approx(phi * E / (2 * (1 + nu)), rel=0.01)
+    # nothing reaches a face: no load path in any direction, zeros with notes, not an error
+    ball = np.zeros((8, 8, 8), bool)
+    ball[3:5, 3:5, 3:5] = True
+    none = m.homogenize(ball, 0.05, TI, boundary=boundary)
+    assert none.dropped_voxels == 8 and not none.stiffness.any()
+    assert any("no load path" in n for n in m.engineering_constants(none.stiffness)["notes"])
+
+
 @pytest.mark.parametrize("block", [1, 4])
 def test_load_cases_in_blocks_give_the_exact_laminate(block):
     # one case at a time, and blocks of 4 and 2 (uneven): each case is its own CG, so the
@@ -520,6 +550,49 @@ def test_cli_mechanics_no_load_path_along_y_is_zero_with_a_note(tmp_path, capsys
                      capsys)
     assert code == 0, cap.err
     assert "y 0," in cap.out and "no load path" in cap.out
+
+
+def test_cli_mechanics_of_a_ct_takes_the_bone_above_the_threshold(tmp_path, capsys):
+    import json
+
+    import SimpleITK as sitk
+
+    # a CT in HU: a bone block (1200) with a soft-tissue layer (150, below the threshold) in air
+    ct = np.full((9, 8, 12), -1000, np.int16)
+    ct[2:7, 1:6, 2:11] = 1200
+    ct[2:7, 1:6, 11] = 150
+    img = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(ct, (2, 1, 0))))
+    img.SetSpacing((0.1, 0.1, 0.1))
+    sitk.WriteImage(img, str(tmp_path / "ct.nii.gz"))
+    out = tmp_path / "r.json"
+    code, cap = _run(["mechanics", tmp_path / "ct.nii.gz", "--threshold", 200, "--material", "pla", "-o", out],
+                     capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    # cropped to the bone: a full block, so the lubricated platens give the material's own modulus
+    assert r["selection"] == "intensity >= 200" and "(intensity >= 200)" in cap.out
+    assert r["solid_fraction"] == 1.0
+    assert r["compression"]["apparent_modulus_gpa"] == pytest.approx(3.5, rel=1e-5)
+    # without the threshold: one line, exit 2, naming what to pass
+    code, cap = _run(["mechanics", tmp_path / "ct.nii.gz"], capsys)
+    assert code == 2 and "--threshold" in cap.err and cap.err.count("\n") == 1
+
+
+def test_cli_mechanics_of_one_vertebra_of_a_label_map(data_dir, tmp_path, capsys):
+    import json
+
+    import SimpleITK as sitk
+
+    seg = data_dir / "totalseg_example_seg.nii.gz"
+    labels = np.transpose(sitk.GetArrayFromImage(sitk.ReadImage(str(seg))), (2, 1, 0)) == 31
+    box = labels[tuple(slice(i.min(), i.max() + 1) for i in np.nonzero(labels))]
+    out = tmp_path / "l1.json"
+    code, cap = _run(["mechanics", seg, "--label", 31, "-o", out, "-q"], capsys)
+    assert code == 0, cap.err
+    r = json.loads(out.read_text())
+    # the L1 vertebra alone, in its own box (the 3 mm voxels of the label map, not resampled)
+    assert r["selection"] == "label 31" and r["solid_fraction"] == pytest.approx(box.mean(), abs=1e-12)
+    assert r["compression"]["apparent_modulus_gpa"] > 0 and r["solver"]["residual"] < 1e-3
 
 
 @pytest.mark.parametrize("case, argv, words", [

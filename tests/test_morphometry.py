@@ -327,3 +327,57 @@ def test_morphometry_by_slabs_gives_the_whole_grid_figures(planes, halo):
                                    max_voxels=planes * plane, halo=halo, planes=planes, solid_pieces=pieces)
     known.pop("morphometry_halo_planes")
     assert known == whole
+
+
+def _write_volume(path, array, spacing=(0.1, 0.1, 0.1)):
+    """`array` (x, y, z) written as a volume file (SimpleITK's arrays are (z, y, x))."""
+    import SimpleITK as sitk
+
+    img = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(array, (2, 1, 0))))
+    img.SetSpacing(spacing)
+    sitk.WriteImage(img, str(path))
+    return path
+
+
+def test_a_label_map_and_a_ct_are_measured_by_the_solid_chosen(tmp_path):
+    # a label map: label 2 a 4 x 5 x 6 box, label 7 elsewhere; a CT in HU: bone 1200 in air -1000
+    labels = np.zeros((10, 12, 14), np.uint8)
+    labels[1:5, 2:7, 3:9] = 2
+    labels[6:9, 8:11, 1:3] = 7
+    ct = np.where(labels == 2, 1200, -1000).astype(np.int16)
+    ct[6:9, 8:11, 1:3] = 150  # soft tissue: under the threshold
+    a = M.analyze_file(_write_volume(tmp_path / "seg.nii.gz", labels), label=2)
+    b = M.read_scaffold(_write_volume(tmp_path / "ct.nrrd", ct), threshold=200)
+    box = labels == 2
+    # the solid is exactly the box: its voxel count, against the whole volume's
+    assert np.array_equal(a.solid, box) and np.array_equal(b.solid, box)
+    assert a.report["porosity_voxel"] == pytest.approx(1 - 4 * 5 * 6 / labels.size, abs=1e-12)
+    assert a.report["selection"] == "label 2" and b.selection == "intensity >= 200"
+    # a binary volume keeps every non-zero voxel, as before
+    c = M.read_scaffold(_write_volume(tmp_path / "bin.nii.gz", (labels > 0).astype(np.uint8)))
+    assert np.array_equal(c.solid, labels > 0) and c.selection == "non-zero voxels"
+
+
+@pytest.mark.parametrize("kind, options, words", [
+    ("labels", {}, "is a label map (labels 2, 7); pass --label N"),
+    ("ct", {}, "holds intensities (-1000 to 1200); pass --threshold"),
+    ("labels", {"label": 3}, "label 3 has no voxel"),
+    ("ct", {"threshold": 5000}, "reaches the threshold 5000"),
+    ("ct", {"label": 2, "threshold": 200}, "not both"),
+    ("mesh", {"label": 2}, "is not a volume"),
+])
+def test_a_volume_needs_its_solid_chosen_in_one_line(tmp_path, kind, options, words):
+    import trimesh
+
+    labels = np.zeros((6, 6, 6), np.uint8)
+    labels[1:3] = 2
+    labels[4:] = 7
+    ct = np.where(labels == 2, 1200, -1000).astype(np.int16)
+    if kind == "mesh":
+        trimesh.creation.box(extents=(1, 1, 1)).export(tmp_path / "m.stl")
+        path, options = tmp_path / "m.stl", {"voxel": 0.1, **options}
+    else:
+        path = _write_volume(tmp_path / f"{kind}.nii.gz", labels if kind == "labels" else ct)
+    with pytest.raises(ScaffoldError) as exc:
+        M.read_scaffold(path, **options)
+    assert words in str(exc.value) and "\n" not in str(exc.value)

@@ -105,8 +105,13 @@ def intensity_range(array: np.ndarray) -> tuple[float, float] | None:
     return None
 
 
-def _bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
-    """The bone voxels of `array` and a phrase saying how they were chosen."""
+def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
+    """The bone voxels of `array` and a phrase saying how they were chosen.
+
+    `label` keeps a segmentation's label, `threshold` a CT's intensities at or above it (HU);
+    with neither, every non-zero voxel, unless the image holds intensities (:func:`intensity_range`).
+    The patient of ``generate`` and the volumes of ``analyze``, ``check`` and ``mechanics`` are chosen here.
+    """
     if label is not None and threshold is not None:
         raise ScaffoldError("give --label (a segmentation) or --threshold (a CT), not both")
     if threshold is None:
@@ -750,7 +755,7 @@ def load_volume(path, *, label=None, threshold=None, reference: bool = False, sp
                             "orthogonal grid first")
 
     array = sitk.GetArrayViewFromImage(image).T       # (i, j, k): SimpleITK arrays are (k, j, i)
-    mask, selection = _bone_mask(array, name, label, threshold)
+    mask, selection = bone_mask(array, name, label, threshold)
     count = int(np.count_nonzero(mask))
     nz = np.nonzero(mask.any(axis=(1, 2)))[0], np.nonzero(mask.any(axis=(0, 2)))[0], \
         np.nonzero(mask.any(axis=(0, 1)))[0]

@@ -21,6 +21,15 @@ def _name(path: Path) -> str:
     return path.name or str(path)
 
 
+def folder_kind(path) -> str:
+    """What a folder holds, as :func:`read_image`'s `folder` names it: ``"tiff"`` when it holds .tif
+    slices, else ``"dicom"`` (also the answer for a file, which needs none)."""
+    path = Path(path)
+    if path.is_dir() and any(suffix(f) in IMAGE_STACKS for f in path.iterdir()):
+        return "tiff"
+    return "dicom"
+
+
 def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
     """The image at `path`, as SimpleITK reads it; a :class:`ScaffoldError` in one line otherwise.
 

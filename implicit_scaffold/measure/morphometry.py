@@ -894,8 +894,8 @@ def load_region(path):
     return patient, grid, f"the patient of {path.name} ({Path(source['file']).name})"
 
 
-def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
-    """Voxel morphometry of a scaffold mesh or a binary volume file.
+def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, threshold=None) -> Analysis:
+    """Voxel morphometry of a scaffold mesh or a volume file (binary, a label map or a CT).
 
     Parameters
     ----------
@@ -911,6 +911,10 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
         The volume's voxel spacing (x, y, z), for files that carry none (TIFF, NRRD
         without one); overrides the file's.
 
+    label, threshold : optional
+        Volume only: its solid is this segmentation label, or the intensities at or above this
+        (HU, for a CT), as ``generate`` chooses a patient (:func:`_read_volume`); a volume of more
+        than two values needs one of them.
     region : str or Path, optional
         Mesh only: count porosity inside this patient (a mesh or volume file, or the JSON
         report of the run that built the scaffold: its patient, on its grid), as generate
@@ -941,18 +945,19 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None) -> Analysis:
             raise ScaffoldError("--region applies to a scaffold mesh; a volume is measured whole")
         if spacing is not None and suffix in MESH_SUFFIXES:
             raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
-        solid, step, note = _read_volume(path, spacing, voxel)
+        solid, step, note, selection = _read_volume(path, spacing, voxel, label, threshold)
         grid = Grid((0.5 * step,) * 3, step, solid.shape)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         report = morphometry(solid, step)
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
-                       "region": "the whole volume", "resampled": note})
+                       "region": "the whole volume", "resampled": note, "selection": selection})
         return Analysis(report, solid, grid)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot analyse {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}) or a volume "
                             f"({' '.join(VOLUME_SUFFIXES)}, or a folder of TIFF slices)")
     if spacing is not None:
         raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
+    _volume_only(path, label, threshold)
     patient = run_grid = None
     if region is not None:
         patient, run_grid, what = load_region(region)
@@ -1006,12 +1011,14 @@ class Scaffold:
     field: np.ndarray | None
     region: np.ndarray | None
     region_name: str
+    selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
 
 
-def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
+def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
-    binary volume (solid = non-zero).
+    volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
+    `threshold` (HU) up (:func:`_read_volume`).
 
     The region (the void that counts) is the mesh's bounding box, the volume, or for a field the
     grid (the patient is not in a ``.npy``; its voxels outside the patient are void that joins the
@@ -1029,6 +1036,7 @@ def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
         voxel = positive_mm("voxel", voxel)
     suffix = _suffix(path)
     if suffix == ".npy":
+        _volume_only(path, label, threshold)
         try:
             field = np.load(path, mmap_mode="r")
         except (OSError, ValueError) as exc:
@@ -1050,11 +1058,12 @@ def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
         field = np.asarray(field, np.float32)
         return Scaffold("field", field < 0, float(voxel), origin, field, None, "the grid")
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, _ = _read_volume(path, spacing, voxel)
-        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume")
+        solid, step, _, selection = _read_volume(path, spacing, voxel, label, threshold)
+        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume", selection)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
+    _volume_only(path, label, threshold)
     if voxel is None:
         raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
     mesh = _read_mesh(path)
@@ -1068,6 +1077,13 @@ def read_scaffold(path, *, voxel=None, spacing=None) -> Scaffold:
     inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
     region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
     return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), None, region, "the mesh's bounding box")
+
+
+def _volume_only(path, label, threshold) -> None:
+    """A one-line error when `label` or `threshold` comes with a file that is not a volume."""
+    if label is not None or threshold is not None:
+        raise ScaffoldError(f"--label and --threshold choose a volume's solid; {path.name} is not a volume "
+                            "(a mesh or a .npy field is solid where it is closed or negative)")
 
 
 def _read_mesh(path):
@@ -1088,27 +1104,47 @@ def _read_mesh(path):
     return mesh
 
 
-def _read_volume(path, spacing, voxel):
+def _read_volume(path, spacing, voxel, label=None, threshold=None):
+    """The solid of a volume (x, y, z), its voxel (mm), a note on its resampling (or None) and how
+    its solid was chosen: every non-zero voxel of a binary volume, a segmentation's `label`, or a
+    CT's intensities from `threshold` (HU) up (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
     import SimpleITK as sitk
 
-    from ..io.images import header_states_spacing, read_image, spacing_triple
+    from ..fields.patient_volume import bone_mask, intensity_range
+    from ..io.images import folder_kind, header_states_spacing, read_image, spacing_triple
 
-    image = read_image(path, folder="tiff")
+    kind = folder_kind(path)
+    image = read_image(path, folder=kind)
     if image.GetDimension() != 3 or image.GetNumberOfComponentsPerPixel() != 1:
-        raise ScaffoldError(f"{path.name} is not a 3-D single-channel volume; give a binary volume")
+        raise ScaffoldError(f"{path.name} is not a 3-D single-channel volume; give a binary volume, a label map "
+                            "or a CT")
     if spacing is not None:
         step = np.asarray(spacing_triple(spacing))
-    elif header_states_spacing(path, folder="tiff"):
+    elif header_states_spacing(path, folder=kind):
         step = np.asarray(image.GetSpacing(), float)
     else:
         raise ScaffoldError(f"{path.name} states no voxel spacing; give it with --spacing (mm), "
                             "e.g. --spacing 0.05 or --spacing \"0.05 0.05 0.1\"")
     array = sitk.GetArrayViewFromImage(image)  # (z, y, x)
-    nonzero = array[array != 0]
-    if nonzero.size and nonzero.min() != nonzero.max():
-        raise ScaffoldError(f"{path.name} is not a binary volume (it holds more than two values); "
-                            "segment it first: solid is every non-zero voxel")
-    solid = np.ascontiguousarray(np.transpose(array != 0, (2, 1, 0)))
+    if label is not None or threshold is not None:
+        mask, selection = bone_mask(array, path.name, label, threshold)
+    else:
+        nonzero = array[array != 0]
+        if nonzero.size and nonzero.min() != nonzero.max():
+            span = intensity_range(array)
+            if span is not None:
+                ct = " (bone is about 200 HU and above in a CT)" if span[0] < 0 else ""
+                raise ScaffoldError(f"{path.name} is not a binary volume: it holds intensities ({span[0]:g} to "
+                                    f"{span[1]:g}); pass --threshold with the bone's lowest intensity{ct}, e.g. "
+                                    "--threshold 200")
+            labels = np.unique(nonzero)
+            shown = ", ".join(f"{v:g}" for v in labels[:12]) + (" ..." if labels.size > 12 else "")
+            raise ScaffoldError(f"{path.name} is not a binary volume: it is a label map (labels {shown}); pass "
+                                f"--label N to keep one, e.g. --label {labels[0]:g}")
+        mask, selection = array != 0, "non-zero voxels"
+    del array
+    solid = np.ascontiguousarray(np.transpose(mask, (2, 1, 0)))
+    del mask
     target = voxel if voxel is not None else float(step.min())
     note = None
     if not np.allclose(step, target, rtol=1e-6):
@@ -1121,4 +1157,4 @@ def _read_volume(path, spacing, voxel):
         note = f"from {' x '.join(f'{v:g}' for v in step)} mm to {target:g} mm (nearest voxel)"
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel (all zero)")
-    return solid, float(target), note
+    return solid, float(target), note, selection
