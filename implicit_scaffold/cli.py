@@ -158,7 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--stiffness", default=None, metavar="MODULUS",
                     help="target apparent modulus, e.g. 3GPa or 800MPa (platen compression of the cube)")
     de.add_argument("--material", default="ti64", metavar="NAME",
-                    help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta (default ti64)")
+                    help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta bone (default ti64)")
     de.add_argument("--printer", default=None, metavar="NAME",
                     help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
     de.add_argument("--seeds", type=int, default=5,
@@ -215,7 +215,7 @@ def _add_scaffold_file(p, what: str) -> None:
 def _add_mechanics_options(p) -> None:
     mg = p.add_argument_group("mechanics (voxel finite elements)")
     mg.add_argument("--material", default=None, metavar="NAME",
-                    help="ti64 pcl pla peek ha tcp cocr ta (default ti64; see implicit_scaffold.measure.mechanics.MATERIALS)")
+                    help="ti64 pcl pla peek ha tcp cocr ta bone (default ti64; see implicit_scaffold.measure.mechanics.MATERIALS)")
     mg.add_argument("--E", dest="young", type=float, default=None, metavar="GPA",
                     help="the solid's Young's modulus in GPa (instead of, or overriding, --material)")
     mg.add_argument("--nu", type=float, default=None, metavar="V", help="the solid's Poisson's ratio, below 0.5")

@@ -260,7 +260,7 @@ class MechanicsSpec:
     Parameters
     ----------
     material : str or Material
-        A :data:`~implicit_scaffold.measure.mechanics.MATERIALS` key (``ti64 pcl pla peek ha tcp cocr ta``) or a
+        A :data:`~implicit_scaffold.measure.mechanics.MATERIALS` key (``ti64 pcl pla peek ha tcp cocr ta bone``) or a
         :class:`~implicit_scaffold.measure.mechanics.Material`; held as the Material.
     E : float, GPa, optional
         Young's modulus (instead of, or overriding, the material's).

@@ -59,8 +59,8 @@ class Material:
     source: str = ""
 
 
-#: Dense (fully solid) material constants of the printable biomaterials. Values vary with the
-#: process and grade: these are the handbook figures the sources give, for comparison only.
+#: Dense (fully solid) material constants of the printable biomaterials, and of bone tissue. Values
+#: vary with the process and grade: these are the handbook figures the sources give, for comparison only.
 MATERIALS = {
     "ti64": Material("Ti-6Al-4V", 113.8, 0.342,
                      "Boyer, Welsch & Collings, Materials Properties Handbook: Titanium Alloys, ASM 1994 "
@@ -80,6 +80,11 @@ MATERIALS = {
                      "Niinomi 2008, J Mech Behav Biomed Mater 1:30 (CoCr alloys, E 200-230 GPa, nu 0.3)"),
     "ta": Material("tantalum", 186.0, 0.34,
                    "CRC Handbook of Chemistry and Physics (Ta, E 186 GPa, nu 0.34)"),
+    # not printed: the tissue of a bone measured from its micro-CT, whose apparent modulus then stands
+    # beside the bone bands as the bone's own
+    "bone": Material("trabecular bone tissue", 18.0, 0.30,
+                     "Bayraktar et al. 2004, J Biomech 37:27 (human femoral trabecular tissue, E 18.0 +- 2.8 GPa); "
+                     "nu 0.3 as micro-FE studies take it"),
 }
 
 #: Apparent moduli of bone (GPa) the scaffold is compared against.
@@ -150,7 +155,7 @@ def material(name: str | None = None, *, E: float | None = None, nu: float | Non
     Parameters
     ----------
     name : str, optional
-        A key of :data:`MATERIALS` (``ti64 pcl pla peek ha tcp cocr ta``).
+        A key of :data:`MATERIALS` (``ti64 pcl pla peek ha tcp cocr ta bone``).
     E : float, GPa, optional
         Young's modulus (instead of a name, or overriding its modulus).
     nu : float, optional
