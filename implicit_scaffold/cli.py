@@ -179,7 +179,8 @@ def build_parser() -> argparse.ArgumentParser:
                          "more and measured (design.json's patient_check); with it, the patient's CT volume (.nii, "
                          ".nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
     dg.add_argument("--threshold", type=float, default=None, help="the patient: keep intensities >= HU")
-    dg.add_argument("--label", type=int, default=None, help="the patient: keep this segmentation label")
+    dg.add_argument("--label", default=None, metavar="N[,N...]",
+                    help="the patient: keep this segmentation label (or several, e.g. 30,31)")
     _add_spacing(dg)
     _add_patient_cuts(dg)
     dg.add_argument("--max-memory", default=None, metavar="SIZE",
@@ -205,8 +206,9 @@ def _add_scaffold_file(p, what: str) -> None:
                    help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
                         "resampled to it (default: the volume's own spacing)")
     _add_spacing(p)
-    p.add_argument("--label", type=int, default=None,
-                   help="volume: the solid is this segmentation label (a label map's voxels of other labels are void)")
+    p.add_argument("--label", default=None, metavar="N[,N...]",
+                   help="volume: the solid is this segmentation label, or several (e.g. 30,31: a bone in pieces); a "
+                        "label map's voxels of other labels are void")
     p.add_argument("--threshold", type=float, default=None,
                    help="volume: the solid is every voxel of intensity >= this (HU, for a CT: bone is about 200 "
                         "and above)")
@@ -332,7 +334,8 @@ def _add_build_options(g) -> None:
     pg.add_argument("--patient", metavar="FILE", default=None,
                     help=f"bone geometry: a mesh ({_listed(MESH_READERS)}) or a volume ({_listed(VOLUME_READERS)}, "
                          "or a folder holding a DICOM series)")
-    pg.add_argument("--label", type=int, default=None, help="volume: keep this segmentation label")
+    pg.add_argument("--label", default=None, metavar="N[,N...]",
+                    help="volume: keep this segmentation label (or several, e.g. 30,31: a bone in pieces)")
     pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
     _add_spacing(pg)
     _add_patient_cuts(pg)

@@ -353,6 +353,9 @@ def test_a_label_map_and_a_ct_are_measured_by_the_solid_chosen(tmp_path):
     assert np.array_equal(a.solid, box) and np.array_equal(b.solid, box)
     assert a.report["porosity_voxel"] == pytest.approx(1 - 4 * 5 * 6 / labels.size, abs=1e-12)
     assert a.report["selection"] == "label 2" and b.selection == "intensity >= 200"
+    # two labels at once (a bone in pieces)
+    both = M.read_scaffold(tmp_path / "seg.nii.gz", label="2,7")
+    assert np.array_equal(both.solid, labels > 0) and both.selection == "labels 2, 7"
     # a binary volume keeps every non-zero voxel, as before
     c = M.read_scaffold(_write_volume(tmp_path / "bin.nii.gz", (labels > 0).astype(np.uint8)))
     assert np.array_equal(c.solid, labels > 0) and c.selection == "non-zero voxels"

@@ -219,6 +219,29 @@ def _one_line(excinfo, *words):
         assert w in msg, msg
 
 
+def test_several_labels_keep_a_bone_in_pieces():
+    # four "vertebrae" of a label map, kept together as one selection, in any of the forms given
+    labels = np.zeros((6, 7, 20), np.uint8)
+    for z, lab in zip((1, 6, 11, 16), (30, 31, 32, 33)):
+        labels[1:5, 2:6, z:z + 3] = lab
+    labels[0, 0, 0] = 7  # another organ
+    want = (labels >= 30) & (labels <= 33)
+    for given in ("30,31,32,33", "30, 31 32,33", [30, 31, 32, 33], (33, 32, 31, 30, 30)):
+        mask, selection = pv.bone_mask(labels, "seg", given, None)
+        assert np.array_equal(mask, want), given
+        assert selection.startswith("labels ") and all(str(v) in selection for v in (30, 31, 32, 33))
+    mask, selection = pv.bone_mask(labels, "seg", "31", None)
+    assert np.array_equal(mask, labels == 31) and selection == "label 31"
+    # the labels that have no voxel are named, and what is there is listed
+    with pytest.raises(ScaffoldError) as e:
+        pv.bone_mask(labels, "seg", "30,34,35", None)
+    _one_line(e, "labels 34, 35 have no voxel", "7, 30, 31, 32, 33")
+    for bad in ("30,L1", "", "30.5"):
+        with pytest.raises(ScaffoldError) as e:
+            pv.bone_mask(labels, "seg", bad, None)
+        _one_line(e, "--label must be a whole number, or several as 30,31")
+
+
 def test_bad_inputs_give_one_line(tmp_path):
     spacing = (0.5, 0.5, 0.5)
     labels = np.zeros((20, 20, 20), np.uint8)

@@ -105,10 +105,31 @@ def intensity_range(array: np.ndarray) -> tuple[float, float] | None:
     return None
 
 
+def _labels(label) -> list[int]:
+    """`label` (a whole number, several of them, or a text such as ``"30,31"``) as a list of ints;
+    a one-line :class:`ScaffoldError` otherwise."""
+    parts = str(label).replace(",", " ").split() if isinstance(label, str) else \
+        (list(label) if isinstance(label, (list, tuple, np.ndarray)) else [label])
+    out = []
+    for v in parts:
+        try:
+            lab = float(v)
+        except (TypeError, ValueError):
+            lab = float("nan")
+        if not (math.isfinite(lab) and lab == int(lab)):
+            raise ScaffoldError(f"--label must be a whole number, or several as 30,31, got {label!r}")
+        if int(lab) not in out:
+            out.append(int(lab))
+    if not out:
+        raise ScaffoldError(f"--label must be a whole number, or several as 30,31, got {label!r}")
+    return out
+
+
 def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
     """The bone voxels of `array` and a phrase saying how they were chosen.
 
-    `label` keeps a segmentation's label, `threshold` a CT's intensities at or above it (HU);
+    `label` keeps a segmentation's label (or several: a list, or a text such as ``"30,31"``: a
+    bone in several pieces, e.g. four vertebrae), `threshold` a CT's intensities at or above it (HU);
     with neither, every non-zero voxel, unless the image holds intensities (:func:`intensity_range`).
     The patient of ``generate`` and the volumes of ``analyze``, ``check`` and ``mechanics`` are chosen here.
     """
@@ -126,21 +147,18 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
                                 f"pass --threshold with the bone's lowest intensity{ct}, e.g. --threshold 200, "
                                 "or give its segmentation's label map with --label N")
     if label is not None:
-        try:
-            lab = float(label)
-        except (TypeError, ValueError):
-            raise ScaffoldError(f"--label must be a whole number, got {label!r}") from None
-        if not (math.isfinite(lab) and lab == int(lab)):
-            raise ScaffoldError(f"--label must be a whole number, got {label!r}")
-        mask = array == lab
-        if not mask.any():
+        labs = _labels(label)
+        mask = np.isin(array, labs)
+        missing = [v for v in labs if not np.any(array == v)] if len(labs) > 1 else ([] if mask.any() else labs)
+        if missing:
             present = np.unique(array[np.isfinite(array)]) if np.issubdtype(array.dtype, np.floating) \
                 else np.unique(array)
             present = present[present != 0]
             shown = ", ".join(f"{v:g}" for v in present[:40]) + (" ..." if present.size > 40 else "")
-            raise ScaffoldError(f"label {int(lab)} has no voxel in {name}; labels present: "
-                                f"{shown or 'none (every voxel is 0)'}")
-        return mask, f"label {int(lab)}"
+            which = f"label {missing[0]} has" if len(missing) == 1 else \
+                f"labels {', '.join(str(v) for v in missing)} have"
+            raise ScaffoldError(f"{which} no voxel in {name}; labels present: {shown or 'none (every voxel is 0)'}")
+        return mask, (f"label {labs[0]}" if len(labs) == 1 else f"labels {', '.join(str(v) for v in labs)}")
     if threshold is not None:
         try:
             thr = float(threshold)
