@@ -37,6 +37,17 @@ def _add_spacing(g) -> None:
                    help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z"')
 
 
+def _add_volume_choice(g) -> None:
+    """--label, --threshold and --spacing: what of a volume is bone (a patient's, or the solid a command
+    measures; :func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
+    g.add_argument("--label", default=None, metavar="N[,N...]",
+                   help="volume: keep this segmentation label, or several (e.g. 30,31: a bone in pieces); other "
+                        "labels are void")
+    g.add_argument("--threshold", type=float, default=None,
+                   help="volume: keep intensities >= this (HU, for a CT: bone is about 200 and above)")
+    _add_spacing(g)
+
+
 def _spacing(text: str):
     parts = text.replace(",", " ").split()
     try:
@@ -178,10 +189,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="the patient, as for generate: without --stiffness-from-ct the design is built on it once "
                          "more and measured (design.json's patient_check); with it, the patient's CT volume (.nii, "
                          ".nii.gz, .nrrd, .mha, .mhd or a DICOM folder)")
-    dg.add_argument("--threshold", type=float, default=None, help="the patient: keep intensities >= HU")
-    dg.add_argument("--label", default=None, metavar="N[,N...]",
-                    help="the patient: keep this segmentation label (or several, e.g. 30,31)")
-    _add_spacing(dg)
+    _add_volume_choice(dg)
     _add_patient_cuts(dg)
     dg.add_argument("--max-memory", default=None, metavar="SIZE",
                     help="memory the build on the patient may hold, e.g. 4G or 800M (default: 4G, or 80%% of the "
@@ -200,18 +208,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_scaffold_file(p, what: str) -> None:
-    """The file argument of the commands that read a scaffold or bone, with its --voxel and --spacing."""
+    """The file argument of the commands that read a scaffold or bone, with its --voxel and what of a volume
+    is solid (:func:`_add_volume_choice`)."""
     p.add_argument("file", help=what)
     p.add_argument("--voxel", type=float, default=None,
                    help="voxel size in mm: a mesh is voxelised at it (needed for a mesh); a volume is "
                         "resampled to it (default: the volume's own spacing)")
-    _add_spacing(p)
-    p.add_argument("--label", default=None, metavar="N[,N...]",
-                   help="volume: the solid is this segmentation label, or several (e.g. 30,31: a bone in pieces); a "
-                        "label map's voxels of other labels are void")
-    p.add_argument("--threshold", type=float, default=None,
-                   help="volume: the solid is every voxel of intensity >= this (HU, for a CT: bone is about 200 "
-                        "and above)")
+    _add_volume_choice(p)
 
 
 def _add_mechanics_options(p) -> None:
@@ -334,10 +337,7 @@ def _add_build_options(g) -> None:
     pg.add_argument("--patient", metavar="FILE", default=None,
                     help=f"bone geometry: a mesh ({_listed(MESH_READERS)}) or a volume ({_listed(VOLUME_READERS)}, "
                          "or a folder holding a DICOM series)")
-    pg.add_argument("--label", default=None, metavar="N[,N...]",
-                    help="volume: keep this segmentation label (or several, e.g. 30,31: a bone in pieces)")
-    pg.add_argument("--threshold", type=float, default=None, help="volume: keep intensities >= HU")
-    _add_spacing(pg)
+    _add_volume_choice(pg)
     _add_patient_cuts(pg)
     pg.add_argument("--seeds-in", choices=["box", "patient"], default=None,
                     help="box: uniform in the bounding box (the paper); patient: only where the patient is, "

@@ -149,7 +149,8 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
     if label is not None:
         labs = _labels(label)
         mask = np.isin(array, labs)
-        missing = [v for v in labs if not np.any(array == v)] if len(labs) > 1 else ([] if mask.any() else labs)
+        # one label: its mask says it; several: each is looked for (a pass each)
+        missing = [] if len(labs) == 1 and mask.any() else [v for v in labs if not np.any(array == v)]
         if missing:
             present = np.unique(array[np.isfinite(array)]) if np.issubdtype(array.dtype, np.floating) \
                 else np.unique(array)
