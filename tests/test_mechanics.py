@@ -157,6 +157,11 @@ def test_corner_sums_match_the_gathered_element_displacements(periodic):
     ref = m.apply_stiffness(model, np.zeros_like(u), np.linalg.solve(model.ke + np.eye(24), fe.T).T)
     got = m.element_loads(model, (model.ke @ np.linalg.solve(model.ke + np.eye(24), fe.T)).T)
     assert np.allclose(got, ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # on the nodes asked for only (in their order), the same sums
+    nodes = rng.permutation(u.shape[2])[: u.shape[2] // 3]
+    some = m.element_loads(model, (model.ke @ np.linalg.solve(model.ke + np.eye(24), fe.T)).T, nodes)
+    assert some.shape == (2, 3, nodes.size)
+    assert np.allclose(some, ref[:, :, nodes], rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(model.active, np.bincount(model.conn.ravel(), minlength=u.shape[2]) > 0)
 
 
@@ -667,6 +672,38 @@ def test_pcg_with_a_fast_operator_ends_on_the_true_residual(err):
     assert np.allclose(res, true, rtol=1e-3, atol=0)  # the residuals returned are the true ones
     plain, its_plain, _ = m.pcg(op, pre, b.copy(), free, scale=scale, tol=tol)
     assert np.abs(x - plain).max() <= 1e3 * tol * np.abs(plain).max()
+
+
+def test_pcg_takes_right_hand_sides_on_the_nodes_it_asks_for():
+    # b and rhs(c) given as functions of the nodes (homogenize's periodic loads: no whole-grid array)
+    # solve the same systems as whole-grid arrays, to the bit: asked on the live nodes only, masked
+    # to the free unknowns there (the loads here are not zero on the held unknowns, and the top face's
+    # nodes are live with z held, as under lubricated platens)
+    model, free, _ = _held_block()
+    free[2, -model.shape[1] * model.shape[2]:] = 0
+    rng = np.random.default_rng(3)
+    b = rng.standard_normal((3, 3, free.shape[1]))
+    op = lambda u: m.apply_stiffness(model, u)  # noqa: E731
+    ke32 = m.VoxelModel(model.shape, model.solid, model.ke.astype(np.float32), model.h, model.material)
+    fast = lambda u: m.apply_stiffness(ke32, u.astype(np.float32)).astype(np.float64)  # noqa: E731
+    scale = np.sqrt(((b * free) ** 2).sum(axis=(1, 2)))
+    pre = m.make_preconditioner("multigrid", model, op, free, 1e-6)
+    asked = []
+
+    def on_nodes(src):
+        def values(nodes):
+            asked.append(nodes)
+            return src[:, :, nodes].copy()
+        return values
+
+    x0, its0, res0 = m.pcg(op, pre, b.copy(), free, scale=scale, tol=1e-6, fast=fast,
+                           rhs=lambda c: b[c:c + 1].copy())
+    x1, its1, res1 = m.pcg(op, pre, on_nodes(b), free, scale=scale, tol=1e-6, fast=fast,
+                           rhs=lambda c: on_nodes(b[c:c + 1]))
+    assert its1 == its0 and np.array_equal(x1, x0) and np.array_equal(res1, res0)
+    assert np.all(_true_residuals(model, free, b * free, x1) <= 1e-6)
+    live = np.flatnonzero(free.any(axis=0))
+    assert len(asked) == 1 + 3 and all(np.array_equal(nodes, live) for nodes in asked)
 
 
 @pytest.mark.parametrize("tol", [1e-3, 1e-4])
