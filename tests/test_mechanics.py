@@ -339,6 +339,10 @@ def test_energy_error_takes_the_smallest_ritz_value_of_the_krylov_space():
     assert m.energy_error(rho, pq) == pytest.approx(want, rel=1e-6)
     # no estimate from too few steps
     assert m.energy_error(rho[:m.ENERGY_STEPS], pq[:m.ENERGY_STEPS - 1]) == np.inf
+    # nor once r.z is 0 or below (a preconditioner that is not positive definite): no bound holds, and
+    # the solve must not stop on one (read as an error of 0, it did)
+    for last in (-1e-3 * rho[-1], 0.0):
+        assert m.energy_error(np.append(rho[:-1], last), pq) == np.inf
 
 
 def test_gauss_radau_bounds_the_true_error_of_cg_with_its_node_under_the_spectrum():

@@ -352,15 +352,15 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
     assert all(type(level.device) is LevelOperator for level in mg.levels)
 
 
-def test_the_power_iterations_reuse_their_products_memory():
-    # the largest eigenvalue of D^-1 A by power iterations, against the same iterations in plain
-    # NumPy (the same bits), with every product's output from one pool: a few buffers for the
-    # twelve products, not a new one each (fresh pages, which the kernel zeroes)
+def test_the_eigenvalue_estimate_reuses_its_products_memory():
+    # a diagonal operator (D^-1 A's spectrum known: its largest entry bounds the estimate, a Ritz
+    # value), with every product's output from one pool: a few buffers for the twelve products, not
+    # a new one each (fresh pages, which the kernel zeroes)
     from implicit_scaffold.measure import mechanics_cl as mc
 
     rng = np.random.default_rng(4)
     n = mc.POOLED_BYTES // 4  # (1, 3, n) float32 products over the pool's threshold
-    A = rng.random(3 * n).astype(np.float32) + 1.0  # a diagonal operator, D^-1 A's spectrum known
+    A = rng.random(3 * n).astype(np.float32) + 1.0
     inv_diag = (rng.random((3, n)) + 0.5).astype(np.float32)
     buffers, pooled = set(), []
 
@@ -372,15 +372,34 @@ def test_the_power_iterations_reuse_their_products_memory():
         return y
 
     got = G._largest_eigenvalue(apply, inv_diag, np.random.default_rng(0))
-    x = (np.random.default_rng(0).standard_normal((1, 3, n)) * (inv_diag > 0)).astype(np.float32)
-    for _ in range(G.POWER_ITERATIONS):
-        x /= np.linalg.norm(x)
-        y = inv_diag * (x * A.reshape(1, 3, n))
-        lam = float(np.vdot(x, y))
-        x = y
-    assert got == lam
-    assert lam <= float((A.reshape(3, n) * inv_diag).max()) * (1 + 1e-6)
-    assert len(buffers) <= 3 and len(pooled) == G.POWER_ITERATIONS and all(pooled)
+    top = float((A.reshape(3, n) * inv_diag).max())
+    assert 0.9 * top <= got <= top * (1 + 1e-5)
+    assert len(buffers) <= 3 and len(pooled) == G.LANCZOS_STEPS and all(pooled)
+
+
+@pytest.mark.parametrize("n, seed, share", [(14, 0, 0.5), (16, 1, 0.4), (12, 3, 0.6)])
+def test_the_largest_eigenvalue_is_found_where_its_eigenvector_is_local(n, seed, share):
+    # oracle: ARPACK's largest eigenvalue of D^-1/2 K D^-1/2 (the spectrum of D^-1 K), converged to 1e-10,
+    # through the NumPy operator. On random solids the top eigenvectors sit on a few voxels, which a
+    # random start barely holds: twelve power iterations found 0.84 to 0.93 of it here (the smoothers'
+    # intervals then end under the spectrum and the V-cycle is not positive definite, as on the L3
+    # vertebra at 0.5 mm); the estimate must lie within 3 % under it, never over
+    from scipy.sparse.linalg import LinearOperator, eigsh
+
+    rng = np.random.default_rng(seed)
+    model = M.voxel_model(rng.random((n, n, n)) < share, 0.1, MAT, periodic=True)
+    size = int(np.prod(model.shape))
+    inv_diag = G._inverse_diagonal(M.diagonal(model))
+    half = np.sqrt(inv_diag)
+
+    def product(v):
+        v = v.reshape(1, 3, size) * half
+        return (M.apply_stiffness(model, v) * half).ravel()
+
+    top = eigsh(LinearOperator((3 * size, 3 * size), matvec=product, dtype=float), k=1, which="LA",
+                tol=1e-10)[0][0]
+    got = G._largest_eigenvalue(lambda u: M.apply_stiffness(model, u), inv_diag, np.random.default_rng(0))
+    assert 0.97 * top <= got <= top * (1 + 1e-9)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -899,7 +899,9 @@ def energy_error(rho, pq) -> float:
     rho = np.asarray(rho, float)
     pq = np.asarray(pq, float)
     k = pq.size
-    if k < ENERGY_STEPS or rho.size != k + 1 or not (np.all(pq > 0) and np.all(rho[:-1] > 0)):
+    # r.z <= 0 (or p.K p <= 0): the preconditioner (or the operator) is not positive definite, and
+    # no bound holds (read as 0, such an r.z once stopped a compression at a modulus 205 times off)
+    if k < ENERGY_STEPS or rho.size != k + 1 or not (np.all(pq > 0) and np.all(rho > 0)):
         return float("inf")
     alpha = rho[:-1] / pq
     beta = rho[1:-1] / rho[:-2]
@@ -908,7 +910,7 @@ def energy_error(rho, pq) -> float:
     theta = float(eigvalsh_tridiagonal(diag, np.sqrt(beta) / alpha[:-1], select="i", select_range=(0, 0))[0])
     if not theta > 0:
         return float("inf")
-    return min(max(float(rho[-1]), 0.0) / theta, gauss_radau(rho, pq, RADAU_SHARE * theta))
+    return min(float(rho[-1]) / theta, gauss_radau(rho, pq, RADAU_SHARE * theta))
 
 
 def fast_goal(tol: float) -> float:
