@@ -29,6 +29,7 @@ which the build installs as the package ``implicit_scaffold.kernels``.
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import json
@@ -503,6 +504,37 @@ def device() -> Device:
 BUILD_SECONDS: dict = {}
 
 
+def binaries_dir() -> Path:
+    """The folder of PyOpenCL's binary cache for this tool's builds (under :func:`cache_dir`, by PyOpenCL's
+    and Python's versions), which only :func:`_program` uses, under :func:`_build_lock`."""
+    import pyopencl as cl
+
+    return cache_dir() / f"binaries-pyopencl-{cl.VERSION_TEXT}-py{sys.version_info[0]}.{sys.version_info[1]}"
+
+
+@contextlib.contextmanager
+def _build_lock(folder: Path):
+    """Held by one of this tool's processes at a time while it builds with the cache in `folder`, and let go
+    by the system when the process ends, however it ends (``fcntl.flock``).
+
+    PyOpenCL's own lock is a file made with ``O_EXCL`` and removed after the build: a process killed
+    meanwhile (a Ctrl-C during a build) leaves it behind, and every later build, in any run, waited a
+    minute for it and then failed (a ``KeyError`` inside PyOpenCL's fallback; CI, 2026-12-06: 31 tests,
+    after a test had interrupted a run). Under this lock no other build of ours runs, so a PyOpenCL lock
+    file found there is such a leftover, and is removed."""
+    try:
+        import fcntl
+    except ImportError:  # not POSIX: PyOpenCL's lock alone
+        yield
+        return
+    with open(folder / "build.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
+
+
 @functools.lru_cache(maxsize=None)
 def _program(ctx, name: str, defines: tuple):
     import pyopencl as cl
@@ -511,10 +543,23 @@ def _program(ctx, name: str, defines: tuple):
     source = (src_dir / f"{name}.cl").read_text()
     options = [f"-I{src_dir}", *BUILD_OPTIONS] + [f"-D{k}={v}" for k, v in defines]
     t0 = time.perf_counter()
-    with warnings.catch_warnings():
-        # a build log with only remarks is not a failure; a failed build raises
-        warnings.simplefilter("ignore", cl.CompilerWarning)
-        prg = cl.Program(ctx, source).build(options=options)
+    folder = binaries_dir()
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        lock = _build_lock(folder)
+        lock.__enter__()
+    except OSError:  # a cache folder we cannot write: built each time, uncached
+        folder, lock = None, None
+    try:
+        if folder is not None:
+            (folder / "lock").unlink(missing_ok=True)  # PyOpenCL's, left by a process killed mid-build
+        with warnings.catch_warnings():
+            # a build log with only remarks is not a failure; a failed build raises
+            warnings.simplefilter("ignore", cl.CompilerWarning)
+            prg = cl.Program(ctx, source).build(options=options, cache_dir=False if folder is None else str(folder))
+    finally:
+        if lock is not None:
+            lock.__exit__(None, None, None)
     BUILD_SECONDS[name] = time.perf_counter() - t0
     return prg
 

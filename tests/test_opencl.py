@@ -163,6 +163,22 @@ def test_every_kernel_builds_on_the_chosen_device():
         assert set(wanted) <= built, source
 
 
+def test_a_build_lock_left_by_a_killed_run_does_not_stop_the_next_build(monkeypatch, tmp_path):
+    # PyOpenCL's lock file in the binary cache, as a run killed mid-build leaves it: the next build must go
+    # ahead and remove it (it waited a minute for it, then failed: 31 tests of one CI run), and store its
+    # binary in the cache
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    folder = opencl.binaries_dir()
+    assert folder.is_relative_to(tmp_path)
+    folder.mkdir(parents=True)
+    (folder / "lock").write_text("")
+    # defines of its own: a build, not this process's program kept from an earlier test
+    built = {k.function_name for k in opencl.program("mechanics", NCASE=1, USE_DOUBLE=0, STALE_LOCK=1).all_kernels()}
+    assert "stiffness_rows" in built
+    assert not (folder / "lock").exists()
+    assert any(entry.is_dir() for entry in folder.iterdir())  # the binary, cached
+
+
 def test_every_working_device_matches_the_numpy_references(small_cells):
     import implicit_scaffold
     from implicit_scaffold.run.grid import Grid
