@@ -524,13 +524,13 @@ def _build_lock(folder: Path):
     file found there is such a leftover, and is removed."""
     try:
         import fcntl
-    except ImportError:  # not POSIX: PyOpenCL's lock alone
-        yield
+    except ImportError:  # not POSIX: PyOpenCL's lock alone (yields False: a lock file there may be live)
+        yield False
         return
     with open(folder / "build.lock", "a") as handle:
         fcntl.flock(handle, fcntl.LOCK_EX)
         try:
-            yield
+            yield True
         finally:
             fcntl.flock(handle, fcntl.LOCK_UN)
 
@@ -544,22 +544,18 @@ def _program(ctx, name: str, defines: tuple):
     options = [f"-I{src_dir}", *BUILD_OPTIONS] + [f"-D{k}={v}" for k, v in defines]
     t0 = time.perf_counter()
     folder = binaries_dir()
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        lock = _build_lock(folder)
-        lock.__enter__()
-    except OSError:  # a cache folder we cannot write: built each time, uncached
-        folder, lock = None, None
-    try:
-        if folder is not None:
+    with contextlib.ExitStack() as held:
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+            alone = held.enter_context(_build_lock(folder))
+        except OSError:  # a cache folder we cannot write: built each time, uncached
+            folder, alone = None, False
+        if alone:
             (folder / "lock").unlink(missing_ok=True)  # PyOpenCL's, left by a process killed mid-build
         with warnings.catch_warnings():
             # a build log with only remarks is not a failure; a failed build raises
             warnings.simplefilter("ignore", cl.CompilerWarning)
             prg = cl.Program(ctx, source).build(options=options, cache_dir=False if folder is None else str(folder))
-    finally:
-        if lock is not None:
-            lock.__exit__(None, None, None)
     BUILD_SECONDS[name] = time.perf_counter() - t0
     return prg
 

@@ -179,6 +179,15 @@ def test_a_build_lock_left_by_a_killed_run_does_not_stop_the_next_build(monkeypa
     assert any(entry.is_dir() for entry in folder.iterdir())  # the binary, cached
 
 
+def test_a_cache_folder_that_cannot_be_made_leaves_the_build_uncached(monkeypatch, tmp_path):
+    # the user's cache path runs through a file: nothing can be kept there, and the build still happens
+    (tmp_path / "file").write_text("")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "file" / "cache"))
+    built = {k.function_name for k in opencl.program("mechanics", NCASE=1, USE_DOUBLE=0, NO_CACHE=1).all_kernels()}
+    assert "stiffness_rows" in built
+    assert not opencl.binaries_dir().exists()
+
+
 def test_every_working_device_matches_the_numpy_references(small_cells):
     import implicit_scaffold
     from implicit_scaffold.run.grid import Grid
