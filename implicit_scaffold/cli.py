@@ -169,7 +169,7 @@ def build_parser() -> argparse.ArgumentParser:
     de.add_argument("--stiffness", default=None, metavar="MODULUS",
                     help="target apparent modulus, e.g. 3GPa or 800MPa (platen compression of the cube)")
     de.add_argument("--material", default="ti64", metavar="NAME",
-                    help="the solid, for --stiffness: ti64 pcl pla peek ha tcp cocr ta bone (default ti64)")
+                    help=f"the solid, for --stiffness: {' '.join(_material_names())} (default ti64)")
     de.add_argument("--printer", default=None, metavar="NAME",
                     help="a printer profile whose min_strut is the --min-strut (the larger of the two when both)")
     de.add_argument("--seeds", type=int, default=5,
@@ -220,7 +220,7 @@ def _add_scaffold_file(p, what: str) -> None:
 def _add_mechanics_options(p) -> None:
     mg = p.add_argument_group("mechanics (voxel finite elements)")
     mg.add_argument("--material", default=None, metavar="NAME",
-                    help="ti64 pcl pla peek ha tcp cocr ta bone (default ti64; see implicit_scaffold.measure.mechanics.MATERIALS)")
+                    help=f"{' '.join(_material_names())} (default ti64; see implicit_scaffold.measure.mechanics.MATERIALS)")
     mg.add_argument("--E", dest="young", type=float, default=None, metavar="GPA",
                     help="the solid's Young's modulus in GPa (instead of, or overriding, --material)")
     mg.add_argument("--nu", type=float, default=None, metavar="V", help="the solid's Poisson's ratio, below 0.5")
@@ -417,6 +417,12 @@ def _add_build_options(g) -> None:
                          "least one per worker); their memory counts against --max-memory; same bytes out "
                          "(default 1: this process)")
     g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+
+
+def _material_names() -> list[str]:
+    from .measure.mechanics import MATERIALS
+
+    return list(MATERIALS)
 
 
 def _printer_names() -> list[str]:
