@@ -10,6 +10,7 @@
                                          [--tolerances 1e-2 1e-3 1e-4 1e-5 1e-6] [--accuracies 1e-5 1e-6 1e-7]
                                          [--tolerance-size 128]
                                          [--bone 128 [--bone-tolerances 1e-3 1e-4 1e-6] [--bone-accuracies 1e-6]]
+                                         [--ct 2]
 
 - **solve**: all six load cases of periodic homogenization (``--cases-per-block`` at a time, PCG with each
   preconditioner asked for, side by side: the multigrid V-cycle, the default, and the FFT
@@ -52,6 +53,12 @@
   ``--bone-tolerances`` and ``--bone-accuracies`` (as ``--accuracies``), each against one solve of the same voxels to 1e-10: seconds, CG iterations,
   how far the apparent modulus and the tensor lie from the reference's (what ``--mechanics-tol``
   saves and costs where the struts are bone's, not a Voronoi lattice's).
+
+- **ct** (``--ct F``): a CT as users bring it, the data folder's DICOM series (``totalseg_example_ct_dicom``)
+  from 200 HU up, F times coarser (each F^3 block solid from half up; 1: as read): compression along z and
+  kinematic homogenization with its pieces that share no node solved apart (each on its own box, the
+  small ones together exactly) and as one system, medians of --runs in fresh processes, the tensors and
+  moduli compared.
 
 - **split** (``--split``): one more run of each size's solve with a timer around every OpenCL
   product, grouped by operator (the fine one in float or double, each coarse level) and the
@@ -606,6 +613,75 @@ def bone(tmp: Path, n: int, solves, runs: int) -> None:
                        "max |dC|/max|C|", "energy errors (est.)", "peak MiB"]))
 
 
+#: the data folder's CT of --ct (DICOM), and the intensity bone starts at (HU)
+CT_DICOM = "totalseg_example_ct_dicom"
+CT_THRESHOLD = 200
+
+CT_BUILD = """
+import numpy as np
+from implicit_scaffold.measure.morphometry import read_scaffold
+s = read_scaffold({ct!r}, threshold={threshold!r})
+solid, f = s.solid, {factor!r}
+if f > 1:  # the mean of each f^3 block, solid from half up: the CT as a scanner f times coarser sees it
+    n = [d // f * f for d in solid.shape]
+    solid = solid[:n[0], :n[1], :n[2]].reshape(n[0] // f, f, n[1] // f, f, n[2] // f, f).mean(axis=(1, 3, 5)) >= 0.5
+np.save({out!r}, np.ascontiguousarray(solid))
+_out = {{'grid': 'x'.join(map(str, solid.shape)), 'voxel': float(s.voxel) * f, 'solid_fraction': float(solid.mean())}}
+"""
+
+CT_SOLVE = """
+import time
+import numpy as np
+from implicit_scaffold.measure import mechanics as M
+if not {apart!r}:  # the sample as one system (the solver before pieces were solved apart)
+    M.independent_pieces = lambda solid, *a, **k: []
+solid = np.load({solid!r})
+mat = M.material('ti64')
+t = time.perf_counter()
+c = M.compress(solid, {voxel!r}, mat, axis=2, tol=1e-6, backend='opencl', maxiter=5000, accuracy=M.ACCURACY)
+tc = time.perf_counter() - t
+t = time.perf_counter()
+hom = M.homogenize(solid, {voxel!r}, mat, boundary='kinematic', tol=1e-6, backend='opencl', maxiter=5000,
+                   accuracy=M.ACCURACY)
+_out = {{'seconds': tc + time.perf_counter() - t, 'compression_s': tc, 'homogenization_s': time.perf_counter() - t,
+        'modulus': c.apparent_modulus_gpa, 'compression_its': c.iterations, 'iterations': hom.iterations,
+        'pieces': [c.pieces, hom.pieces], 'C': hom.stiffness.tolist()}}
+"""
+
+
+def ct(tmp: Path, factor: int, runs: int) -> None:
+    """The data folder's CT (``--ct F``): compression along z and kinematic homogenization with the pieces
+    that share no node solved apart (each on its own box) and as one system, in fresh processes."""
+    from _common import DATA
+
+    path = tmp / f"ct_{factor}.npy"
+    info = run_isolated(CT_BUILD.format(ct=str(DATA / CT_DICOM), threshold=CT_THRESHOLD, factor=factor,
+                                        out=str(path)))
+    rows, found = [], {}
+    for apart in (True, False):
+        med, results = median_runs(CT_SOLVE.format(apart=apart, solid=str(path), voxel=info["voxel"]), runs,
+                                   warmup=0)
+        first = results[0]
+        found[apart] = first
+        rows.append(["apart" if apart else "one system", " / ".join(map(str, first["pieces"])),
+                     f"{statistics.median(r['compression_s'] for r in results):.1f}", first["compression_its"],
+                     f"{first['modulus']:.6g}", f"{statistics.median(r['homogenization_s'] for r in results):.1f}",
+                     first["iterations"], f"{med['seconds']:.1f}", ", ".join(f"{r['seconds']:.1f}" for r in results),
+                     f"{med['peak_rss_mb']:.0f}"])
+        print(f"  CT {'apart' if apart else 'one system'} done: {med['seconds']:.1f} s", file=sys.stderr, flush=True)
+    a, b = np.array(found[True]["C"]), np.array(found[False]["C"])
+    scale = np.sqrt(np.outer(np.diag(b), np.diag(b)))
+    print(f"\n{CT_DICOM} (data folder) from {CT_THRESHOLD} HU, {info['grid']} voxels of {info['voxel']:.4g} mm"
+          + (f" (each {factor}^3 block solid from half up)" if factor > 1 else "")
+          + f", solid fraction {info['solid_fraction']:.4f}, Ti-6Al-4V; compression along z (lubricated platens) "
+          f"and kinematic homogenization (six cases), each to the default stop; runs: {runs}")
+    print(table(rows, ["pieces", "pieces (comp. / hom.)", "compression s", "CG its", "E GPa", "homogenization s",
+                       "CG its", "s (median)", "runs (s)", "peak MiB"]))
+    print(f"apart against one system: max |dC_ij| / sqrt(C_ii C_jj) {np.max(np.abs(a - b) / scale):.1e}, "
+          f"|dE/E| {abs(found[True]['modulus'] / found[False]['modulus'] - 1):.1e}; time ratio "
+          f"{float(rows[1][7]) / float(rows[0][7]):.2f}x")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="*", default=[64, 128], help="grid sizes N (none: skip the timing)")
@@ -668,6 +744,9 @@ def main(argv=None) -> int:
     ap.add_argument("--bone-accuracies", type=float, nargs="*", default=[], metavar="A",
                     help="as --bone-tolerances, the default tolerance with each of these energy accuracies")
     ap.add_argument("--split", action="store_true", help="one more run of each size with every OpenCL product timed")
+    ap.add_argument("--ct", type=int, default=None, metavar="F",
+                    help="the data folder's CT (DICOM, from 200 HU), F times coarser (1: as read): its pieces "
+                         "solved apart and as one system")
     ap.add_argument("--femur", action="store_true", help="the femoral shaft scaffold at 0.1 mm in Ti-6Al-4V and PCL")
     ap.add_argument("--femur-tol", type=float, default=1e-6,
                     help="the femur solves' CG tolerance (with --accuracy beside it, as the main solve)")
@@ -787,6 +866,8 @@ def main(argv=None) -> int:
         bone(tmp, args.bone, stops(args.bone_tolerances, args.bone_accuracies), args.runs)
     if args.femur:
         femur(tmp, args.femur_tol, args.femur_maxiter, args.preconditioners.split(",")[0], accuracy)
+    if args.ct:
+        ct(tmp, args.ct, args.runs)
     return 0
 
 

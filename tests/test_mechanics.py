@@ -459,6 +459,98 @@ def test_kinematic_is_stiffer_than_periodic(small_scaffold):
     assert np.all(np.diag(kin) >= np.diag(per) * (1 - 1e-6))
 
 
+def pieces_sample() -> tuple[np.ndarray, list[np.ndarray]]:
+    """A plate and two prisms along x that share no node, and a bar joined to the plate by an edge
+    only (one system with it): the sample, and its three independent systems."""
+    solid = np.zeros((9, 8, 10), bool)
+    a = solid.copy()
+    a[:, :, 1:3] = True  # a plate, 144 voxels
+    a[4, 0:3, 3] = True  # on the plate, and a bar from it to the face y = 0
+    a[5, 3:8, 4] = True  # a bar to the face y = 7, joined to the one above by an edge only
+    b = solid.copy()
+    b[:, 0:3, 6:8] = True  # a prism, 54 voxels
+    c = solid.copy()
+    c[:, 4, 8:10] = True  # a prism of L section around it, 54 voxels: its box holds part of the first one
+    c[:, 0:4, 9] = True
+    return a | b | c, [a, b, c]
+
+
+def test_independent_pieces_are_the_pieces_that_share_no_node_each_in_its_box():
+    solid, systems = pieces_sample()
+    labels, crops = m.independent_pieces(solid, small=60, batch=60)
+    assert [small for _, _, small in crops] == [False, True, True]
+    assert [len(ids) for _, ids, _ in crops] == [1, 1, 1]
+    for (box, ids, _), system in zip(crops, systems):
+        # the piece alone in its box, which keeps a void layer where it ends inside the sample
+        whole = np.zeros_like(solid)
+        whole[box] = np.isin(labels[box], ids)
+        assert np.array_equal(whole, system)
+        for axis, s in enumerate(box):
+            ends = np.flatnonzero(system.any(axis=tuple(a for a in range(3) if a != axis)))
+            assert s.start == max(ends[0] - 1, 0) and s.stop == min(ends[-1] + 2, solid.shape[axis])
+    # small pieces share crops, at most `batch` voxels a crop (or one piece)
+    labels, crops = m.independent_pieces(solid, small=1000, batch=108)
+    assert [(int(np.isin(labels[box], ids).sum()), len(ids)) for box, ids, _ in crops] == \
+        [(int(systems[0].sum()), 1), (54 + 54, 2)]
+    assert all(small for _, _, small in crops)
+    assert m.independent_pieces(systems[0])[1] == []
+
+
+@pytest.mark.parametrize("small, batch", [(0, 4000), (60, 60), (1000, 108)])
+def test_pieces_that_share_no_node_are_solved_apart_to_their_sum(monkeypatch, small, batch):
+    # independent systems: the sample's tensor is the sum of each system's alone in the same box (each
+    # one piece, solved on the whole box), whether a piece is solved on its own box by multigrid or with
+    # others exactly; and the lubricated compression of prisms along their axis is uniform uniaxial
+    # stress, exactly: E times their share of the cross-section, the von Mises strain the same everywhere
+    monkeypatch.setattr(m, "DIRECT_VOXELS", small)
+    monkeypatch.setattr(m, "DIRECT_BATCH", batch)
+    solid, systems = pieces_sample()
+    seen = []
+    hom = m.homogenize(solid, 0.1, TI, boundary="kinematic", tol=1e-10, progress=lambda it, r: seen.append(it))
+    # the progress counts the iterations on from one piece's solve to the next
+    assert seen == sorted(seen) and seen[-1] > hom.iterations
+    alone = sum(m.homogenize(s, 0.1, TI, boundary="kinematic", tol=1e-10).stiffness for s in systems)
+    assert hom.pieces == 3 and hom.residual <= 1e-10
+    assert np.allclose(hom.stiffness, alone, rtol=0, atol=1e-8 * np.abs(alone).max())
+    prisms = solid.copy()
+    prisms[4, 0:3, 3] = prisms[5, 3:8, 4] = False  # the bars: no load path along x
+    c = m.compress(prisms, 0.1, TI, axis=0, tol=1e-10)
+    assert c.pieces == 3 and c.residual <= 1e-10
+    assert c.apparent_modulus_gpa == pytest.approx((16 + 6 + 6) / 80 * TI.E_gpa, rel=1e-8)
+    assert np.allclose(c.von_mises_strain[prisms], 2 / 3 * (1 + TI.nu) * 1e-3, rtol=1e-6)
+    assert not c.von_mises_strain[~prisms].any()
+    report, _ = m.measure(prisms, 0.1, TI, boundary="kinematic", axis=0)
+    assert report["solver"]["pieces"] == {"homogenization": 3, "compression": 3}
+    assert sum("3 pieces that share no node" in n for n in report["notes"]) == 2
+
+
+def test_the_assembled_matrix_is_the_operator_and_the_direct_preconditioner_its_inverse():
+    # the NumPy reference operator is the oracle: K u on the free unknowns, and K z = r for z the direct
+    # preconditioner's; a sliding (singular but consistent) system too, whose rigid motions carry no force
+    rng = np.random.default_rng(5)
+    solid = rng.random((6, 7, 5)) < 0.7
+    model = m.voxel_model(solid, 0.1, TI, periodic=False)
+    for held in ("face", "sliding"):
+        free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+        plane = np.zeros(model.shape, bool)
+        plane[0] = True
+        free[:, plane.ravel()] = 0 if held == "face" else free[:, plane.ravel()]
+        if held == "sliding":  # only the normal unknowns of two opposite planes: in-plane motions stay free
+            plane[-2] = True
+            free[0, plane.ravel()] = 0
+        u = rng.standard_normal(free.shape) * free
+        K, dofs = m.stiffness_matrix(model, free)
+        ku = (m.apply_stiffness(model, u[None])[0] * free).ravel()
+        assert np.allclose(K @ u.ravel()[dofs], ku[dofs], rtol=0, atol=1e-12 * np.abs(ku).max())
+        assert np.array_equal(np.flatnonzero(free.ravel()), dofs)
+        r = (m.apply_stiffness(model, u[None])[0] * free)[None]  # consistent: in K's range
+        z = m.direct_preconditioner(model, free)(r)
+        assert np.abs(m.apply_stiffness(model, z)[0] * free - r[0]).max() <= 1e-7 * np.abs(r).max()
+        # and no rigid motion added: the least-norm solution (a dense least-squares solve)
+        least = np.linalg.lstsq(K.toarray(), r.ravel()[dofs], rcond=1e-12)[0]
+        assert np.linalg.norm(z.ravel()[dofs]) <= (1 + 1e-6) * np.linalg.norm(least)
+
+
 def test_compressing_a_block_gives_its_youngs_modulus():
     c = m.compress(np.ones((5, 6, 7), bool), 0.1, TI, axis=2)
     assert c.apparent_modulus_gpa == pytest.approx(TI.E_gpa, rel=1e-6)
