@@ -1187,6 +1187,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     # each unit strain's lifting energy (u = E x: every solid voxel holds the same corner displacements,
     # up to a translation), the total a case's solved part relaxes
     lifting = ns * np.einsum("ka,ab,kb->k", u0e, model.ke, u0e)
+    tell = _counting(progress)  # the blocks' iterations counted on from one to the next
     for k0 in range(0, 6, block):
         cases = range(k0, min(6, k0 + block))
         # the right-hand side is handed to pcg with no reference kept here, so that it is
@@ -1202,8 +1203,10 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
                 return _kinematic_loads(op, model.shape, h, ks)
         info = {}
         x, its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
-                            progress=progress, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True,
+                            progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True,
                             energy=lifting[list(cases)], accuracy=accuracy, info=info)
+        if tell is not None:
+            tell.next()
         cross[np.ix_(list(cases), list(cases))] = xr
         err[list(cases)] = info["energy_error"]
         if not periodic:
