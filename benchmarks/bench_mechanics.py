@@ -634,7 +634,7 @@ import time
 import numpy as np
 from implicit_scaffold.measure import mechanics as M
 if not {apart!r}:  # the sample as one system (the solver before pieces were solved apart)
-    M.independent_pieces = lambda solid, *a, **k: []
+    M.independent_pieces = lambda solid, *a, **k: (None, [])
 solid = np.load({solid!r})
 mat = M.material('ti64')
 t = time.perf_counter()
