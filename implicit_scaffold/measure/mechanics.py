@@ -1226,11 +1226,13 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     return C, int(iterations), float(res.max()), float(err.max())
 
 
-#: the kinematic homogenization solves each piece of more solid voxels than this on its own box, and
-#: the smaller ones together, exactly (:func:`direct_preconditioner`), up to :data:`DIRECT_BATCH` at a time
-DIRECT_VOXELS = 2000
-#: solid voxels of small pieces solved together: a sparse LU holds some 13 KB a voxel (10,084 voxels of
-#: the data folder's CT: 10.6 million entries), the assembled matrix 4 KB
+#: the kinematic homogenization and the compression solve each piece of more solid voxels than this on
+#: its own box, and the smaller ones together, exactly (:func:`direct_preconditioner`), up to
+#: :data:`DIRECT_BATCH` at a time. A sparse LU's fill grows with a piece's size: 20 KB a voxel for a solid
+#: cube of 512 voxels (alone, or eight of them together), 40 KB for one of 2,028
+DIRECT_VOXELS = 500
+#: solid voxels of small pieces solved together: at most some 80 MB of LU factors (the assembled matrix
+#: some 4 KB a voxel more)
 DIRECT_BATCH = 4000
 
 
