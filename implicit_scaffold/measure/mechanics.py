@@ -751,14 +751,19 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # a case's estimate once the true residual has replaced the fast products' (NaN: none, or it restarted)
     final = np.full(m, np.nan)
 
-    def relative_error() -> np.ndarray:
-        """(m,) each case's estimated energy error over its total energy (NaN: no energy given)."""
+    def absolute_error() -> np.ndarray:
+        """(m,) each case's estimated energy error e.K e (NaN: no energy given)."""
         out = np.full(m, np.nan)
         if total is not None:
             for c in range(m):
-                out[c] = final[c] if not np.isnan(final[c]) else (
-                    energy_error(rhos[c], pqs[c]) / max(total[c] - solved[c], 1e-300))
+                out[c] = final[c] if not np.isnan(final[c]) else energy_error(rhos[c], pqs[c])
         return out
+
+    def relative_error() -> np.ndarray:
+        """(m,) each case's estimated energy error over its total energy (NaN: no energy given)."""
+        if total is None:
+            return np.full(m, np.nan)
+        return absolute_error() / np.maximum(total - solved, 1e-300)
 
     def met() -> np.ndarray:
         """(m,) the cases whose energy error is estimated at most `accuracy` of their energy."""
@@ -850,8 +855,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             for c in range(m):
                 theta = smallest_ritz(rhos[c], pqs[c])
                 if theta > 0 and true_rz[c] > 0:
-                    final[c] = true_rz[c] / theta / max(total[c] - solved[c], 1e-300)
-                done[c] = final[c] <= accuracy
+                    final[c] = true_rz[c] / theta  # absolute, as energy_error's
+                done[c] = final[c] / max(total[c] - solved[c], 1e-300) <= accuracy
         again = (res > tol) & ~done
         with reusing():
             if again.any():
@@ -862,6 +867,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     del p
     if info is not None:
         info["energy_error"] = relative_error()
+        info["energy_error_abs"] = absolute_error()
     # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
     # double (whose drift from it is rounding)
     out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
@@ -1119,24 +1125,28 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     labels, crops = (None, []) if periodic else independent_pieces(solid)
     if not crops:
         del labels  # 4 bytes a voxel, not held through the solve
-        C, iterations, res, err = _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend,
-                                                   preconditioner, progress, cases_per_block, accuracy)
+        C, iterations, res, err, _ = _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend,
+                                                      preconditioner, progress, cases_per_block, accuracy)
         return Homogenization(C, boundary, fraction, iterations, res, time.perf_counter() - t0, backend, err,
                               dropped)
     # pieces that share no node are independent systems: each solved on its own box, whose grid and
     # coarse levels hold it alone, the tensor the sum of theirs (each over the whole box's volume)
-    C, iterations, res, err = np.zeros((6, 6)), 0, 0.0, 0.0
+    C, iterations, res, errors = np.zeros((6, 6)), 0, 0.0, np.zeros(6)
     tell = _counting(progress)
     for box, ids, small in crops:
-        Cp, its, r, e = _homogenize_held(np.isin(labels[box], ids), h, mat, False, total, tol, maxiter, backend,
-                                         "direct" if small else preconditioner, tell, cases_per_block, accuracy)
+        Cp, its, r, _, e = _homogenize_held(np.isin(labels[box], ids), h, mat, False, total, tol, maxiter, backend,
+                                            "direct" if small else preconditioner, tell, cases_per_block, accuracy)
         C += Cp
         if tell is not None:
             tell.next()
         iterations, res = max(iterations, its), max(res, r)
-        # an exact solve ends by its residual within a step or two, before the energy estimate has
-        # the steps it needs (inf): its energy error is second order in that residual
-        err = max(err, e) if np.isfinite(e) or not small else err
+        # each case's energy errors add up, over the sample's energy C_kk V. A piece that hangs from a
+        # face keeps almost none of its energy: its own relative error, over nearly 0, says nothing
+        # (1e297 on the data folder's CT). An exact solve ends by its residual within a step or two,
+        # before the estimate has its steps (inf): its error is second order in that residual
+        if not small:
+            errors += e
+    err = float(np.max(errors / np.maximum(np.diag(C) * total * h ** 3, 1e-300)))
     return Homogenization(C, boundary, fraction, iterations, res, time.perf_counter() - t0, backend, err, dropped,
                           pieces=sum(len(ids) for _, ids, _ in crops))
 
@@ -1163,7 +1173,8 @@ def _counting(progress):
 def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, preconditioner, progress,
                      cases_per_block, accuracy):
     """:func:`homogenize` of held pieces, its tensor over `total` voxels' volume: (C, iterations, the
-    largest relative residual, the largest estimated energy error)."""
+    largest relative residual, the largest estimated relative energy error, each case's estimated
+    energy error e.K e (6,))."""
     model = voxel_model(solid, h, mat, periodic=periodic)
     ns = model.solid_voxels
     u0e = macro_displacements(h)  # (6, 24)
@@ -1183,7 +1194,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     block = max(1, min(6, int(cases_per_block)))
     ue_sum = np.empty((6, 24))
     cross = np.zeros((6, 6))  # x_i . r_j within each block (Notes: the energy form)
-    iterations, res, err = 0, np.zeros(6), np.full(6, np.nan)
+    iterations, res, err, err_abs = 0, np.zeros(6), np.full(6, np.nan), np.full(6, np.nan)
     # each unit strain's lifting energy (u = E x: every solid voxel holds the same corner displacements,
     # up to a translation), the total a case's solved part relaxes
     lifting = ns * np.einsum("ka,ab,kb->k", u0e, model.ke, u0e)
@@ -1209,6 +1220,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
             tell.next()
         cross[np.ix_(list(cases), list(cases))] = xr
         err[list(cases)] = info["energy_error"]
+        err_abs[list(cases)] = info["energy_error_abs"]
         if not periodic:
             for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
                 x[c] += _affine(model.shape, h, [k])[0]
@@ -1223,7 +1235,10 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     C = isotropic_tensor(mat.E_gpa, mat.nu) @ mean_strain
     C = C - cross / (total * h ** 3)  # the energy form (Notes)
     C = 0.5 * (C + C.T)  # symmetric up to the solver's tolerance
-    return C, int(iterations), float(res.max()), float(err.max())
+    # a case that met the residual tolerance before the estimate had its steps (inf) counts no error:
+    # it is second order in that residual
+    err_abs = np.where(np.isfinite(err_abs) | (res > tol), err_abs, 0.0)
+    return C, int(iterations), float(res.max()), float(err.max()), err_abs
 
 
 #: the kinematic homogenization and the compression solve each piece of more solid voxels than this on
