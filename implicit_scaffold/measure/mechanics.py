@@ -498,14 +498,16 @@ def fft_preconditioner(model: VoxelModel, free: np.ndarray, *, single: bool = Fa
         out = np.empty_like(r)
         for c in range(r.shape[0]):
             x = (r[c] * weight).astype(real, copy=False).reshape((3,) + shape)
-            rh = sfft.rfftn(x, axes=(1, 2, 3), workers=-1)
+            # one thread: SciPy's pocketfft pool (workers > 1) joins its threads at every fork, and a
+            # fork after it hung there (a slab export's worker start, in CI: 12 minutes, std::thread::join)
+            rh = sfft.rfftn(x, axes=(1, 2, 3))
             del x
             z0 = blocks[0, 0] * rh[0] + blocks[0, 1] * rh[1] + blocks[0, 2] * rh[2]
             z1 = blocks[0, 1] * rh[0] + blocks[1, 1] * rh[1] + blocks[1, 2] * rh[2]
             rh[2] = blocks[0, 2] * rh[0] + blocks[1, 2] * rh[1] + blocks[2, 2] * rh[2]
             rh[0], rh[1] = z0, z1
             del z0, z1
-            out[c] = sfft.irfftn(rh, s=shape, axes=(1, 2, 3), workers=-1).reshape(3, -1) * weight
+            out[c] = sfft.irfftn(rh, s=shape, axes=(1, 2, 3)).reshape(3, -1) * weight
         return out
 
     return apply
