@@ -132,6 +132,10 @@ def test_the_v_cycle_is_symmetric_positive(scaffolds):
     for c in range(3):
         assert np.allclose(ms[c], mg(xs[c:c + 1])[0], rtol=0, atol=1e-12 * np.abs(ms).max())
     assert np.allclose(mg.compact(live)(xs[:, :, live]), ms[:, :, live], rtol=0, atol=1e-12 * np.abs(ms).max())
+    # handed over in a narrower float (the CG's p's, with float products): the same values, rounded once
+    z32 = mg.compact(live, np.float32)(xs[:, :, live])
+    assert z32.dtype == np.float32
+    assert np.array_equal(z32, mg.compact(live)(xs[:, :, live]).astype(np.float32))
 
 
 def test_multigrid_and_fft_give_the_same_tensor(scaffolds):

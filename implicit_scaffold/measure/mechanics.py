@@ -700,7 +700,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
     live = np.flatnonzero(w.any(axis=0))
     wl = np.ascontiguousarray(w[:, live], np.float64)
-    ones = np.ones((1, live.size))
+    # a mask per node is 1 on every live node: its live part is the weight of ones (8 bytes a live node)
+    ones = wl if len(wl) == 1 else np.ones((1, live.size))
 
     def on_live(src) -> np.ndarray:
         """F src on the live nodes, from a whole-grid array or from a callable of the nodes."""
@@ -712,9 +713,17 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
 
     r = on_live(b)  # F b on the live nodes
     del b
+    m = len(r)
+    # the search directions in the fast products' float (with them only: a tolerance of 1e-7 or more):
+    # the product reads p in it anyway, and x and r move by alpha p and alpha K p of the same rounded
+    # p, so the two stay consistent; half p's bytes, which the double products after the switch
+    # would otherwise add to the peak (128^3 benchmark scaffold: 965 against 1,022 MiB)
+    p = np.empty_like(r, dtype=np.float64 if fast is None else getattr(fast, "dtype", np.float64))
     compact = getattr(precond, "compact", None)
     if compact is not None:
-        pre = compact(live)
+        # the preconditioned residual in p's float: p = z + beta p rounds it to that anyway, and r.z
+        # is summed in double (wdot); one case's z on the live nodes, half its bytes in float32
+        pre = compact(live, p.dtype)
     else:
         def pre(v, sink):
             z = take(precond(put(v, live, n, ones)), live, ones)
@@ -722,20 +731,17 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 sink(c, z[c:c + 1])
     # the preconditioned residual z is handed over one case at a time (pre's sink) and folded into
     # p at once, so that the block's z is never held beside x, r and p
-    m = len(r)
-    # the search directions in the fast products' float (with them only: a tolerance of 1e-7 or more):
-    # the product reads p in it anyway, and x and r move by alpha p and alpha K p of the same rounded
-    # p, so the two stay consistent; half p's bytes, which the double products after the switch
-    # would otherwise add to the peak (128^3 benchmark scaffold: 965 against 1,022 MiB)
-    p = np.empty_like(r, dtype=np.float64 if fast is None else getattr(fast, "dtype", np.float64))
     rz = np.zeros(m)
 
-    # the dot products by einsum, not np.vdot: a BLAS call leaves OpenBLAS's threads spinning, and
-    # beside them the OpenCL operator ran 1.8 times slower (64^3 scaffold, one case a block: 34 s of
-    # CPU against 23)
+    # the dot products by a compiled pass (wdot, in double whatever z's float), not np.vdot: a BLAS
+    # call leaves OpenBLAS's threads spinning, and beside them the OpenCL operator ran 1.8 times
+    # slower (64^3 scaffold, one case a block: 34 s of CPU against 23)
+    def r_dot(c, z) -> float:
+        return float(wdot(r[c:c + 1], z, ones)[0])
+
     def first(c, z):
         p[c] = z[0]
-        rz[c] = np.einsum("dn,dn->", r[c], z[0])
+        rz[c] = r_dot(c, z)
 
     with reusing():  # the cycle's whole-grid vectors, case after case, from one pool
         pre(r, first)
@@ -801,7 +807,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             rz_new = np.zeros(m)
 
             def step(c, z):
-                rz_new[c] = np.einsum("dn,dn->", r[c], z[0])
+                rz_new[c] = r_dot(c, z)
                 if live_cases[c]:
                     rhos[c].append(rz_new[c])
                 beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
@@ -844,7 +850,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         true_rz = np.zeros(m)
 
         def again_from(c, z):
-            true_rz[c] = np.einsum("dn,dn->", r[c], z[0])
+            true_rz[c] = r_dot(c, z)
             first(c, z)  # p = z and rz, for a case that restarts
 
         if by_energy or (res > tol).any():

@@ -783,10 +783,11 @@ class Multigrid:
     def _jacobi_step(self) -> float:
         return 1 / ((LOWER + UPPER) / 2 * self.lmax)  # 1 / theta
 
-    def compact(self, live: np.ndarray):
+    def compact(self, live: np.ndarray, dtype=None):
         """The same preconditioner on vectors kept on the nodes `live` only, (m, 3, len(live)):
         the residual is spread over the grid in the cycle's float, the result's live nodes
-        taken back in the residual's (one pass each, no whole-grid vector in the solver's float).
+        taken back in `dtype` (default the residual's; one pass each, no whole-grid vector in the
+        solver's float).
         ``apply(r, sink)`` hands each case's result to ``sink(case, z)`` ((1, 3, len(live))) as soon as
         it is made, and returns None: the caller need not hold the block's result.
 
@@ -799,11 +800,11 @@ class Multigrid:
 
         def apply(r: np.ndarray, sink=None):
             if FINE_DEGREE == 1 and self.levels:
-                return self._fine_cases(r, live, w, sink)
+                return self._fine_cases(r, live, w, sink, dtype)
             b = put(r, live, n, w, self.dtype)
             x = self._cycle(0, b)
             del b
-            z = take(x, live, w, r.dtype)
+            z = take(x, live, w, r.dtype if dtype is None else dtype)
             if sink is None:
                 return z
             for c in range(len(z)):
@@ -811,7 +812,7 @@ class Multigrid:
 
         return apply
 
-    def _fine_cases(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, sink=None):
+    def _fine_cases(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, sink=None, dtype=None):
         """:meth:`_fine_jacobi` on live-node residuals (m, 3, len(live)), the fine level one load case
         at a time and the coarse levels on the block, with the same arithmetic per case.
 
@@ -821,7 +822,8 @@ class Multigrid:
         is spread from `r` at once (twice, once a pass: cheaper than keeping it), the residual is
         ``-F K x`` with ``b`` added on the live nodes, and the post-smoothing step and the taking of
         the live nodes are one pass (:mod:`~implicit_scaffold.measure.fused`). With `sink`, each case's
-        result goes to ``sink(case, z)`` as it is made (None is returned)."""
+        result goes to ``sink(case, z)`` as it is made (None is returned). The result is in `dtype`
+        (default the residual's)."""
         from .fused import put_add, put_smoothed, take_smoothed
         from .mechanics_cl import aligned_empty
 
@@ -850,13 +852,13 @@ class Multigrid:
             x = put_smoothed(r[c:c + 1], live, n, w, self.inv_diag, s, self.dtype)
             prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
             ax = self.op(x)
-            one = take_smoothed(x, ax, r[c:c + 1], live, w, self.inv_diag, s, r.dtype)
+            one = take_smoothed(x, ax, r[c:c + 1], live, w, self.inv_diag, s, r.dtype if dtype is None else dtype)
             del x, ax
             if sink is not None:
                 sink(c, one)
                 continue
             if z is None:  # made here, beside one whole-grid vector only
-                z = np.empty(r.shape, r.dtype)
+                z = np.empty(r.shape, one.dtype)
             z[c] = one[0]
         return z
 
