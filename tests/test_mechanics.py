@@ -932,6 +932,37 @@ def test_opencl_operator_matches_the_numpy_reference_on_every_device(periodic):
                 assert np.abs(got - ref).max() <= 1e-12 * np.abs(ref).max(), check.name
 
 
+@pytest.mark.parametrize("shape, periodic", [((9, 7, 20), True), ((5, 6, 17), False), ((2, 8, 18), True),
+                                             ((1, 5, 19), True)])
+def test_the_operator_by_slabs_is_the_whole_grid_product_on_the_live_nodes(shape, periodic, monkeypatch):
+    # slabs of 1, 2 and 3 node planes (each with a plane of its neighbours on either side, wrapped round
+    # the grid's ends; a grid of 2 planes or 1 wraps onto itself): the same values bit for bit as the
+    # product over the whole grid, and the NumPy reference's to rounding
+    from implicit_scaffold.measure import mechanics_cl as mc
+    from implicit_scaffold.measure.fused import put, take
+
+    rng = np.random.default_rng(7)
+    solid = rng.random(shape) < 0.4
+    if shape[0] >= 5:
+        solid[shape[0] // 2:shape[0] // 2 + 2] = False  # planes of void: slabs and runs of no live node
+    model = m.voxel_model(solid, 0.1, TI, periodic=periodic)
+    n = int(np.prod(model.shape))
+    live = np.flatnonzero(model.active)
+    u = rng.standard_normal((2, 3, live.size))
+    w_in = (rng.random((1, live.size)) < 0.9).astype(float)
+    w_out = (rng.random((3, live.size)) < 0.9).astype(float)
+    ref = w_out * m.apply_stiffness(model, put(u, live, n, w_in))[:, :, live]
+    for double in (False, True) if mc.has_double() else (False,):
+        op = mc.StiffnessOperator(model, double=double)
+        whole = take(op(put(u, live, n, w_in, op.dtype)), live, w_out, np.float64)
+        assert np.abs(whole - ref).max() <= (1e-12 if double else 1e-6) * np.abs(ref).max()
+        for planes in (1, 2, 3):
+            monkeypatch.setattr(mc, "SLAB_NODES", planes * model.shape[1] * model.shape[2])
+            op._slabs = {}
+            got = op.live_product(u, live, w_in, w_out)
+            assert got.dtype == np.float64 and np.array_equal(got, whole), (double, planes)
+
+
 def _sparse_rows_solid():
     """A solid whose node rows along z (48 inner nodes: three vectors of 16) hold vectors that no
     solid voxel touches, vectors that one voxel touches at a single lane, and whole rows of none."""
@@ -1010,6 +1041,24 @@ def test_the_pool_hands_out_again_only_memory_nothing_refers_to():
         assert e.ctypes.data % mc.ALIGN == 0
         del e
     assert mc._pool is None and not np.shares_memory(outside, mc.aligned_empty(n))
+
+
+def test_a_small_array_leaves_a_much_larger_free_buffer_to_the_next_large_one():
+    # a coarse level's vector in a fine grid's buffer made the fine level's next vector a new buffer
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    n = mc.POOLED_BYTES // 8
+    with mc.reusing():
+        big = mc.aligned_empty(4 * n)
+        span = (big.ctypes.data, big.ctypes.data + big.nbytes)
+        del big
+        small = mc.aligned_empty(n)  # a miss: the free buffer is 4 times its size
+        assert not span[0] <= small.ctypes.data < span[1]
+        again = mc.aligned_empty(4 * n)  # the large buffer, still in the pool: no new one
+        assert again.ctypes.data == span[0] and len(mc._pool) == 2
+        del again
+        near = mc.aligned_empty(3 * n)  # within FIT_RATIO of it: that buffer again
+        assert near.ctypes.data == span[0]
 
 
 def test_the_live_node_takes_come_from_the_pool():
@@ -1491,3 +1540,45 @@ def test_a_voxel_mask_too_large_for_the_budget_is_refused_naming_a_budget_and_a_
     assert parse_memory(budget) >= held + need + m.held_margin(_held()) and voxel > 0.1
     report = m.check_solve(solid, 0.1, max_memory=parse_memory(budget) + 2**20)
     assert report["voxel_mm"] == 0.1 and report["memory_estimate_bytes"] == need
+
+
+@pytest.mark.parametrize("thick", [2, 6])
+def test_a_sample_whose_struts_are_few_voxels_across_warns(thick):
+    # plates `thick` voxels thick, 10 apart: their local thickness reads `thick` (even), by construction
+    solid = np.zeros((20, 20, 40), bool)
+    solid[:, :, np.arange(40) % 10 < thick] = True
+    warning = m.resolution_warning(solid, 0.1, "mesh")
+    if thick < m.CONVERGED_VOXELS_PER_WALL:
+        assert f"{thick:.1f} voxels across" in warning and f"{thick * 0.1:.3g} mm" in warning
+        assert "a finer --voxel resolves them" in warning
+        assert "down to the scan's own" in m.resolution_warning(solid, 0.1, "volume")
+    else:
+        assert warning is None
+
+
+def test_the_strut_measure_of_a_large_sample_takes_a_box_about_its_solid(monkeypatch):
+    # thin plates in one end of a long box, the rest void: a box of at most 1,000 voxels about the solid's
+    # middle holds them (a box about the array's middle would hold no solid, and warn of nothing)
+    solid = np.zeros((48, 48, 48), bool)
+    solid[30:40][:, :, np.arange(48) % 6 < 2] = True
+    monkeypatch.setattr(m, "THICKNESS_VOXELS", 1000)
+    box = m._middle_box(solid, 1000)
+    assert np.prod([b.stop - b.start for b in box]) <= 1000 and solid[box].any()
+    assert "2.0 voxels across" in m.resolution_warning(solid, 0.1)
+
+
+def test_cli_mechanics_of_a_mesh_too_coarse_for_its_struts_warns(tmp_path, capsys):
+    import json
+
+    import trimesh
+
+    # a 0.2 mm plate (normal to x) at 0.1 mm voxels: 2 voxels across; at 0.04 mm, 5
+    src = tmp_path / "plate.stl"
+    trimesh.creation.box(extents=(0.2, 1.0, 1.0)).export(src)
+    for voxel, warned in ((0.1, True), (0.04, False)):
+        out = tmp_path / f"r{voxel}.json"
+        code, cap = _run(["mechanics", src, "--voxel", voxel, "--material", "pla", "-o", out], capsys)
+        assert code == 0, cap.err
+        r = json.loads(out.read_text())
+        assert (r["voxel"]["warning"] is not None) == warned
+        assert ("warning: the solid's median strut is 2.0 voxels across" in cap.err) == warned

@@ -219,9 +219,10 @@ def add_weighted(x: np.ndarray, b: np.ndarray, w, s: float = 1.0, y: np.ndarray 
     _weighted(x, b, w, s, y, True)
 
 
-def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
+def take(src: np.ndarray, idx: np.ndarray, w, dtype=None, out: np.ndarray | None = None) -> np.ndarray:
     """``w * src[:, :, idx]``: (m, 3, len(idx)) in `dtype` (default `src`'s), one pass (inside
-    :func:`~implicit_scaffold.measure.mechanics_cl.reusing`, into memory an array dropped before held)."""
+    :func:`~implicit_scaffold.measure.mechanics_cl.reusing`, into memory an array dropped before held),
+    or into `out` (an array of that shape, a view of a larger one may do)."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
@@ -229,7 +230,8 @@ def take(src: np.ndarray, idx: np.ndarray, w, dtype=None) -> np.ndarray:
     # from the solver's pool, not np.empty: an array over glibc's 32 MiB mmap threshold is fresh
     # pages every call, which the kernel zeroes (200^3 benchmark scaffold: a case's K p on the live
     # nodes is 84 MB, taken every iteration; 15.6 s of system time in a 62 s solve)
-    out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
+    if out is None:
+        out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
     over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
     return out

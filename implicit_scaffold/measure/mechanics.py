@@ -711,6 +711,18 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         out *= wl
         return out
 
+    def on_live_product(product, v, w_out, spread=None) -> np.ndarray:
+        """``w_out K v`` on the live nodes in double, from live-node values `v` (spread in `spread`, default
+        the values' own float). A double OpenCL product by slabs of the grid (its ``live_product``): its
+        whole-grid input and output held 48 bytes a node, above the float cycle's at the homogenization's
+        switch to double and at every step of a compression (128^3 benchmark scaffold, a throw-away
+        script: one case a block peaked 483 bytes a solid voxel, 394 by slabs; a compression 636 and 572),
+        for some 10 ms more a product there (49 against 39). Float ones over the whole grid: the cycle's
+        whole-grid vectors peak as high, and by slabs they took 27 ms against 21."""
+        if getattr(product, "double", False) and hasattr(product, "live_product"):
+            return product.live_product(v, live, ones, w_out, np.float64)
+        return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
+
     r = on_live(b)  # F b on the live nodes
     del b
     m = len(r)
@@ -796,7 +808,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             for c in np.flatnonzero(going):
                 one = slice(c, c + 1)
                 # masked to the free unknowns below
-                q = take(product(put(p[one], live, n, ones, spread)), live, ones, np.float64)
+                q = on_live_product(product, p[one], ones, spread)
                 pq = wdot(p[one], q, wl)[0]
                 if pq > 0:
                     live_cases[c] = True
@@ -837,7 +849,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         for c in range(m):
             one = slice(c, c + 1)
             r[one] = on_live(rhs(c))
-            r[one] -= take(apply(put(x[one], live, n, ones)), live, wl)
+            r[one] -= on_live_product(apply, x[one], wl)
         res = _norms(r) / scale
         # a case still above tol restarts (p = z): its directions and steps belong to the recurrence's
         # r. Kept (residual replacement), a drift of 1e-3 stalled the CG, its next beta some 1e10,
@@ -2223,6 +2235,60 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
             "memory_estimate_bytes": int(need), "cases_per_block": block, "max_memory_bytes": int(total)}
 
 
+#: the most voxels :func:`resolution_warning` measures the local thickness on (a box about the solid's
+#: middle in a larger sample): the maximal spheres take some 10 bytes a voxel
+THICKNESS_VOXELS = 2**24
+
+
+def _middle_box(solid: np.ndarray, voxels: int) -> tuple:
+    """A box of at most `voxels` voxels of `solid`'s shape, about the solid's median voxel (each axis's
+    median of the solid's voxels, from the counts per plane: no index array)."""
+    shape = np.array(solid.shape)
+    scale = min(1.0, (voxels / max(1, solid.size)) ** (1 / 3))
+    side = np.maximum(1, np.floor(shape * scale).astype(int))
+    box = []
+    for a in range(3):
+        counts = np.count_nonzero(solid, axis=tuple(b for b in range(3) if b != a))
+        middle = int(np.searchsorted(np.cumsum(counts), counts.sum() / 2))
+        lo = int(np.clip(middle - side[a] // 2, 0, shape[a] - side[a]))
+        box.append(slice(lo, lo + int(side[a])))
+    return tuple(box)
+
+
+def resolution_warning(solid: np.ndarray, h: float, kind: str = "mesh") -> str | None:
+    """A warning when a sample's struts are too few voxels across for its moduli, else None.
+
+    The measure is the median local thickness of the solid (maximal spheres,
+    :func:`~implicit_scaffold.measure.morphometry.local_thickness`, as ``analyze`` reports it; a plate
+    ``T`` voxels thick reads ``T``, or ``T + 1`` for odd ``T``), over a box of at most
+    :data:`THICKNESS_VOXELS` voxels about the solid's middle; below :data:`CONVERGED_VOXELS_PER_WALL`
+    voxels the voxel model is stiffer or softer than its shape by several percent (generate's walls: at 2
+    voxels across 10-16 % off, at 4 2-8 %) and its CG needs more iterations.
+
+    Parameters
+    ----------
+    solid : (nx, ny, nz) bool ndarray
+    h : float, mm
+    kind : {"mesh", "volume"}
+        What the voxels came from: a mesh voxelised at `h`, or a volume (a scan, maybe resampled).
+    """
+    from .morphometry import local_thickness
+
+    part = np.ascontiguousarray(solid[_middle_box(solid, THICKNESS_VOXELS)])
+    if not part.any():
+        return None
+    wall = float(np.median(local_thickness(part, h)[part]))
+    across = wall / h
+    if across >= CONVERGED_VOXELS_PER_WALL:
+        return None
+    finer = ("a finer --voxel, down to the scan's own, resolves them (finer than the scan adds no detail)"
+             if kind == "volume" else "a finer --voxel resolves them")
+    return (f"the solid's median strut is {across:.1f} voxels across ({wall:.3g} mm local thickness at the "
+            f"{h:.4g} mm voxel), fewer than {CONVERGED_VOXELS_PER_WALL:g}: its moduli may lie several % off "
+            f"(generate's walls at 2 voxels across: 10-16 %, at 4: 2-8 %) and the solve takes more "
+            f"iterations; {finer}")
+
+
 def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
                wall: float | None = None, boundary: str = "auto", preconditioner: str = "multigrid",
                option: str = "--mechanics-voxel", source: str = "run", held_extra: int = 0) -> tuple[float, str, int, int]:
@@ -2461,8 +2527,10 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     report = check_solve(solid, sample.voxel, max_memory=max_memory, boundary=boundary, option="--voxel")
     box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(solid))
     origin = tuple(float(sample.origin[a] + box[a].start * sample.voxel) for a in range(3))
-    return SolveSample(np.ascontiguousarray(solid[box]), float(sample.voxel), origin, report,
-                       sample.selection), sample.kind
+    solid = np.ascontiguousarray(solid[box])
+    # a field's walls are the generator's (solid_for_solve); a mesh's or a scan's are measured
+    report["warning"] = resolution_warning(solid, float(sample.voxel), sample.kind)
+    return SolveSample(solid, float(sample.voxel), origin, report, sample.selection), sample.kind
 
 
 def crop(solid: np.ndarray) -> np.ndarray:

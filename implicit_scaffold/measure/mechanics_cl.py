@@ -49,6 +49,14 @@ ALIGN = 4096
 
 #: arrays of at least this many bytes are taken from the pool of :func:`reusing` while one is open
 POOLED_BYTES = 1 << 20
+#: an array gets a free buffer of the pool at most this many times its size
+FIT_RATIO = 2
+#: the fine operator's :meth:`StiffnessOperator.live_product` spreads and multiplies this many nodes'
+#: planes at a time (whole planes, at least one): 12 MiB of a case's vector and its product in double.
+#: Each slab costs its launches, passes and two extra planes: on the 128^3 benchmark scaffold (medians of
+#: 5, a throw-away script) a double product took 49.2 and 49.9 ms by slabs of 2^18 nodes, 49.6 and 48.4 by
+#: slabs of 2^20, 38.8 and 38.6 over the whole grid; float 27.7 and 25.8, 27.0 and 27.8, 21.1 and 20.9
+SLAB_NODES = 1 << 18
 _pool: list | None = None
 
 
@@ -63,7 +71,8 @@ def reusing():
     pool, 5.4 s with it (one run each, peak resident 939 and 959 MiB; a pool that never frees took
     3.2 s but 1,170 MiB). An array is free when only the pool refers to its buffer (every NumPy view
     of it refers to the buffer itself, and so does an OpenCL buffer made over it). An array gets the
-    smallest free buffer that holds it; on leaving the outermost block the pool is dropped.
+    smallest free buffer that holds it, if that is at most :data:`FIT_RATIO` times its size; on leaving
+    the outermost block the pool is dropped.
     """
     global _pool
     outer = _pool
@@ -93,17 +102,21 @@ def _raw(nbytes: int) -> np.ndarray:
     if _pool is None or nbytes < POOLED_BYTES:
         return np.empty(nbytes + ALIGN, np.uint8)
     free = [count == _free_count() for count in _counts(_pool)]
+    need = nbytes + ALIGN
     # the smallest free buffer that holds it: with exact sizes only, the V-cycle's 23 MB transfer
     # intermediates missed every time on the 200^3 benchmark (148 misses), each miss freeing a
-    # 96 MB grid vector that the next one then missed in turn (44 more)
-    fits = [raw for raw, idle in zip(_pool, free) if idle and raw.size >= nbytes + ALIGN]
+    # 96 MB grid vector that the next one then missed in turn (44 more). But none of more than
+    # FIT_RATIO times its size: a coarse level's vector in a fine grid's buffer left the fine level's
+    # next vector a miss, a third grid buffer (128^3 benchmark scaffold, one case a block: 24 MiB,
+    # 40 bytes a solid voxel at the cycle's peak)
+    fits = [raw for raw, idle in zip(_pool, free) if idle and need <= raw.size <= FIT_RATIO * need]
     if fits:
         return min(fits, key=lambda raw: raw.size)
-    # a miss: free buffers of other sizes go first, oldest first, as many bytes as the new one
-    # takes, so that the pool never holds more than the peak of the arrays alive
+    # a miss: free buffers no larger go first (a larger one serves the larger arrays), oldest first, as
+    # many bytes as the new one takes, so that the pool holds no more than the peak of each size's arrays
     freed, keep = 0, []
     for raw, idle in zip(_pool, free):
-        if idle and freed < nbytes:
+        if idle and freed < nbytes and raw.size <= FIT_RATIO * need:
             freed += raw.size
         else:
             keep.append(raw)
@@ -258,6 +271,75 @@ class StiffnessOperator(_Gather):
 
             return apply_stiffness(self.model, u, element_extra)
         return super().__call__(u)
+
+    def live_product(self, u: np.ndarray, live: np.ndarray, w_in, w_out, dtype=np.float64) -> np.ndarray:
+        """``w_out K (w_in u)`` on the nodes `live` from values `u` on them, (m, 3, len(live)) in `dtype`:
+        bit for bit ``take(self(put(u, live, N, w_in)), live, w_out, dtype)``, a slab of node planes at a
+        time (:data:`SLAB_NODES` nodes, plus a plane on either side), so that no vector of the whole
+        grid is made (a case's in double is 24 bytes a node, and its product as many: on the 128^3
+        benchmark scaffold 160 bytes a solid voxel, which the CG's products held at every step).
+
+        Parameters
+        ----------
+        u : (m, 3, L) float ndarray
+        live : (L,) increasing int ndarray
+            Flat node indices.
+        w_in, w_out : (1, L) or (3, L) float ndarrays
+            Weights of `u`'s values and of the product's (0 and 1: the free unknowns).
+        dtype : numpy float type
+        """
+        from .fused import put, put_add, take
+
+        n1, n2, n3 = self.shape
+        plane = n2 * n3
+        thick = max(1, min(n1, SLAB_NODES // plane))
+        live = np.asarray(live)
+        # where each node plane's live nodes begin in `live`
+        starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
+        w_in = np.asarray(w_in).reshape(-1, live.size)
+        w_out = np.asarray(w_out).reshape(-1, live.size)
+        out = aligned_empty(u.shape[:2] + (live.size,), dtype)
+        for i0 in range(0, n1, thick):
+            i1 = min(n1, i0 + thick)
+            if starts[i1] == starts[i0]:
+                continue  # no live node to give a value to
+            planes, op = self._slab(i0, i1)
+            slab = None
+            # u spread over the slab's planes (the grid's i0 - 1 .. i1, wrapped), a run of consecutive
+            # planes at a time: one run, but where the slab wraps round the grid's ends
+            p = 0
+            while p < planes.size:
+                q = p + 1
+                while q < planes.size and planes[q] == planes[q - 1] + 1:
+                    q += 1
+                k0, k1 = starts[planes[p]], starts[planes[q - 1] + 1]
+                idx = live[k0:k1] - (int(planes[p]) - p) * plane
+                if slab is None and k1 > k0:  # every node of the slab written: 0 but on idx
+                    slab = put(u[:, :, k0:k1], idx, planes.size * plane, w_in[:, k0:k1], self.dtype)
+                elif slab is None:
+                    slab = aligned_empty(u.shape[:2] + (planes.size * plane,), self.dtype)
+                    slab.fill(0)
+                elif k1 > k0:
+                    put_add(slab, u[:, :, k0:k1], idx, w_in[:, k0:k1])
+                p = q
+            f = op(slab)
+            del slab
+            # the slab's inner planes are the grid's i0 .. i1 - 1, whose neighbours it holds
+            k0, k1 = starts[i0], starts[i1]
+            take(f, live[k0:k1] - (i0 - 1) * plane, w_out[:, k0:k1], out=out[:, :, k0:k1])
+            del f
+        return out
+
+    def _slab(self, i0: int, i1: int):
+        """The node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either side (wrapped),
+        and the operator of its voxels (planes of the same indices); made once."""
+        cache = self.__dict__.setdefault("_slabs", {})
+        if (i0, i1) not in cache:
+            planes = np.arange(i0 - 1, i1 + 1) % self.shape[0]
+            flags = np.ascontiguousarray(self.model.solid[planes])
+            cache[(i0, i1)] = planes, _Gather(flags.shape, flags, self._mats_host, double=self.double,
+                                              per_element=False)
+        return cache[(i0, i1)]
 
 
 class LevelOperator(_Gather):
