@@ -1506,7 +1506,8 @@ def test_the_estimate_holds_the_compression_on_thin_bone_and_the_libraries_not_y
     monkeypatch.setattr(opencl, "active", lambda: True)
     loaded = m.solve_memory(shape, count, boundary="kinematic", live=live)
     assert loaded >= 3756.0 * 2**20
-    compression = (m.COMPRESS_BYTES_PER_NODE["multigrid"] * 301 ** 3 + m.COMPRESS_BYTES_PER_LIVE_NODE["multigrid"] * live
+    compression = (m.COMPRESS_BYTES_PER_NODE["multigrid"] * 301 ** 3
+                   + m.COMPRESS_BYTES_PER_LIVE_NODE["multigrid"] * live
                    + m.COMPRESS_BYTES_PER_SOLID_VOXEL["multigrid"] * count + m.SOLVE_FIXED_BYTES["multigrid"])
     assert compression >= 3626.7 * 2**20
     # a solid that touches more nodes needs more (the CG's vectors are on them)

@@ -1854,8 +1854,9 @@ SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 50, "kinematic": 60},
                              "fft": {"periodic": 0, "kinematic": 0}}
 SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: The platen compression's part (:func:`compress`), which :func:`measure` runs first: one load case, in
-#: double; its products run by slabs of node planes (:meth:`~implicit_scaffold.measure.mechanics_cl.StiffnessOperator.live_product`),
-#: so the whole node grid holds its masks, inverse diagonal and the V-cycle's float vectors. Per node of its
+#: double; its products run by slabs of node planes
+#: (:meth:`~implicit_scaffold.measure.mechanics_cl.StiffnessOperator.live_product`), so the whole node grid
+#: holds its masks, inverse diagonal and the V-cycle's float vectors. Per node of its
 #: grid (one more per axis than the voxels), per live node (a node a solid voxel touches: the CG's vectors,
 #: 150 bytes each) and per solid voxel (the levels). Fitted and rounded up from fresh-process peaks above the
 #: start (kernels loaded before) of the central N^3 of the lumbar trabecular micro-CT, ``python
@@ -1864,18 +1865,19 @@ SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
 #: --maxiter 5`` (2026-12-06, 71a6ab0; MiB above the start; the estimate is :func:`solve_memory`'s, the larger
 #: of this part and the homogenization's, whose one-case kinematic solve held 338.2, 1,161.7 and 3,756.0):
 #:
-#: ======  ==========  =========  =========  =========  =================  ========
-#: grid    box nodes   live       solid      measured   before (100 a node)  estimate
-#: ======  ==========  =========  =========  =========  =================  ========
-#: 128^3   2,146,689   813,513    602,369    330.6      386.4                440.1
-#: 200^3   8,120,601   2,738,873  2,012,423  1,107.1    1,368.6              1,335.7
-#: 300^3   27,270,901  8,812,035  6,490,901  3,626.7    4,366.2              4,198.9
-#: ======  ==========  =========  =========  =========  =================  ========
+#: ======  ==========  =========  =========  =========  =========  ========
+#: grid    box nodes   live       solid      measured   before     estimate
+#: ======  ==========  =========  =========  =========  =========  ========
+#: 128^3   2,146,689   813,513    602,369    330.6      386.4      440.1
+#: 200^3   8,120,601   2,738,873  2,012,423  1,107.1    1,368.6    1,335.7
+#: 300^3   27,270,901  8,812,035  6,490,901  3,626.7    4,366.2    4,198.9
+#: ======  ==========  =========  =========  =========  =========  ========
 #:
-#: ("before": with the double products over the whole grid, 2026-12-05. Before the compression's mask went
-#: to float32 and its lifting was dropped after the right-hand side, the whole micro-CT's compression held
-#: 5.7 GiB against the former estimate's 4.1: the overshoot of ``--max-memory 4.4G`` in README, "The whole
-#: micro-CT as a user runs it, again".) 70 a node holds the 300^3 compression alone to 3,884 MiB.
+#: ("before": with the double products over the whole grid and 100 bytes a box node, 2026-12-05. Before
+#: the compression's mask went to float32 and its lifting was dropped after the right-hand side, the whole
+#: micro-CT's compression held 5.7 GiB against the former estimate's 4.1: the overshoot of ``--max-memory
+#: 4.4G`` in README, "The whole micro-CT as a user runs it, again".) 70 a node holds the 300^3 compression
+#: alone to 3,884 MiB.
 COMPRESS_BYTES_PER_NODE = {"multigrid": 70, "fft": 0}
 COMPRESS_BYTES_PER_LIVE_NODE = {"multigrid": 160, "fft": 0}
 COMPRESS_BYTES_PER_SOLID_VOXEL = {"multigrid": 100, "fft": 0}
