@@ -332,7 +332,8 @@ class StiffnessOperator(_Gather):
 
     def _slab(self, i0: int, i1: int):
         """The node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either side (wrapped),
-        and the operator of its voxels (planes of the same indices); made once."""
+        and the operator of its voxels (planes of the same indices); made once, and kept with this
+        operator: the slabs' flags copy the solid's, a byte a voxel and two planes a slab more."""
         cache = self.__dict__.setdefault("_slabs", {})
         if (i0, i1) not in cache:
             planes = np.arange(i0 - 1, i1 + 1) % self.shape[0]
