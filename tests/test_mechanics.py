@@ -1077,7 +1077,7 @@ def test_the_live_node_takes_come_from_the_pool():
     x, ax = rng.standard_normal((2, 1, 3, 2 * n))
     with mc.reusing():
         for make, expect in ((lambda: fused.take(grid, idx, w), w * grid[:, :, idx]),
-                             (lambda: fused.take_smoothed(x, ax, grid[:, :, :n], idx, w, g, 0.5),
+                             (lambda: fused.take_smoothed(x, ax, grid[:, :, :n], idx, w, g[:, idx], 0.5),
                               w * (x[:, :, idx] + 0.5 * g[:, idx] * (w * grid[:, :, :n] - ax[:, :, idx])))):
             first = make()
             assert np.allclose(first, expect, rtol=1e-12, atol=0)

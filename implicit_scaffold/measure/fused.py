@@ -124,8 +124,8 @@ def _kernels():
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
 
     # the fine level of the V-cycle on live-node residuals src: mode 0, the pre-smoothed
-    # x = s g (w src) spread onto the grid vector out (g the inverse diagonal, read at the live
-    # nodes); mode 1, w src added onto out (mode 3: subtracted); mode 2, the post-smoothed result's live nodes
+    # x = s g (w src) spread onto the grid vector out (g the inverse diagonal on the live nodes,
+    # as src); mode 1, w src added onto out (mode 3: subtracted); mode 2, the post-smoothed result's live nodes
     # out = w (x + s g (w src - ax)) taken back (x, ax whole grids). Each piece writes its own
     # entries of idx (distinct nodes); mode 0 zeroes the other nodes as move_rows spreads
     @nb.njit(cache=True, nogil=True, boundscheck=False)
@@ -142,7 +142,7 @@ def _kernels():
                         for i in range(n0, n1):
                             j = idx[i]
                             od[j] = wd[i] * src[c, d, i]
-                            od[j] = s * gd[j] * od[j]
+                            od[j] = s * gd[i] * od[j]
                     elif mode == 1:
                         for i in range(n0, n1):
                             out[c, d, idx[i]] += wd[i] * src[c, d, i]
@@ -152,14 +152,19 @@ def _kernels():
                     else:
                         for i in range(n0, n1):
                             j = idx[i]
-                            out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[j] * (wd[i] * src[c, d, i] - ax[c, d, j]))
+                            out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[i] * (wd[i] * src[c, d, i] - ax[c, d, j]))
 
     return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows
 
 
-def _weight(w, n: int) -> np.ndarray:
-    w = np.ascontiguousarray(w)
-    return w.reshape(-1, n)
+def _weight(w, n: int, dtype) -> np.ndarray:
+    """`w` as (rows, n), in `dtype` where it is wider (or not a float): a float32 mask beside float64
+    vectors is read as it is (each value widens exactly), not copied a call (8 bytes a live node)."""
+    w = np.ascontiguousarray(w).reshape(-1, n)
+    dtype = np.dtype(dtype)
+    if w.dtype.kind != "f" or w.dtype.itemsize > dtype.itemsize:
+        w = w.astype(dtype)
+    return w
 
 
 def _pieces(n: int) -> int:
@@ -173,7 +178,7 @@ def wdot(a: np.ndarray, b: np.ndarray, w) -> np.ndarray:
     kernel = _kernels()[0]
     n = a.shape[2]
     out = np.zeros((_pieces(n), a.shape[0]))
-    over_rows(kernel, out.shape[0], a, b, _weight(w, n).astype(a.dtype, copy=False), out)
+    over_rows(kernel, out.shape[0], a, b, _weight(w, n, a.dtype), out)
     return out.sum(axis=0)
 
 
@@ -184,7 +189,7 @@ def cg_update(x: np.ndarray, p: np.ndarray, r: np.ndarray, q: np.ndarray, w, alp
     kernel = _kernels()[1]
     n = x.shape[2]
     out = np.zeros((_pieces(n), x.shape[0]))
-    over_rows(kernel, out.shape[0], x, p, r, q, _weight(w, n).astype(x.dtype, copy=False),
+    over_rows(kernel, out.shape[0], x, p, r, q, _weight(w, n, x.dtype),
               np.asarray(alpha, x.dtype), out)
     return out.sum(axis=0)
 
@@ -204,7 +209,7 @@ def _weighted(out, b, w, s, y, accumulate: bool) -> None:
     kernel = _kernels()[3]
     n = out.shape[2]
     pieces = _pieces(n)
-    over_rows(kernel, pieces, out, b, b if y is None else y, _weight(w, n).astype(out.dtype, copy=False),
+    over_rows(kernel, pieces, out, b, b if y is None else y, _weight(w, n, out.dtype),
               out.dtype.type(s), out.dtype.type(y is not None), accumulate, pieces)
 
 
@@ -233,7 +238,7 @@ def take(src: np.ndarray, idx: np.ndarray, w, dtype=None, out: np.ndarray | None
     if out is None:
         out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
-    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n).astype(out.dtype, copy=False), out, False, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n, out.dtype), out, False, pieces)
     return out
 
 
@@ -246,22 +251,22 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
-    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False), out, True, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k, out.dtype), out, True, pieces)
     return out
 
 
 def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: float, dtype=None) -> np.ndarray:
     """The whole grid's (m, 3, n) vector ``s g w src`` on the nodes `idx` and 0 elsewhere: one damped
-    Jacobi step from zero on the right-hand side :func:`put` would spread (`g` the inverse diagonal,
-    (1, n) or (3, n), read at `idx`), in `dtype` (default `src`'s), page-aligned."""
+    Jacobi step from zero on the right-hand side :func:`put` would spread (`g` the inverse diagonal
+    on the nodes `idx`, (1, len(idx)) or (3, len(idx))), in `dtype` (default `src`'s), page-aligned."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
     out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
-    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(out.dtype, copy=False),
-              _weight(g, int(n)).astype(out.dtype, copy=False), out.dtype.type(s), out, out, out, 0, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype),
+              _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0, pieces)
     return out
 
 
@@ -272,7 +277,7 @@ def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool
 
     k = len(idx)
     pieces = _pieces(k)
-    wk = _weight(w, k).astype(out.dtype, copy=False)
+    wk = _weight(w, k, out.dtype)
     over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 3 if subtract else 1, pieces)
 
 
@@ -280,13 +285,13 @@ def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarra
                   dtype=None) -> np.ndarray:
     """``w (x + s g (w src - ax))`` on the nodes `idx`, (m, 3, len(idx)) in `dtype` (default `src`'s):
     a damped Jacobi step on the right-hand side ``w src`` from `x` (``ax = A x``, whole grids; `g`
-    the inverse diagonal), and its live nodes taken, in one pass."""
+    the inverse diagonal on the nodes `idx`), and its live nodes taken, in one pass."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
     k = len(idx)
     out = aligned_empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)  # as take's
     pieces = _pieces(k)
-    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k).astype(x.dtype, copy=False),
-              _weight(g, x.shape[2]).astype(x.dtype, copy=False), x.dtype.type(s), out, x, ax, 2, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, x.dtype),
+              _weight(g, k, x.dtype), x.dtype.type(s), out, x, ax, 2, pieces)
     return out

@@ -699,9 +699,11 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     n = np.shape(free)[-1]
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
     live = np.flatnonzero(w.any(axis=0))
-    wl = np.ascontiguousarray(w[:, live], np.float64)
-    # a mask per node is 1 on every live node: its live part is the weight of ones (8 bytes a live node)
-    ones = wl if len(wl) == 1 else np.ones((1, live.size))
+    # in the mask's own float: a float32 mask (the solver's) stays 4 bytes an unknown here too, and the
+    # compiled passes widen it exactly as they read it; the V-cycle shares this copy (compact's weights)
+    wl = np.ascontiguousarray(w[:, live], w.dtype if w.dtype.kind == "f" else np.float64)
+    # a mask per node is 1 on every live node: its live part is the weight of ones
+    ones = wl if len(wl) == 1 else np.ones((1, live.size), wl.dtype)
 
     def on_live(src) -> np.ndarray:
         """F src on the live nodes, from a whole-grid array or from a callable of the nodes."""
@@ -735,7 +737,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if compact is not None:
         # the preconditioned residual in p's float: p = z + beta p rounds it to that anyway, and r.z
         # is summed in double (wdot); one case's z on the live nodes, half its bytes in float32
-        pre = compact(live, p.dtype)
+        pre = compact(live, p.dtype, weights=wl)
     else:
         def pre(v, sink):
             z = take(precond(put(v, live, n, ones)), live, ones)
