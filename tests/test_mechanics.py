@@ -585,6 +585,20 @@ def test_bonded_platens_are_stiffer_than_lubricated_ones():
     assert bonded < m.isotropic_tensor(TI.E_gpa, TI.nu)[0, 0]
 
 
+@pytest.mark.parametrize("bonded", [False, True])
+def test_the_compression_on_the_device_is_the_numpy_references(bonded):
+    # on the device the platen's load is taken on the two node planes under it, by slabs, and handed to
+    # the CG as a callable of its nodes; the NumPy reference forms it over the whole grid
+    rng = np.random.default_rng(11)
+    solid = rng.random((9, 8, 10)) < 0.6
+    for axis in (0, 1, 2):
+        ref = m.compress(solid, 0.1, TI, axis=axis, bonded=bonded, tol=1e-10, backend="numpy")
+        got = m.compress(solid, 0.1, TI, axis=axis, bonded=bonded, tol=1e-10, backend="opencl")
+        assert got.apparent_modulus_gpa == pytest.approx(ref.apparent_modulus_gpa, rel=1e-8), axis
+        assert np.allclose(got.von_mises_strain, ref.von_mises_strain, rtol=0,
+                           atol=1e-7 * ref.von_mises_strain.max()), axis
+
+
 def test_compressing_a_laminate_along_its_plates_gives_phi_e():
     solid = np.zeros((8, 7, 10), bool)
     solid[:, :, 3:6] = True
@@ -961,6 +975,11 @@ def test_the_operator_by_slabs_is_the_whole_grid_product_on_the_live_nodes(shape
             op._slabs = {}
             got = op.live_product(u, live, w_in, w_out)
             assert got.dtype == np.float64 and np.array_equal(got, whole), (double, planes)
+            # the slabs' size asked for (the float products' on a large grid)
+            monkeypatch.setattr(mc, "SLAB_NODES", 1)
+            op._slabs = {}
+            got = op.live_product(u, live, w_in, w_out, slab_nodes=planes * model.shape[1] * model.shape[2])
+            assert np.array_equal(got, whole), (double, planes)
 
 
 def _sparse_rows_solid():

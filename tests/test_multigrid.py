@@ -129,6 +129,38 @@ def test_the_compact_cycle_lets_the_whole_grid_inverse_diagonal_go_and_spreads_i
     assert np.allclose(z, before[:, :, live], rtol=0, atol=1e-5 * np.abs(before).max())
 
 
+@pytest.mark.parametrize("shape, periodic", [((13, 10, 12), True), ((12, 9, 11), False), ((9, 8, 8), True)])
+def test_the_fine_level_by_slabs_is_the_whole_grids(shape, periodic, monkeypatch):
+    # the CG's V-cycle with its fine level a slab of node planes at a time (each with its neighbours'
+    # planes, wrapped round a periodic grid's ends; slabs of 1 to 5 planes, one of void): the whole-grid
+    # cycle's result within float32's rounding (the restriction's sums over two slabs' planes are added
+    # in another order)
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(1)
+    solid = rng.random(shape) < 0.55
+    solid[shape[0] // 2] = False
+    model = M.voxel_model(solid, 0.1, MAT, periodic=periodic)
+    free = model.active[None].astype(np.float32)
+    if not periodic:  # a mask per unknown
+        free = np.repeat(free, 3, axis=0)
+        free[2, : free.shape[1] // 7] = 0
+    mg = G.Multigrid(model, mc.StiffnessOperator(model).single(), free, dtype=np.float32)
+    live = np.flatnonzero(free.any(axis=0))
+    r = rng.standard_normal((2, 3, live.size))
+    monkeypatch.setattr(G, "FINE_SLAB_NODES", 0)
+    whole = mg.compact(live)(r)
+    plane = model.shape[1] * model.shape[2]
+    for planes in (1, 2, 3, 5):
+        monkeypatch.setattr(G, "FINE_SLAB_NODES", planes * plane)
+        assert mg._fine_slabs(live) is not None
+        got = mg.compact(live)(r)
+        assert np.abs(got - whole).max() <= 1e-6 * np.abs(whole).max(), planes
+        seen = []
+        mg.compact(live)(r, lambda c, z: seen.append((c, z.copy())))
+        assert [c for c, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z in seen]), got)
+
+
 def test_the_v_cycle_is_symmetric_positive(scaffolds):
     solid = scaffolds[0.08]
     model = M.voxel_model(solid, 0.08, MAT, periodic=False)

@@ -255,14 +255,17 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     return out
 
 
-def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: float, dtype=None) -> np.ndarray:
+def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: float, dtype=None,
+                 out: np.ndarray | None = None) -> np.ndarray:
     """The whole grid's (m, 3, n) vector ``s g w src`` on the nodes `idx` and 0 elsewhere: one damped
     Jacobi step from zero on the right-hand side :func:`put` would spread (`g` the inverse diagonal
-    on the nodes `idx`, (1, len(idx)) or (3, len(idx))), in `dtype` (default `src`'s), page-aligned."""
+    on the nodes `idx`, (1, len(idx)) or (3, len(idx))), in `dtype` (default `src`'s), page-aligned; or
+    into `out` (an array of that shape, a view of a larger one may do)."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
-    out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
+    if out is None:
+        out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype),
@@ -282,15 +285,17 @@ def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool
 
 
 def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float,
-                  dtype=None) -> np.ndarray:
+                  dtype=None, out: np.ndarray | None = None) -> np.ndarray:
     """``w (x + s g (w src - ax))`` on the nodes `idx`, (m, 3, len(idx)) in `dtype` (default `src`'s):
     a damped Jacobi step on the right-hand side ``w src`` from `x` (``ax = A x``, whole grids; `g`
-    the inverse diagonal on the nodes `idx`), and its live nodes taken, in one pass."""
+    the inverse diagonal on the nodes `idx`), and its live nodes taken, in one pass; or into `out` (an array
+    of that shape, a view of a larger one may do)."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
     k = len(idx)
-    out = aligned_empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)  # as take's
+    if out is None:
+        out = aligned_empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)  # as take's
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, x.dtype),
               _weight(g, k, x.dtype), x.dtype.type(s), out, x, ax, 2, pieces)

@@ -694,7 +694,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
     from .fused import cg_update, put, take, wdot, xpby
-    from .mechanics_cl import reusing
+    from .mechanics_cl import FLOAT_SLAB_NODES, reusing
 
     n = np.shape(free)[-1]
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
@@ -719,10 +719,15 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         whole-grid input and output held 48 bytes a node, above the float cycle's at the homogenization's
         switch to double and at every step of a compression (128^3 benchmark scaffold, a throw-away
         script: one case a block peaked 483 bytes a solid voxel, 394 by slabs; a compression 636 and 572),
-        for some 10 ms more a product there (49 against 39). Float ones over the whole grid: the cycle's
-        whole-grid vectors peak as high, and by slabs they took 27 ms against 21."""
-        if getattr(product, "double", False) and hasattr(product, "live_product"):
+        for some 10 ms more a product there (49 against 39). Float ones over the whole grid up to
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` nodes (by slabs of 2^18 they took
+        27 ms against 21), by slabs of that many on a larger grid, whose V-cycle runs by slabs too."""
+        if not hasattr(product, "live_product"):
+            return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
+        if product.double:
             return product.live_product(v, live, ones, w_out, np.float64)
+        if n > FLOAT_SLAB_NODES:  # by larger slabs, on a grid of more nodes than one holds
+            return product.live_product(v, live, ones, w_out, np.float64, FLOAT_SLAB_NODES)
         return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
 
     r = on_live(b)  # F b on the live nodes
@@ -1233,7 +1238,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
                 return lambda nodes: element_loads(model, -(model.ke @ u0e[list(ks)].T).T, nodes)
         else:
             def loads(ks):
-                return _kinematic_loads(op, model.shape, h, ks)
+                return _kinematic_loads(op, model, h, ks)
         info = {}
         x, its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
                             progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True,
@@ -1324,14 +1329,42 @@ def independent_pieces(solid: np.ndarray, small: int | None = None, batch: int |
     return labels, crops
 
 
-def _kinematic_loads(op, shape, h: float, cases) -> np.ndarray:
+def _kinematic_loads(op, model, h: float, cases):
     """(m, 3, N) right-hand sides ``-K (E x)`` of the unit Voigt strains `cases`, made a case at a time
     (one case's ``E x`` and product at once, not the block's: three (m, 3, N) arrays in float64 were
-    the kinematic solve's peak)."""
-    out = np.empty((len(cases), 3, int(np.prod(shape))))
-    for c, k in enumerate(cases):
-        np.negative(op(_affine(shape, h, [k]))[0], out=out[c])
-    return out
+    the kinematic solve's peak). With an operator that multiplies by slabs (``live_product``), a callable
+    of the nodes pcg asks for instead: ``E x`` on the nodes solid voxels touch and its product there
+    (the same values bit for bit: no whole-grid vector; on the lumbar micro-CT's 128^3 crop, a throw-away
+    script, the whole grid's held 48 bytes a node before the solve)."""
+    shape = model.shape
+    if not hasattr(op, "live_product"):
+        out = np.empty((len(cases), 3, int(np.prod(shape))))
+        for c, k in enumerate(cases):
+            np.negative(op(_affine(shape, h, [k]))[0], out=out[c])
+        return out
+    cases = list(cases)
+
+    def at(nodes: np.ndarray) -> np.ndarray:
+        touched = np.flatnonzero(model.active)
+        pos = np.clip(np.searchsorted(touched, nodes), 0, max(touched.size - 1, 0))
+        hit = touched[pos] == nodes if touched.size else np.zeros(nodes.size, bool)
+        ones = np.ones((1, touched.size))
+        coords = np.unravel_index(touched, shape)
+        out = np.zeros((len(cases), 3, nodes.size))
+        for c, k in enumerate(cases):
+            u = np.zeros((1, 3, touched.size))
+            eps = strain_tensor(k)
+            for d in range(3):
+                for j in range(3):
+                    if eps[d, j]:
+                        u[0, d] += eps[d, j] * (coords[j] * h)
+            f = op.live_product(u, touched, ones, ones)
+            del u
+            out[c][:, hit] = -f[0][:, pos[hit]]
+            del f
+        return out
+
+    return at
 
 
 def _affine(shape, h: float, cases) -> np.ndarray:
@@ -1523,16 +1556,42 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     # force's work), so `accuracy` bounds the modulus's error as it does the energy's. A whole-grid
     # vector needed for its product only (the total displacement is x with the upper platen's plane set
     # again): kept, it held 624 MiB through the solve on the whole lumbar micro-CT's grid
-    base = np.zeros((1, 3, n))
-    base[0, axis, top] = -strain * length
-    kb = op(base)
-    lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
-    del base
-    np.negative(kb, out=kb)
-    kb *= free  # the right-hand side, in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
-    # handed to pcg with no name left on it here, so that pcg releases it once it has read its live nodes
-    hand = [kb]
-    del kb
+    if hasattr(op, "live_product"):
+        # K base is 0 but on the nodes of the upper platen's plane and the plane under it: it is taken on
+        # those alone, by slabs (live_product), and pcg gets the right-hand side as a callable of its live
+        # nodes. The whole grid's base and K base held 48 bytes a node before the solve, its peak there
+        # (a 128^3 crop of the lumbar micro-CT, a throw-away script: 269 MiB, the CG's iterations 267)
+        near = np.zeros(shape, bool)
+        plane[axis] = slice(shape[axis] - 2, None)
+        near[tuple(plane)] = True
+        near = np.flatnonzero(near.ravel() & model.active)
+        on_top = np.flatnonzero(top[near])
+        u_near = np.zeros((1, 3, near.size))
+        u_near[0, axis, on_top] = -strain * length
+        ones = np.ones((1, near.size))
+        k_near = op.live_product(u_near, near, ones, ones)
+        lifting = np.array([float(np.einsum("cdn,cdn->", u_near, k_near))])  # not np.vdot: see pcg's dot products
+        del u_near
+
+        def rhs(nodes: np.ndarray) -> np.ndarray:
+            out = np.zeros((1, 3, nodes.size))
+            at = np.clip(np.searchsorted(nodes, near), 0, max(nodes.size - 1, 0))
+            hit = nodes[at] == near if nodes.size else np.zeros(near.size, bool)
+            out[:, :, at[hit]] = -k_near[:, :, hit]
+            return out  # masked to the free unknowns by pcg
+
+        hand = [rhs]
+    else:
+        base = np.zeros((1, 3, n))
+        base[0, axis, top] = -strain * length
+        kb = op(base)
+        lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
+        del base
+        np.negative(kb, out=kb)
+        kb *= free  # the right-hand side, in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
+        # handed to pcg with no name left on it here, so that pcg releases it once it has read its live nodes
+        hand = [kb]
+        del kb
     info = {}
     x, iterations, res = pcg(op, precond, hand.pop(), free, scale=scale, tol=tol, maxiter=maxiter,
                              progress=progress, energy=lifting, accuracy=accuracy, info=info)

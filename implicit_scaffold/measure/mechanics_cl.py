@@ -57,6 +57,14 @@ FIT_RATIO = 2
 #: 5, a throw-away script) a double product took 49.2 and 49.9 ms by slabs of 2^18 nodes, 49.6 and 48.4 by
 #: slabs of 2^20, 38.8 and 38.6 over the whole grid; float 27.7 and 25.8, 27.0 and 27.8, 21.1 and 20.9
 SLAB_NODES = 1 << 18
+#: the float products of a grid of more nodes run by slabs of this many nodes' planes: the CG's
+#: (:meth:`StiffnessOperator.live_product`) and the V-cycle's fine level
+#: (:data:`~implicit_scaffold.measure.multigrid.FINE_SLAB_NODES`), so that no whole-grid vector is made
+#: (two in float32, 24 bytes a node). Larger than the double products' slabs: each slab costs its launches
+#: and passes, a millisecond or two, and a float product is cheaper (128^3 benchmark scaffold, six cases,
+#: a throw-away script on a quiet machine: the V-cycle's fine level by slabs of 2^18 nodes took the solve
+#: from 17.80 and 18.37 s to 22.18 and 27.02 s)
+FLOAT_SLAB_NODES = 1 << 22
 _pool: list | None = None
 
 
@@ -272,7 +280,8 @@ class StiffnessOperator(_Gather):
             return apply_stiffness(self.model, u, element_extra)
         return super().__call__(u)
 
-    def live_product(self, u: np.ndarray, live: np.ndarray, w_in, w_out, dtype=np.float64) -> np.ndarray:
+    def live_product(self, u: np.ndarray, live: np.ndarray, w_in, w_out, dtype=np.float64,
+                     slab_nodes: int | None = None) -> np.ndarray:
         """``w_out K (w_in u)`` on the nodes `live` from values `u` on them, (m, 3, len(live)) in `dtype`:
         bit for bit ``take(self(put(u, live, N, w_in)), live, w_out, dtype)``, a slab of node planes at a
         time (:data:`SLAB_NODES` nodes, plus a plane on either side), so that no vector of the whole
@@ -287,12 +296,14 @@ class StiffnessOperator(_Gather):
         w_in, w_out : (1, L) or (3, L) float ndarrays
             Weights of `u`'s values and of the product's (0 and 1: the free unknowns).
         dtype : numpy float type
+        slab_nodes : int, optional
+            The slabs' nodes (default :data:`SLAB_NODES`).
         """
         from .fused import put, put_add, take
 
         n1, n2, n3 = self.shape
         plane = n2 * n3
-        thick = max(1, min(n1, SLAB_NODES // plane))
+        thick = max(1, min(n1, (SLAB_NODES if slab_nodes is None else slab_nodes) // plane))
         live = np.asarray(live)
         # where each node plane's live nodes begin in `live`
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
@@ -329,6 +340,12 @@ class StiffnessOperator(_Gather):
             take(f, live[k0:k1] - (i0 - 1) * plane, w_out[:, k0:k1], out=out[:, :, k0:k1])
             del f
         return out
+
+    def slab(self, i0: int, i1: int):
+        """(planes, operator): the node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either
+        side (wrapped round a periodic grid's ends), and the operator of their voxels, whose product is
+        this one's on the slab's inner planes (:meth:`_slab`)."""
+        return self._slab(i0, i1)
 
     def _slab(self, i0: int, i1: int):
         """The node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either side (wrapped),

@@ -63,6 +63,12 @@ LANCZOS_STEPS = 12
 #: :func:`child_matrices`) where it can; False: one gathered matrix per element everywhere
 FIRST_LEVEL_PATTERNS = True
 
+#: the fine level of the CG's V-cycle (:meth:`Multigrid.compact`) runs by slabs of this many nodes' node
+#: planes (whole planes, at least one) where the grid has more and the operator can
+#: (:meth:`~implicit_scaffold.measure.mechanics_cl.StiffnessOperator.slab`): no whole-grid vector is made;
+#: 0: over the whole grid. None: :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES`
+FINE_SLAB_NODES = None
+
 #: the levels under the first run on the device from assembled node stencils
 #: (:func:`node_stencils`, ``StencilLevelOperator``); False: one gathered matrix per element
 STENCIL_LEVELS = True
@@ -832,7 +838,11 @@ class Multigrid:
             w = weights
         g = self._live_inverse_diagonal(live) if FINE_DEGREE == 1 and self.levels else None
 
+        slabs = self._fine_slabs(live) if g is not None else None
+
         def apply(r: np.ndarray, sink=None):
+            if slabs is not None:
+                return self._fine_cases_by_slabs(r, live, w, g, slabs, sink, dtype)
             if g is not None:
                 return self._fine_cases(r, live, w, g, sink, dtype)
             b = put(r, live, n, w, self.dtype)
@@ -896,6 +906,141 @@ class Multigrid:
                 z = np.empty(r.shape, one.dtype)
             z[c] = one[0]
         return z
+
+    def _fine_slabs(self, live: np.ndarray):
+        """The slabs of the fine level's node planes (:data:`FINE_SLAB_NODES`), or None (one slab would
+        hold the grid, or the operator has none). Each: (i0, i1, planes, operator, where the live nodes of
+        each plane begin in `live`, the coarse planes its inner planes restrict onto and their stencil,
+        the coarse planes its planes interpolate from and theirs)."""
+        n1, n2, n3 = self.fine_shape
+        plane = n2 * n3
+        from .mechanics_cl import FLOAT_SLAB_NODES
+
+        nodes = FLOAT_SLAB_NODES if FINE_SLAB_NODES is None else FINE_SLAB_NODES
+        thick = max(1, nodes // plane) if nodes else n1
+        if thick >= n1 or not hasattr(self.op, "slab"):
+            return None
+        starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
+        parents, weights, children, shares = _stencils(n1)
+        out = []
+        for i0 in range(0, n1, thick):
+            i1 = min(n1, i0 + thick)
+            planes, op = self.op.slab(i0, i1)
+            # restriction: the coarse planes with a child among the inner planes i0 .. i1 - 1 (the slab's
+            # planes 1 .. i1 - i0), their children as the slab's planes, a weight 0 for those outside
+            inside = (children >= i0) & (children < i1) & (shares > 0)
+            rows = np.flatnonzero(inside.any(axis=1))
+            ia = np.where(inside[rows], children[rows] - i0 + 1, 0)
+            wa = np.where(inside[rows], shares[rows], 0.0)
+            # prolongation: the slab's planes from their coarse parents, gathered in order of first use
+            need, local = np.unique(parents[planes], return_inverse=True)
+            pa = local.reshape(planes.size, 2)
+            out.append((i0, i1, planes, op, rows, (ia, wa), need, (pa, weights[planes])))
+        return starts, out
+
+    def _fine_cases_by_slabs(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, g: np.ndarray, slabs, sink=None,
+                             dtype=None):
+        """:meth:`_fine_cases` a slab of node planes at a time (:meth:`_fine_slabs`): each slab's spread
+        iterate, its product, the restriction of its inner planes' residual and, after the coarse levels,
+        the interpolated correction, the second product and the taking of its live nodes. The whole
+        grid's float vectors (two, 12 bytes a node each in float32) are a slab's; the restriction's sums
+        over the planes two slabs share are added in another order (the result is the same within
+        float32's rounding)."""
+        from .fused import put_add, take_smoothed
+        from .mechanics_cl import aligned_empty
+
+        starts, plan = slabs
+        n1, n2, n3 = self.fine_shape
+        plane = n2 * n3
+        m = r.shape[0]
+        s = self._jacobi_step()
+        cshape = coarse_shape(self.fine_shape)
+        c_plane = cshape[1] * cshape[2]
+        transfer = _kernels()[2]
+        along = [_stencils(n2), _stencils(n3)]
+        rows = self.free.shape[0]
+        rc = aligned_empty((m, 3, cshape[0] * c_plane), self.dtype)
+        rc.fill(0)
+        for c in range(m):
+            for i0, i1, planes, op, coarse_rows, down, _, _ in plan:
+                if starts[i1] == starts[i0]:
+                    continue  # no live node: a zero residual there
+                x = self._spread(r[c:c + 1], live, w, g, s, starts, planes, plane)
+                res = op(x)
+                del x
+                k0, k1 = starts[i0], starts[i1]
+                put_add(res, r[c:c + 1, :, k0:k1], live[k0:k1] - (i0 - 1) * plane, w[:, k0:k1], subtract=True)
+                part = aligned_empty((1, 3, coarse_rows.size) + cshape[1:], self.dtype)
+                transfer(res.reshape(1, 3, planes.size, n2, n3), part, [down] + [a[2:] for a in along], False,
+                         self._slab_weight(planes, plane))
+                del res
+                # -(K x - F b) restricted: the coarse right-hand side
+                view = rc[c].reshape(3, cshape[0], c_plane)
+                view[:, coarse_rows] -= part[0].reshape(3, coarse_rows.size, c_plane)
+                del part
+        coarse = self._cycle(1, rc)
+        del rc
+        z = None
+        for c in range(m):
+            one = aligned_empty((1, 3, live.size), r.dtype if dtype is None else dtype)
+            for i0, i1, planes, op, _, _, need, up in plan:
+                k0, k1 = starts[i0], starts[i1]
+                if k1 == k0:
+                    continue
+                x = self._spread(r[c:c + 1], live, w, g, s, starts, planes, plane)
+                sub = np.ascontiguousarray(coarse[c:c + 1].reshape(1, 3, cshape[0], c_plane)[:, :, need])
+                transfer(sub.reshape((1, 3, need.size) + cshape[1:]), x.reshape(1, 3, planes.size, n2, n3),
+                         [up] + [a[:2] for a in along], True, self._slab_weight(planes, plane))
+                del sub
+                ax = op(x)
+                take_smoothed(x, ax, r[c:c + 1, :, k0:k1], live[k0:k1] - (i0 - 1) * plane, w[:, k0:k1], g[:, k0:k1],
+                              s, out=one[:, :, k0:k1])
+                del x, ax
+            if sink is not None:
+                sink(c, one)
+                continue
+            if z is None:
+                z = np.empty(r.shape, one.dtype)
+            z[c] = one[0]
+            del one
+        return z
+
+    def _spread(self, rc, live, w, g, s, starts, planes, plane):
+        """The pre-smoothed iterate ``s g w r`` of one case spread over a slab's planes (0 off the live
+        nodes), in the cycle's float: :func:`~implicit_scaffold.measure.fused.put_smoothed` on each run
+        of consecutive planes (one, or two where the slab wraps round a periodic grid's ends)."""
+        from .fused import put_smoothed
+        from .mechanics_cl import aligned_empty
+
+        x = aligned_empty((1, 3, planes.size * plane), self.dtype)
+        p = 0
+        while p < planes.size:
+            q = p + 1
+            while q < planes.size and planes[q] == planes[q - 1] + 1:
+                q += 1
+            k0, k1 = starts[planes[p]], starts[planes[q - 1] + 1]
+            if k1 == k0:
+                x[:, :, p * plane:q * plane] = 0
+                p = q
+                continue
+            # every node of the run written (0 but on its live nodes)
+            put_smoothed(rc[:, :, k0:k1], live[k0:k1] - int(planes[p]) * plane, (q - p) * plane, w[:, k0:k1],
+                         g[:, k0:k1], s, out=x[:, :, p * plane:q * plane])
+            p = q
+        return x
+
+    def _slab_weight(self, planes, plane):
+        """The free mask on a slab's planes, (1 or 3, len(planes) * plane) in the cycle's float."""
+        free = self.free
+        runs = []
+        p = 0
+        while p < planes.size:
+            q = p + 1
+            while q < planes.size and planes[q] == planes[q - 1] + 1:
+                q += 1
+            runs.append(free[:, int(planes[p]) * plane:(int(planes[q - 1]) + 1) * plane])
+            p = q
+        return np.ascontiguousarray(runs[0]) if len(runs) == 1 else np.concatenate(runs, axis=1)
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
         """One V-cycle from zero: an approximation of ``(F K F)^+ r`` for (m, 3, N) residuals."""
