@@ -585,6 +585,47 @@ def test_bonded_platens_are_stiffer_than_lubricated_ones():
     assert bonded < m.isotropic_tensor(TI.E_gpa, TI.nu)[0, 0]
 
 
+def _channels(shape):
+    """A block crossed by three square channels, one along each axis (no hinge: a well-posed solve)."""
+    solid = np.ones(shape, bool)
+    solid[2:6, 3:7, :] = False
+    solid[:, 1:4, 5:9] = False
+    solid[6:9, :, 2:4] = False
+    return solid
+
+
+@pytest.mark.parametrize("shape", [(10, 9, 12), (11, 12, 12)])
+def test_a_periodic_grid_with_an_odd_axis_converges_with_the_float_products(shape):
+    # with an odd axis the float products' rounding left some case's direction without positive
+    # curvature (p.Kp <= 0): its CG stood still, the residual at 2.2e-2, to maxiter. The NumPy
+    # reference (double products, no float phase) is the oracle
+    solid = _channels(shape)
+    ref = m.homogenize(solid, 0.1, TI, tol=1e-8, backend="numpy", maxiter=200)
+    got = m.homogenize(solid, 0.1, TI, tol=1e-7, backend="opencl", maxiter=200)
+    assert got.residual <= 1e-7 and got.iterations < 100
+    assert np.abs(got.stiffness - ref.stiffness).max() <= 1e-6 * np.abs(ref.stiffness).max()
+
+
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_a_large_grid_s_float_products_by_slabs_give_the_whole_grid_s_tensor(boundary, monkeypatch):
+    # above FLOAT_SLABS_FROM nodes the CG's float products and the V-cycle's fine level run by slabs:
+    # lowered here to this small grid (slabs of two node planes), the tensor is the whole grid's to the
+    # solve's tolerance
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    solid = _channels((10, 9, 12))
+    want = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl").stiffness
+    monkeypatch.setattr(mc, "FLOAT_SLABS_FROM", 0)
+    monkeypatch.setattr(mc, "FLOAT_SLAB_NODES", 2 * 10 * 13)
+    calls = []
+    product = mc.StiffnessOperator.live_product
+    monkeypatch.setattr(mc.StiffnessOperator, "live_product",
+                        lambda self, *a, **k: calls.append(self.double) or product(self, *a, **k))
+    got = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl").stiffness
+    assert False in calls  # the float products went by slabs
+    assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max()
+
+
 @pytest.mark.parametrize("bonded", [False, True])
 def test_the_compression_on_the_device_is_the_numpy_references(bonded):
     # on the device the platen's load is taken on the two node planes under it, by slabs, and handed to

@@ -694,7 +694,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
     from .fused import cg_update, put, take, wdot, xpby
-    from .mechanics_cl import FLOAT_SLAB_NODES, reusing
+    from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM, reusing
 
     n = np.shape(free)[-1]
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
@@ -719,14 +719,14 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         whole-grid input and output held 48 bytes a node, above the float cycle's at the homogenization's
         switch to double and at every step of a compression (128^3 benchmark scaffold, a throw-away
         script: one case a block peaked 483 bytes a solid voxel, 394 by slabs; a compression 636 and 572),
-        for some 10 ms more a product there (49 against 39). Float ones over the whole grid up to
-        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` nodes (by slabs of 2^18 they took
-        27 ms against 21), by slabs of that many on a larger grid, whose V-cycle runs by slabs too."""
+        for some 10 ms more a product there (49 against 39). Float ones over the whole grid (by slabs of 2^18
+        they took 27 ms against 21) but on a grid of more than
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, whose V-cycle runs by slabs too."""
         if not hasattr(product, "live_product"):
             return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
         if product.double:
             return product.live_product(v, live, ones, w_out, np.float64)
-        if n > FLOAT_SLAB_NODES:  # by larger slabs, on a grid of more nodes than one holds
+        if n > FLOAT_SLABS_FROM:  # by larger slabs, on a large grid
             return product.live_product(v, live, ones, w_out, np.float64, FLOAT_SLAB_NODES)
         return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
 
@@ -806,8 +806,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         nonlocal rz, res, it
         spread = getattr(product, "dtype", None)  # p spread in the operator's own float: no cast there
         best, stale = res.copy(), np.zeros(m, int)
+        # a case whose direction has no positive curvature (p.Kp <= 0) stops here: its r and so its next p
+        # would be the same again, to maxiter. The float products' rounding did it on periodic grids with an
+        # odd axis (10 x 9 x 12 voxels: the residual held at 2.2e-2 for 2,000 iterations, where double
+        # products converged in 15); after the float products the double ones restart it (p = z)
+        halted = np.zeros(m, bool)
         while it < maxiter:
-            going = (res > goal) & ((stale < stall) if stall else True) & ~met()
+            going = (res > goal) & ((stale < stall) if stall else True) & ~met() & ~halted
             if not going.any():
                 break
             live_cases = np.zeros(m, bool)
@@ -822,6 +827,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                     rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
                     pqs[c].append(pq)
                     solved[c] += rz[c] * rz[c] / pq  # alpha rho
+                else:
+                    halted[c] = True
                 del q
             rz_new = np.zeros(m)
 

@@ -57,14 +57,17 @@ FIT_RATIO = 2
 #: 5, a throw-away script) a double product took 49.2 and 49.9 ms by slabs of 2^18 nodes, 49.6 and 48.4 by
 #: slabs of 2^20, 38.8 and 38.6 over the whole grid; float 27.7 and 25.8, 27.0 and 27.8, 21.1 and 20.9
 SLAB_NODES = 1 << 18
-#: the float products of a grid of more nodes run by slabs of this many nodes' planes: the CG's
-#: (:meth:`StiffnessOperator.live_product`) and the V-cycle's fine level
+#: on a grid of more than :data:`FLOAT_SLABS_FROM` nodes the float products run by slabs of this many
+#: nodes' planes: the CG's (:meth:`StiffnessOperator.live_product`) and the V-cycle's fine level
 #: (:data:`~implicit_scaffold.measure.multigrid.FINE_SLAB_NODES`), so that no whole-grid vector is made
-#: (two in float32, 24 bytes a node). Larger than the double products' slabs: each slab costs its launches
-#: and passes, a millisecond or two, and a float product is cheaper (128^3 benchmark scaffold, six cases,
-#: a throw-away script on a quiet machine: the V-cycle's fine level by slabs of 2^18 nodes took the solve
-#: from 17.80 and 18.37 s to 22.18 and 27.02 s)
+#: (two in float32, 24 bytes a node). Each slab costs its launches and passes, and a float product is
+#: cheap: on the 128^3 benchmark scaffold (six cases, a throw-away script, quiet machine) slabs of 2^18
+#: nodes took the solve from 17.80 and 18.37 s to 22.18 and 27.02 s; on the 200^3 one, slabs of 2^22 from
+#: 63.62 s to 69.97 s (one run each), for 860 bytes a solid voxel against 872: with six load cases a
+#: block the whole-grid vectors (one case's) are a small part of the peak. Hence only on grids larger than
+#: the benchmark's, where memory is what stops a solve (the lumbar micro-CT's 27.3 million nodes)
 FLOAT_SLAB_NODES = 1 << 22
+FLOAT_SLABS_FROM = 1 << 24
 _pool: list | None = None
 
 

@@ -66,7 +66,8 @@ FIRST_LEVEL_PATTERNS = True
 #: the fine level of the CG's V-cycle (:meth:`Multigrid.compact`) runs by slabs of this many nodes' node
 #: planes (whole planes, at least one) where the grid has more and the operator can
 #: (:meth:`~implicit_scaffold.measure.mechanics_cl.StiffnessOperator.slab`): no whole-grid vector is made;
-#: 0: over the whole grid. None: :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES`
+#: 0: over the whole grid. None: :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` on a grid
+#: of more than :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, else the whole grid
 FINE_SLAB_NODES = None
 
 #: the levels under the first run on the device from assembled node stencils
@@ -914,9 +915,12 @@ class Multigrid:
         the coarse planes its planes interpolate from and theirs)."""
         n1, n2, n3 = self.fine_shape
         plane = n2 * n3
-        from .mechanics_cl import FLOAT_SLAB_NODES
+        from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
 
-        nodes = FLOAT_SLAB_NODES if FINE_SLAB_NODES is None else FINE_SLAB_NODES
+        if FINE_SLAB_NODES is None:
+            nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
+        else:
+            nodes = FINE_SLAB_NODES
         thick = max(1, nodes // plane) if nodes else n1
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
