@@ -1341,8 +1341,8 @@ def _kinematic_loads(op, model, h: float, cases):
     (one case's ``E x`` and product at once, not the block's: three (m, 3, N) arrays in float64 were
     the kinematic solve's peak). With an operator that multiplies by slabs (``live_product``), a callable
     of the nodes pcg asks for instead: ``E x`` on the nodes solid voxels touch and its product there
-    (the same values bit for bit: no whole-grid vector; on the lumbar micro-CT's 128^3 crop, a throw-away
-    script, the whole grid's held 48 bytes a node before the solve)."""
+    (the same values bit for bit: no whole-grid vector; the whole grid's held 48 bytes a node before the
+    solve)."""
     shape = model.shape
     if not hasattr(op, "live_product"):
         out = np.empty((len(cases), 3, int(np.prod(shape))))
@@ -1567,7 +1567,8 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
         # K base is 0 but on the nodes of the upper platen's plane and the plane under it: it is taken on
         # those alone, by slabs (live_product), and pcg gets the right-hand side as a callable of its live
         # nodes. The whole grid's base and K base held 48 bytes a node before the solve, its peak there
-        # (a 128^3 crop of the lumbar micro-CT, traced by a throw-away script: 269 MiB, 267 in the CG's iterations)
+        # (a 128^3 crop of the lumbar micro-CT, traced by a throw-away script with the V-cycle's fine level
+        # forced to slabs of 2^18 nodes: 269 MiB, 267 in the CG's iterations)
         near = np.zeros(shape, bool)
         plane[axis] = slice(shape[axis] - 2, None)
         near[tuple(plane)] = True
