@@ -173,6 +173,14 @@ def _shared(array, dtype, flags):
     return host, cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
 
 
+def plane_runs(planes: np.ndarray) -> list:
+    """The runs of consecutive node planes of a slab's `planes` (:meth:`StiffnessOperator.slab`), as
+    (start, stop) positions in it: one run, or two or three where the slab wraps round the grid's ends."""
+    cuts = np.flatnonzero(np.diff(planes) != 1) + 1
+    bounds = [0, *cuts.tolist(), int(planes.size)]
+    return list(zip(bounds[:-1], bounds[1:]))
+
+
 class _Gather:
     """``f = A u`` by the gather kernels of ``kernels/mechanics.cl`` on a periodic node grid (the
     fine operator's ``stiffness_rows`` and ``stiffness_ends``, a coarse level's ``stiffness_apply``).
@@ -317,15 +325,11 @@ class StiffnessOperator(_Gather):
             i1 = min(n1, i0 + thick)
             if starts[i1] == starts[i0]:
                 continue  # no live node to give a value to
-            planes, op = self._slab(i0, i1)
+            planes, op = self.slab(i0, i1)
             slab = None
             # u spread over the slab's planes (the grid's i0 - 1 .. i1, wrapped), a run of consecutive
             # planes at a time: one run, but where the slab wraps round the grid's ends
-            p = 0
-            while p < planes.size:
-                q = p + 1
-                while q < planes.size and planes[q] == planes[q - 1] + 1:
-                    q += 1
+            for p, q in plane_runs(planes):
                 k0, k1 = starts[planes[p]], starts[planes[q - 1] + 1]
                 idx = live[k0:k1] - (int(planes[p]) - p) * plane
                 if slab is None and k1 > k0:  # every node of the slab written: 0 but on idx
@@ -335,7 +339,6 @@ class StiffnessOperator(_Gather):
                     slab.fill(0)
                 elif k1 > k0:
                     put_add(slab, u[:, :, k0:k1], idx, w_in[:, k0:k1])
-                p = q
             f = op(slab)
             del slab
             # the slab's inner planes are the grid's i0 .. i1 - 1, whose neighbours it holds
@@ -346,13 +349,8 @@ class StiffnessOperator(_Gather):
 
     def slab(self, i0: int, i1: int):
         """(planes, operator): the node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either
-        side (wrapped round a periodic grid's ends), and the operator of their voxels, whose product is
-        this one's on the slab's inner planes (:meth:`_slab`)."""
-        return self._slab(i0, i1)
-
-    def _slab(self, i0: int, i1: int):
-        """The node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either side (wrapped),
-        and the operator of its voxels (planes of the same indices); made once, and kept with this
+        side (wrapped round a periodic grid's ends), and the operator of their voxels (planes of the same
+        indices), whose product is this one's on the slab's inner planes; made once, and kept with this
         operator: the slabs' flags copy the solid's, a byte a voxel and two planes a slab more."""
         cache = self.__dict__.setdefault("_slabs", {})
         if (i0, i1) not in cache:

@@ -1014,36 +1014,24 @@ class Multigrid:
         nodes), in the cycle's float: :func:`~implicit_scaffold.measure.fused.put_smoothed` on each run
         of consecutive planes (one, or two where the slab wraps round a periodic grid's ends)."""
         from .fused import put_smoothed
-        from .mechanics_cl import aligned_empty
+        from .mechanics_cl import aligned_empty, plane_runs
 
         x = aligned_empty((1, 3, planes.size * plane), self.dtype)
-        p = 0
-        while p < planes.size:
-            q = p + 1
-            while q < planes.size and planes[q] == planes[q - 1] + 1:
-                q += 1
+        for p, q in plane_runs(planes):
             k0, k1 = starts[planes[p]], starts[planes[q - 1] + 1]
             if k1 == k0:
                 x[:, :, p * plane:q * plane] = 0
-                p = q
                 continue
             # every node of the run written (0 but on its live nodes)
             put_smoothed(rc[:, :, k0:k1], live[k0:k1] - int(planes[p]) * plane, (q - p) * plane, w[:, k0:k1],
                          g[:, k0:k1], s, out=x[:, :, p * plane:q * plane])
-            p = q
         return x
 
     def _slab_weight(self, planes, plane):
         """The free mask on a slab's planes, (1 or 3, len(planes) * plane) in the cycle's float."""
-        free = self.free
-        runs = []
-        p = 0
-        while p < planes.size:
-            q = p + 1
-            while q < planes.size and planes[q] == planes[q - 1] + 1:
-                q += 1
-            runs.append(free[:, int(planes[p]) * plane:(int(planes[q - 1]) + 1) * plane])
-            p = q
+        from .mechanics_cl import plane_runs
+
+        runs = [self.free[:, int(planes[p]) * plane:(int(planes[q - 1]) + 1) * plane] for p, q in plane_runs(planes)]
         return np.ascontiguousarray(runs[0]) if len(runs) == 1 else np.concatenate(runs, axis=1)
 
     def __call__(self, r: np.ndarray) -> np.ndarray:
