@@ -1841,115 +1841,63 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 
 
 #: What :func:`measure` holds at its peak over what the process held before it: the larger of the
-#: homogenization's (below) and the platen compression's (:data:`COMPRESS_BYTES_PER_NODE`: one load case,
-#: but in double, on a large grid of thin bone the larger). The homogenization: a fixed part (the
-#: multigrid's compiled kernels loaded from numba's cache, the device's programs), a part per
-#: node of the solve's grid and one more per node and load case of a CG block (the CG's four
-#: float64 vectors, the V-cycle's float32 ones, a kinematic block's ``u = E x``: every vector
-#: covers the whole grid, void nodes included), and a part per solid voxel. Nothing is kept
-#: per solid voxel but the mask: the coarse levels' matrices (float32, shared by pattern on the
-#: first coarse level) and the masks make that part. The OpenCL operator reads and writes the
-#: host's arrays in place (no device copies). Fitted and rounded up, from fresh-process peaks
-#: (VmHWM above the resident set before the solve) of gyroids (OpenCL operator, CG to 1e-6),
-#: ``python benchmarks/bench_mechanics.py --sizes --memory 48 64 --memory-solves measure
-#: --preconditioners multigrid --memory-blocks 1,6`` and the same at 96^3 (solid 0.3) on
-#: 2026-12-04, MiB above the start (estimate):
+#: homogenization's and the platen compression's (one load case, in double), each a fixed part
+#: (:data:`SOLVE_FIXED_BYTES`: the multigrid's compiled kernels, the device's programs) and parts
+#: - per node of the solve's grid (masks, the inverse diagonal, the first coarse level);
+#: - per node of the V-cycle's fine level held at a time (:func:`cycle_nodes`: its float vectors span the
+#:   whole grid up to :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, and slabs of
+#:   :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` above it);
+#: - per live node (a node a solid voxel touches), and for the homogenization per live node and load case
+#:   of a CG block (the CG's vectors: x and r in double, p in float, on the live nodes only);
+#: - per solid voxel (the coarse levels' matrices).
+#: Fitted by a linear program (the least sum of estimates with each at least 1.2 times its row) and
+#: rounded up, on the fresh-process peaks above the start (kernels loaded before: VmHWM over the resident
+#: set) of gyroids at 30 and 60 % solid and of the central N^3 of the lumbar trabecular micro-CT (kinematic
+#: and platens), ``python benchmarks/bench_mechanics.py --sizes --memory 64 96 128 --memory-solves
+#: homogenize --preconditioners multigrid --memory-blocks 1,6``, the same with ``--memory-solves compress
+#: --memory-blocks 1``, ``--memory 272 --memory-solves compress,homogenize --memory-blocks 1 --maxiter 5``
+#: and ``--memory-bone 128 200 300 --memory-solves compress,homogenize --memory-blocks 1 --maxiter 5``
+#: (2026-12-06, 8774f57; MiB above the start, the estimate in brackets; 64^3 and 96^3: 1.2-3.1 times):
 #:
-#: ======  =====  ================  ================  ================  ================
-#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
-#: ======  =====  ================  ================  ================  ================
-#: 48^3    0.3    99.7 (130)        98.0 (132)        167.8 (203)       178.2 (230)
-#: 48^3    0.6    105.7 (136)       106.6 (138)       171.3 (210)       187.8 (236)
-#: 64^3    0.3    141.4 (170)       141.5 (174)       273.3 (345)       316.6 (403)
-#: 64^3    0.6    149.1 (185)       149.0 (189)       282.1 (360)       322.2 (418)
-#: 96^3    0.3    274.7 (336)       281.5 (346)       791.1 (927)       853.1 (1108)
-#: 128^3   0.3    545.4 (660)                         1872.6 (2060)     1811.4 (2472) g
-#: ======  =====  ================  ================  ================  ================
+#: ============  ==============  ===============  ===============  ===============  ===============
+#: grid          solid           1 case periodic  1 case kinem.    6 cases periodic 6 cases kinem.
+#: ============  ==============  ===============  ===============  ===============  ===============
+#: 128^3         0.30            201.6 (369.4)    265.7 (386.9)    518.7 (626.6)    562.9 (705.9)
+#: 128^3         0.60            271.4 (417.9)    420.1 (526.9)    687.3 (917.6)    786.9 (1146.7)
+#: 272^3         0.30            1785.4 (2163.5)  2022.7 (2764.5)
+#: 272^3         0.60            2165.8 (2623.3)  3400.5 (4100.7)
+#: 128^3 bone    0.29                             300.1 (395.7)
+#: 200^3 bone    0.25                             952.6 (1153.3)
+#: 300^3 bone    0.24                             2903.1 (3501.4)
+#: ============  ==============  ===============  ===============  ===============  ===============
 #:
-#: (The 128^3 row: the Voronoi scaffold of the README's benchmark, homogenization alone,
-#: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners multigrid
-#: [--cases-per-block 1]``, at the commit that fused the vector passes, which hold a little less
-#: than the commit the gyroids ran on; the per-node-and-case figure grows with the grid, and was
-#: raised to hold it; the kinematic one in proportion. g: a 128^3 gyroid, homogenization alone,
-#: the benchmark's ``--memory`` script at the last commit.)
-#: Before (six cases as one block, the right-hand side and the mean strain gathered per solid
-#: voxel, device copies of every vector): 1,750 / 2,000 bytes per node and 1,200 per solid voxel,
-#: 7,000 to 7,900 bytes per solid voxel at 30 % solid; the 128^3 Voronoi scaffold of the README's
-#: benchmark peaked 4,256.8 MiB above its start (7,092 bytes per solid voxel), and 392.4 MiB
-#: (654) with one case per block now (the kernels loaded before the start). The FFT
-#: preconditioner's constants are its fit to the former code (432-644 MiB measured at 64^3), which
-#: held more: they stay above it.
-#: Since the CG's vectors cover the live nodes only (commit 2bb473f), the per-node-and-case part is
-#: 100 / 135 (from 140 / 175); the rest is kept. The same ``--memory 64`` command on it (MiB above
-#: the start, estimate in brackets, the ratio):
-#:
-#: ======  =====  ================  ================  ==================  ==================
-#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic    6 cases kinematic
-#: ======  =====  ================  ================  ==================  ==================
-#: 64^3    0.3    64.0 (160) 2.50   63.2 (163) 2.59   150.9 (285) 1.89  189.6 (340) 1.79
-#: 64^3    0.6    85.0 (175) 2.06   85.1 (178) 2.10   216.6 (300) 1.39  221.2 (355) 1.61
-#: ======  =====  ================  ================  ==================  ==================
-#:
-#: and the 128^3 Voronoi scaffold of the README's benchmark (homogenization alone, six cases a
-#: block, its kernels' first build inside the count) 2,142 bytes per solid voxel above the start,
-#: 1,286 MiB, against 1,580 (1.23). 96^3 and 128^3 were not measured with one case a block or with
-#: kinematic conditions on this code: there the estimate stays above the former code's figures of
-#: the table above (1.05-1.11), which held more; for six periodic cases it is below them (0.92 at
-#: 96^3, 0.84 at 128^3), where this code holds less (the 128^3 figure just given). A full refit
-#: (the fixed part, per node, per solid voxel) waits for those points.
-#: Since the CG's product and step, the V-cycle's fine level and a kinematic right-hand side run one
-#: load case at a time (dab06cf), the per-node-and-case part is 50 / 60 (from 100 / 135); the rest is
-#: kept. ``python benchmarks/bench_mechanics.py --sizes --memory 64 96 --memory-solves measure
-#: --preconditioners multigrid --memory-blocks 1,6`` on it (2026-12-05, MiB above the start, the new
-#: estimate in brackets):
-#:
-#: ======  =====  ================  ================  ================  ================
-#: grid    solid  1 case periodic   1 case kinematic  6 cases periodic  6 cases kinematic
-#: ======  =====  ================  ================  ================  ================
-#: 64^3    0.3    66.2 (147)        66.2 (144)        85.1 (210)        92.7 (222)
-#: 64^3    0.6    84.5 (162)        84.7 (159)        112.8 (225)       138.1 (237)
-#: 96^3    0.3    212.4 (260)       197.4 (246)       288.5 (471)       252.2 (507)
-#: 96^3    0.6    254.2 (311)       254.2 (297)       370.9 (522)       383.0 (558)
-#: 128^3   0.3    440.0 (480)                         768.8 (980)
-#: ======  =====  ================  ================  ================  ================
-#:
-#: (128^3: the Voronoi scaffold of the README's benchmark, homogenization alone, 733 and 1,281 bytes
-#: per solid voxel: ``python benchmarks/bench_mechanics.py --sizes 128 --runs 1 --preconditioners
-#: multigrid --peers-up-to 0 [--cases-per-block 1]``.) The tightest, 1.09, is the 128^3 one case.
+#: The compression (platens): 128^3 gyroids 271.1 (397.9) and 365.2 (487.8), 272^3 2258.8 (2725.2) and
+#: 2970.2 (3585.2); the micro-CT's 128^3, 200^3 and 300^3 298.5 (399.2), 988.2 (1191.7) and 2850.1 (3438.3).
+#: The estimate before (per node and per node and case, no live or cycle part) lay 1.40-1.64 times over the
+#: micro-CT's rows and refused the whole micro-CT under the default 4 GiB (4.3 GiB asked beside 220 MiB
+#: held); the fine level's slabs above 2^24 nodes (the 272^3 and 300^3 rows) hold less a node than whole
+#: grids, which an estimate per node alone could not follow. One row was measured again: the first
+#: kinematic six-case 64^3 run built a kernel variant inside its count (272.0 MiB; the first program a
+#: process compiles loads the runtime's compiler, some 150 MiB), 112.4 MiB with the build cached.
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
-SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 80, "kinematic": 50},
+SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 76, "kinematic": 67},
                         "fft": {"periodic": 700, "kinematic": 950}}
-SOLVE_BYTES_PER_NODE_CASE = {"multigrid": {"periodic": 50, "kinematic": 60},
-                             "fft": {"periodic": 0, "kinematic": 0}}
-SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": 200, "fft": 1900}
-#: The platen compression's part (:func:`compress`), which :func:`measure` runs first: one load case, in
-#: double; its products run by slabs of node planes
-#: (:meth:`~implicit_scaffold.measure.mechanics_cl.StiffnessOperator.live_product`), so the whole node grid
-#: holds its masks, inverse diagonal and the V-cycle's float vectors. Per node of its
-#: grid (one more per axis than the voxels), per live node (a node a solid voxel touches: the CG's vectors,
-#: 150 bytes each) and per solid voxel (the levels). Fitted and rounded up from fresh-process peaks above the
-#: start (kernels loaded before) of the central N^3 of the lumbar trabecular micro-CT, ``python
-#: benchmarks/bench_mechanics.py --sizes --memory 64 96 --memory-bone 128 200 --memory-solves
-#: compress,homogenize --preconditioners multigrid --memory-blocks 1`` and ``--memory --memory-bone 300 ...
-#: --maxiter 5`` (2026-12-06, 71a6ab0; MiB above the start; the estimate is :func:`solve_memory`'s, the larger
-#: of this part and the homogenization's, whose one-case kinematic solve held 338.2, 1,161.7 and 3,756.0):
-#:
-#: ======  ==========  =========  =========  =========  =========  ========
-#: grid    box nodes   live       solid      measured   before     estimate
-#: ======  ==========  =========  =========  =========  =========  ========
-#: 128^3   2,146,689   813,513    602,369    330.6      386.4      440.1
-#: 200^3   8,120,601   2,738,873  2,012,423  1,107.1    1,368.6    1,335.7
-#: 300^3   27,270,901  8,812,035  6,490,901  3,626.7    4,366.2    4,198.9
-#: ======  ==========  =========  =========  =========  =========  ========
-#:
-#: ("before": with the double products over the whole grid and 100 bytes a box node, 2026-12-05. Before
-#: the compression's mask went to float32 and its lifting was dropped after the right-hand side, the whole
-#: micro-CT's compression held 5.7 GiB against the former estimate's 4.1: the overshoot of ``--max-memory
-#: 4.4G`` in README, "The whole micro-CT as a user runs it, again".) 70 a node holds the 300^3 compression
-#: alone to 3,884 MiB.
-COMPRESS_BYTES_PER_NODE = {"multigrid": 70, "fft": 0}
-COMPRESS_BYTES_PER_LIVE_NODE = {"multigrid": 160, "fft": 0}
-COMPRESS_BYTES_PER_SOLID_VOXEL = {"multigrid": 100, "fft": 0}
+SOLVE_BYTES_PER_CYCLE_NODE = {"multigrid": {"periodic": 33, "kinematic": 3},
+                              "fft": {"periodic": 0, "kinematic": 0}}
+SOLVE_BYTES_PER_LIVE_NODE_CASE = {"multigrid": {"periodic": 79, "kinematic": 98},
+                                  "fft": {"periodic": 0, "kinematic": 0}}
+SOLVE_BYTES_PER_SOLID_VOXEL = {"multigrid": {"periodic": 0, "kinematic": 133},
+                               "fft": {"periodic": 1900, "kinematic": 1900}}
+#: The platen compression's part (:func:`compress`), which :func:`measure` runs first, on the box's nodes
+#: (one more per axis than the voxels): per node, per node of the V-cycle's fine level held at a time, per
+#: live node and per solid voxel (the fit above). Before the compression's mask went to float32 and its
+#: lifting was dropped after the right-hand side, the whole micro-CT's compression held 5.7 GiB against the
+#: former estimate's 4.1: the overshoot of ``--max-memory 4.4G`` in README, "The whole micro-CT as a user
+#: runs it, again".
+COMPRESS_BYTES_PER_NODE = {"multigrid": 88, "fft": 0}
+COMPRESS_BYTES_PER_CYCLE_NODE = {"multigrid": 13, "fft": 0}
+COMPRESS_BYTES_PER_LIVE_NODE = {"multigrid": 34, "fft": 0}
+COMPRESS_BYTES_PER_SOLID_VOXEL = {"multigrid": 115, "fft": 0}
 #: live nodes per solid voxel where the solid is not at hand (a field's sample before it is sampled): a rod
 #: :data:`MIN_VOXELS_PER_WALL` voxels across touches (3.5 / 2.5)^2 = 1.96 nodes a voxel, a plate 1.4; the
 #: lumbar micro-CT 1.36, the 128^3 and 200^3 Voronoi scaffolds of the README's benchmark (30 % solid) 1.51 and 1.50
@@ -2006,6 +1954,16 @@ def _load_bytes() -> int:
             + (0 if opencl.active() else SOLVE_LOAD_BYTES["opencl"]))
 
 
+def cycle_nodes(nodes: int) -> int:
+    """The nodes whose float vectors the V-cycle's fine level holds at a time on a grid of `nodes` nodes: all
+    of them, or a slab's (:data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES`) on a grid of more
+    than :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` (:meth:`Multigrid.compact
+    <implicit_scaffold.measure.multigrid.Multigrid.compact>`)."""
+    from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
+
+    return int(nodes) if nodes <= FLOAT_SLABS_FROM else min(int(nodes), FLOAT_SLAB_NODES)
+
+
 def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid",
                  cases_per_block: int = 1, live: int | None = None) -> int:
     """Bytes :func:`measure` holds at its peak over what the process held before it (an estimate).
@@ -2029,21 +1987,24 @@ def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", precon
     -------
     int, bytes
         The larger of the compression's and the homogenization's need, plus :data:`SOLVE_FIXED_BYTES` and
-        the libraries' load (:data:`SOLVE_LOAD_BYTES`, of those not loaded yet). The homogenization: per
-        node :data:`SOLVE_BYTES_PER_NODE` and :data:`SOLVE_BYTES_PER_NODE_CASE` per load case of a block,
-        plus :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel; the compression (on the box's nodes,
-        one more per axis): :data:`COMPRESS_BYTES_PER_NODE`, :data:`COMPRESS_BYTES_PER_LIVE_NODE` and
-        :data:`COMPRESS_BYTES_PER_SOLID_VOXEL`.
+        the libraries' load (:data:`SOLVE_LOAD_BYTES`, of those not loaded yet). The homogenization:
+        :data:`SOLVE_BYTES_PER_NODE` per node, :data:`SOLVE_BYTES_PER_CYCLE_NODE` per node of the V-cycle's
+        fine level at a time (:func:`cycle_nodes`), :data:`SOLVE_BYTES_PER_LIVE_NODE_CASE` per live node and
+        load case of a block, :data:`SOLVE_BYTES_PER_SOLID_VOXEL` per solid voxel; the compression (on the
+        box's nodes, one more per axis): :data:`COMPRESS_BYTES_PER_NODE`, :data:`COMPRESS_BYTES_PER_CYCLE_NODE`,
+        :data:`COMPRESS_BYTES_PER_LIVE_NODE` and :data:`COMPRESS_BYTES_PER_SOLID_VOXEL`.
     """
     nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
     box_nodes = int(np.prod([int(s) + 1 for s in shape], dtype=np.int64))
     count = int(solid_voxels)
     live = min(box_nodes, int(LIVE_NODES_PER_SOLID_VOXEL * count)) if live is None else int(live)
     block = max(1, min(6, int(cases_per_block)))
-    per_node = (SOLVE_BYTES_PER_NODE[preconditioner][boundary]
-                + SOLVE_BYTES_PER_NODE_CASE[preconditioner][boundary] * block)
-    homogenization = per_node * nodes + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner] * count
+    homogenization = (SOLVE_BYTES_PER_NODE[preconditioner][boundary] * nodes
+                      + SOLVE_BYTES_PER_CYCLE_NODE[preconditioner][boundary] * cycle_nodes(nodes)
+                      + SOLVE_BYTES_PER_LIVE_NODE_CASE[preconditioner][boundary] * block * live
+                      + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner][boundary] * count)
     compression = (COMPRESS_BYTES_PER_NODE[preconditioner] * box_nodes
+                   + COMPRESS_BYTES_PER_CYCLE_NODE[preconditioner] * cycle_nodes(box_nodes)
                    + COMPRESS_BYTES_PER_LIVE_NODE[preconditioner] * live
                    + COMPRESS_BYTES_PER_SOLID_VOXEL[preconditioner] * count)
     return int(SOLVE_FIXED_BYTES[preconditioner] + _load_bytes() + max(homogenization, compression))
