@@ -1605,6 +1605,35 @@ def test_the_estimate_holds_every_measured_peak_and_the_libraries_not_yet_loaded
     assert fresh + held + m.held_margin(held) <= budget(None)
 
 
+@pytest.mark.parametrize("boundary,block,cut", [("kinematic", 3, False), ("kinematic", 1, False),
+                                                 ("periodic", 6, False), ("periodic", 2, True)])
+def test_the_estimate_knows_which_device_programs_a_measure_builds(monkeypatch, boundary, block, cut):
+    # what a solve's estimate counts as compiled where its programs are not cached: the builds a measure
+    # asks for (the device's VOTE aside), recorded as it runs; an odd axis or a box sample adds the first
+    # level's per-element product of a block
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure.mechanics_cl import solve_variants
+
+    asked = []
+    kernel = opencl.kernel
+
+    def recording(source, name, **defines):
+        mine = {k: v for k, v in defines.items() if k not in opencl.DEVICE_DEFINES}
+        if source == "mechanics" and mine not in asked:
+            asked.append(mine)
+        return kernel(source, name, **defines)
+
+    monkeypatch.setattr(opencl, "kernel", recording)
+    g = (np.arange(24) + 0.5) / 24 * 2 * np.pi
+    x, y, z = np.meshgrid(g, g, g, indexing="ij", sparse=True)
+    solid = np.sin(x) * np.cos(y) + np.sin(y) * np.cos(z) + np.sin(z) * np.cos(x) < 0.3
+    if cut:
+        solid = np.ascontiguousarray(solid[:, :23, :22])
+    m.measure(solid, 0.05, TI, boundary=boundary, backend="opencl", cases_per_block=block)
+    predicted = solve_variants(block, solid.shape, boundary)
+    assert sorted(map(str, asked)) == sorted(map(str, predicted))
+
+
 def test_a_short_budget_takes_smaller_blocks_of_load_cases():
     shape, count = (40, 40, 40), 20000
     sizes = {b: m.solve_memory(shape, count, cases_per_block=b) for b in (1, 2, 3, 6)}

@@ -179,6 +179,30 @@ def test_a_build_lock_left_by_a_killed_run_does_not_stop_the_next_build(monkeypa
     assert any(entry.is_dir() for entry in folder.iterdir())  # the binary, cached
 
 
+def test_programs_not_built_on_this_machine_are_compiled_in_a_child(monkeypatch, tmp_path):
+    # a compile loads the runtime's compiler into the process (+152 MiB measured), which a solve's memory
+    # estimate does not count: a measure's programs not built on this machine yet are built by a child, and
+    # this process loads their binaries from the cache
+    from implicit_scaffold.measure import mechanics_cl
+
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(opencl, "_COMPILED", [])
+    # defines of their own: builds, not this process's programs kept from an earlier test
+    mine = [dict(NCASE=1, USE_DOUBLE=0, CHILD=1), dict(NCASE=2, USE_DOUBLE=0, CHILD=1)]
+    assert opencl.unbuilt("mechanics", mine) == mine
+    mechanics_cl.prebuild(mine)
+    assert opencl.unbuilt("mechanics", mine) == []
+    for defines in mine:
+        opencl.program("mechanics", VOTE=int(mechanics_cl.has_vote()), **defines)
+    assert not opencl._COMPILED
+    # the device's own defines are left out of the markers: they are read before the device is chosen
+    assert opencl.unbuilt("mechanics", [dict(mine[0], VOTE=1 - int(mechanics_cl.has_vote()))]) == []
+    # a build in this process that misses the cache compiles, and marks the variant built
+    alone = dict(NCASE=1, USE_DOUBLE=0, CHILD=2)
+    opencl.program("mechanics", VOTE=0, **alone)
+    assert opencl._COMPILED and opencl.unbuilt("mechanics", [alone]) == []
+
+
 def test_a_cache_folder_that_cannot_be_made_leaves_the_build_uncached(monkeypatch, tmp_path):
     # the user's cache path runs through a file: nothing can be kept there, and the build still happens
     (tmp_path / "file").write_text("")

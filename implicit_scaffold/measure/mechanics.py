@@ -1786,6 +1786,10 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 
     accuracy = ACCURACY if tol is None else None
     tol = TOL if tol is None else tol
+    if backend == "opencl":
+        from .mechanics_cl import prebuild, solve_variants
+
+        prebuild(solve_variants(cases_per_block, solid.shape, boundary))
     comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
                     progress=tell("compression"), accuracy=accuracy)
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
@@ -1946,7 +1950,8 @@ def live_nodes(solid) -> int:
 
 
 def _load_bytes() -> int:
-    """:data:`SOLVE_LOAD_BYTES` of the libraries this process has not loaded yet."""
+    """:data:`SOLVE_LOAD_BYTES` of the libraries this process has not loaded yet (the device programs a
+    measure compiles are compiled in a child: :func:`~implicit_scaffold.measure.mechanics_cl.prebuild`)."""
     from .. import opencl
     from .multigrid import kernels_loaded
 

@@ -40,6 +40,30 @@ def defines(ncase: int, double: bool) -> dict:
     return dict(NCASE=int(ncase), USE_DOUBLE=int(bool(double)), VOTE=int(has_vote()))
 
 
+def solve_variants(block: int, shape, boundary: str) -> list[dict]:
+    """The builds of ``kernels/mechanics.cl`` a measure of a sample of `shape` voxels makes with load cases
+    `block` at a time, as :func:`defines` but the device's VOTE: the fine operator one case a launch in float
+    and in double; a block of two or more on the coarse levels, and where the first level has elements no
+    child pattern covers (a box sample, or an odd axis), those by ``stiffness_apply`` with ADD
+    (:class:`PatternLevelOperator`)."""
+    out = [dict(NCASE=1, USE_DOUBLE=0), dict(NCASE=1, USE_DOUBLE=1)]
+    if block >= PatternLevelOperator.MIN_CASES:
+        out.append(dict(NCASE=int(block), USE_DOUBLE=0))
+        if boundary != "periodic" or any(int(s) % 2 for s in shape):
+            out.append(dict(ADD=1, NCASE=int(block), USE_DOUBLE=0))
+    return out
+
+
+def prebuild(variants) -> None:
+    """Have the `variants` (:func:`solve_variants`) built before a solve: those not built on this machine
+    yet are compiled in a child process (:func:`~implicit_scaffold.opencl.build_in_child`), so that this
+    process only loads their binaries and never holds the runtime's compiler (some 150 MiB, which the
+    solve's memory estimate does not count). Nothing is started when all are built."""
+    todo = opencl.unbuilt("mechanics", variants)
+    if todo:
+        opencl.build_in_child(__name__, todo)
+
+
 #: host arrays the device reads and writes in place are aligned to this many bytes: a CPU
 #: device then uses them as its buffers (``USE_HOST_PTR``, zero copy); at any other address
 #: the Intel CPU runtime keeps a copy of its own (measured: 16-byte-aligned NumPy arrays of
@@ -449,3 +473,12 @@ class StencilLevelOperator(_Gather):
     def _launches(self, ncase: int) -> list:
         return self._rows("stencil", defines(ncase, self.double), (self.owner, self.mats))
 
+
+if __name__ == "__main__":  # the child of prebuild: build each variant given as JSON, with the device's defines
+    import json
+
+    from implicit_scaffold import opencl as _opencl
+    from implicit_scaffold.measure import mechanics_cl as _module
+
+    for _variant in json.loads(sys.argv[1]):
+        _opencl.program("mechanics", **{**_variant, "VOTE": int(_module.has_vote())})
