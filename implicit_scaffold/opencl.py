@@ -542,7 +542,14 @@ def build_in_child(module: str, variants) -> bool:
     set, a binary from the cache 6; three more compiles (``mechanics`` variants) 23, 26 and 31 MiB. A
     first run's ``mechanics`` of a 64^3 gyroid, nothing cached, peaked at 564.8 MiB resident (``/usr/bin/time``)
     under ``--max-memory 490M``, the same command again at 388.7: a solve's budget holds its own arrays, not a
-    compiler's."""
+    compiler's. Where the cache folder cannot be written the child could leave nothing behind: none is started."""
+    folder = _built_marker("", {}).parent
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return False
+    if not os.access(folder, os.W_OK):
+        return False
     cmd = [sys.executable, "-m", module, json.dumps(list(variants))]
     try:
         run = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT,
