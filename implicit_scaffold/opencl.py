@@ -615,12 +615,13 @@ def _program(ctx, name: str, defines: tuple):
     # PyOpenCL's record of the build: (how, whether from its binary cache, seconds); unknown: compiled
     if not (getattr(prg, "_build_duration_info", None) or (None, False))[1]:
         _COMPILED.append(True)
-    try:
-        marker = _built_marker(name, dict(defines))
-        if not marker.exists():
-            _write_atomic(marker, "")
-    except OSError:  # a read-only home: every build counts as a compile
-        pass
+    if folder is not None:  # its binary is in the cache: a later build loads it
+        try:
+            marker = _built_marker(name, dict(defines))
+            if not marker.exists():
+                _write_atomic(marker, "")
+        except OSError:
+            pass
     return prg
 
 
