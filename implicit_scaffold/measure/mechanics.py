@@ -1882,7 +1882,10 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: held); the fine level's slabs above 2^24 nodes (the 272^3 and 300^3 rows) hold less a node than whole
 #: grids, which an estimate per node alone could not follow. One row was measured again: the first
 #: kinematic six-case 64^3 run built a kernel variant inside its count (272.0 MiB; the first program a
-#: process compiles loads the runtime's compiler, some 150 MiB), 112.4 MiB with the build cached.
+#: process compiles loads the runtime's compiler, some 150 MiB), 112.4 MiB with the build cached. Measured
+#: again on aa6d110 (README, "The estimate refitted"), the one-case rows moved by up to 20.9 MiB (the 128^3
+#: 30 % compression: 292.0 against 271.1); the least ratio there was 1.199 (272^3, 30 %, compression:
+#: 2,273.3 against 2,725.2).
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 76, "kinematic": 67},
                         "fft": {"periodic": 700, "kinematic": 950}}
