@@ -1607,10 +1607,10 @@ def test_the_estimate_holds_every_measured_peak_and_the_libraries_not_yet_loaded
 
 @pytest.mark.parametrize("boundary,block,cut", [("kinematic", 3, False), ("kinematic", 1, False),
                                                  ("periodic", 6, False), ("periodic", 2, True)])
-def test_the_estimate_knows_which_device_programs_a_measure_builds(monkeypatch, boundary, block, cut):
-    # what a solve's estimate counts as compiled where its programs are not cached: the builds a measure
-    # asks for (the device's VOTE aside), recorded as it runs; an odd axis or a box sample adds the first
-    # level's per-element product of a block
+def test_the_programs_a_measure_has_built_first_are_those_it_asks_for(monkeypatch, boundary, block, cut):
+    # what a measure has a child compile where this machine has not built it (mechanics_cl.prebuild): the builds
+    # the measure asks for (the device's VOTE aside), recorded as it runs; an odd axis or a box sample adds the
+    # first level's per-element product of a block. A build missed would be compiled in the solve's process
     from implicit_scaffold import opencl
     from implicit_scaffold.measure.mechanics_cl import solve_variants
 
