@@ -539,7 +539,7 @@ def build_in_child(module: str, variants) -> bool:
 
     A compile loads the runtime's compiler into the process, and it stays: in a fresh process with its
     context made (Intel CPU runtime 2026.22, 2026-12-06) the first compile added 152 MiB to the resident
-    set, a binary from the cache 6; three more compiles (``mechanics`` variants) 23, 26 and 31 MiB. A
+    set, a binary from the cache 6 to 7; three more compiles (``mechanics`` variants) 23, 26 and 31 MiB. A
     first run's ``mechanics`` of a 64^3 gyroid, nothing cached, peaked at 564.8 MiB resident (``/usr/bin/time``)
     under ``--max-memory 490M``, the same command again at 388.7: a solve's budget holds its own arrays, not a
     compiler's. Where the cache folder cannot be written the child could leave nothing behind: none is started."""
