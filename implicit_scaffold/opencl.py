@@ -523,7 +523,12 @@ def _built_marker(name: str, defines: dict) -> Path:
              f"{os.environ.get(DEVICE_ENV, '')}\n".encode())
     for path in sorted(kernels_dir().glob("*.cl")):
         h.update(path.read_bytes())
-    return cache_dir() / "built" / h.hexdigest()[:24]
+    return _built_dir() / h.hexdigest()[:24]
+
+
+def _built_dir() -> Path:
+    """The folder of the built markers (:func:`_built_marker`)."""
+    return cache_dir() / "built"
 
 
 def unbuilt(name: str, variants) -> list:
@@ -543,7 +548,7 @@ def build_in_child(module: str, variants) -> bool:
     first run's ``mechanics`` of a 64^3 gyroid, nothing cached, peaked at 564.8 MiB resident (``/usr/bin/time``)
     under ``--max-memory 490M``, the same command again at 388.7: a solve's budget holds its own arrays, not a
     compiler's. Where the cache folder cannot be written the child could leave nothing behind: none is started."""
-    folder = _built_marker("", {}).parent
+    folder = _built_dir()
     try:
         folder.mkdir(parents=True, exist_ok=True)
     except OSError:

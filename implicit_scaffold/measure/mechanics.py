@@ -1849,8 +1849,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: (:data:`SOLVE_FIXED_BYTES`: the multigrid's compiled kernels, the device's programs) and parts
 #: - per node of the solve's grid (masks, the inverse diagonal, the first coarse level);
 #: - per node of the V-cycle's fine level held at a time (:func:`cycle_nodes`: its float vectors span the
-#:   whole grid up to :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, and slabs of
-#:   :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` above it);
+#:   whole grid up to :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, and a slab of
+#:   some :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` with its halo above it);
 #: - per live node (a node a solid voxel touches), and for the homogenization per live node and load case
 #:   of a CG block (the CG's vectors: x and r in double, p in float, on the live nodes only);
 #: - per solid voxel (the coarse levels' matrices).
@@ -1885,7 +1885,9 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
 #: process compiles loads the runtime's compiler, some 150 MiB), 112.4 MiB with the build cached. Measured
 #: again on aa6d110 (README, "The estimate refitted"), the one-case rows moved by up to 20.9 MiB (the 128^3
 #: 30 % compression: 292.0 against 271.1); the least ratio there was 1.199 (272^3, 30 %, compression:
-#: 2,273.3 against 2,725.2).
+#: 2,273.3 against 2,725.2). The fit counted a slab as 2^22 nodes; :func:`cycle_nodes` now counts its whole planes
+#: and two halo planes, as :func:`~implicit_scaffold.measure.multigrid.fine_slab_planes` makes them, which raises
+#: the 272^3 and 300^3 estimates by at most 1.6 MiB (2,725.2 to 2,726.8).
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 76, "kinematic": 67},
                         "fft": {"periodic": 700, "kinematic": 950}}
@@ -1962,14 +1964,16 @@ def _load_bytes() -> int:
             + (0 if opencl.active() else SOLVE_LOAD_BYTES["opencl"]))
 
 
-def cycle_nodes(nodes: int) -> int:
-    """The nodes whose float vectors the V-cycle's fine level holds at a time on a grid of `nodes` nodes: all
-    of them, or a slab's (:data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES`) on a grid of more
-    than :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` (:meth:`Multigrid.compact
-    <implicit_scaffold.measure.multigrid.Multigrid.compact>`)."""
-    from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
+def cycle_nodes(node_shape) -> int:
+    """The nodes whose float vectors the V-cycle's fine level holds at a time on a node grid of `node_shape`:
+    all of them, or a slab's with its two halo planes where the fine level runs by slabs (a grid of more than
+    :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes:
+    :func:`~implicit_scaffold.measure.multigrid.fine_slab_planes`)."""
+    from .multigrid import fine_slab_planes
 
-    return int(nodes) if nodes <= FLOAT_SLABS_FROM else min(int(nodes), FLOAT_SLAB_NODES)
+    n1, n2, n3 = (int(v) for v in node_shape)
+    thick = fine_slab_planes(node_shape)
+    return n1 * n2 * n3 if thick >= n1 else (thick + 2) * n2 * n3
 
 
 def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", preconditioner: str = "multigrid",
@@ -2002,17 +2006,19 @@ def solve_memory(shape, solid_voxels: int, *, boundary: str = "periodic", precon
         box's nodes, one more per axis): :data:`COMPRESS_BYTES_PER_NODE`, :data:`COMPRESS_BYTES_PER_CYCLE_NODE`,
         :data:`COMPRESS_BYTES_PER_LIVE_NODE` and :data:`COMPRESS_BYTES_PER_SOLID_VOXEL`.
     """
-    nodes = int(np.prod([int(s) + (boundary != "periodic") for s in shape], dtype=np.int64))
-    box_nodes = int(np.prod([int(s) + 1 for s in shape], dtype=np.int64))
+    node_shape = [int(s) + (boundary != "periodic") for s in shape]
+    box_shape = [int(s) + 1 for s in shape]
+    nodes = int(np.prod(node_shape, dtype=np.int64))
+    box_nodes = int(np.prod(box_shape, dtype=np.int64))
     count = int(solid_voxels)
     live = min(box_nodes, int(LIVE_NODES_PER_SOLID_VOXEL * count)) if live is None else int(live)
     block = max(1, min(6, int(cases_per_block)))
     homogenization = (SOLVE_BYTES_PER_NODE[preconditioner][boundary] * nodes
-                      + SOLVE_BYTES_PER_CYCLE_NODE[preconditioner][boundary] * cycle_nodes(nodes)
+                      + SOLVE_BYTES_PER_CYCLE_NODE[preconditioner][boundary] * cycle_nodes(node_shape)
                       + SOLVE_BYTES_PER_LIVE_NODE_CASE[preconditioner][boundary] * block * live
                       + SOLVE_BYTES_PER_SOLID_VOXEL[preconditioner][boundary] * count)
     compression = (COMPRESS_BYTES_PER_NODE[preconditioner] * box_nodes
-                   + COMPRESS_BYTES_PER_CYCLE_NODE[preconditioner] * cycle_nodes(box_nodes)
+                   + COMPRESS_BYTES_PER_CYCLE_NODE[preconditioner] * cycle_nodes(box_shape)
                    + COMPRESS_BYTES_PER_LIVE_NODE[preconditioner] * live
                    + COMPRESS_BYTES_PER_SOLID_VOXEL[preconditioner] * count)
     return int(SOLVE_FIXED_BYTES[preconditioner] + _load_bytes() + max(homogenization, compression))

@@ -37,7 +37,12 @@ def _lists_subgroups(ctx) -> bool:
 def defines(ncase: int, double: bool) -> dict:
     """The ``-D`` defines of ``kernels/mechanics.cl`` for products of `ncase` load cases a launch:
     one place, so that a caller building the kernels ahead (the benchmark) builds these."""
-    return dict(NCASE=int(ncase), USE_DOUBLE=int(bool(double)), VOTE=int(has_vote()))
+    return dict(_variant(ncase, double), VOTE=int(has_vote()))
+
+
+def _variant(ncase: int, double: bool) -> dict:
+    """:func:`defines` but the device's VOTE (what a built marker names: :func:`solve_variants`)."""
+    return dict(NCASE=int(ncase), USE_DOUBLE=int(bool(double)))
 
 
 def solve_variants(block: int, shape, boundary: str) -> list[dict]:
@@ -46,11 +51,11 @@ def solve_variants(block: int, shape, boundary: str) -> list[dict]:
     and in double; a block of two or more on the coarse levels, and where the first level has elements no
     child pattern covers (a box sample, or an odd axis), those by ``stiffness_apply`` with ADD
     (:class:`PatternLevelOperator`)."""
-    out = [dict(NCASE=1, USE_DOUBLE=0), dict(NCASE=1, USE_DOUBLE=1)]
+    out = [_variant(1, False), _variant(1, True)]
     if block >= PatternLevelOperator.MIN_CASES:
-        out.append(dict(NCASE=int(block), USE_DOUBLE=0))
+        out.append(_variant(block, False))
         if boundary != "periodic" or any(int(s) % 2 for s in shape):
-            out.append(dict(ADD=1, NCASE=int(block), USE_DOUBLE=0))
+            out.append(dict(ADD=1, **_variant(block, False)))
     return out
 
 
@@ -477,8 +482,5 @@ class StencilLevelOperator(_Gather):
 if __name__ == "__main__":  # the child of prebuild: build each variant given as JSON, with the device's defines
     import json
 
-    from implicit_scaffold import opencl as _opencl
-    from implicit_scaffold.measure import mechanics_cl as _module
-
-    for _variant in json.loads(sys.argv[1]):
-        _opencl.program("mechanics", **{**_variant, "VOTE": int(_module.has_vote())})
+    for _given in json.loads(sys.argv[1]):
+        opencl.program("mechanics", **_given, VOTE=int(has_vote()))

@@ -75,6 +75,20 @@ FINE_SLAB_NODES = None
 STENCIL_LEVELS = True
 
 
+def fine_slab_planes(shape) -> int:
+    """The node planes (along the first axis) a slab of the V-cycle's fine level holds inside its halo on a
+    node grid of `shape`, by :data:`FINE_SLAB_NODES`; ``shape[0]`` where the whole grid is one slab."""
+    from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
+
+    n1, n2, n3 = (int(v) for v in shape)
+    plane = n2 * n3
+    if FINE_SLAB_NODES is None:
+        nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
+    else:
+        nodes = FINE_SLAB_NODES
+    return min(n1, max(1, nodes // plane)) if nodes else n1
+
+
 # ----------------------------------------------------------------------------- compiled kernels
 
 
@@ -915,13 +929,7 @@ class Multigrid:
         the coarse planes its planes interpolate from and theirs)."""
         n1, n2, n3 = self.fine_shape
         plane = n2 * n3
-        from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
-
-        if FINE_SLAB_NODES is None:
-            nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
-        else:
-            nodes = FINE_SLAB_NODES
-        thick = max(1, nodes // plane) if nodes else n1
+        thick = fine_slab_planes(self.fine_shape)
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
