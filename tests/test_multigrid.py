@@ -272,6 +272,35 @@ def test_a_level_on_node_stencils_is_the_dense_levels_product(shape, density, vo
                         assert not got[:, :, untouched].any(), check.name
 
 
+def test_a_float32_level_coarsens_in_float32_as_its_float64_copy_would_without_holding_one():
+    # oracle: the next level of the same matrices widened to float64 (exactly), rounded to float32 after
+    import tracemalloc
+
+    rng = np.random.default_rng(3)
+    model = M.voxel_model(rng.random((24, 24, 24)) < 0.5, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    level = G._first_coarse(model, free, np.float32)
+    level.mats = np.asarray(rng.standard_normal(level.mats.shape), np.float32)  # one matrix per element
+    level.index = np.arange(level.index.size, dtype=np.int32).reshape(level.index.shape)
+    level.mats = np.resize(level.mats, (level.index.size, 24, 24))
+    wide = G.Level(level.shape, level.index, level.mats.astype(np.float64), level.inv_diag)
+    expect = G._next_coarse(wide).mats.astype(np.float32)
+    tracemalloc.start()
+    try:
+        before = tracemalloc.get_traced_memory()[0]
+        tracemalloc.reset_peak()
+        got = G._next_coarse(level)
+        peak = tracemalloc.get_traced_memory()[1] - before
+    finally:
+        tracemalloc.stop()
+    assert got.mats.dtype == np.float32
+    assert np.array_equal(got.mats, expect)
+    # the new level's matrices, its diagonal and the coarsening's mask of ones: no float64 copy of the
+    # level's matrices (twice their bytes), nor a float64 result beside the float32 one
+    n = int(np.prod(level.shape))
+    assert peak < level.mats.nbytes + 3 * got.mats.nbytes + 3 * n * 8 * 2
+
+
 def test_child_matrices_are_the_interpolated_element_matrix():
     # M_c = W_c^T Ke W_c, W_c built here from its definition: fine corner q of child c = (a, b, c)
     # sits at ((a, b, c) + offset(q)) / 2 in the coarse element, where coarse corner r weighs the
