@@ -24,7 +24,7 @@ Definitions (one each, used by the search and the verification alike)
 - stiffness: the apparent modulus of a lubricated platen compression along z
   (:func:`~implicit_scaffold.measure.mechanics.compress`) of each seed's modulus cube (:func:`modulus_volume`:
   :data:`MODULUS_CELLS` cells of the chosen Sv a side, built at the design voxel, its signed distance sampled at a
-  solve voxel of at most :data:`MODULUS_VOXELS_SIDE` a side keeping the solid volume, every voxel solved:
+  solve voxel of at most :data:`MODULUS_VOXELS_SIDE` a side keeping the solid fraction, every voxel solved:
   :func:`cube_modulus`). The search reads seed 0's representative volume instead, at twice its voxel (the solve
   is the cost); where the seeds' mean misses, the verification runs again at a generator porosity moved within
   the porosity's tolerance (:data:`MODULUS_POROSITY_SHIFT`).
@@ -58,7 +58,7 @@ SV_RANGE = (0.3, 0.95)
 #: spread of an apparent modulus falls roughly as one over the square root of the cells
 MODULUS_CELLS = 5
 #: ... solved on at most this many voxels a side (the field built at the design voxel, sampled at the
-#: solve's keeping its solid volume): the solve is the verification's cost. 64 over five cells is a
+#: solve's keeping its solid fraction): the solve is the verification's cost. 64 over five cells is a
 #: solve voxel of 1/12.8 of a cell, about the design maps' (1/12: their cube's 96 build voxels over four
 #: cells, every other one)
 MODULUS_VOXELS_SIDE = 64
@@ -253,7 +253,7 @@ def modulus_volume(targets: Targets, rve: dict, sv: float) -> dict:
 def cube_modulus(params: dict, targets: Targets, cube: dict, seed: int) -> float:
     """The apparent modulus (GPa) of the verification: `params` built on the cube `cube`
     (:func:`modulus_volume`) at its voxel, the signed distance sampled (trilinear) at its
-    ``solve_voxel`` with the solid below the level that keeps the build's solid volume
+    ``solve_voxel`` with the solid below the level that keeps the build's solid fraction
     (:func:`~implicit_scaffold.measure.mechanics.solid_for_solve`, as ``--mechanics-voxel``), then
     :func:`apparent_modulus` on every voxel of that sample.
 
@@ -542,7 +542,7 @@ DEFINITIONS = {
                  f"(representative_volume.modulus: {MODULUS_CELLS} cells of the chosen Sv a side, pore size / Sv "
                  "each), built at the design voxel, its signed distance "
                  f"sampled at the solve voxel (at most {MODULUS_VOXELS_SIDE} a side) with the solid below the level "
-                 "that keeps the build's solid volume, voxel FE on every voxel of that sample, CG to a relative "
+                 "that keeps the build's solid fraction, voxel FE on every voxel of that sample, CG to a relative "
                  "residual of 1e-3, GPa",
 }
 

@@ -1340,11 +1340,15 @@ def test_the_sampled_field_is_the_trilinear_field_and_the_same_from_disk(tmp_pat
     for voxel in (0.05, 0.0731, 0.12):
         values, g = m.sample_field(field, grid, lo, hi, voxel)
         assert g.spacing == voxel
-        # the new grid covers the box of the voxels [lo, hi): its first and last centres within half a voxel
+        # the new grid is the box of the voxels [lo, hi) to the nearest voxel, centred on it: each face within
+        # half a voxel of the box's, and as near as a whole number of voxels can be
         box_lo = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
         box_hi = np.asarray(grid.origin) + (hi - 0.5) * grid.spacing
-        assert np.all(g.lo <= box_lo + 1e-12) and np.all(g.hi >= box_hi - 1e-12)
-        assert np.all(g.hi - g.lo < box_hi - box_lo + voxel)
+        assert np.all(np.abs(g.lo - box_lo) <= voxel / 2 + 1e-12) and np.all(np.abs(g.hi - box_hi) <= voxel / 2 + 1e-12)
+        assert np.allclose((g.lo + g.hi) / 2, (box_lo + box_hi) / 2, rtol=0, atol=1e-12)
+        length = box_hi - box_lo
+        assert np.all(np.abs(np.asarray(g.shape) * voxel - length) <= np.abs((np.asarray(g.shape) + [[-1], [1]]) * voxel
+                                                                             - length).min(axis=0) + 1e-12)
         ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, g.points()).reshape(g.shape)
         # float32 values interpolated in float64: a few float32 ulps
         assert np.abs(values - ref).max() <= 1e-6 * np.abs(field).max()
@@ -1353,6 +1357,27 @@ def test_the_sampled_field_is_the_trilinear_field_and_the_same_from_disk(tmp_pat
         # read from the file a plane or so at a time: the same bits as from the array at once
         small, _ = m.sample_field(disk, grid, lo, hi, voxel, chunk_bytes=2000)
         assert np.array_equal(small, values)
+
+
+def test_a_sample_at_a_voxel_that_does_not_divide_its_box_keeps_its_box_and_its_solid_fraction():
+    # a periodic gyroid of 3.01 mm over 59 voxels, sampled at 0.075 mm (40.2 voxels): the oracle is the field's
+    # own solid fraction over its box; a grid covering the box (41 voxels, 3.075 mm) with the solid volume kept
+    # gave 0.2055 against 0.2185 on generate's 3 mm cube
+    from implicit_scaffold.run.grid import Grid
+
+    n, h0 = 59, 3.01 / 59
+    x = (np.arange(n) + 0.5) * h0 * 2 * np.pi / 3.01
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    field = (np.sin(X) * np.cos(Y) + np.sin(Y) * np.cos(Z) + np.sin(Z) * np.cos(X) + 0.9 + 0.01 * X).astype(np.float32)
+    grid = Grid((h0 / 2,) * 3, h0, field.shape)
+    fraction = float(np.count_nonzero(field < 0)) / field.size
+    assert 0.15 < fraction < 0.3
+    for voxel in (0.075, 0.0911):
+        sample = m.solid_for_solve(field, grid, voxel=voxel, boundary="periodic")
+        assert sample.voxel == voxel
+        # the gyroid touches every face: the sample is its box, to the nearest voxel
+        assert all(abs(k * voxel - 3.01) <= voxel / 2 for k in sample.solid.shape)
+        assert abs(sample.solid.mean() / fraction - 1) < 0.01, (voxel, sample.solid.mean(), fraction)
 
 
 def test_solid_box_is_the_box_of_the_negative_voxels():
@@ -1414,19 +1439,19 @@ def test_generate_mechanics_of_a_slab_run_is_the_in_memory_run(slab_and_whole, v
 
 def oracle_solid(field, grid, h):
     """The solid at voxel `h` by brute force: trilinear values at the centres of the grid of voxel `h`
-    over the box of the solid voxels; below the level that keeps the solid volume (at a coarser voxel);
-    cropped to its solid voxels."""
+    over the box of the solid voxels (its length to the nearest voxel, centred); below the level that keeps the
+    solid fraction of that box (at a coarser voxel); cropped to its solid voxels."""
     idx = np.array(np.nonzero(field < 0))
     lo, hi = idx.min(axis=1), idx.max(axis=1) + 1
     if h == grid.spacing:
         return m.crop(field[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]] < 0)
     corner = np.asarray(grid.origin) + (lo - 0.5) * grid.spacing
-    shape = np.ceil((hi - lo) * grid.spacing / h - 1e-9).astype(int)
+    shape = np.maximum(np.rint((hi - lo) * grid.spacing / h), 1).astype(int)
     first = corner + ((hi - lo) * grid.spacing - (shape - 1) * h) / 2  # the new grid centred on the box
     axes = [first[a] + np.arange(shape[a]) * h for a in range(3)]
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     ref = trilinear(field.astype(float), np.asarray(grid.origin), grid.spacing, points).reshape(shape)
-    k = int(np.rint(idx.shape[1] * (grid.spacing / h) ** 3))
+    k = int(np.rint(idx.shape[1] / np.prod(hi - lo) * np.prod(shape)))
     return m.crop(ref <= np.sort(ref.ravel())[k - 1])
 
 
@@ -1494,7 +1519,15 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     assert code == 0, cap.err
     r = json.loads(out.read_text())
     assert r["voxel"]["voxel_mm"] == 0.1 and r["solver"]["voxel_mm"] == 0.1
-    assert r["stiffness_tensor_gpa"] == whole["stiffness_tensor_gpa"]  # the budget changes nothing else
+    # the budget changes nothing else but the load cases a block (as many as it holds): the same blocks, the same
+    # bits; fewer, each case's CG stops on its own energy estimate, within the accuracy's first-order share
+    # (a run after other tests held more: 2 cases a block, C13 20.23023 against 20.23058)
+    assert r["voxel"]["cases_per_block"] <= whole["voxel"]["cases_per_block"]
+    if r["voxel"]["cases_per_block"] == whole["voxel"]["cases_per_block"]:
+        assert r["stiffness_tensor_gpa"] == whole["stiffness_tensor_gpa"]
+    else:
+        a, b = np.array(r["stiffness_tensor_gpa"]), np.array(whole["stiffness_tensor_gpa"])
+        assert np.abs(a - b).max() <= np.sqrt(m.ACCURACY) * np.abs(b).max()
     # and the named voxel fits the small budget
     code, cap = _run(argv + ["--mechanics-voxel", voxel], capsys)
     assert code == 0, cap.err

@@ -2067,8 +2067,8 @@ def solid_box(field, *, level: float = 0.0, chunk_bytes: int = SAMPLE_CHUNK_BYTE
 def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE_CHUNK_BYTES):
     """A field over the voxels ``[lo, hi)`` of its grid, at another voxel, read a few planes at a time.
 
-    The grid of voxel `voxel` that covers the box of those voxels, centred on it
-    (:meth:`~implicit_scaffold.run.grid.Grid.covering`), gets the field's trilinear value at each of its voxel
+    The grid of voxel `voxel` of as many voxels along each axis as the box's length holds, rounded
+    (:func:`_shape_at`), centred on the box, gets the field's trilinear value at each of its voxel
     centres (:func:`~implicit_scaffold.fields.field.sample`: the nearest edge value beyond the grid). At the field's
     own voxel, the values are the field's own. A batch of the new grid's planes reads only
     the field's planes around it, so the whole field is never held (a slab run's field is a
@@ -2107,7 +2107,10 @@ def sample_field(field, grid, lo, hi, voxel: float, *, chunk_bytes: int = SAMPLE
             values[x0:x1] = field[lo[0] + x0:lo[0] + x1, lo[1]:hi[1], lo[2]:hi[2]]
         return values, out_grid
     corner = np.asarray(grid.origin) + (lo - 0.5) * h0
-    out_grid = Grid.covering(corner, corner + (hi - lo) * h0, float(voxel), pad=0)
+    shape = np.asarray(_shape_at(hi - lo, h0, float(voxel)))
+    # centred on the box: its first and last voxels' outer faces within half a voxel of the box's
+    origin = corner + ((hi - lo) * h0 - (shape - 1) * float(voxel)) / 2
+    out_grid = Grid(tuple(float(v) for v in origin), float(voxel), tuple(int(v) for v in shape))
     values = np.empty(out_grid.shape, np.float32)
     # per axis, the field's plane below each new centre and the weight of the one above, from the
     # whole grid's coordinates: a value's arithmetic is its own whatever the batch it falls in
@@ -2195,8 +2198,14 @@ def _round_up(h: float) -> float:
 
 
 def _shape_at(n, h0: float, h: float) -> tuple:
-    """The voxels of the grid of voxel `h` over a box of `n` voxels of `h0` (:meth:`Grid.covering`'s rule)."""
-    return tuple(int(max(np.ceil(int(k) * h0 / h - 1e-9), 1)) for k in n)
+    """The voxels of the grid of voxel `h` over a box of `n` voxels of `h0`: the nearest whole number along
+    each axis (at least one), so that the sample's box lies within half a voxel of the box a side.
+
+    Not the covering grid (rounded up): a periodic sample then gained up to a voxel's layer beyond its
+    period, of the edge's values, which broke the sample's repetition and, with the solid volume kept,
+    thinned every strut (a 3 mm cube of 59 voxels of 0.0511 mm at 0.075 mm: 41 voxels, 3.075 mm;
+    solid fraction 0.2055 against the field's 0.2185)."""
+    return tuple(int(max(np.floor(int(k) * h0 / h + 0.5), 1)) for k in n)
 
 
 def sample_memory(n, solid_voxels: int, h0: float, h: float, *, boundary: str = "kinematic",
@@ -2460,7 +2469,9 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     warning = None
     for _ in range(8):
         values, sampled = sample_field(field, grid, lo, hi, h)
-        level = keep_volume(values, count * (h0 / h) ** 3) if h != h0 else np.float32(0)
+        # the field's solid fraction over its box (the sample's box may be up to half a voxel a side
+        # shorter or longer: its solid volume follows)
+        level = keep_volume(values, count / np.prod(n, dtype=np.float64) * values.size) if h != h0 else np.float32(0)
         box_lo, box_hi, solid_count = solid_box(values, level=level)
         if not solid_count:
             raise ScaffoldError(f"at the mechanics voxel {h:.4g} mm no voxel centre lies in the solid; use a finer "
@@ -2484,7 +2495,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     note = f"mechanics voxel {h:.4g} mm: {why}"
     if h != h0:
         note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "
-                 f"it keeps the {source}'s solid volume")
+                 f"it keeps the {source}'s solid fraction")
     # the load cases per block: as many as the budget holds beside the sampled grid (freed before the solve)
     block = block_for(allowance - held_margin(held), solid.shape, solid_count, boundary=bc,
                       preconditioner=preconditioner, live=live)
