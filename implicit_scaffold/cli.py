@@ -34,7 +34,8 @@ def _size(text: str):
 def _add_spacing(g) -> None:
     """--spacing, for every command that reads a volume (the patient's or a scaffold's)."""
     g.add_argument("--spacing", type=_spacing, default=None,
-                   help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z"')
+                   help='volume: voxel spacing of a file whose header states none: one or three mm, "x y z" '
+                        "(given for a file that states one, it replaces it, with a warning)")
 
 
 def _add_volume_choice(g) -> None:
@@ -436,7 +437,7 @@ def _check_report(path) -> None:
 
     if not path.lower().endswith((".html", ".htm")):
         raise ScaffoldError(f"--report writes an HTML page; name it like report.html, not {path!r}")
-    check_writable(path, formats=(".html", ".htm"))
+    check_writable(path, formats=(".html", ".htm"), option="--report")
 
 
 def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):

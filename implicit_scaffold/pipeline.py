@@ -1437,8 +1437,10 @@ def _measure_mechanics(result: Result, spec, max_memory, progress=None) -> None:
     result.report["mechanics"], result.compression = measure_sample(sample, spec.material, boundary=boundary,
                                                                     axis="xyz".index(spec.axis), progress=progress,
                                                                     tol=spec.tol)
-    if sample.report["warning"]:
-        result.report.setdefault("warnings", []).append(sample.report["warning"])
+    mech = result.report["mechanics"]
+    for warning in (sample.report["warning"], mech["solver"]["warning"], mech["compression"]["warning"]):
+        if warning:
+            result.report.setdefault("warnings", []).append(warning)
 
 
 def _correct(tf, step: float, report: dict, params: Params, grid: Grid, prog, one_piece: bool,

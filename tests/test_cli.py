@@ -224,6 +224,9 @@ def _analyze_bad(tmp_path):
         ([str(stl), "--voxel", "0.1", "-o", str(tmp_path / "m.csv")], ".json"),
         ([str(stl), "--voxel", "0.1", "-o", str(tmp_path / "nowhere" / "m.json")], "nowhere"),
         ([str(stl), "--voxel", "0.1", "--report", str(tmp_path / "r.pdf")], "HTML"),
+        # the option that names the file, in the fix
+        ([str(stl), "--voxel", "0.1", "--report", str(tmp_path / "nowhere" / "r.html")],
+         "pick an existing folder with --report"),
         ([str(stl), "--voxel", "0.0001"], "GiB but only"),
     ]
 

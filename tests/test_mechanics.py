@@ -1735,3 +1735,75 @@ def test_cli_mechanics_of_a_mesh_too_coarse_for_its_struts_warns(tmp_path, capsy
         r = json.loads(out.read_text())
         assert (r["voxel"]["warning"] is not None) == warned
         assert ("warning: the solid's median strut is 2.0 voxels across" in cap.err) == warned
+
+
+def test_a_solve_that_meets_no_stop_says_so_and_one_that_does_names_its_stop(monkeypatch):
+    import functools
+
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    rng = np.random.default_rng(4)
+    solid = rng.random((10, 10, 10)) < 0.7
+    report, _ = m.measure(solid, 0.1, TI)
+    sol = report["solver"]
+    assert sol["converged"] and sol["warning"] is None
+    for name in ("homogenization", "compression"):
+        one = sol["solves"][name]
+        # the stop named is one the solve's own figures meet
+        if one["stopped_by"] == "residual":
+            assert one["residual"] <= sol["tolerance"]
+        else:
+            assert one["stopped_by"] == "energy" and one["energy_error"] <= sol["accuracy"]
+        assert one["iterations"] == sol["iterations"][name]
+    # three CG steps cannot reach 1e-6 on a random solid: said in the solver entry, the notes and a warning
+    monkeypatch.setattr(m, "compress", functools.partial(m.compress, maxiter=3))
+    with pytest.warns(ScaffoldWarning, match="the compression's CG stopped at residual"):
+        sample = m.SolveSample(solid, 0.1, (0.0, 0.0, 0.0), {"note": "n", "warning": None, "cases_per_block": 6})
+        report, comp = m.measure_sample(sample, TI)
+    sol = report["solver"]
+    assert not comp.converged and not sol["converged"]
+    assert sol["solves"]["compression"]["stopped_by"] is None and sol["solves"]["compression"]["residual"] > 1e-6
+    assert sol["solves"]["homogenization"]["stopped_by"] is not None
+    assert sol["warning"] in report["notes"] and "homogenization's" not in sol["warning"]
+
+
+def test_platens_that_touch_little_of_the_sample_are_named_and_no_verdict_is_given():
+    # a full 10 x 10 block between two end planes holding a 2 x 2 patch each: the ends' solid 4 h^2, the mean
+    # section (1000 + 8) h^3 over 12 h, a share of 4 / 84
+    h = 0.1
+    solid = np.zeros((10, 10, 12), bool)
+    solid[:, :, 1:11] = True
+    solid[4:6, 4:6, [0, 11]] = True
+    contact = m.platen_contact(solid, 2, h)
+    assert np.isclose(contact["bottom_mm2"], 4 * h * h) and np.isclose(contact["top_mm2"], 4 * h * h)
+    assert np.isclose(contact["mean_section_mm2"], 1008 * h ** 3 / (12 * h)) and np.isclose(contact["share"], 4 / 84)
+    report, _ = m.measure(solid, h, TI, boundary="kinematic", tol=1e-4)
+    assert report["compression"]["platen_contact"] == contact
+    warning = report["compression"]["warning"]
+    assert warning and "4.8 % of the sample's mean solid cross-section" in warning and warning in report["notes"]
+    assert report["stress_shielding"].startswith("not judged")
+    # along x the ends are whole planes of the block's section: no warning, a verdict
+    report, _ = m.measure(solid, h, TI, boundary="kinematic", axis=0, tol=1e-4)
+    assert report["compression"]["platen_contact"]["share"] > 0.9
+    assert report["compression"]["warning"] is None and not report["stress_shielding"].startswith("not judged")
+
+
+def test_a_spacing_given_for_a_volume_that_states_another_is_used_with_a_warning(tmp_path, capsys):
+    import json
+
+    import SimpleITK as sitk
+
+    block = np.zeros((12, 10, 10), np.uint8)  # (z, y, x)
+    block[1:11, 1:9, 1:9] = 1
+    image = sitk.GetImageFromArray(block)
+    image.SetSpacing((2.0, 2.0, 2.0))
+    path = tmp_path / "v.nii.gz"
+    sitk.WriteImage(image, str(path))
+    out = tmp_path / "r.json"
+    code, cap = _run(["mechanics", path, "--spacing", "0.5", "-o", out, "-q"], capsys)
+    assert code == 0, cap.err
+    assert "--spacing 0.5 mm replaces the 2 mm voxels that v.nii.gz states" in cap.err
+    assert json.loads(out.read_text())["solver"]["voxel_mm"] == 0.5
+    # the file's own spacing given again: no warning
+    code, cap = _run(["mechanics", path, "--spacing", "2", "-o", out, "-q"], capsys)
+    assert code == 0 and "replaces" not in cap.err

@@ -37,3 +37,14 @@ def test_keep_freed_memory_keeps_a_large_freed_block_in_the_process():
     kept = _held_and_after("keep")
     assert plain["held"] - plain["after"] > 200
     assert kept["held"] - kept["after"] < 50
+
+
+def test_a_size_is_named_as_max_memory_takes_it_a_whole_mib_as_given():
+    from implicit_scaffold.run.memory import format_size, parse_memory
+
+    # a budget given in whole MiB is named as given (a refusal once named --max-memory 1M as 10M)
+    for given in ("1M", "7M", "550M", "1000M"):
+        assert format_size(parse_memory(given)) == given
+    # anything else is rounded up: ten MiB below 1 GiB, a tenth of a GiB above
+    assert format_size(2**20 + 1) == "10M" and format_size(341 * 2**20 + 5) == "350M"
+    assert format_size(4 * 2**30) == "4.0G" and format_size(4 * 2**30 + 1) == "4.1G"

@@ -753,9 +753,10 @@ def load_volume(path, *, label=None, threshold=None, reference: bool = False, sp
         shape = "x".join(map(str, size))
         raise ScaffoldError(f"{name} is a {dim}-D image of {shape} voxels, not a volume; give a 3-D scan "
                             "(a DICOM folder holds one file per slice)")
-    from ..io.images import header_states_spacing, spacing_triple
+    from ..io.images import header_states_spacing, spacing_triple, warn_spacing_override
 
     if spacing is not None:
+        warn_spacing_override(path, image, spacing, folder="dicom")
         image.SetSpacing(spacing_triple(spacing))
     elif not header_states_spacing(path, folder="dicom"):
         raise ScaffoldError(f"{name} states no voxel spacing, so its size is unknown (ITK would read 1 mm voxels); "

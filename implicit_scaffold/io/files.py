@@ -94,15 +94,16 @@ def folder_of(path) -> Path:
     return Path(os.path.abspath(os.fspath(path))).parent
 
 
-def os_reason(exc: OSError) -> str:
+def os_reason(exc: OSError, option: str = "-o") -> str:
+    """Why `exc` stops a write, and the fix through `option` (the command-line option that names the file)."""
     if isinstance(exc, FileNotFoundError):
-        return "folder does not exist; pick an existing folder with -o"
+        return f"folder does not exist; pick an existing folder with {option}"
     if isinstance(exc, NotADirectoryError):
-        return "not a folder; pick an existing folder with -o"
+        return f"not a folder; pick an existing folder with {option}"
     if isinstance(exc, PermissionError):
-        return "permission denied; pick a folder you can write to with -o"
+        return f"permission denied; pick a folder you can write to with {option}"
     reason = (exc.strerror or type(exc).__name__).lower()
-    return f"{reason}; pick another folder or file name with -o"
+    return f"{reason}; pick another folder or file name with {option}"
 
 
 def new_temp(final: Path) -> Path:
@@ -124,7 +125,7 @@ def remove_quietly(path: Path) -> None:
         os.remove(path)
 
 
-def check_writable(path, *, formats=None) -> Path:
+def check_writable(path, *, formats=None, option: str = "-o") -> Path:
     """Fail early, with a one-line fix, if `path` cannot be written.
 
     Call it before any long computation. It creates and removes a temporary file in
@@ -136,6 +137,8 @@ def check_writable(path, *, formats=None) -> Path:
         File to be written.
     formats : sequence of str, optional
         Allowed extensions (e.g. :data:`MESH_FORMATS`), lower case with the dot.
+    option : str
+        The command-line option that names `path`, as the error's fix names it.
 
     Returns
     -------
@@ -154,15 +157,15 @@ def check_writable(path, *, formats=None) -> Path:
     folder = folder_of(final)
     if not folder.exists():
         raise ScaffoldError(
-            f"cannot write to {folder}: folder does not exist; pick an existing folder with -o")
+            f"cannot write to {folder}: folder does not exist; pick an existing folder with {option}")
     if not folder.is_dir():
-        raise ScaffoldError(f"cannot write to {folder}: not a folder; pick an existing folder with -o")
+        raise ScaffoldError(f"cannot write to {folder}: not a folder; pick an existing folder with {option}")
     if final.is_dir():
-        raise ScaffoldError(f"cannot write to {final}: it is a folder; give a file name with -o")
+        raise ScaffoldError(f"cannot write to {final}: it is a folder; give a file name with {option}")
     try:
         tmp = new_temp(final)
     except OSError as exc:
-        raise ScaffoldError(f"cannot write to {folder}: {os_reason(exc)}") from None
+        raise ScaffoldError(f"cannot write to {folder}: {os_reason(exc, option)}") from None
     remove_quietly(tmp)
     return final
 

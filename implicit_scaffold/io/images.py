@@ -112,6 +112,28 @@ def header_states_spacing(path, *, folder: str = "dicom") -> bool:
     return "elementspacing" in head or "elementsize" in head
 
 
+def warn_spacing_override(path, image, spacing, *, folder: str = "dicom") -> None:
+    """Warn (:class:`~implicit_scaffold.errors.ScaffoldWarning`) where ``--spacing`` (`spacing`) replaces another
+    voxel spacing that the header of the volume at `path` (read as `image`) states: the option is for a file that
+    states none, and a wrong one scales every length and modulus of the run without a word."""
+    import warnings
+
+    import numpy as np
+
+    from ..errors import ScaffoldWarning
+
+    if spacing is None or not header_states_spacing(path, folder=folder):
+        return
+    given = np.asarray(spacing_triple(spacing))
+    stated = np.asarray(image.GetSpacing(), float)
+    if not np.allclose(given, stated, rtol=1e-6, atol=0):
+        def mm(v):
+            return f"{v[0]:.4g}" if np.all(v == v[0]) else " ".join(f"{x:.4g}" for x in v)
+
+        warnings.warn(f"--spacing {mm(given)} mm replaces the {mm(stated)} mm voxels that {Path(path).name} "
+                      "states; leave --spacing out to use the file's own", ScaffoldWarning, stacklevel=3)
+
+
 def spacing_triple(spacing) -> tuple[float, float, float]:
     """`spacing` (one or three mm) as three positive finite floats; a :class:`ScaffoldError` otherwise."""
     import numpy as np

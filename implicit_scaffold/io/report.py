@@ -413,11 +413,28 @@ def strain_section_image(compression, h: float) -> bytes:
 
 
 def solver_text(sol: dict) -> str:
-    """The mechanics solve in a few words: its CG iterations, residual, estimated energy error and time."""
-    err = sol.get("energy_error")
-    energy = "" if err is None else f", energy error {err:.1e} (estimated)"
-    return (f"{sol['iterations']['homogenization']} + {sol['iterations']['compression']} CG iterations, residual "
-            f"{sol['residual']:.1e}{energy}, {sol['seconds']:.1f} s")
+    """The mechanics solve in a few words: each solve's CG iterations and the stop it met (its residual, or
+    its estimated energy error, the other figure beside it; or that it met neither), and the time."""
+    solves = sol.get("solves")
+    if not solves:
+        err = sol.get("energy_error")
+        energy = "" if err is None else f", energy error {err:.1e} (estimated)"
+        return (f"{sol['iterations']['homogenization']} + {sol['iterations']['compression']} CG iterations, residual "
+                f"{sol['residual']:.1e}{energy}, {sol['seconds']:.1f} s")
+
+    def one(name: str) -> str:
+        s = solves[name]
+        err = "" if s["energy_error"] is None else f"energy error {s['energy_error']:.1e} (estimated)"
+        residual = f"residual {s['residual']:.1e}"
+        if s["stopped_by"] == "residual":
+            stop = f"{residual} <= {sol['tolerance']:g}" + (f", {err}" if err else "")
+        elif s["stopped_by"] == "energy":
+            stop = f"{err} <= {sol['accuracy']:g}, {residual}"
+        else:
+            stop = f"NOT converged: {residual}" + (f", {err}" if err else "")
+        return f"{name} {s['iterations']} CG iterations, {stop}"
+
+    return f"{one('homogenization')}; {one('compression')}; {sol['seconds']:.1f} s"
 
 
 def mechanics_html(mech: dict) -> str:

@@ -902,6 +902,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     if info is not None:
         info["energy_error"] = relative_error()
         info["energy_error_abs"] = absolute_error()
+        # each case met a stop: its residual, or its energy accuracy (not: maxiter, or no further descent)
+        info["met"] = (res <= tol) | ((info["energy_error"] <= accuracy) if by_energy else False)
     # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
     # double (whose drift from it is rounding)
     out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
@@ -926,6 +928,7 @@ class Homogenization:
     energy_error: float = float("nan")  # the largest case's estimated relative energy error (pcg's info)
     dropped_voxels: int = 0  # solid voxels of pieces that reach no face of the box, left out (held_pieces)
     pieces: int = 1  # the pieces that share no node, each an independent system (independent_pieces)
+    converged: bool = True  # every case's CG (every piece's) met its residual tolerance or its energy accuracy
 
 
 def _operator(model, backend):
@@ -1159,21 +1162,22 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     labels, crops = (None, []) if periodic else independent_pieces(solid)
     if not crops:
         del labels  # 4 bytes a voxel, not held through the solve
-        C, iterations, res, err, _ = _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend,
-                                                      preconditioner, progress, cases_per_block, accuracy)
+        C, iterations, res, err, _, met = _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend,
+                                                           preconditioner, progress, cases_per_block, accuracy)
         return Homogenization(C, boundary, fraction, iterations, res, time.perf_counter() - t0, backend, err,
-                              dropped)
+                              dropped, converged=met)
     # pieces that share no node are independent systems: each solved on its own box, whose grid and
     # coarse levels hold it alone, the tensor the sum of theirs (each over the whole box's volume)
-    C, iterations, res, errors = np.zeros((6, 6)), 0, 0.0, np.zeros(6)
+    C, iterations, res, errors, converged = np.zeros((6, 6)), 0, 0.0, np.zeros(6), True
     tell = _counting(progress)
     for box, ids, small in crops:
-        Cp, its, r, _, e = _homogenize_held(np.isin(labels[box], ids), h, mat, False, total, tol, maxiter, backend,
-                                            "direct" if small else preconditioner, tell, cases_per_block, accuracy)
+        Cp, its, r, _, e, met = _homogenize_held(np.isin(labels[box], ids), h, mat, False, total, tol, maxiter,
+                                                 backend, "direct" if small else preconditioner, tell,
+                                                 cases_per_block, accuracy)
         C += Cp
         if tell is not None:
             tell.next()
-        iterations, res = max(iterations, its), max(res, r)
+        iterations, res, converged = max(iterations, its), max(res, r), converged and met
         # each case's energy errors add up, over the sample's energy C_kk V. A piece that hangs from a
         # face keeps almost none of its energy: its own relative error, over nearly 0, says nothing
         # (1e297 on the data folder's CT). An exact solve ends by its residual within a step or two,
@@ -1182,7 +1186,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
             errors += e
     err = float(np.max(errors / np.maximum(np.diag(C) * total * h ** 3, 1e-300)))
     return Homogenization(C, boundary, fraction, iterations, res, time.perf_counter() - t0, backend, err, dropped,
-                          pieces=sum(len(ids) for _, ids, _ in crops))
+                          pieces=sum(len(ids) for _, ids, _ in crops), converged=converged)
 
 
 def _counting(progress):
@@ -1208,7 +1212,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
                      cases_per_block, accuracy):
     """:func:`homogenize` of held pieces, its tensor over `total` voxels' volume: (C, iterations, the
     largest relative residual, the largest estimated relative energy error, each case's estimated
-    energy error e.K e (6,))."""
+    energy error e.K e (6,), whether every case met its residual tolerance or its energy accuracy)."""
     model = voxel_model(solid, h, mat, periodic=periodic)
     ns = model.solid_voxels
     u0e = macro_displacements(h)  # (6, 24)
@@ -1229,6 +1233,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     ue_sum = np.empty((6, 24))
     cross = np.zeros((6, 6))  # x_i . r_j within each block (Notes: the energy form)
     iterations, res, err, err_abs = 0, np.zeros(6), np.full(6, np.nan), np.full(6, np.nan)
+    met = np.zeros(6, bool)
     # each unit strain's lifting energy (u = E x: every solid voxel holds the same corner displacements,
     # up to a translation), the total a case's solved part relaxes
     lifting = ns * np.einsum("ka,ab,kb->k", u0e, model.ke, u0e)
@@ -1255,6 +1260,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
         cross[np.ix_(list(cases), list(cases))] = xr
         err[list(cases)] = info["energy_error"]
         err_abs[list(cases)] = info["energy_error_abs"]
+        met[list(cases)] = info["met"]
         if not periodic:
             for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
                 x[c] += _affine(model.shape, h, [k])[0]
@@ -1272,7 +1278,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     # a case that met the residual tolerance before the estimate had its steps (inf) counts no error:
     # it is second order in that residual
     err_abs = np.where(np.isfinite(err_abs) | (res > tol), err_abs, 0.0)
-    return C, int(iterations), float(res.max()), float(err.max()), err_abs
+    return C, int(iterations), float(res.max()), float(err.max()), err_abs, bool(met.all())
 
 
 #: the kinematic homogenization and the compression solve each piece of more solid voxels than this on
@@ -1416,6 +1422,7 @@ class Compression:
     dropped_voxels: int  # solid voxels not joined to both platens (they carry no load)
     energy_error: float = float("nan")  # the estimated relative energy error (pcg's info)
     pieces: int = 1  # the pieces that share no node, each an independent system (independent_pieces)
+    converged: bool = True  # every piece's CG met its residual tolerance or its energy accuracy
 
 
 def _face_labels(labels: np.ndarray, axis: int, end: int) -> np.ndarray:
@@ -1502,33 +1509,36 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     labels, crops = independent_pieces(kept)
     if not crops:
         del labels
-        force, field_vm, iterations, res, err = _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter,
-                                                               backend, preconditioner, progress, accuracy)
+        force, field_vm, iterations, res, err, converged = _compress_kept(kept, h, mat, axis, strain, bonded, tol,
+                                                                          maxiter, backend, preconditioner, progress,
+                                                                          accuracy)
     else:
         # pieces that share no node carry their loads apart: each solved on its own box (its full height),
         # the platens' force the sum of theirs
         force, field_vm, iterations, res, err = 0.0, np.zeros(solid.shape, np.float32), 0, 0.0, 0.0
+        converged = True
         tell = _counting(progress)
         for box, ids, small in crops:
-            f, field, its, r, e = _compress_kept(np.isin(labels[box], ids), h, mat, axis, strain, bonded, tol,
+            f, field, its, r, e, met = _compress_kept(np.isin(labels[box], ids), h, mat, axis, strain, bonded, tol,
                                                  maxiter, backend, "direct" if small else preconditioner, tell,
                                                  accuracy)
             force += f
             field_vm[box] += field  # 0 outside the piece's own voxels
             if tell is not None:
                 tell.next()
-            iterations, res = max(iterations, its), max(res, r)
+            iterations, res, converged = max(iterations, its), max(res, r), converged and met
             # every piece here joins both platens and carries load, so its own ratio is sound and the
             # largest bounds the sum's; an exact solve's inf (too few steps) counts no error, as homogenize's
             err = max(err, e) if np.isfinite(e) or not small else err
     return Compression(axis, float(force / area / strain), strain, field_vm, int(iterations), float(res),
                        time.perf_counter() - t0, int(solid.sum() - kept.sum()), float(err),
-                       sum(len(ids) for _, ids, _ in crops) or 1)
+                       sum(len(ids) for _, ids, _ in crops) or 1, bool(converged))
 
 
 def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, preconditioner, progress, accuracy):
     """:func:`compress` of the pieces that join both platens: (the upper platen's force in kN, the von
-    Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error)."""
+    Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error,
+    whether the CG met its residual tolerance or its energy accuracy)."""
     model = voxel_model(kept, h, mat, periodic=False)
     shape = model.shape
     n = int(np.prod(shape))
@@ -1611,7 +1621,7 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     field_vm = np.zeros(shape, np.float32)
     field_vm[model.solid] = von_mises_strain(eps)
     field_vm = field_vm[: kept.shape[0], : kept.shape[1], : kept.shape[2]]
-    return float(force), field_vm, int(iterations), float(res.max()), float(info["energy_error"][0])
+    return float(force), field_vm, int(iterations), float(res.max()), float(info["energy_error"][0]), bool(info["met"].all())
 
 
 # ----------------------------------------------------------------------------- moduli
@@ -1706,6 +1716,28 @@ def choose_boundary(solid: np.ndarray) -> str:
     phi = solid.mean()
     faces = [np.take(solid, i, axis=a).mean() for a in range(3) for i in (0, -1)]
     return "periodic" if min(faces) >= 0.5 * phi else "kinematic"
+
+
+#: the platens' contact (the solid of the sample's end planes along the compression axis, the smaller
+#: end's) under this share of the sample's mean solid cross-section: the apparent modulus is the contacts'
+#: (a whole femur between platens along its axis: 0.623, 1.22 and 0.146 GPa at 1.5, 1 and 0.75 mm voxels),
+#: and the report says so in place of a verdict. A cut sample's ends hold about its mean section
+CONTACT_SHARE = 0.25
+
+
+def platen_contact(solid: np.ndarray, axis: int, h: float) -> dict:
+    """The solid the compression's platens touch, beside the sample's mean solid cross-section.
+
+    Returns
+    -------
+    dict
+        ``bottom_mm2``, ``top_mm2``: the solid area of the sample's first and last planes along `axis`;
+        ``mean_section_mm2``: its solid volume over its length; ``share``: the smaller end's over that.
+    """
+    ends = [int(np.count_nonzero(np.take(solid, i, axis=axis))) * h * h for i in (0, -1)]
+    mean = int(np.count_nonzero(solid)) * h ** 3 / (solid.shape[axis] * h)
+    return {"bottom_mm2": ends[0], "top_mm2": ends[1], "mean_section_mm2": mean,
+            "share": min(ends) / mean if mean > 0 else 0.0}
 
 
 def bone_verdict(modulus_gpa: float) -> str:
@@ -1805,11 +1837,40 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     if hom.dropped_voxels:
         notes.append(f"{hom.dropped_voxels} solid voxels lie in pieces that reach no face of the box: held by nothing, "
                      "they carry no load and were left out of the homogenization")
+    solves = {name: {"iterations": int(sol.iterations), "residual": float(sol.residual),
+                     "energy_error": float(sol.energy_error) if np.isfinite(sol.energy_error) else None,
+                     "stopped_by": stopped_by(sol, tol, accuracy)}
+              for name, sol in (("homogenization", hom), ("compression", comp))}
+    unmet = [name for name, sol in solves.items() if sol["stopped_by"] is None]
+    warning = None
+    if unmet:
+        def short(name):
+            sol = solves[name]
+            text = f"the {name}'s CG stopped at residual {sol['residual']:.2g}, above the tolerance {tol:g}"
+            if accuracy is not None:
+                err = "unknown" if sol["energy_error"] is None else f"{sol['energy_error']:.2g}"
+                text += f", with its energy error ({err}) above the accuracy {accuracy:g}"
+            return text
+
+        warning = ("; ".join(short(name) for name in unmet) + ": no further descent (the products' rounding) or the "
+                   "iteration limit; the figures are as converged as that residual")
+        notes.append(warning)
     for name, pieces in (("compression", comp.pieces), ("homogenization", hom.pieces)):
         if pieces > 1:
             notes.append(f"the {name} solved its {pieces} pieces that share no node apart, each on its own box "
                          "(independent systems: the same figures, in fewer iterations); its iterations are the "
                          "slowest piece's")
+    contact = platen_contact(solid, axis, h)
+    verdict = bone_verdict(comp.apparent_modulus_gpa)
+    contact_warning = None
+    if comp.apparent_modulus_gpa > 0 and contact["share"] < CONTACT_SHARE:
+        contact_warning = (f"the platens touch {contact['bottom_mm2']:.3g} and {contact['top_mm2']:.3g} mm2 of solid, "
+                           f"{100 * contact['share']:.2g} % of the sample's mean solid cross-section "
+                           f"({contact['mean_section_mm2']:.3g} mm2): the compression's modulus is its contacts', not "
+                           f"the sample's; cut the sample flat at its ends along {'xyz'[axis]} (a mesh: --clip), or "
+                           "compress it along another axis (--axis)")
+        notes.append(contact_warning)
+        verdict = f"not judged: the platens touch {100 * contact['share']:.2g} % of the sample's mean cross-section"
     report = {
         "stiffness_tensor_gpa": [[float(v) for v in row] for row in hom.stiffness],
         "voigt_order": list(VOIGT),
@@ -1822,11 +1883,13 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         "material": {"name": mat.name, "E_gpa": mat.E_gpa, "nu": mat.nu, "source": mat.source},
         "compression": {"axis": "xyz"[axis], "apparent_modulus_gpa": comp.apparent_modulus_gpa,
                         "platens": "rigid, lubricated (ISO 13314 setting)", "applied_strain": comp.strain,
+                        "platen_contact": contact, "warning": contact_warning,
                         "most_strained_voxels": most_strained(comp.von_mises_strain, h, origin)},
         "solver": {"iterations": {"homogenization": hom.iterations, "compression": comp.iterations},
                    "pieces": {"homogenization": hom.pieces, "compression": comp.pieces},
                    "residual": max(hom.residual, comp.residual), "tolerance": float(tol),
                    "accuracy": accuracy, "energy_error": max(errors) if errors else None,
+                   "solves": solves, "converged": not unmet, "warning": warning,
                    "seconds": round(hom.seconds + comp.seconds, 4),
                    "method": "matrix-free voxel FE (trilinear hexahedra), block PCG, "
                              + {"multigrid": "geometric multigrid (Galerkin) preconditioner",
@@ -1835,10 +1898,20 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
                    "grid_shape": list(solid.shape)},
         "hashin_shtrikman_upper_gpa": {"bulk": K_hs, "shear": G_hs},
         "bone_bands_gpa": {k: {"low": lo, "high": hi, "source": src} for k, (lo, hi, src) in BONE_BANDS.items()},
-        "stress_shielding": bone_verdict(comp.apparent_modulus_gpa),
+        "stress_shielding": verdict,
         "notes": notes,
     }
     return report, comp
+
+
+def stopped_by(solve, tol: float, accuracy: float | None) -> str | None:
+    """What ended a solve's CG (a :class:`Homogenization` or :class:`Compression`): ``"residual"`` (every
+    case's relative residual at most `tol`), ``"energy"`` (some case stopped on its energy error, at most
+    `accuracy`, and every other on its residual), or None: not every case met a stop (the iteration limit,
+    or no further descent: a search direction of no positive curvature, the products' rounding)."""
+    if not solve.converged:
+        return None
+    return "residual" if solve.residual <= tol or accuracy is None else "energy"
 
 
 # ----------------------------------------------------------------------------- memory and the voxel of a solve
@@ -2527,6 +2600,9 @@ def measure_sample(sample: SolveSample, mat: Material, *, boundary: str = "auto"
     if sample.report["warning"]:
         report["notes"].append(sample.report["warning"])
         warnings.warn(sample.report["warning"], ScaffoldWarning, stacklevel=2)
+    for warning in (report["solver"]["warning"], report["compression"]["warning"]):  # in the notes already
+        if warning:
+            warnings.warn(warning, ScaffoldWarning, stacklevel=2)
     return report, comp
 
 

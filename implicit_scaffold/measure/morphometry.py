@@ -1111,7 +1111,7 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
     import SimpleITK as sitk
 
     from ..fields.patient_volume import bone_mask, intensity_range
-    from ..io.images import folder_kind, header_states_spacing, read_image, spacing_triple
+    from ..io.images import folder_kind, header_states_spacing, read_image, spacing_triple, warn_spacing_override
 
     kind = folder_kind(path)
     image = read_image(path, folder=kind)
@@ -1119,6 +1119,7 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
         raise ScaffoldError(f"{path.name} is not a 3-D single-channel volume; give a binary volume, a label map "
                             "or a CT")
     if spacing is not None:
+        warn_spacing_override(path, image, spacing, folder=kind)
         step = np.asarray(spacing_triple(spacing))
     elif header_states_spacing(path, folder=kind):
         step = np.asarray(image.GetSpacing(), float)

@@ -63,9 +63,12 @@ def budget(max_memory=None) -> int:
 
 
 def format_size(nbytes: float) -> str:
-    """A size as ``--max-memory`` takes it, rounded up to the next tenth of a GiB (or MiB below 1 GiB)."""
+    """A size as ``--max-memory`` takes it, rounded up to the next tenth of a GiB (below 1 GiB: to the next
+    ten MiB, but a whole number of MiB as it is, so that a budget given as ``1M`` is named as given)."""
     if nbytes >= 2**30:
         return f"{np.ceil(nbytes / 2**30 * 10) / 10:.1f}G"
+    if nbytes > 0 and nbytes % 2**20 == 0:
+        return f"{int(nbytes) // 2**20}M"
     return f"{int(np.ceil(nbytes / 2**20 / 10) * 10)}M"
 
 
