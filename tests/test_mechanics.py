@@ -1782,6 +1782,9 @@ def test_platens_that_touch_little_of_the_sample_are_named_and_no_verdict_is_giv
     warning = report["compression"]["warning"]
     assert warning and "4.8 % of the sample's mean solid cross-section" in warning and warning in report["notes"]
     assert report["stress_shielding"].startswith("not judged")
+    # the kinematic conditions hold the same faces: the z faces' share is named, the x and y faces' (whole) are not
+    held = [n for n in report["notes"] if n.startswith("the kinematic conditions hold the box's faces")]
+    assert len(held) == 1 and "4.8 % of its mean solid cross-section along z:" in held[0], held
     # along x the ends are whole planes of the block's section: no warning, a verdict
     report, _ = m.measure(solid, h, TI, boundary="kinematic", axis=0, tol=1e-4)
     assert report["compression"]["platen_contact"]["share"] > 0.9

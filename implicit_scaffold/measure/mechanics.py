@@ -1871,6 +1871,15 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
                            "compress it along another axis (--axis)")
         notes.append(contact_warning)
         verdict = f"not judged: the platens touch {100 * contact['share']:.2g} % of the sample's mean cross-section"
+    if boundary == "kinematic":
+        # the box's faces hold u = E x: an axis whose faces the solid barely touches is loaded through those contacts
+        shares = {"xyz"[a]: platen_contact(solid, a, h)["share"] for a in range(3)}
+        thin = [a for a, v in shares.items() if v < CONTACT_SHARE]
+        if thin:
+            notes.append("the kinematic conditions hold the box's faces, which the solid touches with "
+                         + ", ".join(f"{100 * shares[a]:.2g} %" for a in thin) + " of its mean solid cross-section "
+                         + f"along {', '.join(thin)}: the moduli along {'that axis' if len(thin) == 1 else 'those axes'} "
+                         "are those contacts' as much as the sample's")
     report = {
         "stiffness_tensor_gpa": [[float(v) for v in row] for row in hom.stiffness],
         "voigt_order": list(VOIGT),
