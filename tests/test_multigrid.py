@@ -425,16 +425,18 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
     op = StiffnessOperator(model, double=False)
     mg = G.Multigrid(model, op, free, dtype=np.float32)
     assert len(mg.levels) >= 2
-    assert type(mg.levels[0].device) is PatternLevelOperator
+    # a block of cases by the pattern kernel; one case by the fine operator (_GalerkinOneCase)
+    first = mg.levels[0].device
+    assert type(first) is G._GalerkinOneCase and type(first.device) is PatternLevelOperator
     assert all(type(level.device) is StencilLevelOperator for level in mg.levels[1:])
     # the level keeps the one copy of its matrices the device reads (the per-element ones); a level
     # on stencils keeps none
-    assert np.shares_memory(mg.levels[0].mats, mg.levels[0].device._mats_host)
+    assert np.shares_memory(mg.levels[0].mats, first.device._mats_host)
     assert all(level.mats is None for level in mg.levels[1:])
     monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", False)
     monkeypatch.setattr(G, "STENCIL_LEVELS", False)
     mg = G.Multigrid(model, op, free, dtype=np.float32)
-    assert all(type(level.device) is LevelOperator for level in mg.levels)
+    assert all(type(getattr(level.device, "device", level.device)) is LevelOperator for level in mg.levels)
 
 
 def test_the_eigenvalue_estimate_reuses_its_products_memory():
@@ -574,3 +576,40 @@ def test_spreading_onto_used_memory_zeroes_every_other_node(kind, dtype):
             assert got.ctypes.data == where  # the used memory itself
             assert np.allclose(got, scale * want, rtol=1e-6, atol=0)
             del got
+
+
+@pytest.mark.parametrize("periodic", [True, False])
+def test_the_first_levels_product_of_one_case_on_the_device_is_the_galerkin_product(periodic):
+    # oracle: the dense P^T F A F P of the NumPy operator; one case goes through the fine operator and the
+    # transfers, a block through the level's own kernel: both that product within float32's rounding
+    from implicit_scaffold import opencl
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(11)
+    solid = rng.random((10, 9, 8)) < 0.6
+    model = M.voxel_model(solid, 0.1, MAT, periodic=periodic)
+    free = np.repeat(model.active[None], 3, axis=0)
+    if not periodic:
+        free[2, :: 5] = False
+    A = _dense(lambda u: M.apply_stiffness(model, u), model.shape)
+    F = free.ravel().astype(float)
+    cshape = G.coarse_shape(model.shape)
+    P = _dense(lambda y: G.prolong(y, model.shape), cshape)
+    expect = P.T @ (F[:, None] * A * F[None, :]) @ P
+    nc = int(np.prod(cshape))
+    for check in opencl.working_devices():
+        with opencl.using(check):
+            op = mc.StiffnessOperator(model)
+            mg = G.Multigrid(model, op.single(), free.astype(np.float32), dtype=np.float32)
+            level = mg.levels[0]
+            assert isinstance(level.device, G._GalerkinOneCase), check.name
+            calls = []
+            fine = mg.op
+            mg.op = lambda u: calls.append(u.shape) or fine(u)
+            for cases in (1, 2):
+                x = rng.standard_normal((cases, 3, nc))
+                ref = (x.reshape(cases, -1) @ expect.T).reshape(cases, 3, nc)
+                got = level.apply(x.astype(np.float32))
+                assert got.shape == ref.shape and got.dtype == np.float32
+                assert np.abs(got - ref).max() <= 2e-6 * np.abs(ref).max(), (check.name, cases)
+            assert calls == [(1, 3, int(np.prod(model.shape)))]  # the one case through the fine operator only

@@ -662,6 +662,32 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
     return x
 
 
+class _GalerkinOneCase:
+    """The first coarse level's product on the device: for one load case ``P^T F K F P x`` (the Galerkin
+    product the level's matrices are, by the fine operator, :func:`prolong` and :func:`restrict`), for a
+    block the level's own kernel (`device`).
+
+    One case is what a compression solves (and every level's eigenvalue estimate): the level's kernels then
+    gather a matrix per node, where the fine operator runs in full vectors on one constant matrix. On the
+    default 10 mm cube's 193^3 grid (97^3 level, one case, medians of 7, a throw-away script) 56.4 ms against
+    80.6, the two within 3.6e-7 of each other (float32). Only where the fine level is not cut into slabs
+    (:func:`fine_slab_planes`): the fine vectors are whole grids, one case's."""
+
+    def __init__(self, device, multigrid: "Multigrid"):
+        self.device = device
+        self.multigrid = multigrid
+
+    def __call__(self, x: np.ndarray) -> np.ndarray:
+        if x.shape[0] != 1:
+            return self.device(x)
+        mg = self.multigrid
+        fine = prolong(x, mg.fine_shape)
+        fine *= mg.free
+        product = mg.op(fine)
+        del fine
+        return restrict(product, mg.fine_shape, mg.free)
+
+
 class Multigrid:
     """A V-cycle of the voxel operator as a conjugate-gradient preconditioner.
 
@@ -730,6 +756,8 @@ class Multigrid:
                 if isinstance(level.device, LevelOperator):
                     # the device reads the matrices in place: the level keeps that one copy
                     level.mats = level.device.host_mats(level.mats.shape)
+                if level is self.levels[0] and fine_slab_planes(self.fine_shape) >= self.fine_shape[0]:
+                    level.device = _GalerkinOneCase(level.device, self)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
 
     @property
