@@ -342,14 +342,20 @@ def _cpu_identity() -> str:
     return "\n".join(dict.fromkeys(keep))
 
 
+def _hash_kernels(h) -> None:
+    """Feed the sources of ``kernels/`` to the hash `h`, in a fixed order (a key that changes with them)."""
+    for path in sorted(kernels_dir().glob("*.cl")):
+        h.update(path.read_bytes())
+
+
 def _probe_key(found) -> str:
     from . import __version__
 
     h = hashlib.sha256()
     h.update(f"{__version__}\n{sys.version}\n{_cpu_identity()}\n{BUILD_OPTIONS}\n".encode())
     # the kernels and this probe: a change to either proves the devices again
-    for path in [*sorted(kernels_dir().glob("*.cl")), Path(__file__)]:
-        h.update(path.read_bytes())
+    _hash_kernels(h)
+    h.update(Path(__file__).read_bytes())
     for p in found:
         h.update(f"{p.name}|{p.version}\n".encode())
         try:
@@ -521,8 +527,7 @@ def _built_marker(name: str, defines: dict) -> Path:
     h = hashlib.sha256()
     h.update(f"{name}\n{kept}\n{version('pyopencl')}\n{sys.version}\n{_cpu_identity()}\n{BUILD_OPTIONS}\n"
              f"{os.environ.get(DEVICE_ENV, '')}\n".encode())
-    for path in sorted(kernels_dir().glob("*.cl")):
-        h.update(path.read_bytes())
+    _hash_kernels(h)
     return _built_dir() / h.hexdigest()[:24]
 
 

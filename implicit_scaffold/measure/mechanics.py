@@ -1860,7 +1860,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
             notes.append(f"the {name} solved its {pieces} pieces that share no node apart, each on its own box "
                          "(independent systems: the same figures, in fewer iterations); its iterations are the "
                          "slowest piece's")
-    contact = platen_contact(solid, axis, h)
+    contacts = [platen_contact(solid, a, h) for a in range(3)]  # the compression's, and the kinematic faces'
+    contact = contacts[axis]
     verdict = bone_verdict(comp.apparent_modulus_gpa)
     contact_warning = None
     if comp.apparent_modulus_gpa > 0 and contact["share"] < CONTACT_SHARE:
@@ -1873,7 +1874,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         verdict = f"not judged: the platens touch {100 * contact['share']:.2g} % of the sample's mean cross-section"
     if boundary == "kinematic":
         # the box's faces hold u = E x: an axis whose faces the solid barely touches is loaded through those contacts
-        shares = {"xyz"[a]: platen_contact(solid, a, h)["share"] for a in range(3)}
+        shares = {"xyz"[a]: contacts[a]["share"] for a in range(3)}
         thin = [a for a, v in shares.items() if v < CONTACT_SHARE]
         if thin:
             notes.append("the kinematic conditions hold the box's faces, which the solid touches with "
