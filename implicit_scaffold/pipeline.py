@@ -1361,8 +1361,10 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     finally:
         tf.close()
     if mechanics is not None:
+        from .measure.mechanics import solve_goal
+
         with prog.stage("mechanics", "voxel finite elements"):
-            _measure_mechanics(result, *mechanics, progress=prog.solver())
+            _measure_mechanics(result, *mechanics, progress=prog.solver(goal=solve_goal(mechanics[0].tol)))
     from .run.memory import peak_memory
 
     if out_path is not None:

@@ -66,18 +66,30 @@ class Progress:
         if self.enabled:
             print(f"    {text}", file=sys.stderr, flush=True)
 
-    def solver(self, every: float = 5.0):
+    def solver(self, every: float = 5.0, goal: float | None = None):
         """A callback ``(name, iteration, residual)`` for an iterative solve: a note at most every
-        `every` seconds (None when not enabled)."""
+        `every` seconds (None when not enabled). With `goal`, the relative residual the solve stops at
+        (at the latest), the note adds how many more iterations and seconds the residual's recent pace
+        takes to reach it (:func:`cg_pace`); a sooner stop (the mechanics' energy accuracy) may end it first."""
         if not self.enabled:
             return None
         last = [time.perf_counter()]
+        history: list = []
 
         def tell(name, it, res):
             now = time.perf_counter()
+            # a new solve, or the next part of one (a block of load cases, a piece) whose residual
+            # starts again from its own right-hand side: the pace of the one before says nothing
+            if history and (history[-1][0] != name or res > 10 * history[-1][2]):
+                history.clear()
+            history.append((name, it, res, now))
             if now - last[0] >= every:
                 last[0] = now
-                self.note(f"{name}: CG iteration {it}, residual {res:.1e}")
+                text = f"{name}: CG iteration {it}, residual {res:.1e}"
+                pace = None if goal is None else cg_pace([h[1:] for h in history], goal)
+                if pace is not None:
+                    text += f" (to {goal:g} at this pace: ~{pace[0]} more iterations, ~{format_duration(pace[1])})"
+                self.note(text)
 
         return tell
 
@@ -98,3 +110,34 @@ class Progress:
                 state["bar"].close()
 
         return update
+
+
+def cg_pace(history, goal: float):
+    """(iterations, seconds) an iterative solve's residual takes to fall to `goal` at its recent pace, or
+    None (too few iterations yet, the residual not falling, or the goal met).
+
+    The pace is the residual's mean fall per iteration (a geometric rate) and the seconds an iteration
+    took, over the later half of `history` ((iteration, residual, seconds since any fixed time) per
+    iteration, in order, of one solve): CG's residual falls unevenly (plateaus, then steps), its early
+    iterations faster than its later ones, so the first half would promise too soon an end.
+    """
+    import math
+
+    if len(history) < 8:
+        return None
+    it1, r1, t1 = history[-1]
+    it0, r0, t0 = history[len(history) // 2]
+    if not (0 < r1 < r0) or it1 <= it0 or r1 <= goal:
+        return None
+    rate = math.log(r1 / r0) / (it1 - it0)  # < 0
+    more = math.ceil(math.log(goal / r1) / rate)
+    return more, more * (t1 - t0) / (it1 - it0)
+
+
+def format_duration(seconds: float) -> str:
+    """``"40 s"``, ``"3 min"`` or ``"1.5 h"``: a time to wait, as a person says it."""
+    if seconds < 90:
+        return f"{max(1, round(seconds))} s"
+    if seconds < 5400:
+        return f"{round(seconds / 60)} min"
+    return f"{seconds / 3600:.1f} h"

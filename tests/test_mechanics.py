@@ -523,6 +523,9 @@ def test_pieces_that_share_no_node_are_solved_apart_to_their_sum(monkeypatch, sm
     assert not c.von_mises_strain[~prisms].any()
     report, _ = m.measure(prisms, 0.1, TI, boundary="kinematic", axis=0)
     assert report["solver"]["pieces"] == {"homogenization": 3, "compression": 3}
+    from implicit_scaffold.io.report import solver_text
+
+    assert solver_text(report["solver"]).count("CG iterations (the slowest of 3 pieces)") == 2
     assert sum("3 pieces that share no node" in n for n in report["notes"]) == 2
 
 

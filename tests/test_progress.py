@@ -24,3 +24,44 @@ def test_a_stage_prints_its_line_at_once_by_default_and_nothing_when_quiet(capsy
     with Progress(False).stage("reading", after=0.0):
         time.sleep(0.2)
     assert capsys.readouterr().err == ""
+
+
+def test_the_pace_of_a_geometric_residual_is_the_closed_form_count():
+    from implicit_scaffold.progress import cg_pace
+
+    # r_k = 2^-k at 0.1 s an iteration: 2^-k <= 1e-9 first at k = ceil(9 log2(10)) = 30
+    history = [(k, 0.5 ** k, 0.1 * k) for k in range(1, 21)]
+    more, seconds = cg_pace(history, 1e-9)
+    assert more == 30 - 20 and abs(seconds - 1.0) < 1e-9
+    # the later half sets the pace: a fast start (r / 100 an iteration) then r / 2 an iteration
+    fast_start = [(k, 100.0 ** -k, 0.1 * k) for k in range(1, 4)]
+    slow = [(k, 1e-6 * 0.5 ** (k - 3), 0.1 * k) for k in range(4, 24)]
+    assert cg_pace(fast_start + slow, 1e-6 * 0.5 ** 30)[0] == 30 - 20
+    assert cg_pace(history[:7], 1e-9) is None  # too few iterations to tell
+    assert cg_pace(history, 0.5 ** 20) is None  # met
+    assert cg_pace([(k, 1.0 + k, k) for k in range(1, 21)], 1e-6) is None  # not falling
+
+
+def test_a_solver_note_gives_the_pace_of_its_own_solve_only(capsys):
+    progress = Progress(True)
+    tell = progress.solver(every=0.0, goal=0.5 ** 30)
+    for k in range(1, 21):
+        tell("compression", k, 0.5 ** k)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1].startswith("    compression: CG iteration 20, residual 9.5e-07 (to 9.31323e-10 at this pace: ~10 ")
+    assert "at this pace" not in lines[6] and "at this pace" in lines[7]  # from its 8th iteration
+    # the next solve, and the next part of one (its residual starts again), start their pace afresh
+    for name in ("homogenization", "homogenization"):
+        for k in range(1, 8):
+            tell(name, 20 + k, 0.5 ** k)
+        assert "at this pace" not in capsys.readouterr().err
+    tell("homogenization", 28, 0.5 ** 8)  # the part's 8th iteration: r / 2 an iteration, 2^-30 in 22 more
+    assert "at this pace: ~22 more" in capsys.readouterr().err
+    assert Progress(False).solver(goal=1e-6) is None
+
+
+def test_a_wait_is_given_in_the_unit_a_person_would_name():
+    from implicit_scaffold.progress import format_duration
+
+    assert [format_duration(s) for s in (0.2, 40, 89, 200, 5399, 7200)] == ["1 s", "40 s", "89 s", "3 min", "90 min",
+                                                                            "2.0 h"]

@@ -204,6 +204,12 @@ TOL = 1e-6
 TOL_RANGE = (1e-12, 1e-3)
 
 
+def solve_goal(tol: float | None) -> float:
+    """The relative residual a solve of :func:`measure` stops at, at the latest: `tol` as given, or
+    :data:`TOL` for the default stop (None, where the energy accuracy may stop it sooner)."""
+    return TOL if tol is None else float(tol)
+
+
 def check_tol(tol) -> float | None:
     """The CG's relative residual `tol` as a float, or None: the default stop (:func:`measure`).
 
@@ -1817,7 +1823,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         return None if progress is None else (lambda it, res: progress(name, it, res))
 
     accuracy = ACCURACY if tol is None else None
-    tol = TOL if tol is None else tol
+    tol = solve_goal(tol)
     if backend == "opencl":
         from .mechanics_cl import prebuild, solve_variants
 
