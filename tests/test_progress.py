@@ -40,6 +40,9 @@ def test_the_pace_of_a_geometric_residual_is_the_closed_form_count():
     assert cg_pace(history[:7], 1e-9) is None  # too few iterations to tell
     assert cg_pace(history, 0.5 ** 20) is None  # met
     assert cg_pace([(k, 1.0 + k, k) for k in range(1, 21)], 1e-6) is None  # not falling
+    # a plateau (r / 1.01 an iteration): 1e-6 some 1,390 iterations on, beyond 4 times the 20 run
+    assert cg_pace([(k, 1.01 ** -k, 0.1 * k) for k in range(1, 21)], 1e-6) is None
+    assert cg_pace([(k, 1.01 ** -k, 0.1 * k) for k in range(1, 21)], 1.01 ** -100)[0] == 80
 
 
 def test_a_solver_note_gives_the_pace_of_its_own_solve_only(capsys):
