@@ -114,7 +114,7 @@ class Progress:
 
 #: :func:`cg_pace` gives no count beyond this many times the iterations run so far: on the data folder's CT
 #: (``mechanics totalseg_example_ct_dicom --threshold 200``, 83 pieces solved one after another), a piece on a
-#: plateau at its 120th iteration was promised 7,609 more, and its solve ended within 60
+#: plateau at its 120th iteration was promised 7,609 more, and its solve ended within 91
 PACE_HORIZON = 4
 
 
