@@ -613,3 +613,25 @@ def test_the_first_levels_product_of_one_case_on_the_device_is_the_galerkin_prod
                 assert got.shape == ref.shape and got.dtype == np.float32
                 assert np.abs(got - ref).max() <= 2e-6 * np.abs(ref).max(), (check.name, cases)
             assert calls == [(1, 3, int(np.prod(model.shape)))]  # the one case through the fine operator only
+
+
+def test_the_coarsest_solve_is_the_pseudo_inverse_whatever_blas_threads_the_caller_allows():
+    # the coarsest level's pseudo-inverse, against NumPy's own of the dense level, and bit for bit the
+    # same when the caller allows BLAS one thread or two (a thread count must not change a solve's bits)
+    from threadpoolctl import threadpool_limits
+
+    rng = np.random.default_rng(7)
+    model = M.voxel_model(rng.random((14, 14, 12)) < 0.6, 0.1, MAT, periodic=False)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    free[2, :: 11] = 0
+    level = G._next_coarse(G._first_coarse(model, free))  # 4 x 4 x 4 nodes: 192 unknowns
+    A = level.matrix()
+    live = np.flatnonzero(level.inv_diag.ravel() > 0)
+    runs = []
+    for threads in (1, 2):
+        with threadpool_limits(threads, user_api="blas"):
+            runs.append(G.Multigrid._exact(level))
+    assert np.array_equal(runs[0][0], live) and np.array_equal(runs[0][1], runs[1][1])
+    sub = A[np.ix_(live, live)]
+    expect = np.linalg.pinv(0.5 * (sub + sub.T), rcond=1e-10, hermitian=True)
+    assert np.abs(runs[0][1] - expect).max() < 1e-8 * np.abs(expect).max()

@@ -795,7 +795,13 @@ class Multigrid:
         live = np.flatnonzero(level.inv_diag.ravel() > 0)
         sub = A[np.ix_(live, live)]
         sub = 0.5 * (sub + sub.T)
-        w, v = np.linalg.eigh(sub)
+        from threadpoolctl import threadpool_limits
+
+        # one BLAS thread: at most 1,000 unknowns, 0.03 s on one thread; on two threads of a machine
+        # with another job, the data folder's CT (26 pieces under platens, one such solve each) spent
+        # 12.6 s in them, one of 410 unknowns 2.9 s (both threads wait on each other's time slices)
+        with threadpool_limits(1, user_api="blas"):
+            w, v = np.linalg.eigh(sub)
         keep = w > 1e-10 * max(w.max(), 1e-300)
         pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
         return live, pinv
