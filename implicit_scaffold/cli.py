@@ -657,7 +657,9 @@ def _design(args) -> int:
                  f"  {d.representative_volume['builds']} forward builds, checked over "
                  f"{len(d.representative_volume['seeds'])} seeds (mean, min..max):"]
         for k, v in d.achieved.items():
-            lines.append(f"    {k}: target {d.targets[k]:g}, achieved {v['mean']:.4g} ({v['min']:.4g}..{v['max']:.4g})")
+            # the thinnest strut is measured whether or not a minimum was asked
+            target = f"target {d.targets[k]:g}" if d.targets.get(k) is not None else "no target"
+            lines.append(f"    {k}: {target}, achieved {v['mean']:.4g} ({v['min']:.4g}..{v['max']:.4g})")
         if not d.feasible:
             lines.append("  " + conflict_message(d))
         if check is not None:

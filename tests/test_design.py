@@ -610,3 +610,14 @@ def test_ct_design_takes_the_printers_min_strut(tmp_path, monkeypatch, extra, fl
               "--threshold", "0", "--pore-size", "0.6", "--printer", "lpbf-ti64", *extra, "-o",
               str(tmp_path / "d.json"), "-q"])
     assert seen["min_strut"] == floor
+
+
+def test_design_without_a_minimum_strut_prints_its_measured_strut_beside_no_target(tmp_path, capsys):
+    # the thinnest strut is measured whether or not a minimum was asked: the summary names no target
+    # for it (it once looked one up and ended in a traceback, after design.json was written)
+    out = tmp_path / "d.json"
+    assert main(["design", "--porosity", "0.8", "--pore-size", "3", "--seeds", "2", "-o", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "min_strut: no target, achieved" in text and "porosity: target 0.8, achieved" in text
+    d = json.loads(out.read_text())
+    assert d["targets"].get("min_strut") is None and d["achieved"]["min_strut"]["mean"] > 0
