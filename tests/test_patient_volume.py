@@ -200,8 +200,15 @@ def test_label_and_threshold_select_the_bone(tmp_path):
         patient = load_volume(tmp_path / "seg.nii.gz", label=lab)
         assert np.all(np.abs((patient.lo + patient.hi) / 2 - c) < 0.5)
         assert patient.volume == pytest.approx(4 / 3 * math.pi * r ** 3, rel=0.03)
-    both = load_volume(tmp_path / "seg.nii.gz")
+    both = load_volume(tmp_path / "seg.nii.gz", label="3,7")
     assert both.volume == pytest.approx(4 / 3 * math.pi * (4.0 ** 3 + 5.0 ** 3), rel=0.03)
+    # with no label, a map of several labels is refused (a whole-body map holds organs too), naming them;
+    # a mask of one non-zero value is bone throughout
+    with pytest.raises(ScaffoldError) as excinfo:
+        load_volume(tmp_path / "seg.nii.gz")
+    _one_line(excinfo, "seg.nii.gz is a label map of 2 labels (3, 7)", "--label 3,7")
+    _write(tmp_path / "mask.nii.gz", (labels == 7) * np.uint8(255), spacing, (0, 0, 0))
+    assert load_volume(tmp_path / "mask.nii.gz").volume == pytest.approx(4 / 3 * math.pi * 5.0 ** 3, rel=0.03)
     # a CT: soft tissue at 40 HU, bone (the second ball) at 700 HU, air -1000 elsewhere
     ct = np.full(shape, -1000, np.int16)
     ct[labels == 3] = 40

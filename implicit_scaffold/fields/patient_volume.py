@@ -130,7 +130,8 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
 
     `label` keeps a segmentation's label (or several: a list, or a text such as ``"30,31"``: a
     bone in several pieces, e.g. four vertebrae), `threshold` a CT's intensities at or above it (HU);
-    with neither, every non-zero voxel, unless the image holds intensities (:func:`intensity_range`).
+    with neither, every non-zero voxel of a mask (one non-zero value), unless the image holds intensities
+    (:func:`intensity_range`) or several labels (a one-line :class:`ScaffoldError` asks for `label` then).
     The patient of ``generate`` and the volumes of ``analyze``, ``check`` and ``mechanics`` are chosen here.
     """
     if label is not None and threshold is not None:
@@ -176,6 +177,15 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
     if not mask.any():
         raise ScaffoldError(f"{name} has no bone: every voxel is 0; pass --threshold HU for a CT "
                             "or --label N for a segmentation")
+    # a segmentation of several structures (a whole-body label map holds organs beside the bones):
+    # which labels are bone is the user's to say; a mask (one non-zero value) is bone throughout
+    first = array.reshape(-1)[np.argmax(mask.reshape(-1))]
+    if np.any(mask & (array != first)):
+        present = np.unique(array[mask])
+        shown = ", ".join(f"{v:g}" for v in present[:40]) + (" ..." if present.size > 40 else "")
+        raise ScaffoldError(f"{name} is a label map of {present.size} labels ({shown}); name the bone's with "
+                            f"--label N, or several as --label {present[0]:g},{present[1]:g} (every labelled voxel "
+                            f"would otherwise be bone, organs too)")
     return mask, "non-zero voxels"
 
 
