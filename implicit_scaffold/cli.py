@@ -1076,7 +1076,9 @@ def main(argv=None) -> int:
     progress.INTERRUPTED = False
     previous = _on_terminate(_interrupt)
     try:
-        with warnings.catch_warnings():
+        from .io.files import run_outputs
+
+        with warnings.catch_warnings(), run_outputs():
             warnings.showwarning = _show_warning
             return commands[args.command](args)
     except ScaffoldError as exc:

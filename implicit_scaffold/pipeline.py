@@ -1761,7 +1761,10 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
                 found = [f"the mesh was {why}"]
         with prog.stage("write"):
             if ext == ".ply":
+                from .io.files import mark_written
+
                 os.replace(staged, out_path)
+                mark_written(out_path)
             else:
                 write_mesh_from_ply(staged, out_path)
         return summary, info, found

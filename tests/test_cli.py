@@ -366,6 +366,28 @@ def test_interrupted_run_leaves_no_file(tmp_path, sig):
     assert list(tmp_path.iterdir()) == []
 
 
+@pytest.mark.parametrize("stop", [KeyboardInterrupt, MemoryError])
+def test_a_run_stopped_after_its_mesh_is_written_leaves_no_file(tmp_path, capsys, monkeypatch, stop):
+    # the mesh is in place before the report is written: a kill then (or a failure) must not leave a
+    # mesh without its report, where the run says no output was written
+    import implicit_scaffold.io.files as files
+
+    (tmp_path / "old.txt").write_text("a file of the user's")
+
+    def fail(*args, **kwargs):
+        assert (tmp_path / "s.stl").exists()  # the mesh was written: the case this test is about
+        raise stop
+
+    monkeypatch.setattr(files, "write_json", fail)
+    code = main(["generate", "-o", str(tmp_path / "s.stl"), "--size", "3", "--voxel", "0.1", "-q"])
+    err = capsys.readouterr().err
+    last = "implicit-scaffold: interrupted; no output written" if stop is KeyboardInterrupt else \
+        "implicit-scaffold: error: out of memory"
+    assert code == (130 if stop is KeyboardInterrupt else 2) and "Traceback" not in err
+    assert err.splitlines()[-1].startswith(last)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.txt"]
+
+
 def test_progress_and_summary_count_the_same_seeds(tmp_path, capsys):
     # seeds drawn where the patient is: the progress line and the summary give the seeds drawn
     # (patient and margin), and the summary the cells in the scaffold apart, with what each counts

@@ -333,4 +333,7 @@ def _write_zarr(field, grid: Grid, final: Path, name: str, dtype, *, max_bytes: 
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    from .files import mark_written
+
+    mark_written(final)
     return final

@@ -2,7 +2,9 @@
 path can be written, the field as ``.npy`` and the JSON report.
 
 Every writer of the package goes through :func:`atomic_path`, so an error or Ctrl-C never
-leaves a half-written file, and writes the same bytes for the same input.
+leaves a half-written file, and writes the same bytes for the same input; and the command line
+runs each command in :func:`run_outputs`, so an error or Ctrl-C after some outputs are in place
+removes them too (no mesh left without its report).
 """
 from __future__ import annotations
 
@@ -16,7 +18,8 @@ import numpy as np
 
 from ..errors import ScaffoldError
 
-__all__ = ["PiecewiseDeflate", "atomic_path", "check_format", "check_writable", "folder_of", "new_temp", "remove_quietly",
+__all__ = ["PiecewiseDeflate", "atomic_path", "check_format", "check_writable", "folder_of", "mark_written", "new_temp",
+           "remove_quietly", "run_outputs",
            "write_field", "write_json"]
 
 #: planes of about this many voxels are converted and written at a time (.npy)
@@ -125,6 +128,40 @@ def remove_quietly(path: Path) -> None:
         os.remove(path)
 
 
+#: the outputs the current run (:func:`run_outputs`) has put in place so far; None outside a run
+_WRITTEN: list | None = None
+
+
+def mark_written(path) -> None:
+    """Note an output just put in place (renamed from its temporary name): :func:`run_outputs` removes
+    it if the run then fails or is interrupted. Nothing outside a run."""
+    if _WRITTEN is not None:
+        _WRITTEN.append(Path(path))
+
+
+@contextlib.contextmanager
+def run_outputs():
+    """Context manager: a run's outputs are all left, or none. A run writes several files one after
+    another (the mesh, then the measures of it, then the JSON report): an error or an interrupt after
+    the first is in place removes what this run has put in place (:func:`mark_written`), so that
+    "no output written" is true and no mesh is left without its report."""
+    import shutil
+
+    global _WRITTEN
+    outer, _WRITTEN = _WRITTEN, []
+    try:
+        yield
+    except BaseException:
+        for path in reversed(_WRITTEN):
+            if path.is_dir():
+                shutil.rmtree(path, ignore_errors=True)
+            else:
+                remove_quietly(path)
+        raise
+    finally:
+        _WRITTEN = outer
+
+
 def check_writable(path, *, formats=None, option: str = "-o") -> Path:
     """Fail early, with a one-line fix, if `path` cannot be written.
 
@@ -202,6 +239,7 @@ def atomic_path(path):
     except OSError as exc:
         remove_quietly(tmp)
         raise ScaffoldError(f"cannot write to {final}: {os_reason(exc)}") from None
+    mark_written(final)
 
 
 def check_format(final: Path, formats) -> str:

@@ -513,4 +513,7 @@ def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = Non
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    from ..io.files import mark_written
+
+    mark_written(final)
     return stack
