@@ -950,11 +950,25 @@ def _printed_kind(params: Params, mesh: bool, slices, *, graded: bool) -> str | 
     return "mesh" if mesh else ("slices" if slices is not None else None)
 
 
-def _prism(grid: Grid):
-    """The calibration prism's y and z bands (:func:`~implicit_scaffold.fields.printed.prism_bands`)."""
+#: the patient's voxels per y row, for the calibration prism, are counted on a grid of at most this many voxels
+PRISM_ROWS_VOXELS = 2**16
+
+
+def _prism(grid: Grid, patient=None):
+    """The calibration prism's y and z bands (:func:`~implicit_scaffold.fields.printed.prism_bands`),
+    placed by the `patient`'s voxels per y row, counted on a coarse grid (:data:`PRISM_ROWS_VOXELS`)
+    over the same box."""
     from .fields.printed import prism_bands
 
-    return prism_bands(grid.shape)
+    rows = None
+    if patient is not None:
+        nx, ny, nz = grid.shape
+        f = max(1, math.ceil((nx * ny * nz / PRISM_ROWS_VOXELS) ** (1 / 3)))
+        coarse = Grid(grid.origin, grid.spacing * f, tuple(-(-n // f) for n in grid.shape))
+        counts = np.count_nonzero(patient.sdf_grid(coarse) < 0, axis=(0, 2)).astype(np.float64)
+        # fine row j lies nearest coarse row j / f (the two grids share their first voxel's centre)
+        rows = counts[np.minimum(np.rint(np.arange(ny) / f).astype(int), counts.size - 1)]
+    return prism_bands(grid.shape, rows=rows)
 
 
 def _printed_level(printed: str, read, level: float, grid: Grid, params: Params, slices, ys, zs,
@@ -1277,7 +1291,7 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     printed, calibration = _printed_kind(params, mesh, run.slices, graded=grade is not None), {}
     search = None
     if printed is not None:
-        bands = _prism(grid)
+        bands = _prism(grid, run.patient)
 
         def level_for(read, level, pieces):
             found, info = _printed_level(printed, read, level, grid, params, run.slices, *bands, pieces=pieces,
@@ -1815,7 +1829,9 @@ def _check_built(report: dict, params: Params, found_before=()) -> list[str]:
     if target is not None and printed is not None and (report.get("printed_level") or {}).get("by"):
         # the level was solved for what is printed: that is what must meet the target
         if abs(printed - target) > PRINTED_TOLERANCE:
-            why = _fragments_why(report, removed, "the struts are under-resolved")
+            skipped = report["printed_level"].get("skipped")
+            why = f"{skipped}, so the level is the voxels' one" if skipped else \
+                _fragments_why(report, removed, "the struts are under-resolved")
             found.append(f"the printed porosity {printed:.4f} misses the target {target:g} by "
                          f"{100 * abs(printed - target):.1f} points: {why} at {h:.3g} mm voxels; use a finer "
                          f"--voxel (e.g. {h / 2:.3g})" + (" or --keep-fragments" if removed else ""))

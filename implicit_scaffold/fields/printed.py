@@ -33,9 +33,10 @@ CORRECT_ABOVE = 1e-3
 ON_CENTRE = 1e-6
 
 
-def prism_bands(shape, max_voxels: int = PRISM_VOXELS) -> tuple[slice, slice]:
-    """The calibration prism's y and z bands: every z plane and a central band of y rows,
-    as many as `max_voxels` allows (the whole grid when it holds no more).
+def prism_bands(shape, max_voxels: int | None = None, rows=None) -> tuple[slice, slice]:
+    """The calibration prism's y and z bands: every z plane and a band of y rows, as many as
+    `max_voxels` allows (the whole grid when it holds no more): the central band, or, where `rows`
+    says it holds under half the patient of the band that holds most, that band.
 
     The prism keeps the grid's x and z faces, so the lattice cut by the patient's surface
     there is sampled in proportion, as well as the interior; only the y faces are missed.
@@ -44,7 +45,12 @@ def prism_bands(shape, max_voxels: int = PRISM_VOXELS) -> tuple[slice, slice]:
     ----------
     shape : (3,) ints
         The grid's shape.
-    max_voxels : int
+    max_voxels : int, optional
+        Default :data:`PRISM_VOXELS`.
+    rows : (ny,) array_like, optional
+        The patient's voxels in each y row (estimates will do): two bones apart along y leave the
+        central rows empty, and a prism there measures nothing (the calibration was then skipped, and
+        the printed porosity missed its target by 4 points).
 
     Returns
     -------
@@ -52,8 +58,14 @@ def prism_bands(shape, max_voxels: int = PRISM_VOXELS) -> tuple[slice, slice]:
         Index ranges along y and z; the prism is ``field[:, ys, zs]``.
     """
     nx, ny, nz = (int(v) for v in shape)
-    wy = min(ny, max(3, max_voxels // (nx * nz)))
+    wy = min(ny, max(3, (PRISM_VOXELS if max_voxels is None else max_voxels) // (nx * nz)))
     y0 = (ny - wy) // 2
+    if rows is not None and wy < ny:
+        held = np.convolve(np.asarray(rows, np.float64), np.ones(wy), mode="valid")  # held[y] by rows y .. y + wy - 1
+        # the fullest band, the central one among equals
+        best = int(np.lexsort((np.abs(np.arange(held.size) - y0), -held))[0])
+        if held[y0] < 0.5 * held[best]:
+            y0 = best
     return slice(y0, y0 + wy), slice(0, nz)
 
 
