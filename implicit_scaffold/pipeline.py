@@ -893,7 +893,8 @@ def _simplify(mesh, tolerance: float, voxel: float, patient_volume: float, prog,
 
     from .mesh.marching import mesh_volume
     from .run.memory import process_memory
-    from .mesh.simplify import SIMPLIFY_BYTES_PER_TRIANGLE, euler_characteristic, simplification_error, simplify_mesh
+    from .mesh.simplify import (SIMPLIFY_BYTES_PER_TRIANGLE, euler_characteristic, shared_positions,
+                                simplification_error, simplify_mesh)
 
     before = len(mesh.faces)
     info = {"tolerance_mm": float(tolerance), "tolerance_voxels": float(tolerance / voxel),
@@ -907,6 +908,12 @@ def _simplify(mesh, tolerance: float, voxel: float, patient_volume: float, prog,
     volume_before = mesh_volume(mesh)
     with prog.stage("simplify", f"tolerance {tolerance:.4g} mm"):
         simple = simplify_mesh(mesh, tolerance)
+    touching = shared_positions(simple) - shared_positions(mesh)
+    if touching > 0:
+        why = (f"not simplified: the edge collapses brought the surface onto itself ({touching} vertices share a "
+               "position), which an STL file and a slicer read as edges of four triangles, not watertight; "
+               "pass a smaller --tolerance, or --tolerance 0 to say so")
+        return mesh, {**info, "applied": False, "why": why}, [f"the mesh was {why}"]
     with prog.stage("simplify check", "distances between the surfaces"):
         # exact up to half a voxel (and 8 times that for the few points beyond)
         error = simplification_error(mesh, simple, reach=voxel / 2)

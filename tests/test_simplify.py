@@ -357,3 +357,39 @@ def test_cli_tolerance(tmp_path, capsys):
     assert "simplified within 0.006 mm" in out
     rep = json.loads((tmp_path / "c.json").read_text())
     assert rep["simplification"]["tolerance_mm"] == 0.006
+
+
+def test_shared_positions_counts_vertices_that_an_stl_would_merge():
+    from implicit_scaffold.mesh.simplify import shared_positions
+
+    a = trimesh.creation.box(extents=(1, 1, 1))
+    b = trimesh.creation.box(extents=(1, 1, 1))
+    b.apply_translation((1, 1, 0))  # touching a along the edge x = y = 0.5: its 2 corners there, and a's 2
+    both = trimesh.Trimesh(np.vstack([a.vertices, b.vertices]), np.vstack([a.faces, b.faces + len(a.vertices)]),
+                           process=False)
+    assert shared_positions(a) == 0 and shared_positions(both) == 4
+    # as an STL reads it (positions merged): the edge's triangles are four, not watertight
+    assert not trimesh.Trimesh(both.vertices, both.faces, process=True).is_watertight
+
+
+def test_a_simplification_that_makes_the_surface_touch_itself_is_not_applied(tmp_path, monkeypatch):
+    # manifold3d keeps two sheets it brought together apart by index: closed as it holds the mesh, but
+    # not as an STL stores it (the femur in three pieces at --tolerance 0.05 had two edges of four triangles)
+    import implicit_scaffold.mesh.simplify as simplify_module
+    from implicit_scaffold.pipeline import generate
+
+    real = simplify_module.simplify_mesh
+
+    def touching(mesh, tolerance):
+        out = real(mesh, tolerance)
+        v = np.array(out.vertices)
+        f = np.asarray(out.faces)
+        far = np.argmax(np.linalg.norm(v - v[f[0, 0]], axis=1))
+        v[f[0, 0]] = v[far]  # one vertex moved onto another's position
+        return trimesh.Trimesh(v, f, process=False)
+
+    monkeypatch.setattr(simplify_module, "simplify_mesh", touching)
+    with pytest.warns(UserWarning, match="brought the surface onto itself"):
+        rep = generate(output=tmp_path / "s.stl", morphometry=False, tolerance=TOL, **SMALL).report
+    assert rep["simplification"]["applied"] is False
+    assert trimesh.load(tmp_path / "s.stl").is_watertight
