@@ -969,7 +969,8 @@ def _slice(args) -> int:
             f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
             _porosity_line(r, 'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f'))
-            + f"; solid volume: layers {stack['solid_volume_mm3']:.4g} mm3, voxels {solid:.4g} mm3",
+            + f"; solid volume: layers {stack['grey_volume_mm3']:.4g} mm3 (grey levels; pixels at least half solid "
+            f"{stack['solid_volume_mm3']:.4g}), voxels {solid:.4g} mm3",
             *(_repair_lines(r["repair"]) if r.get("repair") else []),
             *(_certificate_lines(r["print_check"]) if isinstance(r.get("print_check"), dict) else []),
             _memory_line(r),

@@ -1803,9 +1803,7 @@ def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:
     return {"folder": str(slices["out_dir"]), "layers": stack.layers, "width": stack.width,
             "height": stack.height, "pixel_mm": stack.pixel_mm, "layer_mm": stack.layer_mm,
             "origin_mm": list(stack.origin_mm), "solid_volume_mm3": stack.solid_volume_mm3,
-            # the grey levels summed: the solid a printer cures from these anti-aliased layers
-            "grey_volume_mm3": float(np.sum(stack.grey_mean)) * stack.width * stack.height
-            * stack.pixel_mm ** 2 * stack.layer_mm}
+            "grey_volume_mm3": stack.grey_volume_mm3}
 
 
 def _check_built(report: dict, params: Params, found_before=()) -> list[str]:

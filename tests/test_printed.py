@@ -7,6 +7,7 @@ calibration prism's cap-free volume formula.
 """
 from __future__ import annotations
 
+import json
 import math
 from pathlib import Path
 
@@ -162,6 +163,9 @@ def test_the_slice_stack_meets_the_target(tmp_path, style, pixel):
     printed = 1.0 - grey_volume(out, pixel or h, pixel or h) / 27.0
     assert abs(printed - 0.75) < WITHIN
     assert rep["printed_level"]["by"] == "slices"
+    # the stack's own record of its solid is the images' grey levels (the pixels at least half solid beside)
+    stack = json.loads((out / "stack.json").read_text())
+    assert stack["grey_volume_mm3"] == pytest.approx(grey_volume(out, pixel or h, pixel or h), rel=1e-6)
 
 
 def test_slabs_solve_the_same_level(tmp_path):

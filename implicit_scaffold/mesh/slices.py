@@ -74,13 +74,20 @@ class SliceStack:
 
     @property
     def solid_volume_mm3(self) -> float:
-        """Volume of the solid pixels of all layers, mm³."""
+        """Volume of the solid pixels of all layers (at least half solid: grey >= 128), mm³."""
         return float(sum(self.solid_share)) * self.width * self.height * self.pixel_mm ** 2 * self.layer_mm
+
+    @property
+    def grey_volume_mm3(self) -> float:
+        """The layers' grey levels summed (255 a whole pixel), mm³: the solid a printer cures from the
+        anti-aliased layers, and what the printed porosity is solved for."""
+        return float(sum(self.grey_mean)) * self.width * self.height * self.pixel_mm ** 2 * self.layer_mm
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["units"] = "mm"
         d["solid_volume_mm3"] = self.solid_volume_mm3
+        d["grey_volume_mm3"] = self.grey_volume_mm3
         d["rows"] = "row 0 is the largest y (image seen from +z)"
         d["grey"] = "255 solid, 0 void; edges anti-aliased by the share of the pixel that is solid"
         return d
