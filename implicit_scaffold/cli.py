@@ -510,6 +510,16 @@ def _repair_lines(rep: dict) -> list[str]:
     return lines
 
 
+def _unresolved_text(cert: dict) -> str:
+    """Where the certificate's voxels cannot tell whether thin solid meets the minimum strut, says so."""
+    unresolved = cert["thinnest_mm"].get("unresolved_share") or 0.0
+    if unresolved <= 0.01:
+        return ""
+    h, need = cert["voxel_mm"], cert["printer"]["min_strut_mm"]
+    return (f" ({100 * unresolved:.1f} % of the solid is 1 to 3 voxels thick: at {h:.3g} mm voxels it cannot be "
+            f"told from {need:g} mm; a voxel of {need / 4:.3g} mm or finer resolves it)")
+
+
 def _certificate_lines(cert: dict) -> list[str]:
     """The certificate's summary: one line per check, its figure and its verdict."""
     v = cert["verdict"]
@@ -521,7 +531,8 @@ def _certificate_lines(cert: dict) -> list[str]:
     return [
         f"  print check ({p['name']}): {v['overall'].upper()}",
         f"    thinnest solid: min {cert['thinnest_mm']['min']:.3f} mm, 1st percentile {cert['thinnest_mm']['p1']:.3f} mm, "
-        f"{share(cert['below_min_strut_share'])} of the solid below {p['min_strut_mm']:g} mm: {v['thinnest']}",
+        f"{share(cert['below_min_strut_share'])} of the solid below {p['min_strut_mm']:g} mm: {v['thinnest']}"
+        + _unresolved_text(cert),
         f"    throat: {cert['throat_mm']:.3f} mm (min {p['min_throat_mm']:g} mm): {v['throat']}; void reached by the "
         f"{p['drain_mm']:g} mm drain {share(cert['void_reached_by_drain_share'])}: {v['drain']}; by 100 um cells "
         f"{share(cert['void_reached_by_100um_share'])}: {v['cell_infiltration']}",

@@ -360,3 +360,18 @@ def test_flood_in_two_halves_gives_the_single_floods_fixpoint(seed):
     assert flood(d2, halves) and flood_faces(d2, whole, True, True)
     assert 0 < np.count_nonzero(whole) and np.count_nonzero(whole < d2) > 100
     np.testing.assert_array_equal(halves, whole)
+
+
+@pytest.mark.parametrize("plate, min_strut, unresolved, verdict", [
+    (1, 2.5, 1.0, "warn"),   # 1 voxel thick reads 3: it cannot be told from 2.5
+    (2, 2.5, 1.0, "warn"),   # 2 voxels thick reads 3 too
+    (6, 2.5, 0.0, "pass"),   # 6 voxels read 5 to 7: resolved
+    (1, 1.0, 0.0, "pass"),   # a minimum of one voxel: any solid meets it
+])
+def test_solid_the_voxels_cannot_tell_from_the_minimum_strut_is_not_passed(plate, min_strut, unresolved, verdict):
+    # a plate of `plate` voxels (true thickness plate x 1 mm) through a 1 mm grid
+    solid = np.zeros((24, 24, 24), bool)
+    solid[:, :, 10:10 + plate] = True
+    cert = certificate(solid, 1.0, printer_profile(f"custom:min_strut={min_strut},min_throat=0.5"))
+    assert cert["thinnest_mm"]["unresolved_share"] == pytest.approx(unresolved)
+    assert cert["verdict"]["thinnest"] == verdict
