@@ -261,3 +261,41 @@ def test_compiled_ray_parity_matches_numpy_reference(x_range):
     ref, ref_odd = inside_votes_reference(V, F, grid, x_range=x_range)
     assert 0.05 < inside.mean() < 0.95
     assert np.array_equal(inside, ref) and odd == ref_odd
+
+
+def _boxes(*placed):
+    """One mesh of axis-aligned boxes ((extents, centre, inward) each), concatenated as a file would hold them."""
+    parts = []
+    for extents, centre, inward in placed:
+        b = trimesh.creation.box(extents=extents)
+        b.apply_translation(centre)
+        if inward:
+            b.invert()
+        parts.append(b)
+    return trimesh.util.concatenate(parts)
+
+
+def test_overlapping_surfaces_make_their_union_and_a_cavity_stays_hollow():
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    grid = Grid((-1.45, -1.45, -1.45), 0.1, (40, 30, 30))
+    # two unit cubes overlapping by half: the union is 1.5 mm3, and the overlap is inside
+    with pytest.warns(ScaffoldWarning, match="2 closed surfaces that overlap"):
+        two = mesh_patient_from_trimesh(_boxes(((1, 1, 1), (0, 0, 0), False), ((1, 1, 1), (0.5, 0, 0), False)),
+                                        name="two.stl")
+    assert two.volume == pytest.approx(1.5, rel=1e-12)
+    sdf = two.sdf_grid(grid)
+    x = grid.origin[0] + 0.1 * np.arange(40)
+    assert np.all(sdf[np.abs(x - 0.25) < 0.2, 13:17, 13:17] < 0)  # the overlap: inside (parity said outside)
+    assert np.count_nonzero(sdf < 0) * 1e-3 == pytest.approx(1.5, rel=0.02)
+    # apart: each its own, no warning; a cavity (an inner surface wound inwards) is not filled
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        apart = mesh_patient_from_trimesh(_boxes(((1, 1, 1), (0, 0, 0), False), ((1, 1, 1), (3, 0, 0), False)),
+                                          name="apart.stl")
+        hollow = mesh_patient_from_trimesh(_boxes(((2, 2, 2), (0, 0, 0), False), ((1, 1, 1), (0, 0, 0), True)),
+                                           name="hollow.stl")
+    assert apart.volume == pytest.approx(2.0, rel=1e-12) and hollow.volume == pytest.approx(7.0, rel=1e-12)
+    assert np.all(hollow.sdf_grid(grid)[13:17, 13:17, 13:17] > 0)
