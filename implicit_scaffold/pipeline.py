@@ -1526,6 +1526,14 @@ def _mesh_report(report: dict, summary: dict, patient) -> None:
     report["porosity_printed"] = report["porosity_mesh"]
 
 
+def _fragments_per_piece(report: dict) -> None:
+    """The report's ``fragments``: solid pieces besides each patient piece's main body. The voxel
+    measures count the pieces besides one, over the whole grid: a femur in three pieces, each a
+    body, read 2."""
+    if report.get("fragments") is not None and report.get("patient_pieces_with_solid", 1) > 1:
+        report["fragments"] = max(0, report["fragments"] + 1 - report["patient_pieces_with_solid"])
+
+
 def _pieces_report(report: dict, rows: list[dict]) -> str | None:
     """The report's patient pieces (:func:`~implicit_scaffold.run.pieces.piece_table`'s rows); a warning for the pieces
     too small to hold one pore (the target's, or the mean measured), or None."""
@@ -1533,6 +1541,8 @@ def _pieces_report(report: dict, rows: list[dict]) -> str | None:
 
     report["patient_pieces_count"] = len(rows)
     report["patient_pieces"] = rows[:REPORT_PIECES]
+    # each piece's main body is no fragment (the morphometry counts pieces besides one: _fragments_per_piece)
+    report["patient_pieces_with_solid"] = sum(1 for r in rows if r.get("bodies"))
     pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
     return small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore) if pore else None
 
@@ -1623,6 +1633,7 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
                 found.update(surface_measures(report["surface_area_mm2"], report["mesh_volume_mm3"]))
         found.pop("porosity_voxel", None)  # the scaffold pass counted it already
         report.update(found)
+        _fragments_per_piece(report)
     if printer is not None:
         from .measure.printability import certificate
 
@@ -1685,6 +1696,7 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     if morphometry:
         # measured on what was built, after any correction of the level
         report.update(_slab_morphometry(tf, grid, cells, run, prog))
+        _fragments_per_piece(report)
         if "mesh_volume_mm3" in report:
             # as the whole-grid morphometry takes them: the mesh's area over its volume
             report["bs_bv_per_mm"] = (report["surface_area_mm2"] / report["mesh_volume_mm3"]

@@ -336,3 +336,16 @@ def test_a_one_piece_patients_row_from_the_passes_counts_is_the_whole_grids(skin
     assert count == 1
     assert whole.report["patient_pieces"] == want
     assert tiled.report["patient_pieces"] == want
+
+
+@pytest.mark.parametrize("tiled", [False, 30 * 52 * 52])
+def test_fragments_are_the_pieces_besides_each_patient_pieces_main_body(tiled):
+    # two balls, each keeping its scaffold's main body: no fragment (the whole grid's pieces besides
+    # one read 1); the oracle: the built solid's 6-connected pieces, counted by SciPy, less the patient's
+    from scipy import ndimage
+
+    parts = [_ball([3, 3, 3], 2.5), _ball([10, 3, 3], 2.0)]
+    r = implicit_scaffold.generate(patient=_Union(parts), pore_size=1.0, porosity=0.7, voxel=0.1, tiled=tiled)
+    inside = r.patient_sdf < 0
+    _, pieces = ndimage.label((r.field < 0) & inside)
+    assert r.report["fragments"] == pieces - 2 == 0
