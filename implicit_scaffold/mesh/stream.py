@@ -359,7 +359,7 @@ def _slab_surface(source, x0: int, x1: int, level: float):
     if not cubes.min() < 0:
         return None
     # int32 corner numbers (scikit-image's own): half the bytes of the slab's largest array
-    return marching_cubes_surface(cubes, index=np.int32)
+    return marching_cubes_surface(cubes, index=np.int32, x0=x0)
 
 
 def _mesh_slab(source, x0: int, x1: int, level: float):
