@@ -68,3 +68,32 @@ def test_a_wait_is_given_in_the_unit_a_person_would_name():
 
     assert [format_duration(s) for s in (0.2, 40, 89, 200, 5399, 7200)] == ["1 s", "40 s", "89 s", "3 min", "90 min",
                                                                             "2.0 h"]
+
+
+def test_a_bar_off_a_terminal_notes_its_count_and_the_time_left(capsys):
+    # a log or a pipe gets no bar: a line now and then, with what is done and the time left at its pace
+    progress = Progress(True)
+    update = progress.bar("mesh", every=0.0)
+    for done in (1, 2, 4):
+        time.sleep(0.05)
+        update(done, 4)
+    lines = capsys.readouterr().err.splitlines()
+    assert [line.split(",")[0] for line in lines] == ["    mesh: 1 of 4 (25 %)", "    mesh: 2 of 4 (50 %)"]
+    assert all(line.endswith(" left") for line in lines)
+    assert Progress(False).bar("mesh") is None
+
+
+def test_a_long_stage_off_a_terminal_says_it_is_still_running_until_it_ends(capsys, monkeypatch):
+    import implicit_scaffold.progress as progress_module
+
+    monkeypatch.setattr(progress_module, "HEARTBEAT_S", 0.1)
+    with Progress(True).stage("cells"):
+        time.sleep(0.35)
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0] == "  cells ..." and 2 <= len(lines) - 1 <= 4
+    assert all(line.startswith("    cells: still running, ") for line in lines[1:])
+    time.sleep(0.3)  # the stage is over: no more lines
+    assert capsys.readouterr().err == ""
+    with Progress(False).stage("cells"):
+        time.sleep(0.25)
+    assert capsys.readouterr().err == ""
