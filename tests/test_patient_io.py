@@ -195,3 +195,21 @@ def test_femur_shaft_segment_scaffold(data_dir, tmp_path):
     area = sum(abs(0.5 * np.sum(p[:-1, 0] * p[1:, 1] - p[1:, 0] * p[:-1, 1])) for p in loops)
     assert patient.volume == pytest.approx(area * 8, rel=0.02)
     assert math.isfinite(rep["patient_volume_mm3"])
+
+
+def test_an_open_mesh_is_taken_with_a_warning_and_a_closed_one_without():
+    # an open surface gets its sign from a vote and its volume integrated: said, not silent
+    import tempfile
+    from pathlib import Path
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=5.0)
+    with tempfile.TemporaryDirectory() as folder:
+        closed, holed = Path(folder) / "closed.stl", Path(folder) / "holed.stl"
+        ball.export(closed)
+        trimesh.Trimesh(ball.vertices, ball.faces[5:], process=False).export(holed)
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert load_patient(closed).volume == pytest.approx(ball.volume, rel=1e-6)  # STL: float32
+        with pytest.warns(ScaffoldWarning, match="holed.stl is not a closed surface"):
+            patient = load_patient(holed)
+        assert patient.volume == pytest.approx(4 / 3 * math.pi * 5.0 ** 3, rel=0.05)
