@@ -866,6 +866,8 @@ def _metric_lines(r: dict) -> list[str]:
               (r.get("interconnected_porosity"), "interconnected {:.4g}")]
     if any(v is not None for v, _ in voxels):
         lines.append("  voxels (spheres): " + ", ".join(f.format(v) for v, f in voxels if v is not None))
+    if isinstance(r.get("morphometry"), str):  # what was not measured, and why (the memory it needed)
+        lines.append(f"  voxels: {r['morphometry']}")
     return lines
 
 

@@ -405,3 +405,16 @@ def test_progress_and_summary_count_the_same_seeds(tmp_path, capsys):
     assert drawn and int(drawn[-1]) == rep["seeds"]
     assert f"seeds {rep['seeds']} (drawn in the patient and one cell's margin)" in captured.out
     assert f"{rep['cells_in_scaffold']} of the {rep['seeds']} cells in the scaffold" in captured.out
+
+
+def test_the_summary_says_which_voxel_measures_were_not_made_and_why():
+    # a slab run whose thickness halo did not fit measured the topology alone: the reason was in the
+    # JSON only, and the summary's line silently lacked strut thickness and pore diameter
+    from implicit_scaffold.cli import _metric_lines
+
+    why = "strut thickness and pore diameter not measured: a slab with its halo of 40 planes needs 2.10 GiB, over what " \
+          "--max-memory leaves; raise --max-memory"
+    lines = _metric_lines({"connectivity_density_per_mm3": 0.049, "interconnected_porosity": 1.0, "morphometry": why})
+    assert lines[-2] == "  voxels (spheres): Conn.D 0.049 /mm3, interconnected 1"
+    assert lines[-1] == f"  voxels: {why}"
+    assert not any(line.startswith("  voxels: ") for line in _metric_lines({"connectivity_density_per_mm3": 0.049}))
