@@ -1094,6 +1094,8 @@ def main(argv=None) -> int:
 
         with warnings.catch_warnings(), run_outputs():
             warnings.showwarning = _show_warning
+            if getattr(args, "max_memory", None) is not None:
+                _check_budget_fits(args.max_memory)
             return commands[args.command](args)
     except ScaffoldError as exc:
         print(f"implicit-scaffold: error: {exc}", file=sys.stderr)
@@ -1106,6 +1108,22 @@ def main(argv=None) -> int:
         return 130
     finally:
         _on_terminate(previous)
+
+
+def _check_budget_fits(size) -> None:
+    """Warn when ``--max-memory`` exceeds the machine's memory: the budget is then no guard (a run that needs
+    more is stopped by the system, or swaps, rather than refused before it starts)."""
+    import psutil
+
+    from .errors import ScaffoldWarning
+    from .run.memory import DEFAULT_MEMORY_SHARE, available_memory, format_size, parse_memory
+
+    total = int(psutil.virtual_memory().total)
+    if parse_memory(size) > total:
+        warnings.warn(f"--max-memory {size} is more than this machine's {format_size(total)} of memory: a run that needs "
+                      "more is stopped by the system, not refused before it starts; give at most "
+                      f"{format_size(DEFAULT_MEMORY_SHARE * available_memory())} (what is free now, less a fifth)",
+                      ScaffoldWarning, stacklevel=2)
 
 
 def _interrupt(signum, frame):

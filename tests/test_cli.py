@@ -418,3 +418,15 @@ def test_the_summary_says_which_voxel_measures_were_not_made_and_why():
     assert lines[-2] == "  voxels (spheres): Conn.D 0.049 /mm3, interconnected 1"
     assert lines[-1] == f"  voxels: {why}"
     assert not any(line.startswith("  voxels: ") for line in _metric_lines({"connectivity_density_per_mm3": 0.049}))
+
+
+def test_a_budget_beyond_the_machines_memory_is_warned_about(tmp_path, capsys):
+    import psutil
+
+    huge = f"{psutil.virtual_memory().total * 2 // 2**30}G"
+    assert main(["generate", "-o", str(tmp_path / "s.npy"), "--size", "2", "--voxel", "0.1", "--max-memory", huge,
+                 "-q"]) == 0
+    assert f"--max-memory {huge} is more than this machine's" in capsys.readouterr().err
+    assert main(["generate", "-o", str(tmp_path / "s.npy"), "--size", "2", "--voxel", "0.1", "--max-memory", "1G",
+                 "-q"]) == 0
+    assert "more than this machine's" not in capsys.readouterr().err
