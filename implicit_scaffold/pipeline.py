@@ -503,7 +503,8 @@ def _plan_before_cells(run: _RunPlan, params: Params, patient, n: int, graded: b
         planned = run.plan(Grid.covering(patient.lo, patient.hi, params.voxel),
                            halo=halo if params.style == "paper" else 0,
                            reserve=n * HELD_BYTES_PER_SEED + (GRADE_RESERVE if graded else 0),
-                           slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0)
+                           slab_share=n * (HELD_BYTES_PER_SEED - CELLS_BYTES_PER_SEED) if params.style == "paper" else 0,
+                           span=span)
     count_at = None
     if seeding is not None and params.seeds is None and not graded and params.seeds_in == "patient":
         # the seeds in the patient's margin too (seeds_in_patient draws n per patient volume
@@ -1112,7 +1113,7 @@ class _RunPlan:
         return None if isinstance(self.tiled, bool) or not self.tiled else int(self.tiled)
 
     def plan(self, grid: Grid, halo: int = 0, reserve: int = 0, slab_share: int = 0,
-             slab_bytes=None) -> int | None:
+             slab_bytes=None, span: float | None = None) -> int | None:
         """None for one slab held in memory (the whole grid), else the voxels a slab on disk may hold;
         raise if neither fits.
 
@@ -1125,7 +1126,8 @@ class _RunPlan:
         `slab_bytes(h0, h1)`, when given, is what the lattice's primitives take for the
         slab of planes ``[h0, h1)`` (halo included), known per slab
         (:meth:`~implicit_scaffold.geometry.skeleton.SkeletonSource.bytes_near`): the slabs are then thinned until
-        the most crowded one fits.
+        the most crowded one fits. Before the cells, `span` (a cell's size, mm) estimates it: the primitives
+        of the cells within a span of the thinnest slab, the cells spread evenly along x.
         """
         from .run.memory import format_size, release
         from .run.tiled import SLAB_BYTES_PER_VOXEL, STAGE_RESERVE, WORKER_RESERVE, check_disk
@@ -1160,6 +1162,18 @@ class _RunPlan:
         # not thin it (a plane then spans more cells)
         crowded = (n * _worst_slab(grid, halo, 1, slab_bytes)
                    if slab_bytes is not None and not self.forced_voxels else 0)
+        # the budget a refusal names: before the cells (`span` given, no `slab_bytes`), enough for the
+        # thinnest slab to hold every primitive, since the cells' own check after them counts the slab's
+        # cells, and the cells at a patient's surface reach the box's walls and crowd every slab (a femur
+        # head's 127^3 grid: 32 % of the primitives in its most crowded slab); a refusal here named 770M,
+        # which that check then refused naming 920M
+        named = SMALLEST_MARGIN * (held + thinnest)
+        if slab_bytes is None and span is not None and slab_share and not self.forced_voxels:
+            # a slab holds the primitives of the cells within a cell's `span` (mm) of it: that share of
+            # them where the cells spread evenly along x, the least it needs
+            reach = min(1.0, ((1 + 2 * halo) * grid.spacing + 2 * span) / (grid.shape[0] * grid.spacing))
+            crowded = n * int((1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL + reach * slab_share)
+            named = max(named, held + n * ((1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL + slab_share))
         fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest else
                f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
                " mm)" if self.max_memory > held else "")
@@ -1167,13 +1181,14 @@ class _RunPlan:
         if ext in MESH_FORMATS:
             thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
         smallest = held + thinnest
+        named = max(named, SMALLEST_MARGIN * smallest)
         if smallest > self.max_memory and self.tiled in (None, True):
             raise ScaffoldError(
                 f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
                 f"{format_size(smallest)} of memory even in slabs (its thinnest slab beside "
                 f"{held / 2**30:.2f} GiB of cells, skeleton and libraries"
                 + (f", in each of {n} workers" if n > 1 else "") + ") but --max-memory is "
-                f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * smallest)} "
+                f"{format_size(self.max_memory)}: pass --max-memory {format_size(named)} "
                 "or more" + fix + (", or fewer --workers" if n > 1 else ""))
         voxels = self.forced_voxels or max(1, int((self.max_memory - held) // (per_voxel * n)))
         if n > 1 and not self.forced_voxels:

@@ -357,6 +357,28 @@ def test_a_refused_budget_names_one_that_works_and_the_run_keeps_it(tmp_path):
     assert report["bodies"] == 1 and report["watertight"]
 
 
+@pytest.mark.slow
+def test_a_budget_refused_before_the_cells_names_one_the_cells_then_fit(tmp_path, data_dir):
+    """Refused before the cells, a run is told a budget that its slabs still fit once the cells are
+    built: a patient's surface cells reach the box's walls and crowd every slab (the femur's head at
+    0.2 mm was told 770M, then 920M by the check after the cells, where it ran in 754 MB)."""
+    import json
+    import re
+    import subprocess
+    import sys
+
+    args = [sys.executable, "-m", "implicit_scaffold", "generate", "--patient", str(data_dir / "jigsaw_femur.stl"),
+            "--clip", "-40", "-10", "420", "-15", "15", "445", "--pore-size", "1", "--voxel", "0.2", "-q",
+            "-o", str(tmp_path / "a.stl")]
+    refused = subprocess.run(args + ["--max-memory", "600M"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "thinnest slab" in refused.stderr, refused.stderr
+    named = re.search(r"pass --max-memory (\S+) or more", refused.stderr).group(1)
+    done = subprocess.run(args + ["--max-memory", named], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    report = json.loads((tmp_path / "a.json").read_text())
+    assert report["tiled"]["slabs"] > 1 and report["peak_memory_mb"] * 2**20 <= parse_memory(named)
+
+
 #: runs generate(**options) in a fresh process, recording what the process holds as each slab
 #: of the lattice pass starts (the heap returned first) and whether the slab builds its own
 #: skeleton; prints the report, or the refusal
