@@ -227,14 +227,15 @@ def _printed_wall(wall: float, params: Params) -> float | None:
     return wall * (1.0 - params.porosity) / (1.0 - p0)
 
 
-def _check_resolved(printed_wall: float | None, voxel: float) -> None:
-    """Refuse, before the lattice, a voxel that cannot hold the printed walls (module notes)."""
+def _check_resolved(printed_wall: float | None, voxel: float, pore_size_given: bool = True) -> None:
+    """Refuse, before the lattice, a voxel that cannot hold the printed walls (module notes). Without
+    `pore_size_given` (a CT calibration sets the pore sizes) only a finer voxel is named."""
     if printed_wall is not None and printed_wall / voxel < MIN_VOXELS_PER_WALL:
         raise ScaffoldError(
             f"--voxel {voxel:.4g} mm cannot hold the lattice: its walls, about {printed_wall:.3g} mm thick as "
             f"printed, would be {printed_wall / voxel:.2f} voxels across and break into fragments (at least "
-            f"{MIN_VOXELS_PER_WALL:g} are needed); use --voxel {_round_down(printed_wall / 2)} or finer, or a "
-            "larger --pore-size")
+            f"{MIN_VOXELS_PER_WALL:g} are needed); use --voxel {_round_down(printed_wall / 2)} or finer"
+            + (", or a larger --pore-size" if pore_size_given else " (--calibration sets the pore sizes)"))
 
 
 def _round_down(value: float) -> str:
@@ -405,7 +406,7 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
     built = _seeds_and_cells(params, patient, n, graded, run, prog, seeding)
     printed_wall = _printed_wall(built.wall, params)
     if params.voxel is not None:
-        _check_resolved(printed_wall, params.voxel)
+        _check_resolved(printed_wall, params.voxel, pore_size_given=params.calibration is None)
     grid = Grid.covering(patient.lo, patient.hi, params.voxel if params.voxel is not None
                          else _default_voxel(built.wall, _box_volume(patient), printed_wall))
     skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)

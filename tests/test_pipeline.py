@@ -356,3 +356,14 @@ def test_windows_stay_open_at_a_cubes_faces():
                 sl[axis] = i
                 return solid[tuple(sl)].mean()
             assert plane(first) <= plane(first + step) + 0.02, (axis, first, plane(first), plane(first + step))
+
+
+def test_a_voxel_too_coarse_for_the_walls_names_only_fixes_the_user_has():
+    # a CT calibration sets the pore sizes: its refusal names a finer voxel, not a larger --pore-size
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.pipeline import _check_resolved
+
+    for given, fix in ((True, "or a larger --pore-size"), (False, "(--calibration sets the pore sizes)")):
+        with pytest.raises(ScaffoldError) as err:
+            _check_resolved(0.123, 0.1, pore_size_given=given)
+        assert str(err.value).endswith("use --voxel 0.061 or finer" + (", " if given else " ") + fix)
