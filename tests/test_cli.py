@@ -48,6 +48,7 @@ BAD = [
     (["--voxel", "-0.1"], "--voxel must be a positive number"),
     (["--voxel", "0.0004"], "or use a larger --voxel"),
     (["--porosity", "80"], "fraction, not a percentage"),
+    (["--porosity", "1"], "got 1 (all void); a fraction such as 0.8 is 80 %"),
     (["--pore-size", "0"], "--pore-size must be a positive"),
     (["--style", "struts", "--porosity", "none"], "solves the strut radius"),
     (["--repair"], "--repair repairs for a printer's limits; add --printer NAME"),

@@ -310,7 +310,10 @@ def check_porosity(porosity):
         p = float(porosity)
     except (TypeError, ValueError):
         raise ScaffoldError(f"--porosity must be a fraction in (0, 1) or 'none', got {porosity!r}") from None
-    if p >= 1 and p < 100:
+    if p == 1:  # 100 % void, or 1 %: a fraction of 1 is no scaffold either way
+        raise ScaffoldError("--porosity must lie strictly between 0 and 1, got 1 (all void); a fraction such as "
+                            "0.8 is 80 %")
+    if p > 1 and p < 100:
         raise ScaffoldError(f"--porosity is a fraction, not a percentage: got {p:g}; did you mean {p / 100:g}?")
     if not (0 < p < 1) or math.isnan(p):
         raise ScaffoldError(f"--porosity must lie strictly between 0 and 1, got {p:g}; e.g. --porosity 0.8")
