@@ -1175,7 +1175,9 @@ class _RunPlan:
             reach = min(1.0, ((1 + 2 * halo) * grid.spacing + 2 * span) / (grid.shape[0] * grid.spacing))
             crowded = n * int((1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL + reach * slab_share)
             named = max(named, held + n * ((1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL + slab_share))
-        fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest else
+        # fewer cells where the slab's primitives outweigh its voxels, else a coarser voxel
+        voxels_part = n * (1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL
+        fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest and crowded > 2 * voxels_part else
                f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
                " mm)" if self.max_memory > held else "")
         thinnest = max(thinnest, crowded)
