@@ -159,7 +159,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "offset follow) that meet porosity, pore size, minimum strut and stiffness "
                                     "targets, by a few builds of a representative cube; verify them over random "
                                     "seeds. Exit code 3 when the targets conflict (the output names them and the "
-                                    "nearest trade-off). With --stiffness-from-ct: a scaffold graded so that its "
+                                    "nearest trade-off), or when the design built on --patient misses one. With --stiffness-from-ct: a scaffold graded so that its "
                                     "local modulus follows the bone's in the patient's CT.")
     de.add_argument("--porosity", type=float, default=None,
                     help="target porosity in (0, 1) (required, except with --stiffness-from-ct)")

@@ -380,6 +380,11 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         tiled = True if tiled is None else tiled
     if patient is None:
         patient = primitive(params.shape, params.size)
+    if slices is not None and slices.get("layer") is not None:
+        height = float(patient.hi[2] - patient.lo[2])
+        if float(slices["layer"]) > height:
+            raise ScaffoldError(f"--layer {float(slices['layer']):g} mm is taller than the part ({height:.4g} mm along "
+                                "z): it would print one empty layer; give a layer of the printer's, e.g. --layer 0.05")
     # everything that can be checked before the work starts is checked now
     opencl.context()
     from .run.memory import budget

@@ -300,6 +300,7 @@ def test_slice_writes_a_stack_that_matches_the_field(tmp_path, capsys):
 @pytest.mark.parametrize("args, message", [
     (["--pixel", "0"], "--pixel must be a positive number"),
     (["--layer", "-2"], "--layer must be a positive number"),
+    (["--layer", "500"], "--layer 500 mm is taller than the part (3 mm along z)"),
     (["--sf", "2"], "--sf must lie strictly between 0 and 1"),
 ])
 def test_slice_bad_input(tmp_path, capsys, args, message):
