@@ -877,7 +877,8 @@ def _pieces_lines(r: dict) -> list[str]:
     if count <= 1:
         return []
     shown = r["patient_pieces"]
-    lines = [f"  patient in {count} pieces (6-connected voxels), each with its own main body; the largest:"]
+    lines = [f"  patient in {count} pieces (6-connected voxels), each with its own main body"
+             + ("; the largest:" if count > 5 else ", largest first:")]
     lines += [f"    {p['volume_mm3']:.4g} mm3 (voxels), {p['cells']} cells (seed inside), porosity "
               f"{p['porosity_voxel']:.4f} (voxels), bodies {p['bodies']} (6-connected solid voxels)"
               for p in shown[:5]]
@@ -977,7 +978,8 @@ def _slice(args) -> int:
         stack = r["slices"]
         solid = (1.0 - r["porosity_voxel"]) * r["patient_volume_mm3"]
         print("\n".join([
-            f"wrote {stack['layers']} layers of {stack['width']}x{stack['height']} pixels and stack.json "
+            f"wrote {stack['layers']} layer{'' if stack['layers'] == 1 else 's'} of {stack['width']}x{stack['height']} "
+            "pixels and stack.json "
             f"to {args.output}",
             f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
