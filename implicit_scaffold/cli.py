@@ -557,7 +557,7 @@ def _check(args) -> int:
         from .io.files import check_writable
 
         check_writable(args.output, formats=(".json",))
-    scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label,
+    scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label, mesh_field=True,
                              threshold=args.threshold)
     cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
                        origin=scaffold.origin)

@@ -375,3 +375,33 @@ def test_solid_the_voxels_cannot_tell_from_the_minimum_strut_is_not_passed(plate
     cert = certificate(solid, 1.0, printer_profile(f"custom:min_strut={min_strut},min_throat=0.5"))
     assert cert["thinnest_mm"]["unresolved_share"] == pytest.approx(unresolved)
     assert cert["verdict"]["thinnest"] == verdict
+
+
+def test_check_of_a_mesh_offsets_it_as_built_by_its_own_signed_distance(tmp_path):
+    # a tube (radii 1 and 2 mm, 4 mm tall) as a mesh, checked at 0.25 mm voxels for a process that builds
+    # 0.1 mm thicker: the as-built solid is every voxel centre within 0.1 mm of the tube, by the closed-form
+    # distance (a printer's deviation under a voxel moved nothing before: whole voxels only)
+    import json
+
+    import trimesh
+
+    from implicit_scaffold.cli import main
+    from implicit_scaffold.run.grid import Grid
+
+    tube = trimesh.creation.annulus(r_min=1.0, r_max=2.0, height=4.0, sections=512)
+    tube.export(tmp_path / "tube.stl")
+    out = tmp_path / "cert.json"
+    assert main(["check", str(tmp_path / "tube.stl"), "--voxel", "0.25", "-q", "-o", str(out), "--printer",
+                 "custom:min_strut=0.1,min_throat=0.1,deviation=0.1"]) in (0, 3)
+    cert = json.loads(out.read_text())
+    lo, hi = tube.bounds
+    grid = Grid.covering(lo, hi, 0.25)
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    r = np.hypot(x, y)
+    q = np.stack([np.abs(r - 1.5) - 0.5, np.abs(z) - 2.0])
+    sdf = np.linalg.norm(np.maximum(q, 0), axis=0) + np.minimum(q.max(axis=0), 0)
+    region = np.all([(c >= lo[a]) & (c <= hi[a]) for a, c in enumerate((x, y, z))], axis=0)
+    expect = np.count_nonzero(region & (sdf >= 0.1)) / np.count_nonzero(region)
+    designed = np.count_nonzero(region & (sdf >= 0)) / np.count_nonzero(region)
+    assert cert["as_built"]["porosity"] == pytest.approx(expect, abs=2e-3)
+    assert cert["porosity"] == pytest.approx(designed, abs=2e-3) and expect < designed - 0.02

@@ -1046,7 +1046,7 @@ def run_grid_beside(path, voxel=None):
     return grid
 
 
-def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None) -> Scaffold:
+def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
@@ -1054,7 +1054,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None)
 
     The region (the void that counts) is the mesh's bounding box, the volume, or for a field the
     grid (the patient is not in a ``.npy``; its voxels outside the patient are void that joins the
-    outside, as they do on the printer).
+    outside, as they do on the printer). With `mesh_field`, a mesh's ``field`` is its signed distance on
+    the grid (exact near the surface: the print check's as-built offset, a fraction of a voxel, and its
+    surface normals come from it; without it a printer's deviation under a voxel moved nothing).
     """
     import json
     from pathlib import Path
@@ -1110,7 +1112,12 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None)
     pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
     inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
     region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
-    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), None, region, "the mesh's bounding box")
+    field = None
+    if mesh_field:
+        from ..fields.patient_mesh import MeshPatient
+
+        field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
+    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, "the mesh's bounding box")
 
 
 def _volume_only(path, label, threshold) -> None:
