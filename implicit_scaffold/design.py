@@ -42,6 +42,10 @@ from .errors import ScaffoldError
 MAX_BUILDS = 10
 #: the representative volume's grid: at most this many voxels a side (issue 16: 128³)
 MAX_VOXELS_SIDE = 120
+#: voxels across the minimum strut at least (the thickness map's smallest reading is 3 voxels), for which the
+#: representative volume goes up to this many voxels a side
+STRUT_VOXELS = 4
+MAX_STRUT_VOXELS_SIDE = 200
 #: the search aims the strut this much above its target, so that other seeds (whose p1 spreads by
 #: a few per cent) stay above it too
 STRUT_MARGIN = 1.08
@@ -175,6 +179,17 @@ def representative_volume(targets: Targets, sv_min: float = SV_RANGE[0]) -> dict
     if targets.min_strut is not None:
         want = min(want, targets.min_strut / 8.0)
     voxel = max(want, size / MAX_VOXELS_SIDE)
+    if targets.min_strut is not None and voxel > targets.min_strut / STRUT_VOXELS:
+        # the thickness map reads no solid under 3 voxels: a minimum under 4 voxels cannot be told from
+        # thinner solid, and would read as met (a 0.9 mm minimum at 4 mm pores, 0.333 mm voxels: "1 mm
+        # achieved" where the struts were 0.77 mm across). A finer cube, up to MAX_STRUT_VOXELS_SIDE a side
+        voxel = targets.min_strut / STRUT_VOXELS
+        if size / voxel > MAX_STRUT_VOXELS_SIDE:
+            raise ScaffoldError(
+                f"--min-strut {targets.min_strut:g} mm cannot be checked on the design cube of {targets.pore_size:g} mm "
+                f"pores ({size:.3g} mm a side): it needs voxels of {voxel:.3g} mm, {size / voxel:.0f} a side, over "
+                f"{MAX_STRUT_VOXELS_SIDE}; give --min-strut {STRUT_VOXELS * size / MAX_STRUT_VOXELS_SIDE:.2g} or more, "
+                f"or smaller pores")
     margin = min(0.25 * size, max(2.0 * (targets.min_strut or 0.0), 0.5 * targets.pore_size))
     return {"size": size, "voxel": voxel, "margin": margin}
 

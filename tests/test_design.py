@@ -621,3 +621,17 @@ def test_design_without_a_minimum_strut_prints_its_measured_strut_beside_no_targ
     assert "min_strut: no target, achieved" in text and "porosity: target 0.8, achieved" in text
     d = json.loads(out.read_text())
     assert d["targets"].get("min_strut") is None and d["achieved"]["min_strut"]["mean"] > 0
+
+
+def test_the_design_cube_resolves_the_minimum_strut_or_refuses():
+    # the thickness map reads no solid under 3 voxels: at 4 mm pores the 120-voxel cube's 0.333 mm voxels
+    # read "1 mm" for any thin strut, and a 0.9 mm minimum was "met" by struts 0.77 mm across
+    from implicit_scaffold.design import STRUT_VOXELS, Targets, representative_volume
+    from implicit_scaffold.errors import ScaffoldError
+
+    rve = representative_volume(Targets(porosity=0.95, pore_size=4.0, min_strut=0.9))
+    assert rve["voxel"] <= 0.9 / STRUT_VOXELS and 3 * rve["voxel"] < 0.9
+    # resolved already (3 cells of 0.5 mm pores at Sv 0.3: 5 mm, 120 voxels of 0.0417): unchanged
+    assert representative_volume(Targets(porosity=0.7, pore_size=0.5, min_strut=0.3))["voxel"] == 5.0 / 120
+    with pytest.raises(ScaffoldError, match="--min-strut 0.1 mm cannot be checked on the design cube"):
+        representative_volume(Targets(porosity=0.95, pore_size=4.0, min_strut=0.1))
