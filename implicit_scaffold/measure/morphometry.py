@@ -862,8 +862,6 @@ def load_region(path):
     import json
     from pathlib import Path
 
-    from ..run.grid import Grid
-
     path = Path(path)
     if not path.exists():
         raise ScaffoldError(f"--region {path} does not exist; give the patient file or the run's .json report")
@@ -875,7 +873,7 @@ def load_region(path):
     try:
         run = json.loads(path.read_text())
         source = run["patient_source"]
-        grid = Grid(tuple(run["grid_origin_mm"]), float(run["voxel_mm"]), tuple(run["grid_shape"]))
+        grid = run_grid(run)
     except (ValueError, KeyError, TypeError):
         raise ScaffoldError(f"--region {path.name} is not a report written by generate (it names no patient); "
                             "give the patient file instead") from None
@@ -1016,6 +1014,15 @@ class Scaffold:
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
 
 
+def run_grid(run: dict):
+    """The grid of a run from its JSON report's ``grid_origin_mm``, ``voxel_mm`` and ``grid_shape`` (KeyError,
+    TypeError or ValueError where the report lacks them)."""
+    from ..run.grid import Grid
+
+    return Grid(tuple(float(v) for v in run["grid_origin_mm"]), float(run["voxel_mm"]),
+                tuple(int(v) for v in run["grid_shape"]))
+
+
 def run_grid_beside(path, voxel=None):
     """The grid of the run that wrote the mesh `path`, from the JSON report generate wrote beside it
     (``<stem>.json``: ``grid_origin_mm``, ``voxel_mm``, ``grid_shape``), when there is one and `voxel` is
@@ -1030,15 +1037,11 @@ def run_grid_beside(path, voxel=None):
     import json
     from pathlib import Path
 
-    from ..run.grid import Grid
-
     meta = Path(path).with_suffix(".json")
     if not meta.is_file():
         return None
     try:
-        run = json.loads(meta.read_text())
-        grid = Grid(tuple(float(v) for v in run["grid_origin_mm"]), float(run["voxel_mm"]),
-                    tuple(int(v) for v in run["grid_shape"]))
+        grid = run_grid(json.loads(meta.read_text()))
     except (ValueError, KeyError, TypeError, ScaffoldError):
         return None
     if voxel is not None and not math.isclose(float(voxel), grid.spacing, rel_tol=1e-9):
