@@ -163,6 +163,19 @@ def test_corner_sums_match_the_gathered_element_displacements(periodic):
     assert some.shape == (2, 3, nodes.size)
     assert np.allclose(some, ref[:, :, nodes], rtol=1e-12, atol=1e-12 * np.abs(ref).max())
     assert np.array_equal(model.active, np.bincount(model.conn.ravel(), minlength=u.shape[2]) > 0)
+    # on the live nodes only: the same sums as the whole grid's (the gather is the oracle)
+    live = np.flatnonzero(model.active)
+    assert np.allclose(m.corner_sums(model, np.ascontiguousarray(u[:, :, live]), live), ue.sum(axis=2),
+                       rtol=1e-12, atol=1e-12)
+
+
+def test_affine_corner_sums_match_the_gathered_unit_strains():
+    # a box sample's u = E x in closed form against the gather of _affine's whole-grid displacements
+    rng = np.random.default_rng(8)
+    model = m.voxel_model(rng.random((7, 6, 5)) < 0.4, 0.1, TI, periodic=False)
+    cases = [0, 3, 5, 1]
+    want = m.gather(model, m._affine(model.shape, 0.1, cases)).sum(axis=2)
+    assert np.allclose(m.affine_corner_sums(model, cases), want, rtol=1e-12, atol=1e-12)
 
 
 def test_no_load_path_is_a_zero_modulus_with_a_note():

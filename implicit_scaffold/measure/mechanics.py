@@ -379,15 +379,33 @@ def element_strains(model: VoxelModel, u: np.ndarray) -> np.ndarray:
     return eps
 
 
-def corner_sums(model: VoxelModel, u: np.ndarray) -> np.ndarray:
+def corner_sums(model: VoxelModel, u: np.ndarray, live: np.ndarray | None = None) -> np.ndarray:
     """(m, 24) sums over the solid voxels of their element displacements (corner-major, as
-    ``gather(model, u).sum(axis=2)``), from nodal ones `u` (m, 3, N), without the (m, 24, ns) gather."""
+    ``gather(model, u).sum(axis=2)``), from nodal ones `u` (m, 3, N), without the (m, 24, ns) gather;
+    with `live` (flat node indices, every node a solid voxel touches among them), from `u` (m, 3, len(live))
+    on those nodes only."""
     m = u.shape[0]
     flat = u.reshape(m * 3, -1)
     out = np.empty((m, 8, 3))
     for a in range(8):
-        out[:, a, :] = (flat @ model.corner(a).ravel().astype(flat.dtype)).reshape(m, 3)
+        corner = model.corner(a).ravel()
+        out[:, a, :] = (flat @ (corner if live is None else corner[live]).astype(flat.dtype)).reshape(m, 3)
     return out.reshape(m, 24)
+
+
+def affine_corner_sums(model: VoxelModel, cases) -> np.ndarray:
+    """(m, 24) :func:`corner_sums` of the displacements ``E x`` of the unit Voigt strains `cases` (as
+    :func:`_affine` gives them, x the node index times h, which never wraps on a box sample's padded grid),
+    without a whole-grid vector: over the solid voxels, corner a sums ``E h (i + CORNERS[a])``."""
+    index = np.nonzero(model.solid)
+    ns = index[0].size
+    total = np.array([float(np.sum(i, dtype=np.int64)) for i in index])  # (3,) the voxels' summed indices
+    out = np.empty((len(cases), 8, 3))
+    for c, k in enumerate(cases):
+        eps = strain_tensor(k)
+        for a in range(8):
+            out[c, a] = model.h * eps @ (total + ns * CORNERS[a])
+    return out.reshape(len(cases), 24)
 
 
 def element_loads(model: VoxelModel, fe: np.ndarray, nodes: np.ndarray | None = None) -> np.ndarray:
@@ -634,7 +652,8 @@ def _norms(v: np.ndarray) -> np.ndarray:
 
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
         maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False,
-        energy: np.ndarray | None = None, accuracy: float | None = None, info: dict | None = None):
+        energy: np.ndarray | None = None, accuracy: float | None = None, info: dict | None = None,
+        whole: bool = True):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -692,10 +711,14 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     info : dict, optional
         Filled with ``energy_error`` (m,): each case's estimated energy error over its total energy at
         the stop (inf before :data:`ENERGY_STEPS` steps since its last start, NaN without `energy`).
+    whole : bool
+        Return x over the whole grid (m, 3, N); False: as the CG holds it, on the live nodes, with them:
+        ``(x (m, 3, L), live (L,))``, which spares the whole grid's x in double (on the 128^3 benchmark
+        scaffold 84 bytes a solid voxel a case, at the solve's end).
 
     Returns
     -------
-    x (m, 3, N), iterations, relative residuals (m,)[, x . r (m, m)]
+    x (m, 3, N) (or (x on the live nodes, live)), iterations, relative residuals (m,)[, x . r (m, m)]
     """
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
@@ -914,7 +937,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # double (whose drift from it is rounding)
     out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
     del r
-    return (put(x, live, n, ones), it, res) + out
+    return (put(x, live, n, ones) if whole else (x, live), it, res) + out
 
 
 # ----------------------------------------------------------------------------- homogenization
@@ -1258,20 +1281,22 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
             def loads(ks):
                 return _kinematic_loads(op, model, h, ks)
         info = {}
-        x, its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol, maxiter=maxiter,
-                            progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]), cross=True,
-                            energy=lifting[list(cases)], accuracy=accuracy, info=info)
+        (x, live), its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol,
+                                    maxiter=maxiter, progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]),
+                                    cross=True, energy=lifting[list(cases)], accuracy=accuracy, info=info,
+                                    whole=False)
         if tell is not None:
             tell.next()
         cross[np.ix_(list(cases), list(cases))] = xr
         err[list(cases)] = info["energy_error"]
         err_abs[list(cases)] = info["energy_error_abs"]
         met[list(cases)] = info["met"]
+        # the solved part's sums on its live nodes (the whole grid's x in double would be the solve's peak);
+        # u = E x + the solved part on a box, whose E x sums in closed form; periodic: E x's is added below
+        ue_sum[list(cases)] = corner_sums(model, x, live)
         if not periodic:
-            for c, k in enumerate(cases):  # u = E x + the solved part, a case at a time
-                x[c] += _affine(model.shape, h, [k])[0]
-        ue_sum[list(cases)] = corner_sums(model, x)  # the periodic part; E x's is added below
-        del x
+            ue_sum[list(cases)] += affine_corner_sums(model, cases)
+        del x, live
         iterations, res[list(cases)] = max(iterations, its), r
     del precond
     if periodic:

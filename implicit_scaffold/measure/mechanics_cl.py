@@ -467,13 +467,11 @@ class StencilLevelOperator(_Gather):
     def __init__(self, level):
         from .multigrid import node_stencils
 
-        stencils, live = node_stencils(level)
-        dtype = level.mats.dtype
-        n1, n2, n3 = level.shape
         # by row: entry x of node (r, k) at (243 r + x) n3 + k (the kernel reads a row's block in order;
-        # entry-major, 243 streams a vector, the 32^3 level of the 128^3 benchmark took 7.4 ms for six cases)
-        by_row = stencils.reshape(243, n1 * n2, n3).transpose(1, 0, 2)
-        super().__init__(level.shape, live, by_row, double=dtype == np.float64, per_element=False)
+        # entry-major, 243 streams a vector, the 32^3 level of the 128^3 benchmark took 7.4 ms for six cases),
+        # made so (aligned, in the level's float): the device reads that one array in place
+        by_row, live = node_stencils(level)
+        super().__init__(level.shape, live, by_row, double=level.mats.dtype == np.float64, per_element=False)
 
     def _launches(self, ncase: int) -> list:
         return self._rows("stencil", defines(ncase, self.double), (self.owner, self.mats))

@@ -456,10 +456,17 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
     """A level's product as assembled node stencils (the layout of ``stencil_rows`` in
     ``kernels/mechanics.cl``).
 
+    Built a node plane (along the first axis) at a time, into the array returned: on the 128^3 benchmark
+    scaffold the 32^3 level's stencils are 32 MiB, made beside its element matrices (72 MiB), at the
+    solve's peak with one load case a block; a whole-grid build and then a copy to the kernel's layout
+    held them twice.
+
     Returns
     -------
-    stencils : (243, N) float ndarray of the level's float, GPa mm
-        Entry ``9 q + 3 d + e``: row d, column e of the 3 x 3 block that neighbour q (offset
+    stencils : (n1 n2, 243, n3) float ndarray of the level's float, page-aligned, GPa mm
+        By node row, as the kernel reads them (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`:
+        the device reads the array in place): ``[r, x, k]`` is entry x of node (r, k) (r = i n2 + j),
+        entry ``9 q + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q (offset
         ``(q % 3, q // 3 % 3, q // 9) - 1``) adds to a node's force, summed over the elements
         around the node (rows ``3 b + d`` and columns ``3 a + e`` of each one's matrix, the node
         its corner b and the neighbour its corner a).
@@ -467,19 +474,26 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
         1 at a node some element touches.
     """
     from .mechanics import CORNERS
+    from .mechanics_cl import aligned_empty
 
-    n = int(np.prod(level.shape))
-    out = np.zeros((27, 3, 3, n), level.mats.dtype)
-    live = np.zeros(n, bool)
-    for b in range(8):
-        # the element whose corner b this node is has its low corner at node - offset(b)
-        e = np.roll(level.index, tuple(int(v) for v in CORNERS[b]), axis=(0, 1, 2)).ravel()
-        has = np.flatnonzero(e >= 0)
-        live[has] = True
-        rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
-        for a in range(8):
-            out[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
-    return out.reshape(243, n), live.astype(np.uint8)
+    n1, n2, n3 = level.shape
+    plane = n2 * n3
+    out = aligned_empty((n1 * n2, 243, n3), level.mats.dtype)
+    live = np.zeros(n1 * plane, np.uint8)
+    one = np.zeros((27, 3, 3, plane), level.mats.dtype)
+    for i in range(n1):
+        one.fill(0)
+        for b in range(8):
+            # the element whose corner b this node is has its low corner at node - offset(b)
+            o = CORNERS[b]
+            e = np.roll(level.index[(i - int(o[0])) % n1], (int(o[1]), int(o[2])), axis=(0, 1)).ravel()
+            has = np.flatnonzero(e >= 0)
+            live[i * plane + has] = 1
+            rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
+            for a in range(8):
+                one[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
+        out[i * n2:(i + 1) * n2] = one.reshape(243, n2, n3).transpose(1, 0, 2)
+    return out, live
 
 
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
