@@ -1412,7 +1412,9 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     from .run.memory import peak_memory
 
     if out_path is not None:
-        report["file_size_bytes"] = out_path.stat().st_size
+        from .io.files import written_path
+
+        report["file_size_bytes"] = written_path(out_path).stat().st_size
     report["peak_memory_mb"] = round(peak_memory() / 2**20, 1)
     if report.get("mesh_workers", 1) > 1 or ((report.get("tiled") or {}).get("workers") or 1) > 1:
         # the lattice's or the mesh stage's worker processes: the largest one's peak
@@ -1769,8 +1771,6 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
         The report's ``simplification`` (None without a tolerance).
     warnings : list of str
     """
-    import os
-
     from .mesh.marching import mesh_summary
     from .mesh.writers import write_mesh, write_mesh_from_ply
     from .run.memory import process_memory, release
@@ -1817,15 +1817,16 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
                 found = [f"the mesh was {why}"]
         with prog.stage("write"):
             if ext == ".ply":
-                from .io.files import mark_written
+                from .io.files import place
 
-                os.replace(staged, out_path)
-                mark_written(out_path)
+                place(staged, out_path)
+                staged = None  # in place, or to be when the run ends: not removed here
             else:
                 write_mesh_from_ply(staged, out_path)
         return summary, info, found
     finally:
-        staged.unlink(missing_ok=True)
+        if staged is not None:
+            staged.unlink(missing_ok=True)
 
 
 def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:

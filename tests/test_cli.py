@@ -377,7 +377,10 @@ def test_a_run_stopped_after_its_mesh_is_written_leaves_no_file(tmp_path, capsys
     (tmp_path / "old.txt").write_text("a file of the user's")
 
     def fail(*args, **kwargs):
-        assert (tmp_path / "s.stl").exists()  # the mesh was written: the case this test is about
+        # the mesh is finished, under its hidden temporary name until the run ends: a run killed outright
+        # here (SIGKILL, the out-of-memory killer) leaves no mesh without its report
+        assert not (tmp_path / "s.stl").exists()
+        assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".s.stl.tmp-")]
         raise stop
 
     monkeypatch.setattr(files, "write_json", fail)

@@ -154,7 +154,7 @@ def test_profiles_have_sources_and_custom_ones_parse():
     c = printer_profile("custom:min_strut=0.3,min_throat=0.6,overhang=40,axis=-x,deviation=-0.02")
     assert (c.min_strut_mm, c.min_throat_mm, c.overhang_deg, c.build_axis, c.deviation_mm) == (0.3, 0.6, 40, "-x", -0.02)
     for bad in ["nope", "custom:min_strut", "custom:colour=red", "custom:min_strut=x", "custom:overhang=95",
-                "custom:axis=up"]:
+                "custom:axis=up", "custom:", "custom: , "]:
         with pytest.raises(ScaffoldError):
             printer_profile(bad)
 

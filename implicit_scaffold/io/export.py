@@ -329,11 +329,10 @@ def _write_zarr(field, grid: Grid, final: Path, name: str, dtype, *, max_bytes: 
             del planes
         root.attrs.update({"origin_mm": list(grid.origin), "spacing_mm": grid.spacing, "units": "mm",
                            "axes": "x, y, z (voxel centres)"})
-        tmp.rename(final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    from .files import mark_written
+    from .files import place
 
-    mark_written(final)
+    place(tmp, final)
     return final

@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import ScaffoldError
 
 __all__ = ["PiecewiseDeflate", "atomic_path", "check_format", "check_writable", "folder_of", "mark_written", "new_temp",
-           "remove_quietly", "run_outputs",
+           "place", "remove_quietly", "run_outputs", "written_path",
            "write_field", "write_json"]
 
 #: planes of about this many voxels are converted and written at a time (.npy)
@@ -130,6 +130,9 @@ def remove_quietly(path: Path) -> None:
 
 #: the outputs the current run (:func:`run_outputs`) has put in place so far; None outside a run
 _WRITTEN: list | None = None
+#: the current run's finished outputs still under their temporary names, (temporary, final) in the order
+#: they were finished: put in place when the run ends (:func:`place`)
+_PENDING: list | None = None
 
 
 def mark_written(path) -> None:
@@ -139,27 +142,74 @@ def mark_written(path) -> None:
         _WRITTEN.append(Path(path))
 
 
+def _remove_any(path: Path) -> None:
+    import shutil
+
+    if path.is_dir():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        remove_quietly(path)
+
+
+def _put_in_place(tmp: Path, final: Path) -> None:
+    """Rename `tmp` (a file, or a folder) onto `final` (for a folder: an empty folder there is replaced);
+    ScaffoldError when the system refuses."""
+    try:
+        if tmp.is_dir() and final.is_dir():
+            final.rmdir()  # empty (the writers check it): os.replace does not replace a folder
+        os.replace(tmp, final)
+    except OSError as exc:
+        _remove_any(tmp)
+        raise ScaffoldError(f"cannot write to {final}: {os_reason(exc)}") from None
+    mark_written(final)
+
+
+def place(tmp, final) -> None:
+    """Put a finished output, written under the temporary name `tmp`, in place as `final`.
+
+    Outside a run, at once. Inside :func:`run_outputs`, when the run ends: every output of a run appears
+    together, after its last is finished, so that a run killed outright (SIGKILL, the system's out-of-memory
+    killer, during the measures after the mesh) leaves its hidden temporary files, never a mesh without
+    its report."""
+    tmp, final = Path(tmp), Path(final)
+    if _PENDING is None:
+        _put_in_place(tmp, final)
+    else:
+        _PENDING.append((tmp, final))
+
+
+def written_path(final) -> Path:
+    """Where the output `final` can be read now: its temporary name while it waits for the run's end
+    (:func:`place`), else `final` itself."""
+    final = Path(final)
+    for tmp, target in reversed(_PENDING or []):
+        if target == final:
+            return tmp
+    return final
+
+
 @contextlib.contextmanager
 def run_outputs():
     """Context manager: a run's outputs are all left, or none. A run writes several files one after
-    another (the mesh, then the measures of it, then the JSON report): an error or an interrupt after
-    the first is in place removes what this run has put in place (:func:`mark_written`), so that
-    "no output written" is true and no mesh is left without its report."""
-    import shutil
-
-    global _WRITTEN
-    outer, _WRITTEN = _WRITTEN, []
+    another (the mesh, then the measures of it, then the JSON report): each stays under its temporary
+    name until the run ends (:func:`place`), and an error or an interrupt removes them, and anything
+    the run has put in place (:func:`mark_written`), so that "no output written" is true and no mesh is
+    left without its report."""
+    global _WRITTEN, _PENDING
+    outer = _WRITTEN, _PENDING
+    _WRITTEN, _PENDING = [], []
     try:
         yield
+        while _PENDING:
+            _put_in_place(*_PENDING.pop(0))
     except BaseException:
+        for tmp, _ in _PENDING:
+            _remove_any(tmp)
         for path in reversed(_WRITTEN):
-            if path.is_dir():
-                shutil.rmtree(path, ignore_errors=True)
-            else:
-                remove_quietly(path)
+            _remove_any(path)
         raise
     finally:
-        _WRITTEN = outer
+        _WRITTEN, _PENDING = outer
 
 
 def check_writable(path, *, formats=None, option: str = "-o") -> Path:
@@ -214,7 +264,7 @@ def atomic_path(path):
     Yields a hidden file name in the same folder, ``.NAME.tmp-XXXXXXXX.EXT`` (the
     extension is kept for exporters that look at it; the file exists, empty). When
     the block exits normally the file is renamed onto `path` with :func:`os.replace`
-    (atomic on one file system); when it raises, the temporary file is removed and
+    (atomic on one file system; inside :func:`run_outputs`, when the run ends: :func:`place`); when it raises, the temporary file is removed and
     `path` is left as it was.
 
     Raises
@@ -234,12 +284,7 @@ def atomic_path(path):
     except BaseException:
         remove_quietly(tmp)
         raise
-    try:
-        os.replace(tmp, final)
-    except OSError as exc:
-        remove_quietly(tmp)
-        raise ScaffoldError(f"cannot write to {final}: {os_reason(exc)}") from None
-    mark_written(final)
+    place(tmp, final)
 
 
 def check_format(final: Path, formats) -> str:

@@ -110,6 +110,11 @@ def printer_profile(text: str) -> PrinterProfile:
                 changes[_KEYS[key]] = float(value)
             except ValueError:
                 raise ScaffoldError(f"--printer custom: {key} must be a number, got {value!r}") from None
+        if not changes:
+            # custom: alone would be dlp-resin's limits under another name, which the user did not ask for
+            raise ScaffoldError(f"--printer custom: needs at least one key=value (keys {', '.join(_KEYS)}), "
+                                "e.g. custom:min_strut=0.3,min_throat=0.5; or name a printer: "
+                                f"{', '.join(table)}")
         return _check_profile(replace(base, **changes))
     if text not in table:
         raise ScaffoldError(f"unknown printer {text!r}; use one of {', '.join(table)} "

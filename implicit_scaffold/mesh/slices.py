@@ -514,13 +514,10 @@ def write_slices(field, grid: Grid | None, out_dir, *, pixel: float | None = Non
                            layers=layers, origin_mm=tuple(float(v) for v in origin), files=LAYER_NAME,
                            solid_share=tuple(shares), grey_mean=tuple(greys))
         write_json(stack.to_dict(), tmp / STACK_JSON)
-        if final.is_dir():
-            final.rmdir()  # empty, checked above
-        os.replace(tmp, final)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    from ..io.files import mark_written
+    from ..io.files import place
 
-    mark_written(final)
+    place(tmp, final)  # an empty folder there (checked above) is replaced
     return stack
