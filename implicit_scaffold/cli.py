@@ -17,6 +17,11 @@ from .errors import ScaffoldError
 from .io.formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS
 
 
+#: the build options' defaults (generate, slice): an option a graded build does not read is refused when its value
+#: is not the default (:func:`_check_graded_options`)
+BUILD_DEFAULTS = {"pore_size": 0.6, "seed_rule": "pore-size", "porosity": "0.8"}
+
+
 def _listed(formats) -> str:
     """Extensions as the help text lists them."""
     return " ".join(formats)
@@ -349,14 +354,14 @@ def _add_build_options(g) -> None:
                     help="width of a smooth instead of sharp intersection with the patient (mm)")
     n = g.add_mutually_exclusive_group()
     n.add_argument("--seeds", type=int, default=None, help="number of seeds (Voronoi cells)")
-    n.add_argument("--pore-size", type=float, default=0.6,
+    n.add_argument("--pore-size", type=float, default=BUILD_DEFAULTS["pore_size"],
                    help="target pore size in mm: the mean polyhedron-sphere pore size that the report measures "
                         "(see --seed-rule) (default 0.6)")
-    g.add_argument("--seed-rule", choices=["pore-size", "paper"], default="pore-size",
+    g.add_argument("--seed-rule", choices=["pore-size", "paper"], default=BUILD_DEFAULTS["seed_rule"],
                    help="pore-size: the seed count is solved so that the measured mean pore size is --pore-size; "
                         "paper: the paper's n = V P / (pi Dp^3 / 6), whose measured pores come out smaller "
                         "(default pore-size)")
-    g.add_argument("--porosity", default="0.8",
+    g.add_argument("--porosity", default=BUILD_DEFAULTS["porosity"],
                    help="target porosity in (0, 1), met by offsetting the surface, or 'none' to keep the "
                         "lattice as Sf and Sv make it (default 0.8)")
     g.add_argument("--sf", type=float, default=0.75, help="face scale factor Sf in (0, 1) (default 0.75)")
@@ -440,11 +445,26 @@ def _check_report(path) -> None:
     check_writable(path, formats=(".html", ".htm"), option="--report")
 
 
+def _check_graded_options(args) -> None:
+    """Refuse the options a graded build replaces, where the command line changed them: --calibration sets the
+    porosity and the pore sizes from the CT, --grade the pore sizes by depth (each with the local seed count); they
+    were dropped without a word (the same bytes as without them)."""
+    changed = [o for o, key in (("--porosity", "porosity"), ("--pore-size", "pore_size"), ("--seed-rule", "seed_rule"))
+               if str(getattr(args, key)).strip().lower() != str(BUILD_DEFAULTS[key]).lower()]
+    if args.calibration is not None and changed:
+        raise ScaffoldError(f"--calibration sets the porosity and the pore sizes from the CT; drop {' and '.join(changed)}")
+    changed = [o for o in changed if o != "--porosity"]
+    if args.grade is not None and changed:
+        raise ScaffoldError(f"--grade sets the pore sizes by depth (and the seed count with them); drop "
+                            f"{' and '.join(changed)}")
+
+
 def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     """Run the pipeline with the build options of `args` (generate and slice share them)."""
     from .pipeline import generate
     from .specs import GridSpec, LatticeSpec, Outputs
 
+    _check_graded_options(args)
     porosity = None if str(args.porosity).strip().lower() == "none" else args.porosity
     # the specs check every option now, before a patient or a CT is read
     lattice = LatticeSpec(style=args.style, seeds=args.seeds, pore_size=args.pore_size, seed_rule=args.seed_rule,

@@ -3,6 +3,7 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -38,6 +39,21 @@ def test_summary_lines(tmp_path, capsys):
     assert rep["porosity_target"] is None and rep["surface_offset_mm"] == 0.0
 
 
+@pytest.mark.parametrize("name", ["f.nii.gz", "F.NII.GZ", "f.nrrd"])
+def test_a_volume_output_is_written_and_its_report_gives_its_size(tmp_path, name):
+    # .nii.gz was written under a temporary name ending .gz, whose format no writer knew (exit 2 after the build);
+    # the report's file size is the file's as it lies in place (SimpleITK reads the geometry back: the oracle)
+    import SimpleITK as sitk
+
+    out = tmp_path / name
+    assert main(["generate", "-o", str(out), "--size", "1", "--voxel", "0.1", "--pore-size", "0.5", "-q"]) == 0
+    rep = json.loads(next(tmp_path.glob("*.json")).read_text())
+    assert rep["file_size_bytes"] == out.stat().st_size > 0
+    image = sitk.ReadImage(str(out))
+    assert list(image.GetSize()) == rep["grid_shape"] and image.GetSpacing()[0] == pytest.approx(0.1)
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, Path(name).name.split(".")[0] + ".json"])
+
+
 BAD = [
     (["--sf", "1.2"], "--sf must lie strictly between 0 and 1"),
     (["--sv", "0"], "--sv must lie strictly between 0 and 1"),
@@ -52,6 +68,11 @@ BAD = [
     (["--pore-size", "0"], "--pore-size must be a positive"),
     (["--style", "struts", "--porosity", "none"], "solves the strut radius"),
     (["--repair"], "--repair repairs for a printer's limits; add --printer NAME"),
+    # options a graded build replaces were dropped without a word (the same bytes as without them)
+    (["--grade", "0:0.5,1:0.8", "--pore-size", "2"], "--grade sets the pore sizes by depth"),
+    (["--grade", "0:0.5,1:0.8", "--seed-rule", "paper"], "drop --seed-rule"),
+    (["--calibration", "0.001", "0", "--porosity", "0.6"], "--calibration sets the porosity and the pore sizes"),
+    (["--calibration", "0.001", "0", "--pore-size", "2", "--porosity", "0.7"], "drop --porosity and --pore-size"),
 ]
 
 

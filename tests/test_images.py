@@ -41,3 +41,24 @@ def test_what_cannot_be_read_is_one_line(tmp_path, make, words):
     with pytest.raises(ScaffoldError, match=words) as exc:
         read_image(make(tmp_path), folder=folder)
     assert "\n" not in str(exc.value)
+
+
+@pytest.mark.parametrize("unit, scale", [("mm", 1.0), ("micron", 1e-3), ("\\u00B5m", 1e-3)])
+def test_an_imagej_tiff_states_its_voxel_size(tmp_path, unit, scale):
+    # ImageJ (and BoneJ, and this package's .tif output) keep the voxel size in the resolution tags (pixels per
+    # unit, x and y) and the description's spacing= (z) in its unit=: tifffile writes them, the oracle. ITK's
+    # reader gives 1 mm (or the print resolution); a TIFF without ImageJ's unit states none (its resolution is for printing)
+    import tifffile
+
+    from implicit_scaffold.io.images import header_states_spacing
+
+    vol = _volume((3, 4, 5))
+    path = tmp_path / "v.tif"
+    tifffile.imwrite(path, vol, imagej=True, resolution=(1 / 20.0, 1 / 30.0), metadata={"spacing": 40.0, "unit": unit})
+    assert header_states_spacing(path)
+    back = read_image(path)
+    assert back.GetSpacing() == pytest.approx((20 * scale, 30 * scale, 40 * scale))
+    assert np.array_equal(sitk.GetArrayFromImage(back), vol)
+    plain = tmp_path / "p.tif"
+    tifffile.imwrite(plain, vol, resolution=(300.0, 300.0))
+    assert not header_states_spacing(plain)

@@ -401,3 +401,22 @@ def test_a_mesh_read_on_its_runs_grid_gives_back_the_runs_solid(tmp_path):
     assert analyze_file(tmp_path / "s.stl").report["fragments"] == r.report["fragments"]
     # another voxel is the user's own grid, placed from the mesh's bounds
     assert read_scaffold(tmp_path / "s.stl", voxel=0.05).solid.shape != built.shape
+
+
+@pytest.mark.parametrize("name", ["s.nrrd", "s.nii.gz", "s.mha", "s.npy"])
+def test_generates_own_field_outputs_are_read_as_their_solid(tmp_path, name):
+    # a float volume generate wrote is a signed distance, negative in the solid: read with its report beside
+    # it, its solid is the field's (the run's own array is the oracle), where an intensity threshold selects
+    # nothing of the kind (it was refused as a CT needing --threshold); without the report it is refused still
+    from implicit_scaffold import generate
+    from implicit_scaffold.measure.morphometry import analyze_file, read_scaffold
+
+    r = generate(output=tmp_path / name, size=2, voxel=0.1, pore_size=0.6, seed=1)
+    built = np.asarray(r.field) < 0
+    assert np.array_equal(analyze_file(tmp_path / name).solid, built)
+    assert np.array_equal(read_scaffold(tmp_path / name).solid, built)
+    assert analyze_file(tmp_path / name).report["porosity_voxel"] == pytest.approx(1 - built.mean(), abs=1e-12)
+    if name != "s.npy":
+        (tmp_path / "s.json").unlink()
+        with pytest.raises(ScaffoldError, match="report beside it"):
+            analyze_file(tmp_path / name)

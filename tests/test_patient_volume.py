@@ -187,6 +187,20 @@ def test_bone_outside_the_image_is_outside(tmp_path):
     assert patient.sdf(np.array([[10.0, 10.0, 8.0]]))[0] < 0
 
 
+def test_a_bone_that_fills_the_image_keeps_a_distance_field(tmp_path):
+    # every voxel bone: the image's box is the bone, whose volume the cells (rounding the box's edges) never
+    # reach at any offset; the fit's secant steps ran the field off to -29,000 mm. The field stays a distance
+    # within the crop (no value beyond its diagonal), and the surface is the box (closed-form distances)
+    spacing = np.array([2.0, 2.0, 2.0])
+    _write(tmp_path / "full.nii.gz", np.ones((5, 5, 5), np.uint8), spacing, (0.0, 0.0, 0.0))
+    patient = load_volume(tmp_path / "full.nii.gz")
+    diagonal = float(np.linalg.norm(np.asarray(patient._field.shape) * spacing))
+    assert np.abs(patient._field).max() <= diagonal
+    assert patient.sdf(np.array([[4.0, 4.0, 4.0], [0.0, 4.0, 4.0], [4.0, 4.0, 10.0]])) == \
+        pytest.approx([-5.0, -1.0, 1.0], abs=1e-5)
+    assert patient.volume == pytest.approx(1000.0, rel=0.06)  # the cells round the box's twelve edges
+
+
 def test_label_and_threshold_select_the_bone(tmp_path):
     spacing = (0.5, 0.5, 0.5)
     shape = (60, 30, 30)

@@ -56,6 +56,11 @@ _TILE_POINTS = 1_000_000
 VOLUME_COLUMNS = 4
 #: the volume fit stops within this share of the mask's volume
 VOLUME_TOLERANCE = 1e-5
+#: the volume fit's offset stays within this many voxels (of the largest spacing) of the smoothed surface,
+#: which the smoothing keeps within half a voxel of the mask's boundary: a bone that fills the image to its
+#: borders (the box cuts it, and the volume's cells round the box's edges) left the volume short of the mask's
+#: at any offset, and the secant steps ran the field off to -29,000 mm
+FIT_OFFSET_VOXELS = 1.0
 #: the redistance's Newton steps stop after a chord step this short (voxels; the closest points then
 #: move by less than 1e-6 voxel)
 NEWTON_STILL = 1e-5
@@ -637,11 +642,14 @@ class VolumePatient:
         """
         c = 0.0
         vol, der = self._level_volume(c)
+        limit = FIT_OFFSET_VOXELS * float(np.max(self.spacing))
         for _ in range(12):
             if abs(vol - target) <= VOLUME_TOLERANCE * target or der <= 0:
                 break
-            step = (target - vol) / der
-            c_new = c + step
+            c_new = min(max(c + (target - vol) / der, -limit), limit)
+            if c_new == c:
+                break  # at the limit: the mask's volume lies beyond the reach of an offset
+            step = c_new - c
             vol_new, der_new = self._level_volume(c_new)
             secant = (vol_new - vol) / step
             c, vol, der = c_new, vol_new, secant if secant > 0 else der_new

@@ -110,10 +110,14 @@ def os_reason(exc: OSError, option: str = "-o") -> str:
 
 
 def new_temp(final: Path) -> Path:
-    """Create an empty hidden temporary file beside `final` (same extension); raise OSError."""
+    """Create an empty hidden temporary file beside `final` (same extension, ``.nii.gz`` whole); raise OSError."""
+    from .formats import suffix
+
     folder = folder_of(final)
+    # the whole extension, as written (.nii.gz, not .gz: the writers read the format off the name)
+    ext = final.name[len(final.name) - len(suffix(final)):] if suffix(final) else ""
     for _ in range(100):
-        tmp = folder / f".{final.name}.tmp-{secrets.token_hex(4)}{final.suffix}"
+        tmp = folder / f".{final.name}.tmp-{secrets.token_hex(4)}{ext}"
         try:
             fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o666)
         except FileExistsError:
@@ -181,11 +185,12 @@ def place(tmp, final) -> None:
 def written_path(final) -> Path:
     """Where the output `final` can be read now: its temporary name while it waits for the run's end
     (:func:`place`), else `final` itself."""
-    final = Path(final)
-    for tmp, target in reversed(_PENDING or []):
-        if target == final:
-            return tmp
-    return final
+    path = Path(final)
+    pending = {target: tmp for tmp, target in _PENDING or []}
+    # a writer may write inside another's temporary file (a field export into the run's), itself waiting
+    while path in pending:
+        path = pending.pop(path)
+    return path
 
 
 @contextlib.contextmanager

@@ -7,6 +7,7 @@ so each format is read, and each failure worded, one way.
 """
 from __future__ import annotations
 
+import math
 import warnings
 from pathlib import Path
 
@@ -73,7 +74,11 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
                               f"({len(files[best])} slices)", stacklevel=3)
             reader.SetFileNames(files[best])
             return reader.Execute()
-        return sitk.ReadImage(str(path))
+        image = sitk.ReadImage(str(path))
+        stated = imagej_spacing(path) if suffix(path) in IMAGE_STACKS else None
+        if stated is not None:
+            image.SetSpacing(stated)  # ITK reads 1 mm: its TIFF reader knows no ImageJ voxel size
+        return image
     except RuntimeError as exc:
         text = str(exc)
         if "spacing" in text.lower():
@@ -87,12 +92,43 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
         sitk.ProcessObject.SetGlobalWarningDisplay(shown)
 
 
+#: ImageJ's length units (its ``unit=`` and the TIFF's resolution), in mm
+IMAGEJ_UNITS = {"mm": 1.0, "millimeter": 1.0, "millimetre": 1.0, "cm": 10.0, "micron": 1e-3, "um": 1e-3,
+                "\u00b5m": 1e-3, "\\u00b5m": 1e-3, "nm": 1e-6}
+
+
+def imagej_spacing(path) -> tuple | None:
+    """The voxel size (x, y, z) in mm an ImageJ TIFF states: its resolution tags (pixels per unit) in x and
+    y, ``spacing=`` in its description in z, ``unit=`` a length :data:`IMAGEJ_UNITS` knows (as ImageJ, BoneJ and
+    this package's own ``.tif`` output write them); None for any other TIFF (its resolution is for printing)."""
+    import tifffile
+
+    try:
+        with tifffile.TiffFile(str(path)) as tif:
+            meta = tif.imagej_metadata or {}
+            tags = tif.pages[0].tags
+            res = [tags[name].value for name in ("XResolution", "YResolution")]
+    except (OSError, KeyError, ValueError, IndexError, tifffile.TiffFileError):
+        return None
+    scale = IMAGEJ_UNITS.get(str(meta.get("unit", "")).strip().lower())
+    if scale is None or "spacing" not in meta:
+        return None
+    try:
+        x, y = (float(den) / float(num) * scale for num, den in res)
+        z = float(meta["spacing"]) * scale
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    out = (x, y, z)
+    return out if all(math.isfinite(v) and v > 0 for v in out) else None
+
+
 def header_states_spacing(path, *, folder: str = "dicom") -> bool:
     """Whether the volume at `path` states its voxel spacing (ITK reads 1 mm when it does not).
 
     NIfTI always carries one (``pixdim``); a NRRD states it by ``space directions`` or
-    ``spacings``, a MetaImage by ``ElementSpacing`` or ``ElementSize``. A TIFF stack's resolution
-    tags are for printing, not for voxels, so a TIFF (file or folder) states none; a DICOM
+    ``spacings``, a MetaImage by ``ElementSpacing`` or ``ElementSize``. A TIFF file states one when
+    ImageJ's description gives its unit and z spacing (:func:`imagej_spacing`); other TIFF resolution
+    tags are for printing, not for voxels, so such a TIFF (file or folder) states none; a DICOM
     series always does (its slices' pixel spacing and positions). `folder` says what a folder
     holds, as in :func:`read_image`.
     """
@@ -101,7 +137,7 @@ def header_states_spacing(path, *, folder: str = "dicom") -> bool:
     if kind in (".nii", ".nii.gz"):
         return True
     if kind in IMAGE_STACKS:
-        return False
+        return not path.is_dir() and imagej_spacing(path) is not None
     if path.is_dir():
         return folder == "dicom"
     with open(path, "rb") as fh:

@@ -950,9 +950,22 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
                        "region": "the whole volume", "resampled": note, "selection": selection})
         return Analysis(report, solid, grid)
+    if suffix == ".npy":
+        if region is not None:
+            raise ScaffoldError("--region applies to a scaffold mesh; a .npy field is measured on its grid")
+        if spacing is not None:
+            raise ScaffoldError("--spacing applies to a volume; a .npy field's voxel comes from its report or --voxel")
+        scaffold = read_scaffold(path, voxel=voxel, label=label, threshold=threshold)
+        grid = Grid(scaffold.origin, scaffold.voxel, scaffold.solid.shape)
+        check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
+        report = morphometry(scaffold.solid, scaffold.voxel)
+        report.update({"version": __version__, "source": path.name, "kind": "field", "voxel_mm": scaffold.voxel,
+                       "grid_shape": list(scaffold.solid.shape), "region": scaffold.region_name,
+                       "selection": "the signed distance below 0"})
+        return Analysis(report, scaffold.solid, grid)
     if suffix not in MESH_SUFFIXES:
-        raise ScaffoldError(f"cannot analyse {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}) or a volume "
-                            f"({' '.join(VOLUME_SUFFIXES)}, or a folder of TIFF slices)")
+        raise ScaffoldError(f"cannot analyse {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
+                            f"volume ({' '.join(VOLUME_SUFFIXES)}, or a folder of TIFF slices)")
     if spacing is not None:
         raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
     _volume_only(path, label, threshold)
@@ -1023,6 +1036,26 @@ def run_grid(run: dict):
                 tuple(int(v) for v in run["grid_shape"]))
 
 
+def report_beside(path) -> dict | None:
+    """The JSON report generate wrote beside its output `path` (``f.stl`` -> ``f.json``, ``f.nii.gz`` ->
+    ``f.json``), as a dict; None when there is none or it cannot be read."""
+    import json
+    from pathlib import Path
+
+    from ..io.formats import suffix
+
+    path = Path(path)
+    ext = suffix(path)
+    meta = path.with_name(path.name[: len(path.name) - len(ext)] + ".json")
+    if not meta.is_file():
+        return None
+    try:
+        report = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return None
+    return report if isinstance(report, dict) else None
+
+
 def run_grid_beside(path, voxel=None):
     """The grid of the run that wrote the mesh `path`, from the JSON report generate wrote beside it
     (``<stem>.json``: ``grid_origin_mm``, ``voxel_mm``, ``grid_shape``), when there is one and `voxel` is
@@ -1034,14 +1067,11 @@ def run_grid_beside(path, voxel=None):
     break: ``check`` of an L3 scaffold at its own 0.6 mm voxel found 410 floating pieces and 63
     sealed voids where generate's own check found none.
     """
-    import json
-    from pathlib import Path
-
-    meta = Path(path).with_suffix(".json")
-    if not meta.is_file():
+    report = report_beside(path)
+    if report is None:
         return None
     try:
-        grid = run_grid(json.loads(meta.read_text()))
+        grid = run_grid(report)
     except (ValueError, KeyError, TypeError, ScaffoldError):
         return None
     if voxel is not None and not math.isclose(float(voxel), grid.spacing, rel_tol=1e-9):
@@ -1148,6 +1178,16 @@ def _read_mesh(path):
     return mesh
 
 
+def _own_field(path, zyx_shape) -> bool:
+    """Whether the volume `path` is a signed distance generate wrote: its report beside it names a grid of
+    the volume's shape (x, y, z)."""
+    report = report_beside(path)
+    try:
+        return report is not None and tuple(int(v) for v in report["grid_shape"]) == tuple(zyx_shape[::-1])
+    except (KeyError, TypeError, ValueError):
+        return False
+
+
 def _read_volume(path, spacing, voxel, label=None, threshold=None):
     """The solid of a volume (x, y, z), its voxel (mm), a note on its resampling (or None) and how
     its solid was chosen: every non-zero voxel of a binary volume, a segmentation's `label`, or a
@@ -1173,6 +1213,9 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
     array = sitk.GetArrayViewFromImage(image)  # (z, y, x)
     if label is not None or threshold is not None:
         mask, selection = bone_mask(array, path.name, label, threshold)
+    elif array.dtype.kind == "f" and _own_field(path, array.shape):
+        # generate's signed distance (mm, negative in the solid): no threshold of intensities selects its solid
+        mask, selection = array < 0, "the signed distance below 0 (generate's field; its report beside it)"
     else:
         nonzero = array[array != 0]
         if nonzero.size and nonzero.min() != nonzero.max():
@@ -1181,7 +1224,8 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
                 ct = " (bone is about 200 HU and above in a CT)" if span[0] < 0 else ""
                 raise ScaffoldError(f"{path.name} is not a binary volume: it holds intensities ({span[0]:g} to "
                                     f"{span[1]:g}); pass --threshold with the bone's lowest intensity{ct}, e.g. "
-                                    "--threshold 200")
+                                    "--threshold 200 (a signed distance generate wrote is read with its JSON "
+                                    "report beside it)")
             labels = np.unique(nonzero)
             shown = ", ".join(f"{v:g}" for v in labels[:12]) + (" ..." if labels.size > 12 else "")
             raise ScaffoldError(f"{path.name} is not a binary volume: it is a label map (labels {shown}); pass "
