@@ -113,7 +113,7 @@ def build_parser() -> argparse.ArgumentParser:
     sw.add_argument("-o", "--output", required=True, metavar="DIR", help="folder for the CSV and PNG files")
     sw.add_argument("--quick", action="store_true", help="a coarse version (about a minute on 2 cores)")
     sw.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    sw.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    sw.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
 
     a = sub.add_parser("analyze", help="voxel morphometry of any scaffold mesh or binary volume",
                        description="Measure a scaffold (from this tool or any other) or bone as bone "
@@ -129,7 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
     a.add_argument("-o", "--output", metavar="JSON", default=None, help="write the measures as JSON")
     a.add_argument("--report", metavar="HTML", default=None,
                    help="also write a visual report: picture, section, histograms, measures")
-    a.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    a.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
 
     c = sub.add_parser("check", help="print certificate: will this scaffold print, drain and let bone in?",
                        description="Check a scaffold (mesh, .npy field, or binary volume) against a printer "
@@ -143,7 +143,7 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("-o", "--output", metavar="JSON", default=None, help="write the certificate as JSON")
     c.add_argument("--require-printable", action="store_true",
                    help="exit with code 3 (after writing the certificate) when it fails")
-    c.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    c.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
     me = sub.add_parser("mechanics", help="stiffness tensor, moduli and a platen compression test (voxel FE)",
                         description="The effective stiffness of a scaffold or a bone from its voxels: 6x6 tensor "
                                     "(Voigt, GPa), moduli, a compression between rigid platens, beside bone's.")
@@ -157,7 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
                          "less); checked before the solve, a refusal names the budget and the voxel that would do")
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
-    me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
 
     de = sub.add_parser("design", help="inverse design: targets in, generate's parameters out (design.json)",
                         description="Find the generator's parameters (style, Sf, Sv; the seed density and surface "
@@ -207,7 +207,7 @@ def build_parser() -> argparse.ArgumentParser:
                     help="write the scaffold built on the patient here, as generate -o does (default: built and "
                          "measured, not written)")
     de.add_argument("-o", "--output", required=True, metavar="JSON", help="where to write design.json")
-    de.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    de.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
 
     sub.add_parser("info", help="versions and the OpenCL device")
     return parser
@@ -422,7 +422,7 @@ def _add_build_options(g) -> None:
                     help="run the slabs' lattice passes in N local worker processes (the run goes in slabs, at "
                          "least one per worker); their memory counts against --max-memory; same bytes out "
                          "(default 1: this process)")
-    g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors")
+    g.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")
 
 
 def _material_names() -> list[str]:
@@ -767,10 +767,14 @@ def _generate(args) -> int:
         _apply_design(args)
     if args.report is not None:
         _check_report(args.report)
-    if args.mechanics_voxel is not None and not args.mechanics:
-        raise ScaffoldError("--mechanics-voxel sets the voxel of --mechanics' solve; add --mechanics or drop it")
-    if args.mechanics_tol is not None and not args.mechanics:
-        raise ScaffoldError("--mechanics-tol sets the tolerance of --mechanics' solve; add --mechanics or drop it")
+    if not args.mechanics:
+        # the mechanics options mean nothing without the solve: taken without a word, a typo (--nu 0.7) passed
+        unused = [o for o, v in (("--mechanics-voxel", args.mechanics_voxel), ("--mechanics-tol", args.mechanics_tol),
+                                 ("--material", args.material), ("--E", args.young), ("--nu", args.nu),
+                                 ("--boundary", None if args.boundary == "auto" else args.boundary),
+                                 ("--axis", None if args.axis == "z" else args.axis)) if v is not None]
+        if unused:
+            raise ScaffoldError(f"{unused[0]} sets --mechanics' solve; add --mechanics or drop it")
     result = _build(args, output=args.output)
     comp = result.compression
     if args.report is not None:

@@ -73,6 +73,11 @@ BAD = [
     (["--grade", "0:0.5,1:0.8", "--seed-rule", "paper"], "drop --seed-rule"),
     (["--calibration", "0.001", "0", "--porosity", "0.6"], "--calibration sets the porosity and the pore sizes"),
     (["--calibration", "0.001", "0", "--pore-size", "2", "--porosity", "0.7"], "drop --porosity and --pore-size"),
+    # the mechanics options without --mechanics: a typo (--nu 0.7) was taken without a word
+    (["--nu", "0.7"], "--nu sets --mechanics' solve; add --mechanics or drop it"),
+    (["--material", "foo"], "--material sets --mechanics' solve"),
+    (["--axis", "x"], "--axis sets --mechanics' solve"),
+    (["--mechanics-tol", "1e-4"], "--mechanics-tol sets --mechanics' solve"),
 ]
 
 

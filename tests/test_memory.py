@@ -48,3 +48,11 @@ def test_a_size_is_named_as_max_memory_takes_it_a_whole_mib_as_given():
     # anything else is rounded up: ten MiB below 1 GiB, a tenth of a GiB above
     assert format_size(2**20 + 1) == "10M" and format_size(341 * 2**20 + 5) == "350M"
     assert format_size(4 * 2**30) == "4.0G" and format_size(4 * 2**30 + 1) == "4.1G"
+
+
+def test_a_messages_amount_is_never_zero_gib():
+    # "95 seeds need about 0.00 GiB": under a GiB, whole MiB (rounded up)
+    from implicit_scaffold.run.memory import amount
+
+    assert [amount(v) for v in (3.2 * 2**20, 50 * 2**20, 2**30, 3.456 * 2**30)] == \
+        ["4 MiB", "50 MiB", "1.00 GiB", "3.46 GiB"]

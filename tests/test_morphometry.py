@@ -368,6 +368,7 @@ def test_a_label_map_and_a_ct_are_measured_by_the_solid_chosen(tmp_path):
     ("ct", {"threshold": 5000}, "reaches the threshold 5000"),
     ("ct", {"label": 2, "threshold": 200}, "not both"),
     ("mesh", {"label": 2}, "is not a volume"),
+    ("mesh", {"spacing": 0.1}, "--spacing applies to a volume; m.stl is a mesh"),
 ])
 def test_a_volume_needs_its_solid_chosen_in_one_line(tmp_path, kind, options, words):
     import trimesh
@@ -420,3 +421,14 @@ def test_generates_own_field_outputs_are_read_as_their_solid(tmp_path, name):
         (tmp_path / "s.json").unlink()
         with pytest.raises(ScaffoldError, match="report beside it"):
             analyze_file(tmp_path / name)
+
+
+def test_a_field_with_nan_is_refused_in_one_line(tmp_path):
+    # NaN is not below 0: a corrupt field's NaN voxels were read as void without a word
+    field = np.full((6, 6, 6), 1.0, np.float32)
+    field[2:4, 2:4, 2:4] = -1.0
+    field[3, 3, 3] = np.nan
+    np.save(tmp_path / "f.npy", field)
+    with pytest.raises(ScaffoldError, match="holds 1 non-finite values") as exc:
+        M.read_scaffold(tmp_path / "f.npy", voxel=0.1)
+    assert "\n" not in str(exc.value)

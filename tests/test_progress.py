@@ -97,3 +97,11 @@ def test_a_long_stage_off_a_terminal_says_it_is_still_running_until_it_ends(caps
     with Progress(False).stage("cells"):
         time.sleep(0.25)
     assert capsys.readouterr().err == ""
+
+
+def test_elapsed_times_thirty_seconds_apart_read_apart():
+    # the heartbeat's "still running, 2 min" named both 90 s and 120 s
+    from implicit_scaffold.progress import format_elapsed
+
+    assert [format_elapsed(t) for t in (0.2, 40, 60, 90, 120, 150, 3599.6, 3900)] == \
+        ["1 s", "40 s", "1 min", "1 min 30 s", "2 min", "2 min 30 s", "1 h 00 min", "1 h 05 min"]

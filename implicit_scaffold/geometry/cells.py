@@ -173,12 +173,12 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
     have = available_memory() if available is None else int(available)
     if need > have:
         if have < 64 * 2**20:  # the budget is spent before the cells: only a larger one helps
-            from ..run.memory import format_size, process_memory
+            from ..run.memory import amount, format_size, process_memory
 
-            raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.2f} GiB to build their cells, beyond what "
+            raise ScaffoldError(f"{n:,} seeds need about {amount(need)} to build their cells, beyond what "
                                 f"this run holds already: pass --max-memory {format_size(process_memory() + need)} "
                                 "or more")
-        from ..run.memory import format_size, process_memory
+        from ..run.memory import amount, format_size, process_memory
 
         most = have // (BYTES_PER_SEED + CELLS_BYTES_PER_SEED)
         if chunked and most > 2 * CHUNK_SEEDS:
@@ -187,8 +187,8 @@ def check_seed_memory(n: int, pore_size: float | None = None, available: int | N
         fix = (f"use a larger --pore-size (e.g. {_fitting_pore_size(count_at or (lambda pore: n * (pore_size / pore) ** 3), pore_size, have, chunked):.3g} mm)"
                if pore_size else f"use fewer --seeds (at most {max(2, int(most)):,})" if seeds_given
                else "use larger pores")
-        raise ScaffoldError(f"{n:,} seeds need about {need / 2**30:.1f} GiB to build their cells but only "
-                            f"{have / 2**30:.1f} GiB is free within --max-memory; pass --max-memory "
+        raise ScaffoldError(f"{n:,} seeds need about {amount(need)} to build their cells but only "
+                            f"{amount(have)} is free within --max-memory; pass --max-memory "
                             f"{format_size(process_memory() + need)} or more, or {fix}")
     return need
 

@@ -36,6 +36,7 @@ Units: mm and GPa (so forces are in kN: GPa times mm^2). Voigt order xx, yy, zz,
 """
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -1658,10 +1659,12 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
 # ----------------------------------------------------------------------------- moduli
 
 
-def engineering_constants(C: np.ndarray) -> dict:
+def engineering_constants(C: np.ndarray, solid: float | None = None) -> dict:
     """Young's and shear moduli, Poisson's ratios and the universal anisotropy index of a tensor.
 
-    A direction with no load path (its stiffness below :data:`NO_LOAD_PATH` of the largest)
+    A direction with no load path (its stiffness below :data:`NO_LOAD_PATH` of the largest, or of
+    `solid`, the solid material's own largest stiffness entry, GPa, when that is larger: a sample with no
+    load path anywhere has only the solver's rounding, some 1e-12 GPa, which is no stiffness)
     gets modulus 0 and a note; the rest come from the compliance of the remaining block. A
     block that still cannot be inverted gives every modulus 0 and a note, not an error.
 
@@ -1679,7 +1682,7 @@ def engineering_constants(C: np.ndarray) -> dict:
     """
     C = np.asarray(C, float)
     diag = np.diag(C)
-    top = diag.max() if diag.size else 0.0
+    top = max(diag.max() if diag.size else 0.0, float(solid or 0.0))
     keep = np.flatnonzero(diag > NO_LOAD_PATH * top) if top > 0 else np.array([], int)
     notes = []
     S = np.zeros((6, 6))
@@ -1858,7 +1861,7 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
                      progress=tell("homogenization"), cases_per_block=cases_per_block, accuracy=accuracy)
     errors = [e for e in (hom.energy_error, comp.energy_error) if np.isfinite(e)]
-    consts = engineering_constants(hom.stiffness)
+    consts = engineering_constants(hom.stiffness, float(np.diag(isotropic_tensor(mat.E_gpa, mat.nu)).max()))
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
     bc_text = {"periodic": "periodic (the sample repeats: periodic fluctuations about a uniform strain)",
                "kinematic": "kinematic (uniform displacement u = E x on the faces of the box)"}[boundary]
@@ -1899,8 +1902,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         contact_warning = (f"the platens touch {contact['bottom_mm2']:.3g} and {contact['top_mm2']:.3g} mm2 of solid, "
                            f"{100 * contact['share']:.2g} % of the sample's mean solid cross-section "
                            f"({contact['mean_section_mm2']:.3g} mm2): the compression's modulus is its contacts', not "
-                           f"the sample's; cut the sample flat at its ends along {'xyz'[axis]} (a mesh: --clip), or "
-                           "compress it along another axis (--axis)")
+                           f"the sample's; cut the sample flat at its ends along {'xyz'[axis]} (generate's --clip or "
+                           "--cut-planes cut a patient so), or compress it along another axis (--axis)")
         notes.append(contact_warning)
         verdict = f"not judged: the platens touch {100 * contact['share']:.2g} % of the sample's mean cross-section"
     if boundary == "kinematic":
@@ -2440,8 +2443,9 @@ def resolution_warning(solid: np.ndarray, h: float, kind: str = "mesh") -> str |
     ----------
     solid : (nx, ny, nz) bool ndarray
     h : float, mm
-    kind : {"mesh", "volume"}
-        What the voxels came from: a mesh voxelised at `h`, or a volume (a scan, maybe resampled).
+    kind : {"mesh", "volume", "field"}
+        What the voxels came from: a mesh voxelised at `h`, a volume (a scan, maybe resampled), or a signed
+        distance sampled at `h`.
     """
     from .morphometry import local_thickness
 
@@ -2452,12 +2456,19 @@ def resolution_warning(solid: np.ndarray, h: float, kind: str = "mesh") -> str |
     across = wall / h
     if across >= CONVERGED_VOXELS_PER_WALL:
         return None
-    finer = ("a finer --voxel, down to the scan's own, resolves them (finer than the scan adds no detail)"
-             if kind == "volume" else "a finer --voxel resolves them")
+    finer = {"volume": "a finer --voxel, down to the scan's own, resolves them (finer than the scan adds no detail)",
+             "field": "a finer --mechanics-voxel, down to the field's own, resolves them"}.get(
+        kind, "a finer --voxel resolves them")
     return (f"the solid's median strut is {across:.1f} voxels across ({wall:.3g} mm local thickness at the "
             f"{h:.4g} mm voxel), fewer than {CONVERGED_VOXELS_PER_WALL:g}: its moduli may lie several % off "
             f"(generate's walls at 2 voxels across: 10-16 %, at 4: 2-8 %) and the solve takes more "
             f"iterations; {finer}")
+
+
+def _round_down_mm(value: float) -> str:
+    """`value` (mm) to 2 significant digits, rounded down (a voxel suggested is never coarser than it)."""
+    digits = 1 - int(math.floor(math.log10(abs(value))))
+    return f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
 
 
 def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
@@ -2517,6 +2528,13 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
 
     if voxel is not None:
         h = positive_mm("mechanics-voxel", voxel, example="0.05")
+        if wall is not None and wall / h < MIN_VOXELS_PER_WALL:
+            # walls under 2.5 voxels break or fuse in the sample: a 3 mm cube's moduli at 1 voxel across its
+            # 0.2 mm walls came out 250 times too low, with no word
+            raise ScaffoldError(f"{option} {h:.4g} mm leaves {wall / h:.3g} voxels across the {wall:.3g} mm median "
+                                f"wall, fewer than {MIN_VOXELS_PER_WALL:g}: the sample's walls would break or fuse; "
+                                f"use {option} {_round_down_mm(wall / CONVERGED_VOXELS_PER_WALL)} (4 voxels across) "
+                                f"or at most {_round_down_mm(wall / MIN_VOXELS_PER_WALL)}")
         if need(h) > allowance:
             refuse(h)
         return h, f"the voxel asked for ({option})", total, held
@@ -2683,17 +2701,26 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     from ..run.grid import Grid
     from .morphometry import read_scaffold
 
+    from .morphometry import report_beside
+
     path = Path(path)
     sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
     if sample.field is not None:
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)
+        # the generator's median wall, from the run's report beside the field (generate --mechanics passes its own)
+        wall = ((report_beside(path) or {}).get("wall_thickness_mm") or {}).get("median")
+        wall = float(wall) if isinstance(wall, (int, float)) and wall > 0 else None
         try:
-            return solid_for_solve(sample.field, grid, max_memory=max_memory, voxel=mechanics_voxel,
-                                   boundary=boundary, source="field"), sample.kind
+            solved = solid_for_solve(sample.field, grid, max_memory=max_memory, voxel=mechanics_voxel, wall=wall,
+                                     boundary=boundary, source="field")
         except ScaffoldError as exc:
             if "no solid voxel" in str(exc):
                 raise ScaffoldError(f"{path.name} holds no solid voxel: nothing carries load") from None
             raise
+        if wall is None and solved.report.get("warning") is None:
+            # no report to name the walls: measured on the sample, as a mesh's or a scan's
+            solved.report["warning"] = resolution_warning(solved.solid, solved.voxel, "field")
+        return solved, sample.kind
     if mechanics_voxel is not None:
         raise ScaffoldError("--mechanics-voxel samples a .npy signed distance; a mesh or a volume is voxelised "
                         "or resampled at --voxel")
@@ -2703,7 +2730,18 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     report = check_solve(solid, sample.voxel, max_memory=max_memory, boundary=boundary, option="--voxel")
     box = tuple(slice(int(i.min()), int(i.max()) + 1) for i in np.nonzero(solid))
     origin = tuple(float(sample.origin[a] + box[a].start * sample.voxel) for a in range(3))
+    read = solid.shape
     solid = np.ascontiguousarray(solid[box])
+    # where the voxel came from, and the box solved: the platens and the homogenization's faces are the solid's
+    # bounding box, which the note names where it is smaller than what was read (a plate in a larger volume is
+    # compressed through its own thickness)
+    what = {"mesh": "the mesh voxelised at --voxel",
+            "volume": f"the volume resampled {sample.resampled}" if sample.resampled else "the volume's own voxel"}
+    note = f"mechanics voxel {sample.voxel:.4g} mm: {what.get(sample.kind, 'the sample' + chr(39) + 's own voxel')}"
+    if solid.shape != read:
+        note += (f"; the sample is the solid's bounding box, {' x '.join(map(str, solid.shape))} of the "
+                 f"{' x '.join(map(str, read))} voxels read (the platens touch its ends)")
+    report["note"] = note
     # a field's walls are the generator's (solid_for_solve); a mesh's or a scan's are measured
     report["warning"] = resolution_warning(solid, float(sample.voxel), sample.kind)
     return SolveSample(solid, float(sample.voxel), origin, report, sample.selection), sample.kind

@@ -1025,6 +1025,7 @@ class Scaffold:
     region: np.ndarray | None
     region_name: str
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
+    resampled: str | None = None  # a volume's resampling to another voxel (its note), or None
 
 
 def run_grid(run: dict):
@@ -1102,6 +1103,11 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     if voxel is not None:
         voxel = positive_mm("voxel", voxel)
     suffix = _suffix(path)
+    if spacing is not None and (suffix == ".npy" or suffix in MESH_SUFFIXES):
+        # taken without a word, it changed nothing
+        raise ScaffoldError(f"--spacing applies to a volume; {path.name} is "
+                            + ("a .npy field, whose voxel comes from its report beside it or --voxel" if suffix == ".npy"
+                               else "a mesh, voxelised at --voxel"))
     if suffix == ".npy":
         _volume_only(path, label, threshold)
         try:
@@ -1123,10 +1129,15 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         if voxel is None:
             raise ScaffoldError(f"{path.name} carries no voxel size and no run report beside it; give --voxel")
         field = np.asarray(field, np.float32)
+        bad = int(field.size - np.count_nonzero(np.isfinite(field)))
+        if bad:
+            # NaN compares as not negative: it was read as void without a word
+            raise ScaffoldError(f"{path.name} holds {bad:,} non-finite values (NaN or inf); a signed distance is "
+                                "finite everywhere: write the field again")
         return Scaffold("field", field < 0, float(voxel), origin, field, None, "the grid")
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, _, selection = _read_volume(path, spacing, voxel, label, threshold)
-        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume", selection)
+        solid, step, note, selection = _read_volume(path, spacing, voxel, label, threshold)
+        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume", selection, note)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")

@@ -72,6 +72,14 @@ def format_size(nbytes: float) -> str:
     return f"{int(np.ceil(nbytes / 2**20 / 10) * 10)}M"
 
 
+def amount(nbytes: float) -> str:
+    """A size to read in a message: GiB to two decimals from 1 GiB, else whole MiB (a 50 MiB need was
+    "0.00 GiB")."""
+    if nbytes >= 2**30:
+        return f"{nbytes / 2**30:.2f} GiB"
+    return f"{max(1, int(np.ceil(nbytes / 2**20)))} MiB"
+
+
 def process_memory() -> int:
     """Bytes this process holds now (resident set)."""
     import psutil
