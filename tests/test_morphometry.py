@@ -432,3 +432,23 @@ def test_a_field_with_nan_is_refused_in_one_line(tmp_path):
     with pytest.raises(ScaffoldError, match="holds 1 non-finite values") as exc:
         M.read_scaffold(tmp_path / "f.npy", voxel=0.1)
     assert "\n" not in str(exc.value)
+
+
+def test_a_npy_of_objects_is_refused_without_numpys_advice(tmp_path):
+    # numpy's message advised loading pickled objects "unsafely"
+    np.save(tmp_path / "o.npy", np.array([{"a": 1}] * 8, dtype=object).reshape(2, 2, 2))
+    with pytest.raises(ScaffoldError, match="holds Python objects, not numbers") as exc:
+        M.read_scaffold(tmp_path / "o.npy", voxel=0.1)
+    assert "pickle" not in str(exc.value) and "\n" not in str(exc.value)
+
+
+def test_a_mesh_without_a_voxel_is_asked_for_one_sized_to_it(tmp_path):
+    # the example was 0.04 mm whatever the mesh (12,000 voxels along a 466 mm femur): now its longest side / 200
+    import trimesh
+
+    trimesh.creation.box(extents=(100.0, 20.0, 10.0)).export(tmp_path / "b.stl")
+    for read in (M.read_scaffold, M.analyze_file):
+        with pytest.raises(ScaffoldError, match=r"e\.g\. --voxel 0\.5 \(mm: 200 voxels along its longest side, 100 mm") \
+                as exc:
+            read(tmp_path / "b.stl")
+        assert "\n" not in str(exc.value)

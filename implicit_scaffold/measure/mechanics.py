@@ -2620,10 +2620,12 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     converged = None if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
     if converged is not None and h > converged * (1 + 1e-9):
         # coarser than the run and than generate's default voxel: the moduli move by more than a few %
+        # the way out: the voxel asked for is the user's to make finer; the budget's, a larger budget
+        fix = (f"{option} {_round_down_mm(converged)} resolves them" if voxel is not None else
+               f"--max-memory {format_size(held + need(converged) + held_margin(held))} solves at {converged:.4g} mm")
         warning = (f"the mechanics voxel {h:.4g} mm leaves {wall / h:.1f} voxels across the {wall:.3g} mm median "
                    f"wall, fewer than generate's {CONVERGED_VOXELS_PER_WALL:g} (a 1.6 mm cube sampled at 2: "
-                   f"10-16 % off, at 4: 2-8 %); --max-memory {format_size(held + need(converged) + held_margin(held))} "
-                   f"solves at {converged:.4g} mm")
+                   f"10-16 % off, at 4: 2-8 %); {fix}")
     note = f"mechanics voxel {h:.4g} mm: {why}"
     if h != h0:
         note += (f"; the field sampled (trilinear) at its voxel centres, solid below {float(level):+.4g} mm so that "

@@ -973,10 +973,10 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     if region is not None:
         patient, run_grid, what = load_region(region)
     beside = run_grid_beside(path, voxel) if patient is None else None
-    if voxel is None and run_grid is None and beside is None:
-        raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
     mesh = _read_mesh(path)
     lo, hi = mesh.bounds
+    if voxel is None and run_grid is None and beside is None:
+        raise ScaffoldError(_voxel_needed(lo, hi))
     if patient is None:
         grid = beside if beside is not None else Grid.covering(lo, hi, voxel)
         voxel = grid.spacing
@@ -1112,7 +1112,13 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         _volume_only(path, label, threshold)
         try:
             field = np.load(path, mmap_mode="r")
-        except (OSError, ValueError) as exc:
+        except ValueError as exc:
+            # numpy's own words advise loading pickled objects "unsafely"
+            why = ("it holds Python objects, not numbers" if "pickle" in str(exc) or "objects" in str(exc)
+                   else str(exc))
+            raise ScaffoldError(f"cannot read {path.name} as a .npy field: {why}; give the .npy generate wrote") \
+                from None
+        except OSError as exc:
             raise ScaffoldError(f"cannot read {path.name} as a .npy field: {exc}") from None
         if field.ndim != 3 or field.dtype.kind not in "fiu":
             raise ScaffoldError(f"{path.name} is not a 3-D signed distance (shape {field.shape}, {field.dtype}); "
@@ -1143,10 +1149,10 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
     _volume_only(path, label, threshold)
     run_grid = run_grid_beside(path, voxel)
-    if voxel is None and run_grid is None:
-        raise ScaffoldError("a mesh is voxelised at --voxel H; give one, e.g. --voxel 0.04 (mm)")
     mesh = _read_mesh(path)
     lo, hi = mesh.bounds
+    if voxel is None and run_grid is None:
+        raise ScaffoldError(_voxel_needed(lo, hi))
     # its layer of outside all round: the scaffold's faces open onto free space (the run's grid has one)
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
@@ -1162,6 +1168,23 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
 
         field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
     return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, "the mesh's bounding box")
+
+
+#: the voxels along a mesh's longest side that the suggestion of :func:`_voxel_needed` gives
+SUGGESTED_VOXELS_ALONG = 200
+
+
+def _voxel_needed(lo, hi) -> str:
+    """The one line that asks for a mesh's --voxel, with a suggestion from its size (the example was 0.04 mm
+    whatever the mesh: 12,000 voxels along a femur)."""
+    longest = float(np.max(np.asarray(hi, float) - np.asarray(lo, float)))
+    example = "0.04"
+    if np.isfinite(longest) and longest > 0:
+        value = longest / SUGGESTED_VOXELS_ALONG
+        digits = 1 - int(math.floor(math.log10(value)))
+        example = f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
+    return (f"a mesh is voxelised at --voxel H; give one, e.g. --voxel {example} (mm: {SUGGESTED_VOXELS_ALONG} "
+            f"voxels along its longest side, {longest:.4g} mm; a scaffold's struts want 4 voxels across)")
 
 
 def _volume_only(path, label, threshold) -> None:
