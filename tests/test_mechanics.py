@@ -736,9 +736,14 @@ def test_cli_mechanics_writes_the_issue_keys(tmp_path, capsys):
     assert code == 0, cap.err
     html = page.read_text()
     assert "<h2>Mechanics</h2>" in html and "trabecular bone" in html and "data:image/png" in html
+    # no table of porosity and struts, none measured (it showed dashes and how they would be measured)
+    assert "Targets and measurements" not in html and "How measured" not in html
     import json
 
     r = json.loads(out.read_text())
+    # every Poisson's ratio of the JSON on the page (they were in the JSON only)
+    for k, v in r["poisson_ratio"].items():
+        assert f"Poisson's ratio {k}" in html.replace("&#x27;", "'")
     for key in ("stiffness_tensor_gpa", "youngs_modulus_gpa", "shear_modulus_gpa", "poisson_ratio",
                 "solid_fraction", "boundary_conditions", "material", "compression", "solver"):
         assert key in r

@@ -448,3 +448,17 @@ def test_the_cli_takes_the_spacing_of_a_volume_patient(tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--spacing" in err[0]
     assert not (tmp_path / "x.stl").exists()
+
+
+def test_nan_voxels_and_a_threshold_that_takes_everything_are_warned_about():
+    # NaN voxels inside a bone read as holes without a word; a threshold every voxel reaches made the whole image bone
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    ct = np.full((6, 6, 6), -1000.0, np.float32)
+    ct[1:5, 1:5, 1:5] = 800.0
+    ct[2, 2, 2] = np.nan
+    with pytest.warns(ScaffoldWarning, match="holds 1 voxels that are not numbers"):
+        mask, _ = pv.bone_mask(ct, "ct.nii", None, 200)
+    assert mask.sum() == 4 ** 3 - 1
+    with pytest.warns(ScaffoldWarning, match="every voxel of ct.nii reaches the threshold -2000"):
+        pv.bone_mask(np.nan_to_num(ct), "ct.nii", None, -2000)

@@ -141,6 +141,16 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
     """
     if label is not None and threshold is not None:
         raise ScaffoldError("give --label (a segmentation) or --threshold (a CT), not both")
+    if np.issubdtype(array.dtype, np.floating):
+        nan = int(array.size - np.count_nonzero(np.isfinite(array)))
+        if nan:
+            import warnings
+
+            from ..errors import ScaffoldWarning
+
+            # NaN reaches no threshold and is no label: read as no bone, holes in it without a word
+            warnings.warn(f"{name} holds {nan:,} voxels that are not numbers (NaN or inf), read as no bone; "
+                          "fill them in the image if they lie in the bone", ScaffoldWarning, stacklevel=2)
     if threshold is None:
         # a CT given as if it were a segmentation: a label would keep the voxels of exactly that
         # many HU (scattered soft tissue), no selection every voxel but those of 0 HU
@@ -177,6 +187,15 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
         if not mask.any():
             raise ScaffoldError(f"no voxel of {name} reaches the threshold {thr:g} (intensities "
                                 f"{np.nanmin(array):g} to {np.nanmax(array):g}); use a lower --threshold")
+        if mask.all() and mask.size > 1:
+            import warnings
+
+            from ..errors import ScaffoldWarning
+
+            # air and soft tissue too: the bone is the image's whole box
+            warnings.warn(f"every voxel of {name} reaches the threshold {thr:g} (intensities {np.nanmin(array):g} "
+                          f"to {np.nanmax(array):g}): the bone is the whole image; bone is about 200 HU and above "
+                          "in a CT", ScaffoldWarning, stacklevel=2)
         return mask, f"intensity >= {thr:g}"
     mask = (array != 0) & ~np.isnan(array) if np.issubdtype(array.dtype, np.floating) else array != 0
     if not mask.any():

@@ -280,8 +280,10 @@ _HOW = ("How measured: porosity from voxel counts within the patient (or the reg
         "face. Surface area and BS/BV from the triangle mesh.")
 
 
-def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Scaffold report") -> None:
-    """Write the page atomically; `images` maps captions to PNG bytes."""
+def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Scaffold report",
+               measures: bool = True) -> None:
+    """Write the page atomically; `images` maps captions to PNG bytes. Without `measures` (a page of the
+    mechanics alone) no table of porosity, pore size and struts: none was measured."""
     parts = [f"<!doctype html><html><head><meta charset='utf-8'><title>{html.escape(title)}</title>",
              "<style>body{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}"
              "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:4px 10px;text-align:left}"
@@ -292,12 +294,13 @@ def write_html(path, report: dict, images: dict[str, bytes], *, title: str = "Sc
                        if report.get(k) is not None)
     parts.append(f"<p>{html.escape(params)}. implicit_scaffold {html.escape(str(report.get('version', '')))}; "
                  "every measured value is computed from what was built.</p>")
-    parts.append("<h2>Targets and measurements</h2><table><tr><th>quantity</th><th>target</th>"
-                 "<th>measured</th></tr>")
-    for q, t, m in targets_table(report):
-        parts.append(f"<tr><td>{html.escape(q)}</td><td>{t}</td><td>{m}</td></tr>")
-    parts.append("</table>")
-    parts.append(f"<p style='font-size:90%;color:#555;max-width:60em'>{_HOW}</p>")
+    if measures:
+        parts.append("<h2>Targets and measurements</h2><table><tr><th>quantity</th><th>target</th>"
+                     "<th>measured</th></tr>")
+        for q, t, m in targets_table(report):
+            parts.append(f"<tr><td>{html.escape(q)}</td><td>{t}</td><td>{m}</td></tr>")
+        parts.append("</table>")
+        parts.append(f"<p style='font-size:90%;color:#555;max-width:60em'>{_HOW}</p>")
     cert = report.get("print_check")
     if isinstance(cert, dict):
         p = cert["printer"]
@@ -443,6 +446,7 @@ def mechanics_html(mech: dict) -> str:
     comp = mech["compression"]
     rows = [(f"Young's modulus {a} (GPa)", _fmt(E[a])) for a in "xyz"]
     rows += [(f"shear modulus {k} (GPa)", _fmt(v)) for k, v in G.items()]
+    rows += [(f"Poisson's ratio {k}", _fmt(v)) for k, v in (mech.get("poisson_ratio") or {}).items()]
     rows.append((f"compression along {comp['axis']}, apparent modulus (GPa)", _fmt(comp["apparent_modulus_gpa"])))
     for name, band in mech["bone_bands_gpa"].items():
         rows.append((f"{name} bone (GPa)", f"{_fmt(band['low'])}–{_fmt(band['high'])}"))
@@ -469,4 +473,4 @@ def write_mechanics_report(report: dict, compression, h: float, path) -> None:
     mech = {k: v for k, v in report.items() if k not in ("version", "source", "kind")}
     page = {"version": report.get("version"), "kind": report.get("kind"), "voxel_mm": h, "mechanics": mech}
     images = {"compression: von Mises strain, middle section": strain_section_image(compression, h)}
-    write_html(path, page, images, title=f"Mechanics of {report.get('source', 'a scaffold')}")
+    write_html(path, page, images, title=f"Mechanics of {report.get('source', 'a scaffold')}", measures=False)
