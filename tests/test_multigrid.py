@@ -63,6 +63,34 @@ def test_the_weighted_transfers_are_the_dense_ones(shape, rows):
     assert np.array_equal(added, x32 + w32[None] * G.prolong(y32, shape))
 
 
+
+@pytest.mark.parametrize("rows", [1, 3])
+def test_the_smoothed_spread_onto_a_prolongation_is_the_two_passes_it_replaces(rows):
+    # the V-cycle's post-smoothing start x = s g w r + w P e: put_smoothed_onto over prolong's P e (one pass over the
+    # live nodes) against put_smoothed (spread, zeroing the grid) then prolong_add (w P e added), bit for bit on
+    # the live nodes, in float32 from a float64 residual as the cycle runs them
+    from implicit_scaffold.measure.fused import put_smoothed, put_smoothed_onto
+
+    shape = (9, 8, 10)
+    rng = np.random.default_rng(rows)
+    n, nc = int(np.prod(shape)), int(np.prod(G.coarse_shape(shape)))
+    live = np.flatnonzero(rng.random(n) < 0.45)
+    w_grid = np.zeros((rows, n), np.float32)
+    w_grid[:, live] = rng.random((rows, live.size)) < 0.9
+    w = np.ascontiguousarray(w_grid[:, live])
+    g = rng.random((rows, live.size)).astype(np.float32)
+    r = rng.standard_normal((1, 3, live.size))
+    y = rng.standard_normal((1, 3, nc)).astype(np.float32)
+    s = 0.37
+    want = put_smoothed(r, live, n, w, g, s, np.float32)
+    G.prolong_add(y, want, w_grid, shape)
+    got = G.prolong(y, shape)
+    put_smoothed_onto(got, r, live, w, g, s)
+    assert got.dtype == np.float32 and np.array_equal(got[:, :, live], want[:, :, live])
+    # the other nodes keep P e (no live node's product reads them)
+    rest = np.setdiff1d(np.arange(n), live)
+    assert np.array_equal(got[:, :, rest], G.prolong(y, shape)[:, :, rest])
+
 @pytest.mark.parametrize("shape, periodic, fix", [((6, 5, 7), True, False), ((5, 6, 4), False, True),
                                                   ((8, 8, 8), True, False)])
 def test_coarse_levels_are_galerkin_products_of_the_dense_operator(shape, periodic, fix):

@@ -149,6 +149,15 @@ def _kernels():
                     elif mode == 3:
                         for i in range(n0, n1):
                             out[c, d, idx[i]] -= wd[i] * src[c, d, i]
+                    elif mode == 4:
+                        # mode 0's value (rounded to out's float as mode 0 stores it) plus w times out's own,
+                        # in the order mode 0 then prolong_add's w P e would give it
+                        for i in range(n0, n1):
+                            j = idx[i]
+                            pe = out[c, d, j]
+                            out[c, d, j] = wd[i] * src[c, d, i]
+                            v = s * gd[i] * out[c, d, j]
+                            out[c, d, j] = v + wd[i] * pe
                     else:
                         for i in range(n0, n1):
                             j = idx[i]
@@ -271,6 +280,20 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype),
               _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0, pieces)
     return out
+
+
+def put_smoothed_onto(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float) -> None:
+    """``out = s g w src + w out`` on the nodes `idx`, in place (`out` a whole grid's (m, 3, n), say a prolonged
+    correction ``P e``): :func:`put_smoothed`'s value with ``w P e`` added (:func:`~implicit_scaffold.measure.multigrid.
+    prolong_add`'s arithmetic, bit for bit on those nodes) in one pass over the live nodes, where the two made a pass
+    over the whole grid each. The other nodes keep `out`'s values: a product by the fine operator reads none of them
+    into a live node's (every corner of a solid voxel is live), so they need not be zeroed."""
+    from ..run.threads import over_rows
+
+    k = len(idx)
+    pieces = _pieces(k)
+    over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype), _weight(g, k, out.dtype),
+              out.dtype.type(s), out, out, out, 4, pieces)
 
 
 def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool = False) -> None:

@@ -734,6 +734,9 @@ class Multigrid:
         # the mask the result is multiplied by (the caller's own array)
         self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
+        # the nodes a solid voxel touches: where they are all free (periodic), a fine product reads no other
+        # node into a free one's, so the cycle need not zero the rest (_fine_cases)
+        self._touched = int(np.count_nonzero(model.active))
         self.op = op
         rng = np.random.default_rng(seed)
         self._inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
@@ -935,7 +938,7 @@ class Multigrid:
         on the live nodes (:meth:`_live_inverse_diagonal`). With `sink`, each case's
         result goes to ``sink(case, z)`` as it is made (None is returned). The result is in `dtype`
         (default the residual's)."""
-        from .fused import put_add, put_smoothed, take_smoothed
+        from .fused import put_add, put_smoothed, put_smoothed_onto, take_smoothed
         from .mechanics_cl import aligned_empty
 
         n = self.free.shape[1]
@@ -959,9 +962,19 @@ class Multigrid:
         coarse = self._cycle(1, rc)
         del rc
         z = None
+        # every node a solid voxel touches is live (periodic: none held fixed): a product reads no other node into a
+        # live one's (every corner of a solid voxel is live), so the other nodes' values need not be zero
+        onto = live.size == self._touched
         for c in range(m):
-            x = put_smoothed(r[c:c + 1], live, n, w, g, s, self.dtype)
-            prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
+            if onto:
+                # x = s D^-1 F r + F P e on the live nodes, P e elsewhere: the prolongation written, then one pass
+                # over the live nodes, where spreading x (zeroing the grid) and adding F P e were a pass over the
+                # whole grid each (128^3 benchmark scaffold: 4.4 and 5.3 ms a case); the same bits on the live nodes
+                x = prolong(coarse[c:c + 1], self.fine_shape)
+                put_smoothed_onto(x, r[c:c + 1], live, w, g, s)
+            else:  # fixed nodes (a box's faces) touch the solid: 0 there, as everywhere off the live nodes
+                x = put_smoothed(r[c:c + 1], live, n, w, g, s, self.dtype)
+                prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
             ax = self.op(x)
             one = take_smoothed(x, ax, r[c:c + 1], live, w, g, s, r.dtype if dtype is None else dtype)
             del x, ax
