@@ -90,6 +90,13 @@ def test_the_smoothed_spread_onto_a_prolongation_is_the_two_passes_it_replaces(r
     # the other nodes keep P e (no live node's product reads them)
     rest = np.setdiff1d(np.arange(n), live)
     assert np.array_equal(got[:, :, rest], G.prolong(y, shape)[:, :, rest])
+    # the pre-smoothing spread into a buffer kept across cases: without zeroing, the live nodes as spread afresh
+    kept = rng.standard_normal((1, 3, n)).astype(np.float32)
+    before = kept.copy()
+    fresh = put_smoothed(r, live, n, w, g, s, np.float32)
+    put_smoothed(r, live, n, w, g, s, np.float32, out=kept, zero=False)
+    assert np.array_equal(kept[:, :, live], fresh[:, :, live]) and not fresh[:, :, rest].any()
+    assert np.array_equal(kept[:, :, rest], before[:, :, rest])
 
 @pytest.mark.parametrize("shape, periodic, fix", [((6, 5, 7), True, False), ((5, 6, 4), False, True),
                                                   ((8, 8, 8), True, False)])

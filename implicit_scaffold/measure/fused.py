@@ -136,9 +136,10 @@ def _kernels():
             for c in range(m):
                 for d in range(3):
                     wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
-                    if mode == 0:
+                    if mode == 0 or mode == 5:
                         od = out[c, d]
-                        od[_own(idx, n0, n1, piece, pieces, od.shape[0])] = 0
+                        if mode == 0:  # 5: the other nodes are left as they are
+                            od[_own(idx, n0, n1, piece, pieces, od.shape[0])] = 0
                         for i in range(n0, n1):
                             j = idx[i]
                             od[j] = wd[i] * src[c, d, i]
@@ -265,11 +266,12 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
 
 
 def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: float, dtype=None,
-                 out: np.ndarray | None = None) -> np.ndarray:
+                 out: np.ndarray | None = None, zero: bool = True) -> np.ndarray:
     """The whole grid's (m, 3, n) vector ``s g w src`` on the nodes `idx` and 0 elsewhere: one damped
     Jacobi step from zero on the right-hand side :func:`put` would spread (`g` the inverse diagonal
     on the nodes `idx`, (1, len(idx)) or (3, len(idx))), in `dtype` (default `src`'s), page-aligned; or
-    into `out` (an array of that shape, a view of a larger one may do)."""
+    into `out` (an array of that shape, a view of a larger one may do). Without `zero`, `out`'s other nodes
+    keep their values (a buffer whose other nodes no product reads, :func:`put_smoothed_onto`)."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
@@ -278,7 +280,7 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype),
-              _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0, pieces)
+              _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0 if zero else 5, pieces)
     return out
 
 
