@@ -950,6 +950,7 @@ class Multigrid:
         # pre-smoothed x of each case is spread into one buffer, zeroed once (128^3 benchmark scaffold: the zeroing
         # was some half of put_smoothed's 4.4 ms a case)
         onto = live.size == self._touched
+        unmasked = onto and not np.any(w != 1)  # and every unknown of a live node free (a mask per node)
         spread = None
         if onto:
             spread = aligned_empty((1, 3, n), self.dtype)
@@ -962,7 +963,8 @@ class Multigrid:
             # residual F (b - K x) (F is 0 or 1: the same bits as forming it first), without a pass
             # over the grid to form it
             put_add(res, r[c:c + 1], live, w, subtract=True)
-            one = restrict(res, self.fine_shape, self.free)
+            # F is 1 on every live unknown and the product 0 off the live nodes: the same bits without reading F
+            one = restrict(res, self.fine_shape, None if unmasked else self.free)
             del res
             if rc is None:
                 rc = aligned_empty((m,) + one.shape[1:], one.dtype)
