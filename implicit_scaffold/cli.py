@@ -269,19 +269,30 @@ def _mechanics_lines(mech: dict) -> list[str]:
     return lines
 
 
+def _check_json_output(args) -> None:
+    """`-o` of analyze, check and mechanics: a .json that can be written, and not the run's report beside FILE, which
+    they read (its grid: the mesh voxelised on it, a field's walls): overwritten, the next read of FILE lost it."""
+    if args.output is None:
+        return
+    from .io.files import check_writable
+    from .pipeline import report_path
+
+    check_writable(args.output, formats=(".json",))
+    beside = report_path(args.file)
+    if beside.is_file() and Path(args.output).resolve() == beside.resolve():
+        raise ScaffoldError(f"-o {args.output} is the report generate wrote beside {Path(args.file).name}, which this "
+                            "command reads; give another name, e.g. -o " + beside.with_name(beside.stem + "_"
+                                                                                          + args.command + ".json").name)
+
+
 def _mechanics(args) -> int:
     from .measure.mechanics import load_sample
 
     t0 = time.perf_counter()
     mat, tol = _mechanics_setup(args)
-    for path, fmt in ((args.output, (".json",)), (args.report, None)):
-        if path is not None:
-            if fmt is None:
-                _check_report(path)
-            else:
-                from .io.files import check_writable
-
-                check_writable(path, formats=fmt)
+    _check_json_output(args)
+    if args.report is not None:
+        _check_report(args.report)
     from .progress import Progress
 
     # a whole micro-CT reads and sets up for some 40 s before the CG's first note; a quick run's lines
@@ -573,10 +584,7 @@ def _check(args) -> int:
 
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)
-    if args.output is not None:
-        from .io.files import check_writable
-
-        check_writable(args.output, formats=(".json",))
+    _check_json_output(args)
     scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label, mesh_field=True,
                              threshold=args.threshold)
     cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
@@ -951,10 +959,7 @@ def _analyze(args) -> int:
     from .measure.morphometry import analyze_file
 
     t0 = time.perf_counter()
-    if args.output is not None:
-        from .io.files import check_writable
-
-        check_writable(args.output, formats=(".json",))
+    _check_json_output(args)
     if args.report is not None:
         _check_report(args.report)
     result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing, region=args.region, label=args.label,

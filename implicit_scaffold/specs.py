@@ -366,6 +366,10 @@ class Outputs:
                 raise ScaffoldError(f"cannot write {path.name}: use one of {', '.join(MESH_WRITERS + FIELD_WRITERS)}")
             if ext in MESH_WRITERS and not mesh:
                 raise ScaffoldError("a mesh output needs the mesh stage; drop mesh=False or write .npy")
+            if ext not in MESH_WRITERS and self.tolerance:
+                # the field is written as built: a simplified mesh nobody gets was described in the report
+                raise ScaffoldError(f"--tolerance simplifies a mesh output; {path.name} is the field, written as "
+                                    "built: drop --tolerance, or write a mesh (.stl .ply .obj .3mf)")
             _set(self, "path", path)
         if self.slices is not None:
             if not isinstance(self.slices, dict) or "out_dir" not in self.slices:

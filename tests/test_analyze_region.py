@@ -43,6 +43,13 @@ def test_analyze_with_the_patient_mesh_matches_generate(tmp_path):
                  "-q"]) == 0
     ana = json.loads((tmp_path / "a.json").read_text())
     assert abs(ana["porosity_voxel"] - gen["porosity_mesh"]) < 0.005 and ana["bodies"] == gen["bodies"]
+    # without --voxel, the run's grid from the report beside the mesh (it asked for --voxel): generate's own
+    # voxels, so its voxel porosity and fragments exactly
+    assert main(["analyze", str(out), "--region", str(patient), "-o", str(tmp_path / "b.json"), "-q"]) == 0
+    own = json.loads((tmp_path / "b.json").read_text())
+    assert own["voxel_mm"] == 0.05 and own["grid_shape"] == gen["grid_shape"]
+    assert own["porosity_voxel"] == pytest.approx(gen["porosity_voxel"], abs=1e-9)
+    assert own["fragments"] == gen["fragments"]
 
 
 def test_analyze_without_a_region_says_what_it_was(cylinder_run, capsys):

@@ -54,6 +54,17 @@ def test_a_volume_output_is_written_and_its_report_gives_its_size(tmp_path, name
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, Path(name).name.split(".")[0] + ".json"])
 
 
+def test_a_zarr_output_of_a_whole_grid_run_is_written(tmp_path):
+    # the whole-grid run wrote into a temporary file of the name where the zarr writer makes its folder, and the
+    # writer refused it ("already exists", exit 2 after the whole build)
+    zarr = pytest.importorskip("zarr")
+    out = tmp_path / "f.zarr"
+    assert main(["generate", "-o", str(out), "--size", "1", "--voxel", "0.1", "--pore-size", "0.5", "-q"]) == 0
+    rep = json.loads((tmp_path / "f.json").read_text())
+    assert list(zarr.open_group(str(out), mode="r")["sdf"].shape) == rep["grid_shape"]
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f.json", "f.zarr"]
+
+
 BAD = [
     (["--sf", "1.2"], "--sf must lie strictly between 0 and 1"),
     (["--sv", "0"], "--sv must lie strictly between 0 and 1"),
@@ -79,6 +90,8 @@ BAD = [
     (["--axis", "x"], "--axis sets --mechanics' solve"),
     (["--mechanics-tol", "1e-4"], "--mechanics-tol sets --mechanics' solve"),
 ]
+# the output is the field: a simplified mesh nobody got was described in the report
+BAD_FIELD = [(["--tolerance", "0.01"], "--tolerance simplifies a mesh output; s.npy is the field")]
 
 
 @pytest.mark.parametrize("args, message", BAD)
@@ -90,6 +103,14 @@ def test_bad_input_one_line_exit_2_no_output(tmp_path, capsys, args, message):
     err = capsys.readouterr().err
     assert code == 2
     assert message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args, message", BAD_FIELD)
+def test_bad_input_for_a_field_output_one_line_exit_2_no_output(tmp_path, capsys, args, message):
+    code = main(["generate", "-o", str(tmp_path / "s.npy"), "--seeds", "20", "--size", "3"] + args)
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -463,3 +484,16 @@ def test_a_budget_beyond_the_machines_memory_is_warned_about(tmp_path, capsys):
     assert main(["generate", "-o", str(tmp_path / "s.npy"), "--size", "2", "--voxel", "0.1", "--max-memory", half,
                  "-q"]) == 0
     assert "more than this machine's" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("command", [["check", "--printer", "dlp-resin"], ["analyze"]])
+def test_an_output_onto_the_runs_report_beside_the_file_is_refused(tmp_path, capsys, command):
+    # check c.stl -o c.json replaced generate's report, which the next check of c.stl read its grid from
+    out = tmp_path / "c.stl"
+    assert main(["generate", "-o", str(out), "--size", "1", "--voxel", "0.1", "--pore-size", "0.5", "-q"]) == 0
+    before = (tmp_path / "c.json").read_bytes()
+    capsys.readouterr()
+    code = main([command[0], str(out), *command[1:], "-o", str(tmp_path / "c.json"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and "is the report generate wrote beside c.stl" in err and err.count("\n") == 1
+    assert (tmp_path / "c.json").read_bytes() == before

@@ -972,7 +972,9 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     patient = run_grid = None
     if region is not None:
         patient, run_grid, what = load_region(region)
-    beside = run_grid_beside(path, voxel) if patient is None else None
+    # the run's grid from the report beside the mesh, also under a patient given as a mesh or volume (its voxel was
+    # asked for again, and a grid placed from the patient's bounds broke walls a voxel thick)
+    beside = run_grid_beside(path, voxel) if run_grid is None else None
     mesh = _read_mesh(path)
     lo, hi = mesh.bounds
     if voxel is None and run_grid is None and beside is None:
@@ -981,8 +983,10 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         grid = beside if beside is not None else Grid.covering(lo, hi, voxel)
         voxel = grid.spacing
     else:
-        # the run's own grid when no other voxel is asked: voxel centres classified as generate's were
-        grid = run_grid if voxel is None else Grid.covering(patient.lo, patient.hi, voxel)
+        # the run's own grid when no other voxel is asked (the region's JSON, or the report beside the mesh): voxel
+        # centres classified as generate's were
+        own = beside if run_grid is None else (run_grid if voxel is None else None)
+        grid = own if own is not None else Grid.covering(patient.lo, patient.hi, voxel)
         voxel = grid.spacing
     check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
     solid = voxelize(mesh.vertices, mesh.faces, grid)
