@@ -115,6 +115,24 @@ def test_the_slices_measure_counts_every_row_of_a_thin_prism(spacing, lo, rows):
     assert volume == pytest.approx(oracle, rel=1e-5)
 
 
+def test_the_slices_measure_of_fine_pixels_samples_a_block_at_a_time(monkeypatch):
+    # a 4 mm cube at 0.001 mm pixels made every pixel's coordinates at once (24 GB, killed by the system): by blocks
+    # of x columns the same grey volume (the closed form of a linear field, and the one-block result)
+    from implicit_scaffold.fields import printed as P
+
+    spacing = 0.1
+    grid = Grid((0.0, 0.0, 0.0), spacing, (12, 10, 8))
+    ys, zs = slice(0, 10), slice(0, 8)
+    x = np.arange(12)[:, None, None] * spacing
+    s = np.broadcast_to(x - 0.55, (12, 10, 8)).astype(np.float32)  # the plane x = 0.55: solid below it
+    whole, ramp = P.printed_measure("slices", grid, ys, zs, pixel=0.02)(s)
+    monkeypatch.setattr(P, "PRINTED_BLOCK_POINTS", 1000)
+    blocks, ramp_blocks = P.printed_measure("slices", grid, ys, zs, pixel=0.02)(s)
+    assert blocks == pytest.approx(whole, rel=1e-12) and ramp_blocks == ramp
+    # the grey pixels cover the half-space x < 0.55 of the sampled box (pixel centres from 0.01 to 1.09 mm in x)
+    assert whole == pytest.approx(0.55 * 1.0 * 0.8, rel=0.02)
+
+
 @pytest.mark.parametrize("style, shape, porosity, true_volume", [
     ("paper", "box", 0.8, 27.0),
     ("struts", "box", 0.75, 27.0),
