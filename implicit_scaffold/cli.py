@@ -998,18 +998,24 @@ def result_json(output) -> str:
 def _slice(args) -> int:
     from .mesh.slices import check_stack_output
 
+    from .io.files import check_writable, write_json
+    from .pipeline import report_path
+
     t0 = time.perf_counter()
     check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built
+    # the run's report beside the stack, as generate's beside its mesh: the print certificate, the repair and the
+    # warnings were written nowhere (stack.json holds the layers' geometry)
+    report = check_writable(report_path(Path(args.output)), formats=(".json",))
     result = _build(args, mesh=False, morphometry=False,
                     slices={"out_dir": args.output, "pixel": args.pixel, "layer": args.layer})
+    write_json(result.report, report)
     if not args.quiet:
         r = result.report
         stack = r["slices"]
         solid = (1.0 - r["porosity_voxel"]) * r["patient_volume_mm3"]
         print("\n".join([
             f"wrote {stack['layers']} layer{'' if stack['layers'] == 1 else 's'} of {stack['width']}x{stack['height']} "
-            "pixels and stack.json "
-            f"to {args.output}",
+            f"pixels and stack.json to {args.output}, the run's report to {report}",
             f"  pixel {stack['pixel_mm']:.4g} mm, layer {stack['layer_mm']:.4g} mm, origin "
             + " ".join(f"{v:.4f}" for v in stack["origin_mm"]) + " mm",
             _porosity_line(r, 'none' if r['porosity_target'] is None else format(r['porosity_target'], '.3f'))

@@ -344,6 +344,19 @@ def test_slice_writes_a_stack_that_matches_the_field(tmp_path, capsys):
         assert np.mean((img >= 128) == solid) > 0.99
 
 
+def test_slice_writes_the_runs_report_beside_the_stack(tmp_path, capsys):
+    # slice --printer certified what it built and wrote the verdict nowhere (stack.json holds the layers' geometry);
+    # the run's report lies beside the stack, as generate's beside its mesh, also when --require-printable fails
+    out = tmp_path / "layers"
+    code = main(["slice", "-o", str(out), "--size", "2", "--pore-size", "1", "--voxel", "0.1", "-q",
+                 "--printer", "custom:min_strut=5,min_throat=5", "--require-printable"])
+    assert code == 3
+    rep = json.loads((tmp_path / "layers.json").read_text())
+    assert rep["print_check"]["verdict"]["overall"] == "fail" and rep["slices"]["layers"] == len(
+        list(out.glob("layer_*.png")))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["layers", "layers.json"]
+
+
 @pytest.mark.parametrize("args, message", [
     (["--pixel", "0"], "--pixel must be a positive number"),
     (["--layer", "-2"], "--layer must be a positive number"),
