@@ -943,7 +943,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
             raise ScaffoldError("--region applies to a scaffold mesh; a volume is measured whole")
         if spacing is not None and suffix in MESH_SUFFIXES:
             raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
-        solid, step, note, selection = _read_volume(path, spacing, voxel, label, threshold)
+        solid, step, note, selection, _ = _read_volume(path, spacing, voxel, label, threshold)
         grid = Grid((0.5 * step,) * 3, step, solid.shape)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         report = morphometry(solid, step)
@@ -1146,8 +1146,8 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
                                 "finite everywhere: write the field again")
         return Scaffold("field", field < 0, float(voxel), origin, field, None, "the grid")
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, note, selection = _read_volume(path, spacing, voxel, label, threshold)
-        return Scaffold("volume", solid, step, (0.5 * step,) * 3, None, None, "the whole volume", selection, note)
+        solid, step, note, selection, distance = _read_volume(path, spacing, voxel, label, threshold)
+        return Scaffold("volume", solid, step, (0.5 * step,) * 3, distance, None, "the whole volume", selection, note)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
@@ -1249,11 +1249,13 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
         raise ScaffoldError(f"{path.name} states no voxel spacing; give it with --spacing (mm), "
                             "e.g. --spacing 0.05 or --spacing \"0.05 0.05 0.1\"")
     array = sitk.GetArrayViewFromImage(image)  # (z, y, x)
+    distance = None  # generate's own field: its values, (x, y, z), for the as-built offset of check
     if label is not None or threshold is not None:
         mask, selection = bone_mask(array, path.name, label, threshold)
     elif array.dtype.kind == "f" and _own_field(path, array.shape):
         # generate's signed distance (mm, negative in the solid): no threshold of intensities selects its solid
         mask, selection = array < 0, "the signed distance below 0 (generate's field; its report beside it)"
+        distance = np.ascontiguousarray(np.transpose(array, (2, 1, 0)), np.float32)
     else:
         nonzero = array[array != 0]
         if nonzero.size and nonzero.min() != nonzero.max():
@@ -1282,6 +1284,7 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
             idx.append(np.minimum(((np.arange(n) + 0.5) * target / step[a]).astype(np.int64), solid.shape[a] - 1))
         solid = solid[np.ix_(*idx)]
         note = f"from {' x '.join(f'{v:g}' for v in step)} mm to {target:g} mm (nearest voxel)"
+        distance = None  # not resampled: the solid's values only
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel (all zero)")
-    return solid, float(target), note, selection
+    return solid, float(target), note, selection, distance
