@@ -460,8 +460,9 @@ def _check_graded_options(args) -> None:
     """Refuse the options a graded build replaces, where the command line changed them: --calibration sets the
     porosity and the pore sizes from the CT, --grade the pore sizes by depth (each with the local seed count); they
     were dropped without a word (the same bytes as without them)."""
+    designed = getattr(args, "from_design", set())  # a design.json's parameters (a CT design holds a pore size)
     changed = [o for o, key in (("--porosity", "porosity"), ("--pore-size", "pore_size"), ("--seed-rule", "seed_rule"))
-               if str(getattr(args, key)).strip().lower() != str(BUILD_DEFAULTS[key]).lower()]
+               if key not in designed and str(getattr(args, key)).strip().lower() != str(BUILD_DEFAULTS[key]).lower()]
     if args.calibration is not None and changed:
         raise ScaffoldError(f"--calibration sets the porosity and the pore sizes from the CT; drop {' and '.join(changed)}")
     changed = [o for o in changed if o != "--porosity"]
@@ -513,6 +514,10 @@ def _build(args, *, output=None, mesh=True, morphometry=True, slices=None):
     if args.calibration is not None:
         from .geometry.grade import load_ct
 
+        if args.label is not None:
+            # a label map's numbers read as Hounsfield units: label 31 became 31 HU, every pore the largest
+            raise ScaffoldError("--calibration reads a CT's intensities (HU); --label names a segmentation's bone, "
+                                "whose label numbers are no intensities: give the CT as --patient with --threshold")
         ct = load_ct(_ct_source(args.patient, "--calibration reads the CT intensities of --patient"))
     return generate(lattice=lattice, grid=grid, outputs=outputs, patient=patient, shape=args.shape, size=args.size,
                     skin=args.skin, smooth_cut=args.smooth_cut, ct=ct, verbose=not args.quiet)
@@ -612,11 +617,13 @@ def _apply_design(args) -> None:
 
     params = load_parameters(args.design)
     defaults = build_parser().parse_args(["generate", "-o", "x.stl"])
+    args.from_design = set()  # what the design set: not the user's to be told to drop (_check_graded_options)
     for key, value in params.items():
         if key == "porosity":
             value = str(value)
         if getattr(args, key) == getattr(defaults, key):
             setattr(args, key, value)
+            args.from_design.add(key)
 
 
 def _given(args, *options: str) -> list[str]:

@@ -139,7 +139,12 @@ def check_targets(targets: Targets) -> Targets:
 
     from .measure.mechanics import material
 
-    material(targets.material)  # unknown names refused here, before any build
+    solid = material(targets.material)  # unknown names refused here, before any build
+    if targets.stiffness is not None and num("stiffness", targets.stiffness) >= solid.E_gpa:
+        # no porous scaffold is as stiff as its solid: the search ran and named "a porosity of about 0.000"
+        raise ScaffoldError(f"--stiffness {float(targets.stiffness):g} GPa is at or above the solid "
+                            f"{solid.name}'s own modulus, {solid.E_gpa:g} GPa: no porous scaffold of it reaches it; "
+                            "name a stiffer --material or a lower --stiffness")
     return Targets(porosity=num("porosity", targets.porosity, 0.0, 1.0),
                    pore_size=num("pore-size", targets.pore_size),
                    min_strut=None if targets.min_strut is None else num("min-strut", targets.min_strut),

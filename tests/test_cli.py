@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 
 from implicit_scaffold.cli import main
+from implicit_scaffold.errors import ScaffoldError
 
 
 def test_generate_writes_mesh_and_report(tmp_path, capsys):
@@ -111,6 +112,17 @@ def test_bad_input_for_a_field_output_one_line_exit_2_no_output(tmp_path, capsys
     code = main(["generate", "-o", str(tmp_path / "s.npy"), "--seeds", "20", "--size", "3"] + args)
     err = capsys.readouterr().err
     assert code == 2 and message in err and err.count("\n") == 1 and "Traceback" not in err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_a_porosity_a_skin_puts_out_of_reach_names_the_way_out(tmp_path, capsys):
+    # a solid skin caps the porosity from above: the way out is a lower target (it said to raise it, and named --skin
+    # for a smooth cut)
+    code = main(["generate", "-o", str(tmp_path / "s.stl"), "--seeds", "20", "--size", "3", "--skin", "0.8",
+                 "--porosity", "0.7", "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert "cannot be reached with --skin: the solid it adds alone leaves less void; lower --porosity" in err
     assert list(tmp_path.iterdir()) == []
 
 
@@ -510,3 +522,35 @@ def test_an_output_onto_the_runs_report_beside_the_file_is_refused(tmp_path, cap
     err = capsys.readouterr().err
     assert code == 2 and "is the report generate wrote beside c.stl" in err and err.count("\n") == 1
     assert (tmp_path / "c.json").read_bytes() == before
+
+
+def test_a_designs_own_parameters_are_not_refused_beside_its_calibration():
+    # generate --design of a CT design (its calibration and its pore size, 1.0 mm) was refused: "drop --pore-size",
+    # an option the user never typed; typed, it still is
+    import argparse
+
+    from implicit_scaffold.cli import _check_graded_options
+
+    args = argparse.Namespace(porosity="0.8", pore_size=1.0, seed_rule="pore-size", calibration=(0.001, 0.0),
+                              grade=None, from_design={"pore_size"})
+    _check_graded_options(args)
+    args.from_design = set()
+    with pytest.raises(ScaffoldError, match="drop --pore-size"):
+        _check_graded_options(args)
+
+
+def test_calibration_of_a_label_map_is_refused(tmp_path, capsys):
+    # --calibration read a segmentation's label numbers as Hounsfield units: label 31 became 31 HU, every pore 0.8 mm
+    import numpy as np
+    import SimpleITK as sitk
+
+    labels = np.zeros((12, 12, 12), np.uint8)
+    labels[3:9, 3:9, 3:9] = 31
+    image = sitk.GetImageFromArray(labels)
+    image.SetSpacing((0.5, 0.5, 0.5))
+    sitk.WriteImage(image, str(tmp_path / "seg.nii.gz"))
+    code = main(["generate", "--patient", str(tmp_path / "seg.nii.gz"), "--label", "31", "--calibration", "0.004",
+                 "0", "-o", str(tmp_path / "s.stl"), "-q"])
+    err = capsys.readouterr().err
+    assert code == 2 and "--calibration reads a CT's intensities" in err and err.count("\n") == 1
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["seg.nii.gz"]

@@ -102,6 +102,10 @@ def test_infeasible_strut_exit_3_names_the_conflict(tmp_path, capsys):
     (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "3kg"], "--stiffness takes a modulus"),
     (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "3GPa", "--material", "wood"], "unknown material"),
     (["--porosity", "0.7", "--pore-size", "0.5", "--printer", "nope"], ""),
+    # stiffer than the solid (PCL's 0.4 GPa, Ti-6Al-4V's 113.8): the search ran and named "a porosity of about 0.000"
+    (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "5GPa", "--material", "pcl"],
+     "--stiffness 5 GPa is at or above the solid"),
+    (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "200GPa"], "own modulus, 113.8 GPa"),
 ])
 def test_bad_design_input_one_line_exit_2(tmp_path, capsys, args, message):
     out = tmp_path / "d.json"

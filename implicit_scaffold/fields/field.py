@@ -426,6 +426,17 @@ def _sealed_labels(labels: np.ndarray, count: int) -> np.ndarray:
     return sealed
 
 
+def unreachable_with_cut(porosity: float, too_solid: bool, skin: float, smooth_cut: float) -> str:
+    """The one line that refuses a porosity a skin or a smooth cut puts out of reach: `too_solid` where the cut holds
+    more solid than the target leaves (it said "raise the porosity target" either way: that made it worse)."""
+    given = " and ".join(o for o, v in (("--skin", skin), ("--smooth-cut", smooth_cut)) if v > 0) or "the cut"
+    if too_solid:
+        return (f"porosity {porosity:g} cannot be reached with {given}: the solid it adds alone leaves less void; "
+                f"lower --porosity, or thin {given}")
+    return (f"porosity {porosity:g} cannot be reached with {given}: even the lattice's most solid level leaves more "
+            "void; raise --porosity")
+
+
 def solve_level_cut(field: np.ndarray, patient_sdf: np.ndarray, porosity: float, *, skin: float = 0.0,
                     smooth_cut: float = 0.0, iterations: int = 8) -> float:
     """The level that meets `porosity` after a skin or a smooth cut is applied.
@@ -462,9 +473,7 @@ def solve_level_cut(field: np.ndarray, patient_sdf: np.ndarray, porosity: float,
             break
         rank = int(np.searchsorted(values, level)) - error
         if rank <= 0 or rank >= len(values):
-            raise ScaffoldError(
-                f"porosity {porosity:g} cannot be reached with this skin/smooth cut; "
-                "lower --skin or raise the porosity target")
+            raise ScaffoldError(unreachable_with_cut(porosity, rank <= 0, skin, smooth_cut))
         new = float(level_between(values[rank - 1], values[rank]))
         if new == level:
             break

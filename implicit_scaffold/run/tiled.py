@@ -375,8 +375,9 @@ def _correct_level_cut(quantile: StreamQuantile, slabs, field: FieldFile, patien
             break
         rank = below - error
         if rank <= 0 or rank >= n_inside:
-            raise ScaffoldError(f"porosity {porosity:g} cannot be reached with this skin/smooth cut; "
-                                "lower --skin or raise the porosity target")
+            from ..fields.field import unreachable_with_cut
+
+            raise ScaffoldError(unreachable_with_cut(porosity, rank <= 0, skin, smooth_cut))
         _refine(quantile, (rank - 1, rank), slabs, field, patient)
         a, b = (np.float32(v) for v in quantile.values())
         new = float(level_between(a, b))
