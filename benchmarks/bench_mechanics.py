@@ -73,6 +73,8 @@ Timings on a shared 2-core machine are noisy (other jobs run beside): read them 
 from __future__ import annotations
 
 import argparse
+import atexit
+import shutil
 import statistics
 import sys
 import tempfile
@@ -780,6 +782,8 @@ def main(argv=None) -> int:
     accuracy = args.accuracy or None
     voxel = 0.04
     tmp = Path(tempfile.mkdtemp(prefix="bench_mechanics_"))
+    # its built scaffolds (up to some 100 MB) were left in /tmp by every run
+    atexit.register(shutil.rmtree, tmp, True)
     rows = []
     for n in args.sizes:
         path, info = build(tmp, n, voxel=voxel, porosity=0.7)
