@@ -1886,3 +1886,14 @@ def test_a_volume_samples_note_names_its_voxel_and_the_box_solved(tmp_path):
     assert "the solid's bounding box, 20 x 20 x 2 of the 20 x 20 x 20 voxels read" in own.report["note"]
     coarse, _ = m.load_sample(tmp_path / "plate.nrrd", voxel=0.2)
     assert coarse.voxel == 0.2 and "the volume resampled from 0.1 x 0.1 x 0.1 mm to 0.2 mm" in coarse.report["note"]
+
+
+def test_a_mesh_samples_note_says_which_grid_it_was_voxelised_on(tmp_path):
+    # a mesh with its run's report beside it is voxelised on that run's grid: the note said "at --voxel", none given
+    from implicit_scaffold import generate
+
+    generate(output=tmp_path / "s.stl", size=1.2, voxel=0.05, pore_size=0.6, seed=0)
+    own, _ = m.load_sample(tmp_path / "s.stl")
+    assert "the mesh voxelised on its run's grid" in own.report["note"] and own.voxel == 0.05
+    asked, _ = m.load_sample(tmp_path / "s.stl", voxel=0.04)
+    assert "the mesh voxelised at --voxel" in asked.report["note"] and asked.voxel == 0.04

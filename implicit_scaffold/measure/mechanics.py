@@ -2739,7 +2739,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     # where the voxel came from, and the box solved: the platens and the homogenization's faces are the solid's
     # bounding box, which the note names where it is smaller than what was read (a plate in a larger volume is
     # compressed through its own thickness)
-    what = {"mesh": "the mesh voxelised at --voxel",
+    what = {"mesh": "the mesh voxelised at --voxel" if voxel is not None or report_beside(path) is None
+            else "the mesh voxelised on its run's grid (the report beside it)",
             "volume": f"the volume resampled {sample.resampled}" if sample.resampled else "the volume's own voxel"}
     note = f"mechanics voxel {sample.voxel:.4g} mm: {what.get(sample.kind, 'the sample' + chr(39) + 's own voxel')}"
     if solid.shape != read:
