@@ -552,6 +552,8 @@ def test_design_on_a_patient_is_built_and_measured(tmp_path, capsys):
     d = json.loads(out.read_text())
     check = d["patient_check"]
     assert code == (0 if d["feasible"] and all(check["met"].values()) else 3)
+    assert d["met_on_patient"] == all(check["met"].values())
+    assert ("MISSED on the patient" in text.splitlines()[0]) == (d["feasible"] and not d["met_on_patient"])
     assert "on the patient" in text and f"wrote {field}" in text
     rep = json.loads(field.with_suffix(".json").read_text())
     s = np.load(field)
