@@ -275,7 +275,7 @@ def _check_json_output(args) -> None:
     if args.output is None:
         return
     from .io.files import check_writable
-    from .pipeline import report_path
+    from .io.formats import report_path
 
     check_writable(args.output, formats=(".json",))
     beside = report_path(args.file)
@@ -1003,7 +1003,7 @@ def _analyze(args) -> int:
 
 
 def result_json(output) -> str:
-    from .pipeline import report_path
+    from .io.formats import report_path
 
     return str(report_path(output))
 
@@ -1012,7 +1012,7 @@ def _slice(args) -> int:
     from .mesh.slices import check_stack_output
 
     from .io.files import check_writable, write_json
-    from .pipeline import report_path
+    from .io.formats import report_path
 
     t0 = time.perf_counter()
     check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built

@@ -17,6 +17,14 @@ class ScaffoldWarning(UserWarning):
     """Something was built, but not as asked: the message says what and how to fix it."""
 
 
+def round_down(value: float) -> str:
+    """`value` (mm) rounded down to 2 significant digits, as a message suggests a voxel: never coarser than it."""
+    import math
+
+    digits = 1 - int(math.floor(math.log10(abs(value))))
+    return f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
+
+
 def positive_mm(name: str, value, *, example: str | None = None) -> float:
     """`value` as a positive, finite length in mm, or a :class:`ScaffoldError` naming option `--name`.
 

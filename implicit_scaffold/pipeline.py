@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from . import __version__, opencl
-from .errors import ScaffoldError
+from .errors import ScaffoldError, round_down
 from .fields.field import sample
 from .run.grid import Grid, run_bytes_per_voxel
 from .run.memory import available_memory, check_memory
@@ -24,6 +24,7 @@ from .specs import (FLAT_KEYWORDS, STYLES, GridSpec, LatticeSpec, Outputs, check
                     output_format, specs_from)
 
 from .io.formats import FIELD_WRITERS as FIELD_FORMATS, MESH_STREAMED, MESH_WRITERS as MESH_FORMATS  # noqa: E402
+from .io.formats import report_path  # noqa: E402
 #: default grids are capped at this many voxels so the default run stays quick;
 #: a finer --voxel is always honoured (within memory)
 DEFAULT_MAX_VOXELS = 24_000_000
@@ -235,14 +236,8 @@ def _check_resolved(printed_wall: float | None, voxel: float, pore_size_given: b
         raise ScaffoldError(
             f"--voxel {voxel:.4g} mm cannot hold the lattice: its walls, about {printed_wall:.3g} mm thick as "
             f"printed, would be {printed_wall / voxel:.2f} voxels across and break into fragments (at least "
-            f"{MIN_VOXELS_PER_WALL:g} are needed); use --voxel {_round_down(printed_wall / 2)} or finer"
+            f"{MIN_VOXELS_PER_WALL:g} are needed); use --voxel {round_down(printed_wall / 2)} or finer"
             + (", or a larger --pore-size" if pore_size_given else " (--calibration sets the pore sizes)"))
-
-
-def _round_down(value: float) -> str:
-    """`value` (mm) rounded down to 2 significant digits, as a suggestion never coarser than it."""
-    digits = 1 - int(math.floor(math.log10(abs(value))))
-    return f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
 
 
 def _check_collapsed(tf, params: Params, voxel: float, printed_wall: float | None, calibration: dict) -> None:
@@ -266,7 +261,7 @@ def _check_collapsed(tf, params: Params, voxel: float, printed_wall: float | Non
         got, target = 1.0 - tf.solid / tf.n_inside, params.porosity
     if abs(got - target) <= COLLAPSED:
         return
-    finer = _round_down((printed_wall / 2) if printed_wall is not None and printed_wall / 2 < voxel else voxel / 2)
+    finer = round_down((printed_wall / 2) if printed_wall is not None and printed_wall / 2 < voxel else voxel / 2)
     raise ScaffoldError(
         f"the scaffold's porosity came out {got:.4f} for a target of {target:.4g} after {tf.fragments} solid "
         f"fragments were removed: at {voxel:.4g} mm "
@@ -1946,13 +1941,6 @@ def _faces_near_patient(cells, coarse: np.ndarray, grid) -> np.ndarray:
     inside = sample(coarse, grid, cells.seeds) < 0
     f = interior_face_pairs(cells)
     return inside[cells.face_cell[f]] & inside[cells.face_neighbor[f]]
-
-
-def report_path(path) -> Path:
-    """The JSON report beside an output: ``scaffold.stl`` -> ``scaffold.json``, ``f.nii.gz`` -> ``f.json``."""
-    path = Path(path)
-    ext = output_format(path) or path.suffix
-    return path.with_name(path.name[: len(path.name) - len(ext)] + ".json")
 
 
 def write_outputs(result: Result, path: Path) -> None:

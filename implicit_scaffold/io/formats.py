@@ -32,6 +32,13 @@ def suffix(path) -> str:
     return Path(name).suffix
 
 
+def report_path(path) -> Path:
+    """The JSON report beside an output: ``scaffold.stl`` -> ``scaffold.json``, ``f.nii.gz`` -> ``f.json``, a stack's
+    folder ``layers`` -> ``layers.json``; where ``analyze``, ``check`` and ``mechanics`` look for a run's report."""
+    path = Path(path)
+    return path.with_name(path.name[: len(path.name) - len(suffix(path))] + ".json")
+
+
 def match(path, formats) -> str | None:
     """The entry of `formats` that `path`'s name ends with (lower case), or None."""
     ext = suffix(path)

@@ -36,13 +36,12 @@ Units: mm and GPa (so forces are in kN: GPa times mm^2). Voigt order xx, yy, zz,
 """
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..errors import ScaffoldError
+from ..errors import ScaffoldError, round_down
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
 #: corner a of a voxel is at offset (a & 1, a >> 1 & 1, a >> 2 & 1) voxels from its low corner
@@ -2467,12 +2466,6 @@ def resolution_warning(solid: np.ndarray, h: float, kind: str = "mesh") -> str |
             f"iterations; {finer}")
 
 
-def _round_down_mm(value: float) -> str:
-    """`value` (mm) to 2 significant digits, rounded down (a voxel suggested is never coarser than it)."""
-    digits = 1 - int(math.floor(math.log10(abs(value))))
-    return f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
-
-
 def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float | None = None,
                wall: float | None = None, boundary: str = "auto", preconditioner: str = "multigrid",
                option: str = "--mechanics-voxel", source: str = "run", held_extra: int = 0) -> tuple[float, str, int, int]:
@@ -2535,8 +2528,8 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
             # 0.2 mm walls came out 250 times too low, with no word
             raise ScaffoldError(f"{option} {h:.4g} mm leaves {wall / h:.3g} voxels across the {wall:.3g} mm median "
                                 f"wall, fewer than {MIN_VOXELS_PER_WALL:g}: the sample's walls would break or fuse; "
-                                f"use {option} {_round_down_mm(wall / CONVERGED_VOXELS_PER_WALL)} (4 voxels across) "
-                                f"or at most {_round_down_mm(wall / MIN_VOXELS_PER_WALL)}")
+                                f"use {option} {round_down(wall / CONVERGED_VOXELS_PER_WALL)} (4 voxels across) "
+                                f"or at most {round_down(wall / MIN_VOXELS_PER_WALL)}")
         if need(h) > allowance:
             refuse(h)
         return h, f"the voxel asked for ({option})", total, held
@@ -2623,7 +2616,7 @@ def solid_for_solve(field, grid, *, max_memory=None, voxel: float | None = None,
     if converged is not None and h > converged * (1 + 1e-9):
         # coarser than the run and than generate's default voxel: the moduli move by more than a few %
         # the way out: the voxel asked for is the user's to make finer; the budget's, a larger budget
-        fix = (f"{option} {_round_down_mm(converged)} resolves them" if voxel is not None else
+        fix = (f"{option} {round_down(converged)} resolves them" if voxel is not None else
                f"--max-memory {format_size(held + need(converged) + held_margin(held))} solves at {converged:.4g} mm")
         warning = (f"the mechanics voxel {h:.4g} mm leaves {wall / h:.1f} voxels across the {wall:.3g} mm median "
                    f"wall, fewer than generate's {CONVERGED_VOXELS_PER_WALL:g} (a 1.6 mm cube sampled at 2: "
@@ -2709,10 +2702,11 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
 
     path = Path(path)
     sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
+    beside = report_beside(path)  # the run's report, read once: the generator's walls, the grid a mesh was read on
     if sample.field is not None:
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)
         # the generator's median wall, from the run's report beside the field (generate --mechanics passes its own)
-        wall = ((report_beside(path) or {}).get("wall_thickness_mm") or {}).get("median")
+        wall = ((beside or {}).get("wall_thickness_mm") or {}).get("median")
         wall = float(wall) if isinstance(wall, (int, float)) and wall > 0 else None
         try:
             solved = solid_for_solve(sample.field, grid, max_memory=max_memory, voxel=mechanics_voxel, wall=wall,
@@ -2739,7 +2733,7 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     # where the voxel came from, and the box solved: the platens and the homogenization's faces are the solid's
     # bounding box, which the note names where it is smaller than what was read (a plate in a larger volume is
     # compressed through its own thickness)
-    what = {"mesh": "the mesh voxelised at --voxel" if voxel is not None or report_beside(path) is None
+    what = {"mesh": "the mesh voxelised at --voxel" if voxel is not None or beside is None
             else "the mesh voxelised on its run's grid (the report beside it)",
             "volume": f"the volume resampled {sample.resampled}" if sample.resampled else "the volume's own voxel"}
     note = f"mechanics voxel {sample.voxel:.4g} mm: {what.get(sample.kind, 'the sample' + chr(39) + 's own voxel')}"

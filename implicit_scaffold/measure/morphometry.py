@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ScaffoldError, positive_mm
+from ..errors import ScaffoldError, positive_mm, round_down
 from ..run.threads import count
 
 #: histograms of thickness get at most this many bins (bin width a whole number of voxels)
@@ -1045,13 +1045,10 @@ def report_beside(path) -> dict | None:
     """The JSON report generate wrote beside its output `path` (``f.stl`` -> ``f.json``, ``f.nii.gz`` ->
     ``f.json``), as a dict; None when there is none or it cannot be read."""
     import json
-    from pathlib import Path
 
-    from ..io.formats import suffix
+    from ..io.formats import report_path
 
-    path = Path(path)
-    ext = suffix(path)
-    meta = path.with_name(path.name[: len(path.name) - len(ext)] + ".json")
+    meta = report_path(path)
     if not meta.is_file():
         return None
     try:
@@ -1182,11 +1179,7 @@ def _voxel_needed(lo, hi) -> str:
     """The one line that asks for a mesh's --voxel, with a suggestion from its size (the example was 0.04 mm
     whatever the mesh: 12,000 voxels along a femur)."""
     longest = float(np.max(np.asarray(hi, float) - np.asarray(lo, float)))
-    example = "0.04"
-    if np.isfinite(longest) and longest > 0:
-        value = longest / SUGGESTED_VOXELS_ALONG
-        digits = 1 - int(math.floor(math.log10(value)))
-        example = f"{math.floor(value * 10 ** digits) / 10 ** digits:g}"
+    example = round_down(longest / SUGGESTED_VOXELS_ALONG) if np.isfinite(longest) and longest > 0 else "0.04"
     return (f"a mesh is voxelised at --voxel H; give one, e.g. --voxel {example} (mm: {SUGGESTED_VOXELS_ALONG} "
             f"voxels along its longest side, {longest:.4g} mm; a scaffold's struts want 4 voxels across)")
 

@@ -908,12 +908,17 @@ class Multigrid:
         g = self._live_inverse_diagonal(live) if FINE_DEGREE == 1 and self.levels else None
 
         slabs = self._fine_slabs(live) if g is not None else None
+        # every node a solid voxel touches is live (periodic: none held fixed): a product reads no other node into a
+        # live one's (every corner of a solid voxel is live), so the other nodes' values need not be zero; and F 1 on
+        # every live unknown (a mask per node), the product 0 off them: no mask to read. Decided once, not a cycle
+        onto = live.size == self._touched
+        unmasked = onto and not np.any(w != 1)
 
         def apply(r: np.ndarray, sink=None):
             if slabs is not None:
                 return self._fine_cases_by_slabs(r, live, w, g, slabs, sink, dtype)
             if g is not None:
-                return self._fine_cases(r, live, w, g, sink, dtype)
+                return self._fine_cases(r, live, w, g, sink, dtype, onto, unmasked)
             b = put(r, live, n, w, self.dtype)
             x = self._cycle(0, b)
             del b
@@ -925,7 +930,8 @@ class Multigrid:
 
         return apply
 
-    def _fine_cases(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, g: np.ndarray, sink=None, dtype=None):
+    def _fine_cases(self, r: np.ndarray, live: np.ndarray, w: np.ndarray, g: np.ndarray, sink=None, dtype=None,
+                    onto: bool = False, unmasked: bool = False):
         """:meth:`_fine_jacobi` on live-node residuals (m, 3, len(live)), the fine level one load case
         at a time and the coarse levels on the block, with the same arithmetic per case.
 
@@ -945,12 +951,8 @@ class Multigrid:
         m = r.shape[0]
         s = self._jacobi_step()
         rc = None
-        # every node a solid voxel touches is live (periodic: none held fixed): a product reads no other node into a
-        # live one's (every corner of a solid voxel is live), so the other nodes' values need not be zero: the
-        # pre-smoothed x of each case is spread into one buffer, zeroed once (128^3 benchmark scaffold: the zeroing
-        # was some half of put_smoothed's 4.4 ms a case)
-        onto = live.size == self._touched
-        unmasked = onto and not np.any(w != 1)  # and every unknown of a live node free (a mask per node)
+        # with `onto` (compact's), the pre-smoothed x of each case is spread into one buffer, zeroed once (128^3
+        # benchmark scaffold: the zeroing was some half of put_smoothed's 4.4 ms a case)
         spread = None
         if onto:
             spread = aligned_empty((1, 3, n), self.dtype)
