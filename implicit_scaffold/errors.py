@@ -8,6 +8,17 @@ it; the command line prints that line and exits with code 2, no traceback.
 class ScaffoldError(ValueError):
     """Bad input or an impossible request, with a one-line message and its fix."""
 
+    #: bytes: the --max-memory a refusal for memory names (None for any other error), so that a run
+    #: refused by one stage can name the budget its later stages need too
+    budget: int | None = None
+
+    @classmethod
+    def for_budget(cls, message: str, budget) -> "ScaffoldError":
+        """A refusal for memory naming `budget` (bytes) in `message`."""
+        err = cls(message)
+        err.budget = int(budget)
+        return err
+
 
 class OpenCLUnavailableError(ScaffoldError, RuntimeError):
     """No OpenCL platform or device could be found."""

@@ -410,15 +410,27 @@ def generate(*, lattice: LatticeSpec | None = None, grid: GridSpec | None = None
         _check_resolved(printed_wall, params.voxel, pore_size_given=params.calibration is None)
     grid = Grid.covering(patient.lo, patient.hi, params.voxel if params.voxel is not None
                          else _default_voxel(built.wall, _box_volume(patient), printed_wall))
-    skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
+    # what the build will still hold when the solve starts: a grid held in memory, about all its run's bytes
+    # (the default cube: 461 MiB at this check, 1,232 MiB at the solve, 104 bytes a voxel of its 195^3 grid,
+    # against the plan's 112); a run in slabs, the libraries of its later stages (300 MiB here, 540 MiB at the
+    # solve, under --max-memory 1G)
+    in_memory = grid.memory_estimate(run.run_bytes)
+    try:
+        skeleton, edges, slab_voxels = _skeleton_stage(params, built, grid, run, prog, graded=graded is not None)
+    except ScaffoldError as err:
+        if outs.mechanics is not None and err.budget is not None:
+            # the budget named must hold the solve after the build too, else it is refused again there (a 6 mm
+            # cube at 0.04 mm: 650M named by the slabs, the solve then asked for 1.2G)
+            try:
+                _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory,
+                                 kept=LATER_STAGES_BYTES, kept_in_memory=in_memory, whole=getattr(run, "whole_bytes", None))
+            except ScaffoldError as solve:
+                if solve.budget is not None and solve.budget > err.budget:
+                    raise solve from None
+        raise
     if outs.mechanics is not None:
-        # what the build will still hold when the solve starts: a grid held in memory, about all its
-        # run's bytes (the default cube: 461 MiB at this check, 1,232 MiB at the solve, 104 bytes a
-        # voxel of its 195^3 grid, against the plan's 112); a run in slabs, the libraries of its later
-        # stages (300 MiB here, 540 MiB at the solve, under --max-memory 1G)
-        in_memory = grid.memory_estimate(run.run_bytes)
-        kept = in_memory if slab_voxels is None else LATER_STAGES_BYTES
-        _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory, kept=kept,
+        _check_mechanics(outs.mechanics, params, patient, grid, built.walls, max_memory,
+                         kept=in_memory if slab_voxels is None else LATER_STAGES_BYTES,
                          kept_in_memory=in_memory, whole=run.whole_bytes if slab_voxels is not None else None)
     # the field: one driver for every size, over one slab held in memory when the whole grid
     # fits (slab_voxels None), else over slabs kept on disk; then the outputs
@@ -1095,6 +1107,9 @@ GRADE_RESERVE = 320 * 2**20
 #: a tiled run builds the whole skeleton once when it (and its packed primitives) take at
 #: most this share of --max-memory, else slab by slab
 WHOLE_SKELETON_SHARE = 0.25
+#: bytes: a slab refusal offers a larger voxel only where the budget leaves this much beside what the run holds
+#: (what the process holds moves by some MiB from one run to the next)
+VOXEL_ADVICE_ROOM = 32 * 2**20
 #: a refusal names this much more than the estimate of the smallest budget: the estimate
 #: before the cells are built is short of the one after by what the process grows
 SMALLEST_MARGIN = 1.1
@@ -1178,22 +1193,27 @@ class _RunPlan:
             named = max(named, held + n * ((1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL + slab_share))
         # fewer cells where the slab's primitives outweigh its voxels, else a coarser voxel
         voxels_part = n * (1 + 2 * halo) * plane * SLAB_BYTES_PER_VOXEL
-        fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest and crowded > 2 * voxels_part else
-               f", or use a larger --voxel (e.g. {grid.spacing * (thinnest / (self.max_memory - held)) ** 0.5 * 1.1:.3g}"
-               " mm)" if self.max_memory > held else "")
-        thinnest = max(thinnest, crowded)
         if ext in MESH_FORMATS:
             thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
+        # a slab's voxels go as the plane's, 1 / voxel^2; the cells' primitives and what is held do not: the voxel
+        # whose thinnest slab takes half the room beside them (the mesh's slab counted: without it, 650M asked a
+        # 0.04 mm cube's STL for "a larger --voxel (e.g. 0.0263 mm)"); none where the room is within what a
+        # process's resident set moves by from one run to the next
+        room = self.max_memory - held - (max(crowded - voxels_part, 0) if crowded > thinnest else 0)
+        fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest and crowded > 2 * voxels_part else
+               f", or use a larger --voxel (e.g. {grid.spacing * (2 * thinnest / room) ** 0.5:.3g} mm)"
+               if room >= VOXEL_ADVICE_ROOM and thinnest > room / 2 else "")
+        thinnest = max(thinnest, crowded)
         smallest = held + thinnest
         named = max(named, SMALLEST_MARGIN * smallest)
         if smallest > self.max_memory and self.tiled in (None, True):
-            raise ScaffoldError(
+            raise ScaffoldError.for_budget(
                 f"a grid of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels needs about "
                 f"{format_size(smallest)} of memory even in slabs (its thinnest slab beside "
                 f"{held / 2**30:.2f} GiB of cells, skeleton and libraries"
                 + (f", in each of {n} workers" if n > 1 else "") + ") but --max-memory is "
                 f"{format_size(self.max_memory)}: pass --max-memory {format_size(named)} "
-                "or more" + fix + (", or fewer --workers" if n > 1 else ""))
+                "or more" + fix + (", or fewer --workers" if n > 1 else ""), named)
         voxels = self.forced_voxels or max(1, int((self.max_memory - held) // (per_voxel * n)))
         if n > 1 and not self.forced_voxels:
             # a slab for every worker at least
@@ -1216,11 +1236,12 @@ class _RunPlan:
             if held + worst <= self.max_memory:
                 return (planes + 2 * halo) * plane
             if planes == 1:
-                raise ScaffoldError(
+                named = SMALLEST_MARGIN * (held + worst)
+                raise ScaffoldError.for_budget(
                     f"the lattice of the most crowded slab of {grid.shape[0]}x{grid.shape[1]}x{grid.shape[2]} voxels "
                     f"needs about {format_size(held + worst)} with what the run holds, but --max-memory is "
-                    f"{format_size(self.max_memory)}: pass --max-memory {format_size(SMALLEST_MARGIN * (held + worst))}"
-                    " or more, or use a larger --pore-size (fewer cells)")
+                    f"{format_size(self.max_memory)}: pass --max-memory {format_size(named)}"
+                    " or more, or use a larger --pore-size (fewer cells)", named)
             planes = max(1, int(planes * 0.7))
 
 

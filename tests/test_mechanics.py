@@ -1897,3 +1897,32 @@ def test_a_mesh_samples_note_says_which_grid_it_was_voxelised_on(tmp_path):
     assert "the mesh voxelised on its run's grid" in own.report["note"] and own.voxel == 0.05
     asked, _ = m.load_sample(tmp_path / "s.stl", voxel=0.04)
     assert "the mesh voxelised at --voxel" in asked.report["note"] and asked.voxel == 0.04
+
+
+def test_a_refused_solve_offers_no_voxel_too_coarse_for_the_walls():
+    """A refusal offers ``--mechanics-voxel`` only at a voxel its own check accepts: where the finest voxel that fits
+    leaves fewer than 2.5 voxels across the median wall it was offered anyway ("... leaves fewer than 2.5 voxels
+    across the 0.204 mm median wall); use --max-memory 670M or --mechanics-voxel 0.084"), and then refused."""
+    import re
+
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.run.memory import release
+
+    wall, coarse = 0.2, 0
+    held = release()
+    for k in range(1, 80):
+        try:
+            m.plan_voxel((150, 150, 150), 1_000_000, 0.03, max_memory=held + k * 8 * 2**20, wall=wall,
+                         boundary="periodic")
+            break
+        except ScaffoldError as err:
+            text = str(err)
+            coarse += "leaves fewer than" in text
+            offered = re.search(r"or --mechanics-voxel (\S+)$", text)
+            if offered:
+                voxel = float(offered.group(1))
+                assert wall / voxel >= m.MIN_VOXELS_PER_WALL, text
+                # and the voxel offered is one the check then takes at that budget
+                assert m.plan_voxel((150, 150, 150), 1_000_000, 0.03, max_memory=held + k * 8 * 2**20, wall=wall,
+                                    voxel=voxel, boundary="periodic")[0] == voxel
+    assert coarse, "no budget left the finest fitting voxel too coarse for the walls"

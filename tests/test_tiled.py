@@ -551,3 +551,86 @@ def test_blocks_far_outside_the_patient_are_skipped_with_the_same_results(tmp_pa
     rep = generate(output=tmp_path / "slabs.npy", mesh=False, morphometry=False, tiled=(9 + 16) * plane, **kw).report
     assert rep["tiled"]["slabs"] > 2
     assert (tmp_path / "slabs.npy").read_bytes() == (tmp_path / "whole.npy").read_bytes()
+
+
+#: runs generate(**options) in a fresh process up to the lattice (every check before the build passed) and prints
+#: that, or the refusal; "mechanics": true measures the build (Ti-6Al-4V)
+_TO_THE_LATTICE = """
+import json, sys
+from implicit_scaffold.run import tiled
+from implicit_scaffold.errors import ScaffoldError
+from implicit_scaffold.pipeline import generate
+from implicit_scaffold.specs import MechanicsSpec
+class Reached(Exception):
+    pass
+def reached(*a, **k):
+    raise Reached
+tiled.tiled_scaffold = reached
+options = json.loads(sys.argv[1])
+if options.pop("mechanics", False):
+    options["mechanics"] = MechanicsSpec("ti64")
+try:
+    generate(**options)
+except ScaffoldError as refusal:
+    print(json.dumps({"refused": str(refusal)}))
+except Reached:
+    print(json.dumps({"reached": True}))
+"""
+
+
+def _to_the_lattice(**options) -> dict:
+    import json
+    import subprocess
+    import sys
+
+    done = subprocess.run([sys.executable, "-c", _TO_THE_LATTICE, json.dumps(options)], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def _follow_named_budgets(start: str, **options) -> list[str]:
+    """The refusals met by following each one's named --max-memory from `start`, until the run reaches the lattice."""
+    import re
+
+    refusals, budget = [], start
+    for _ in range(5):
+        out = _to_the_lattice(max_memory=budget, **options)
+        if out.get("reached"):
+            return refusals
+        refusals.append(out["refused"])
+        budget = re.search(r"(?:pass|use) --max-memory (\S+)", out["refused"]).group(1)
+    pytest.fail(f"still refused after 5 named budgets: {refusals}")
+
+
+def test_a_budget_refusal_of_a_run_that_measures_its_build_names_one_its_solve_fits(tmp_path):
+    """A run with --mechanics refused by its slabs is told a budget that its stiffness solve fits too: the slabs'
+    own smallest was then refused by the solve's check (a 6 mm cube at 0.04 mm: 100M, told 650M by the check before
+    the cells, then 730M by the slabs, then 1.2G by the solve); now the check after the cells names the solve's."""
+    refusals = _follow_named_budgets("100M", size=6.0, voxel=0.04, seed=0, output=str(tmp_path / "m.stl"),
+                                     mechanics=True)
+    assert 1 <= len(refusals) <= 2, refusals
+    assert all("\n" not in r for r in refusals)
+
+
+def test_a_slab_refusal_offers_a_larger_voxel_that_fits(tmp_path):
+    """The voxel a slab refusal offers is larger than the run's and fits the budget refused: the mesh's slab, the
+    largest, was left out of it ("a larger --voxel (e.g. 0.0263 mm)" for a 0.04 mm run at 650M)."""
+    import re
+
+    from implicit_scaffold.run.memory import parse_memory
+
+    options = dict(size=6.0, seed=0, output=str(tmp_path / "m.stl"))
+    first = _to_the_lattice(voxel=0.03, max_memory="100M", **options)["refused"]
+    named = parse_memory(re.search(r"pass --max-memory (\S+)", first).group(1))
+    # a voxel is offered where the budget holds what the run holds beside the grid, but not the grid's thinnest
+    # slab: just under the smallest budget named
+    for step in range(1, 13):
+        budget = f"{(named - step * 10 * 2**20) // 2**20}M"
+        out = _to_the_lattice(voxel=0.03, max_memory=budget, **options)
+        offered = re.search(r"a larger --voxel \(e\.g\. (\S+) mm\)", out.get("refused", ""))
+        if offered:
+            break
+    assert offered, out
+    voxel = float(offered.group(1))
+    assert voxel > 0.03
+    assert _to_the_lattice(voxel=voxel, max_memory=budget, **options).get("reached"), (budget, voxel)

@@ -2358,14 +2358,16 @@ def finest_voxel(n, solid_voxels: int, h0: float, allowance: float, *, boundary:
     return h
 
 
-def _refusal(h: float, need: int, held: int, total: int, fit: float | None, option: str, why: str = "") -> str:
+def _refusal(h: float, need: int, held: int, total: int, fit: float | None, option: str,
+             why: str = "") -> ScaffoldError:
     """The one line that refuses a solve: what it needs, the budget that would do, the voxel that would fit."""
     from ..run.memory import format_size
 
-    return (f"the mechanics solve at {h:.4g} mm needs about {format_size(need)} beside the {format_size(held)} "
-            f"held, over --max-memory {format_size(total)}{why}; use --max-memory "
-            f"{format_size(held + need + held_margin(held))}"
-            + (f" or {option} {fit:.4g}" if fit is not None else ""))
+    named = held + need + held_margin(held)
+    return ScaffoldError.for_budget(
+        f"the mechanics solve at {h:.4g} mm needs about {format_size(need)} beside the {format_size(held)} "
+        f"held, over --max-memory {format_size(total)}{why}; use --max-memory {format_size(named)}"
+        + (f" or {option} {fit:.4g}" if fit is not None else ""), named)
 
 
 def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", preconditioner: str = "multigrid",
@@ -2402,7 +2404,7 @@ def check_solve(solid, h: float, *, max_memory=None, boundary: str = "auto", pre
     if need > total - held:
         fit = finest_voxel(solid.shape, count, h, total - held - held_margin(held), boundary=bc,
                            preconditioner=preconditioner)
-        raise ScaffoldError(_refusal(h, need, held, total, fit, option))
+        raise _refusal(h, need, held, total, fit, option)
     block = block_for(total - held - held_margin(held), solid.shape, count, boundary=bc, preconditioner=preconditioner,
                       live=live)
     return {"voxel_mm": float(h), "source_voxel_mm": float(h), "warning": None,
@@ -2518,8 +2520,12 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
     fit = h0 if need(h0) <= allowance else finest_voxel(n, count, h0, allowance - held_margin(held), boundary=bc,
                                                         preconditioner=preconditioner)
 
+    floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
+    # a voxel too coarse for the walls is not offered: it would be refused in turn
+    offer = fit if fit is not None and (floor is None or fit <= floor) else None
+
     def refuse(h, why=""):
-        raise ScaffoldError(_refusal(h, need(h), held, total, fit, option, why))
+        raise _refusal(h, need(h), held, total, offer, option, why)
 
     if voxel is not None:
         h = positive_mm("mechanics-voxel", voxel, example="0.05")
@@ -2535,7 +2541,6 @@ def plan_voxel(n, solid_voxels: int, h0: float, *, max_memory=None, voxel: float
         return h, f"the voxel asked for ({option})", total, held
     if fit == h0:
         return h0, f"the {source}'s own voxel: its solve fits the budget", total, held
-    floor = None if wall is None else wall / MIN_VOXELS_PER_WALL
     if fit is None or (floor is not None and fit > floor):
         target = h0 if wall is None else max(h0, wall / CONVERGED_VOXELS_PER_WALL)
         refuse(target, "" if fit is None else
