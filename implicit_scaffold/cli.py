@@ -655,13 +655,13 @@ def _design(args) -> int:
         return _design_from_ct(args, t0)
     ct_only = _given(args, "--calibration") + (["--site"] if args.site != "pooled" else [])
     if ct_only:
-        raise ScaffoldError(f"{', '.join(ct_only)} apply to a design graded from the CT; add --stiffness-from-ct "
-                            "or drop them")
+        raise ScaffoldError(f"{', '.join(ct_only)} {'apply' if len(ct_only) > 1 else 'applies'} to a design graded "
+                            f"from the CT; add --stiffness-from-ct or drop {'them' if len(ct_only) > 1 else 'it'}")
     patient_only = _given(args, "--scaffold", "--voxel", "--max-memory", "--units", "--clip", "--cut-planes",
                           "--threshold", "--label", "--spacing")
     if patient_only and args.patient is None:
-        raise ScaffoldError(f"{', '.join(patient_only)} apply to the build on the patient; add --patient FILE or "
-                            "drop them")
+        raise ScaffoldError(f"{', '.join(patient_only)} {'apply' if len(patient_only) > 1 else 'applies'} to the "
+                            f"build on the patient; add --patient FILE or drop {'them' if len(patient_only) > 1 else 'it'}")
     if args.porosity is None:
         raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
     min_strut = _design_min_strut(args)

@@ -106,6 +106,11 @@ def test_infeasible_strut_exit_3_names_the_conflict(tmp_path, capsys):
     (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "5GPa", "--material", "pcl"],
      "--stiffness 5 GPa is at or above the solid"),
     (["--porosity", "0.7", "--pore-size", "0.5", "--stiffness", "200GPa"], "own modulus, 113.8 GPa"),
+    # one option, one verb ("--voxel apply to the build on the patient")
+    (["--porosity", "0.7", "--pore-size", "0.5", "--voxel", "0.1"],
+     "--voxel applies to the build on the patient; add --patient FILE or drop it"),
+    (["--porosity", "0.7", "--pore-size", "0.5", "--voxel", "0.1", "--clip", "0", "0", "0", "1", "1", "1"],
+     "--voxel, --clip apply to the build on the patient; add --patient FILE or drop them"),
 ])
 def test_bad_design_input_one_line_exit_2(tmp_path, capsys, args, message):
     out = tmp_path / "d.json"
