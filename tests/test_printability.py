@@ -425,3 +425,46 @@ def test_check_of_generates_own_volume_field_offsets_it_as_the_npy(tmp_path, cap
         certs.append(json.loads(out.read_text()))
     assert certs[1]["as_built"] == certs[0]["as_built"]
     assert certs[1]["as_built"]["porosity"] < certs[1]["porosity"] - 0.05  # the offset thickened the struts
+
+
+@pytest.fixture(scope="module")
+def cylinder_runs(tmp_path_factory):
+    """One run of a cylinder patient written twice, as a .npy field (with generate's own certificate) and as an
+    STL, each with its report beside it: the cylinder's bounding box holds void that is not the patient's."""
+    from implicit_scaffold.cli import main
+
+    root = tmp_path_factory.mktemp("cyl")
+    common = ["--shape", "cylinder", "--size", "2", "--pore-size", "0.6", "--voxel", "0.05", "--seed", "4", "-q",
+              "--printer", "dlp-resin"]
+    for name in ("f.npy", "f.stl"):
+        (root / name[2:]).mkdir()
+        assert main(["generate", "-o", str(root / name[2:] / name), *common]) == 0
+    return root / "npy" / "f.npy", root / "stl" / "f.stl"
+
+
+def _check_json(path, tmp_path, printer="dlp-resin"):
+    from implicit_scaffold.cli import main
+
+    out = tmp_path / f"cert_{path.suffix[1:]}.json"
+    assert main(["check", str(path), "--printer", printer, "-o", str(out), "-q"]) in (0, 3)
+    return json.loads(out.read_text())
+
+
+def test_check_of_a_runs_field_and_mesh_measures_the_runs_patient(cylinder_runs, tmp_path):
+    # the .npy was measured over its whole grid (the cylinder's corners and the grid's outer layer counted as
+    # void: its porosity, pores and drainage were not the run's), the STL over its bounding box: with the run's
+    # report beside them both are measured over the run's patient, as generate measured its own certificate
+    # (the oracle: the same function on the same voxels, every figure equal)
+    npy, stl = cylinder_runs
+    run = json.loads(npy.with_suffix(".json").read_text())
+    cert_npy, cert_stl = _check_json(npy, tmp_path), _check_json(stl, tmp_path)
+    own = run["print_check"]
+    assert cert_npy["region"] == "the patient of f.json (cylinder)" == cert_stl["region"]
+    assert {k: v for k, v in cert_npy.items() if k not in ("seconds", "source", "region", "timings_s")} == \
+        {k: v for k, v in own.items() if k != "seconds"}
+    assert cert_npy["porosity"] == pytest.approx(run["porosity_voxel"], abs=1e-12)
+    # the STL voxelised on its run's grid is the same solid: every figure but those read from each file's own
+    # distance (as built, and the overhangs' normals: the mesh's exact distance, the field's blended one)
+    same = ("porosity", "thinnest_mm", "below_min_strut_share", "throat_mm", "pore_throats_mm",
+            "void_reached_by_drain_share", "void_reached_by_100um_share", "sealed_voids", "floating_solid")
+    assert {k: cert_stl[k] for k in same} == {k: cert_npy[k] for k in same}
