@@ -1025,7 +1025,9 @@ class Scaffold:
     """A scaffold read from a file: its voxels and what they came from (lengths in mm).
 
     ``kind`` is ``"field"``, ``"volume"`` or ``"mesh"``; ``field`` is the signed distance of a
-    ``.npy`` field (else None); ``region`` where the scaffold is (None: the whole grid)."""
+    ``.npy`` field (else None); ``region`` where the scaffold is (None: the whole grid);
+    ``exact_distance`` whether ``field`` is a true distance near its surface (a mesh's), not a
+    blended field such as generate writes."""
 
     kind: str
     solid: np.ndarray
@@ -1036,6 +1038,7 @@ class Scaffold:
     region_name: str
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
     resampled: str | None = None  # a volume's resampling to another voxel (its note), or None
+    exact_distance: bool = False
 
 
 def run_grid(run: dict):
@@ -1239,7 +1242,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         from ..fields.patient_mesh import MeshPatient
 
         field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
-    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, name)
+    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, name, exact_distance=True)
 
 
 #: the voxels along a mesh's longest side that the suggestion of :func:`_voxel_needed` gives
