@@ -593,7 +593,7 @@ def _check(args) -> int:
     scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label, mesh_field=True,
                              threshold=args.threshold)
     cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
-                       origin=scaffold.origin)
+                       origin=scaffold.origin, exact_distance=scaffold.exact_distance)
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
                  "timings_s": {"check": round(time.perf_counter() - t0, 4)}})
     if args.output is not None:

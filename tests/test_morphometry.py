@@ -416,7 +416,17 @@ def test_generates_own_field_outputs_are_read_as_their_solid(tmp_path, name):
     built = np.asarray(r.field) < 0
     assert np.array_equal(analyze_file(tmp_path / name).solid, built)
     assert np.array_equal(read_scaffold(tmp_path / name).solid, built)
-    assert analyze_file(tmp_path / name).report["porosity_voxel"] == pytest.approx(1 - built.mean(), abs=1e-12)
+    # over the run's patient (the report beside it), as generate counted it, not over the grid's outer layer:
+    # the 2 mm box's voxel centres inside it, by the grid's axes
+    found = analyze_file(tmp_path / name).report
+    assert found["region"] == "the patient of s.json (box)"
+    assert found["porosity_voxel"] == pytest.approx(r.report["porosity_voxel"], abs=1e-12)
+    box = np.ones(r.grid.shape, bool)
+    for a, axis in enumerate(r.grid.axes()):
+        box &= np.expand_dims((axis > 0) & (axis < 2.0), [b for b in range(3) if b != a])
+    assert np.array_equal(read_scaffold(tmp_path / name).region, box)
+    assert found["porosity_voxel"] == pytest.approx(1 - np.count_nonzero(built & box) / np.count_nonzero(box),
+                                                    abs=1e-12)
     if name != "s.npy":
         (tmp_path / "s.json").unlink()
         with pytest.raises(ScaffoldError, match="report beside it"):
@@ -452,3 +462,28 @@ def test_a_mesh_without_a_voxel_is_asked_for_one_sized_to_it(tmp_path):
                 as exc:
             read(tmp_path / "b.stl")
         assert "\n" not in str(exc.value)
+
+
+def test_a_field_whose_runs_patient_cannot_be_built_again_is_measured_over_its_grid(tmp_path):
+    # the report names a patient file that is gone: the field is still measured, over its grid, with a warning
+    # that says so (not a failure: the certificate of the grid is still the scaffold's); another --voxel is
+    # another grid, where the run's patient does not lie, and the grid is the region without a word
+    import json
+    import warnings
+
+    from implicit_scaffold import generate
+    from implicit_scaffold.errors import ScaffoldWarning
+    from implicit_scaffold.measure.morphometry import read_scaffold
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ScaffoldWarning)  # a coarse voxel for a quick run: not what is tested
+        generate(output=tmp_path / "s.npy", size=1.5, voxel=0.1, pore_size=0.6, seed=1)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_scaffold(tmp_path / "s.npy", voxel=0.11).region_name == "the grid"
+    report = json.loads((tmp_path / "s.json").read_text())
+    report["patient_source"] = {"file": str(tmp_path / "gone.stl")}
+    (tmp_path / "s.json").write_text(json.dumps(report))
+    with pytest.warns(ScaffoldWarning, match="could not be built again.*measured over the grid instead"):
+        scaffold = read_scaffold(tmp_path / "s.npy")
+    assert scaffold.region is None and scaffold.region_name == "the grid"

@@ -425,3 +425,173 @@ def test_check_of_generates_own_volume_field_offsets_it_as_the_npy(tmp_path, cap
         certs.append(json.loads(out.read_text()))
     assert certs[1]["as_built"] == certs[0]["as_built"]
     assert certs[1]["as_built"]["porosity"] < certs[1]["porosity"] - 0.05  # the offset thickened the struts
+
+
+# ----------------------------------------------------------------------------- as built, from a field
+
+
+def _ball_field(n, h, radius, scale):
+    """``scale (|x - c|² - radius²)`` on an n³ grid of voxel h (mm): its zero set is the sphere of
+    `radius` about the grid's centre, its gradient ``2 scale |x - c|`` (0.5 at the surface for a
+    scale of 0.25 per mm on a 1 mm ball: a field, not a distance, as generate's blended one)."""
+    x = (np.arange(n) + 0.5) * h - 0.5 * n * h
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij")
+    return (scale * (X * X + Y * Y + Z * Z - radius * radius)).astype(np.float32)
+
+
+def _radius_of(count, h):
+    """The radius of the ball of `count` voxels' volume, mm."""
+    return (3.0 * count * h ** 3 / (4.0 * math.pi)) ** (1.0 / 3.0)
+
+
+@pytest.mark.parametrize("scale", [0.25, 4.0])
+@pytest.mark.parametrize("deviation", [0.05, -0.05])
+def test_as_built_offset_of_a_field_is_the_ball_grown_by_the_deviation(scale, deviation):
+    # a 1 mm ball as a field whose gradient at the surface is 0.5 or 8, not 1: offset by δ the solid must be
+    # the ball of radius 1 + δ (closed form), where the plain threshold φ < δ makes it sqrt(1 + δ / scale)
+    # (1.095 and 1.006 mm for +0.05). Tolerance 0.15 voxel of radius: the first-order offset's own error
+    # (δ² / 2R = 0.03 voxel), the upwind differences' (under δ h √3 / 2R = 0.04 voxel) and the voxel
+    # count's (a ball of 26 voxels' radius: well under 0.05 voxel)
+    h, R = 0.04, 1.0
+    phi = _ball_field(60, h, R, scale)
+    profile = printer_profile(f"custom:min_strut=0.1,min_throat=0.1,deviation={deviation}")
+    cert = certificate(phi < 0, h, profile, field=phi)
+    grown = round((1.0 - cert["as_built"]["porosity"]) * phi.size)
+    assert abs(_radius_of(grown, h) - (R + deviation)) < 0.15 * h
+    plain = np.count_nonzero(phi < deviation)
+    assert abs(_radius_of(plain, h) - (R + deviation)) > 0.15 * h  # the oracle tells the two apart
+    # the designed solid is the ball of radius R
+    assert abs(_radius_of(np.count_nonzero(phi < 0), h) - R) < 0.05 * h
+
+
+def _upwind_offset_reference(phi, deviation, h):
+    """``δ |∇φ|`` with Godunov's upwind |∇φ| on the whole array, the obvious way: along each axis the
+    differences towards both neighbours (none beyond the array), for a front moving into the void
+    (into the solid for δ < 0), float64. The offset solid is ``φ`` below it."""
+    f = phi.astype(np.float64) * np.sign(deviation)
+    total = np.zeros_like(f)
+    for axis in range(3):
+        lower = np.concatenate([np.take(f, [0], axis), np.take(f, range(f.shape[axis] - 1), axis)], axis)
+        upper = np.concatenate([np.take(f, range(1, f.shape[axis]), axis), np.take(f, [-1], axis)], axis)
+        total += np.maximum(np.maximum(f - lower, f - upper), 0.0) ** 2
+    return deviation * np.sqrt(total) / h
+
+
+@pytest.mark.parametrize("deviation", [0.04, -0.04])
+@pytest.mark.parametrize("block_planes", [1, 2, 7, 100])
+def test_grown_solid_by_blocks_and_slabs_is_the_whole_grids_and_the_reference(block_planes, deviation,
+                                                                              monkeypatch):
+    # a smooth random field (not a distance) on an odd grid, cut into blocks of 1, 2, 7 planes or taken whole,
+    # and asked for slabs of odd widths: every plane as the whole grid's, bit for bit (each block reads a plane
+    # of halo on either side), and as the float64 reference but where φ is within float32 rounding of δ |∇φ|
+    from implicit_scaffold.measure.printability import grown_solid
+
+    rng = np.random.default_rng(3)
+    phi = ndimage.gaussian_filter(rng.normal(size=(23, 17, 19)), 2.0).astype(np.float32)
+    phi *= np.float32(0.3 / np.abs(phi).max())
+    h = 0.05
+
+    def read(lo, hi):
+        return phi[lo:hi]
+
+    whole = grown_solid(read, phi.shape, 0, phi.shape[0], deviation, h)
+    monkeypatch.setattr(printability, "OFFSET_BLOCK_VOXELS", block_planes * phi.shape[1] * phi.shape[2])
+    for cuts in ([0, 23], [0, 1, 8, 9, 22, 23], [0, 5, 6, 13, 23]):
+        got = np.concatenate([grown_solid(read, phi.shape, a, b, deviation, h) for a, b in zip(cuts, cuts[1:])])
+        np.testing.assert_array_equal(got, whole)
+    level = _upwind_offset_reference(phi, deviation, h)
+    clear = np.abs(phi - level) > 1e-5
+    # the offset moved the surface by many voxels' worth, both ways of the sign
+    assert np.count_nonzero(whole != (phi < 0)) > 100
+    np.testing.assert_array_equal(whole[clear], (phi < level)[clear])
+
+
+@pytest.fixture(scope="module")
+def cylinder_runs(tmp_path_factory):
+    """One run of a cylinder patient written twice, as a .npy field (with generate's own certificate) and as an
+    STL, each with its report beside it: the cylinder's bounding box holds void that is not the patient's."""
+    from implicit_scaffold.cli import main
+
+    root = tmp_path_factory.mktemp("cyl")
+    common = ["--shape", "cylinder", "--size", "2", "--pore-size", "0.6", "--voxel", "0.05", "--seed", "4", "-q",
+              "--printer", "dlp-resin"]
+    for name in ("f.npy", "f.stl"):
+        (root / name[2:]).mkdir()
+        assert main(["generate", "-o", str(root / name[2:] / name), *common]) == 0
+    return root / "npy" / "f.npy", root / "stl" / "f.stl"
+
+
+def _check_json(path, tmp_path, printer="dlp-resin"):
+    from implicit_scaffold.cli import main
+
+    out = tmp_path / f"cert_{path.suffix[1:]}.json"
+    assert main(["check", str(path), "--printer", printer, "-o", str(out), "-q"]) in (0, 3)
+    return json.loads(out.read_text())
+
+
+def test_check_of_a_runs_field_and_mesh_measures_the_runs_patient(cylinder_runs, tmp_path):
+    # the .npy was measured over its whole grid (the cylinder's corners and the grid's outer layer counted as
+    # void: its porosity, pores and drainage were not the run's), the STL over its bounding box: with the run's
+    # report beside them both are measured over the run's patient, as generate measured its own certificate
+    # (the oracle: the same function on the same voxels, every figure equal)
+    npy, stl = cylinder_runs
+    run = json.loads(npy.with_suffix(".json").read_text())
+    cert_npy, cert_stl = _check_json(npy, tmp_path), _check_json(stl, tmp_path)
+    own = run["print_check"]
+    assert cert_npy["region"] == "the patient of f.json (cylinder)" == cert_stl["region"]
+    assert {k: v for k, v in cert_npy.items() if k not in ("seconds", "source", "region", "timings_s")} == \
+        {k: v for k, v in own.items() if k != "seconds"}
+    assert cert_npy["porosity"] == pytest.approx(run["porosity_voxel"], abs=1e-12)
+    # the STL voxelised on its run's grid is the same solid: every figure but those read from each file's own
+    # distance (as built, and the overhangs' normals: the mesh's exact distance, the field's blended one)
+    same = ("porosity", "thinnest_mm", "below_min_strut_share", "throat_mm", "pore_throats_mm",
+            "void_reached_by_drain_share", "void_reached_by_100um_share", "sealed_voids", "floating_solid")
+    assert {k: cert_stl[k] for k in same} == {k: cert_npy[k] for k in same}
+    # as built, the field's offset within 0.01 of the mesh's exact one (0.0024 on the 4 mm box)
+    assert cert_stl["as_built"]["porosity"] == pytest.approx(cert_npy["as_built"]["porosity"], abs=0.01)
+
+
+def _within_of_mesh(mesh, points, reach):
+    """Which `points` lie within `reach` mm of the triangles of `mesh`: trimesh's closest point on each
+    triangle whose centroid is near enough (a triangle within `reach` has its centroid within `reach` plus
+    the farthest any triangle's vertex lies from its centroid), a k-d tree finding those."""
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    tri = np.asarray(mesh.triangles, np.float64)
+    centroid = tri.mean(axis=1)
+    spread = float(np.linalg.norm(tri - centroid[:, None], axis=2).max())
+    lists = cKDTree(centroid).query_ball_point(points, reach + spread)
+    which = np.repeat(np.arange(len(points)), [len(c) for c in lists])
+    tris = np.concatenate([np.asarray(c, np.int64) for c in lists])
+    q = trimesh.triangles.closest_point(tri[tris], points[which])
+    near = np.zeros(len(points), bool)
+    near[which[np.linalg.norm(q - points[which], axis=1) <= reach]] = True
+    return near
+
+
+def test_as_built_porosity_of_a_runs_field_against_its_meshs_exact_offset(cylinder_runs, tmp_path):
+    # the oracle: every void voxel centre of the run's patient (the closed-form cylinder) farther than the
+    # deviation from the run's mesh, by exact point-triangle distances (trimesh). The field is not a distance
+    # (its gradient is about 0.4 to 1 at the surface), so `field < deviation` grew the solid too far; its
+    # first-order offset comes within 0.01 (0.0024 on a 4 mm box), the mesh's own distance within a voxel
+    import trimesh
+
+    from implicit_scaffold.measure.morphometry import run_grid
+
+    npy, stl = cylinder_runs
+    run = json.loads(npy.with_suffix(".json").read_text())
+    grid, delta = run_grid(run), printer_profile("dlp-resin").deviation_mm
+    field = np.load(npy)
+    x, y, z = np.meshgrid(*grid.axes(), indexing="ij")
+    radius = 1.0  # the cylinder of --size 2: diameter 2 mm, axis (1, 1), z in [0, 2]
+    region = (np.hypot(x - radius, y - radius) < radius) & (z > 0) & (z < 2.0)
+    void = region & (field >= 0)
+    points = np.stack([x[void], y[void], z[void]], axis=1)
+    far = ~_within_of_mesh(trimesh.load(stl, force="mesh"), points, delta)
+    exact = np.count_nonzero(far) / np.count_nonzero(region)
+    plain = np.count_nonzero(region & (field >= delta)) / np.count_nonzero(region)
+    cert_npy, cert_stl = _check_json(npy, tmp_path), _check_json(stl, tmp_path)
+    assert cert_stl["as_built"]["porosity"] == pytest.approx(exact, abs=1.0 / np.count_nonzero(region) * 5)
+    assert abs(cert_npy["as_built"]["porosity"] - exact) < 0.01
+    assert abs(plain - exact) > 3 * abs(cert_npy["as_built"]["porosity"] - exact)

@@ -922,7 +922,8 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     -------
     Analysis
         For a mesh the region measured is `region`, else the mesh's bounding box; for a
-        volume, the whole volume. Area and BS/BV come from the mesh itself (or a
+        field generate wrote (``.npy`` or a volume format), its run's patient (:func:`run_region`,
+        the report beside it), else its grid; for any other volume, the whole volume. Area and BS/BV come from the mesh itself (or a
         marching-cubes mesh of a volume); a mesh's ``bodies`` are its closed components,
         counted as generate counts them.
     """
@@ -940,25 +941,30 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     suffix = _suffix(path)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
         if region is not None:
-            raise ScaffoldError("--region applies to a scaffold mesh; a volume is measured whole")
+            raise ScaffoldError("--region applies to a scaffold mesh; a volume is measured whole (a field generate "
+                                "wrote: over its run's patient, from the report beside it)")
         if spacing is not None and suffix in MESH_SUFFIXES:
             raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
-        solid, step, note, selection, _ = _read_volume(path, spacing, voxel, label, threshold)
+        # generate's own field (its report beside it) over its run's patient, as read_scaffold reads it for check
+        scaffold = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
+        solid, step = scaffold.solid, scaffold.voxel
         grid = Grid((0.5 * step,) * 3, step, solid.shape)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
-        report = morphometry(solid, step)
+        report = morphometry(solid, step, region=scaffold.region)
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
-                       "region": "the whole volume", "resampled": note, "selection": selection})
+                       "region": scaffold.region_name, "resampled": scaffold.resampled, "selection": scaffold.selection})
         return Analysis(report, solid, grid)
     if suffix == ".npy":
         if region is not None:
-            raise ScaffoldError("--region applies to a scaffold mesh; a .npy field is measured on its grid")
+            raise ScaffoldError("--region applies to a scaffold mesh; a .npy field is measured over its run's patient "
+                                "(the report beside it), else its grid")
         if spacing is not None:
             raise ScaffoldError("--spacing applies to a volume; a .npy field's voxel comes from its report or --voxel")
         scaffold = read_scaffold(path, voxel=voxel, label=label, threshold=threshold)
         grid = Grid(scaffold.origin, scaffold.voxel, scaffold.solid.shape)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
-        report = morphometry(scaffold.solid, scaffold.voxel)
+        # over the region read_scaffold names (its run's patient, when its report is beside it), not the grid
+        report = morphometry(scaffold.solid, scaffold.voxel, region=scaffold.region)
         report.update({"version": __version__, "source": path.name, "kind": "field", "voxel_mm": scaffold.voxel,
                        "grid_shape": list(scaffold.solid.shape), "region": scaffold.region_name,
                        "selection": "the signed distance below 0"})
@@ -1019,7 +1025,9 @@ class Scaffold:
     """A scaffold read from a file: its voxels and what they came from (lengths in mm).
 
     ``kind`` is ``"field"``, ``"volume"`` or ``"mesh"``; ``field`` is the signed distance of a
-    ``.npy`` field (else None); ``region`` where the scaffold is (None: the whole grid)."""
+    ``.npy`` field (else None); ``region`` where the scaffold is (None: the whole grid);
+    ``exact_distance`` whether ``field`` is a true distance near its surface (a mesh's), not a
+    blended field such as generate writes."""
 
     kind: str
     solid: np.ndarray
@@ -1030,6 +1038,7 @@ class Scaffold:
     region_name: str
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
     resampled: str | None = None  # a volume's resampling to another voxel (its note), or None
+    exact_distance: bool = False
 
 
 def run_grid(run: dict):
@@ -1056,6 +1065,63 @@ def report_beside(path) -> dict | None:
     except (OSError, ValueError):
         return None
     return report if isinstance(report, dict) else None
+
+
+def run_region(path, grid, otherwise: str) -> tuple[np.ndarray | None, str]:
+    """The region the run that wrote `path` measured: its patient's voxels on `grid`, and its name.
+
+    From the JSON report beside `path` (:func:`report_beside`), whose patient is built again as
+    ``analyze --region`` builds it (:func:`load_region`), when that report's grid is `grid`
+    (origin, voxel and shape): generate counted porosity, drainage and the pores inside the
+    patient, so a run's mesh, ``.npy`` field and volume field are measured over the same voxels.
+
+    Parameters
+    ----------
+    path : str or Path
+        The scaffold file (mesh, ``.npy`` or volume field) generate wrote.
+    grid : Grid
+        The grid the scaffold's voxels lie on (mm).
+    otherwise : str
+        The region's name when the run's patient is not used (the caller's region then).
+
+    Returns
+    -------
+    region : (nx, ny, nz) bool ndarray or None
+        The patient's voxels (signed distance below 0); None when there is no such report, it is
+        another grid's, or its patient was a Python object.
+    name : str
+        The region in words, for the report.
+
+    Warns
+    -----
+    ScaffoldWarning
+        The report names a patient file that cannot be read again: the region is then `otherwise`.
+    """
+    report = report_beside(path)
+    if report is None or report.get("patient_source") is None:
+        return None, otherwise
+    try:
+        own = run_grid(report)
+    except (KeyError, TypeError, ValueError, ScaffoldError):
+        return None, otherwise
+    if (tuple(own.shape) != tuple(int(n) for n in grid.shape)
+            or not math.isclose(own.spacing, float(grid.spacing), rel_tol=1e-6)  # a float32 header's spacing
+            or not np.allclose(own.origin, grid.origin, rtol=0, atol=1e-6 * own.spacing)):
+        # another voxel (--voxel) or another run's report: its patient would not lie on these voxels
+        return None, otherwise
+    from ..io.formats import report_path
+
+    try:
+        patient, _, what = load_region(report_path(path))
+    except ScaffoldError as exc:
+        import warnings
+
+        from ..errors import ScaffoldWarning
+
+        warnings.warn(f"the run's patient could not be built again ({exc}); measured over {otherwise} instead",
+                      ScaffoldWarning, stacklevel=3)
+        return None, otherwise
+    return np.asarray(patient.sdf_grid(grid)) < 0, what
 
 
 def run_grid_beside(path, voxel=None):
@@ -1087,13 +1153,15 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
     `threshold` (HU) up (:func:`_read_volume`).
 
-    The region (the void that counts) is the mesh's bounding box, the volume, or for a field the
-    grid (the patient is not in a ``.npy``; its voxels outside the patient are void that joins the
-    outside, as they do on the printer). With `mesh_field`, a mesh's ``field`` is its signed distance on
-    the grid (exact near the surface: the print check's as-built offset, a fraction of a voxel, and its
-    surface normals come from it; without it a printer's deviation under a voxel moved nothing).
+    The region (the void that counts) is the patient of the run that wrote the file, when its report
+    beside it names one and the file lies on that run's grid (:func:`run_region`: the region generate
+    measured, so that a run's mesh, ``.npy`` and volume field give the same figures); else the mesh's
+    bounding box, the volume, or for a field the grid (its voxels outside the patient are then void
+    that joins the outside, as they do on the printer). With `mesh_field`, a mesh's ``field`` is its
+    signed distance on the grid (exact near the surface: the print check's as-built offset, a fraction
+    of a voxel, and its surface normals come from it; without it a printer's deviation under a voxel
+    moved nothing).
     """
-    import json
     from pathlib import Path
 
     from ..run.grid import Grid
@@ -1124,15 +1192,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         if field.ndim != 3 or field.dtype.kind not in "fiu":
             raise ScaffoldError(f"{path.name} is not a 3-D signed distance (shape {field.shape}, {field.dtype}); "
                                 "give the .npy that generate wrote")
-        meta = path.with_suffix(".json")
-        origin = (0.0, 0.0, 0.0)
-        if meta.is_file():
-            try:
-                report = json.loads(meta.read_text())
-            except ValueError:
-                report = {}
-            voxel = voxel or report.get("voxel_mm")
-            origin = tuple(report.get("grid_origin_mm", origin))
+        report = report_beside(path) or {}
+        voxel = voxel or report.get("voxel_mm")
+        origin = tuple(report.get("grid_origin_mm", (0.0, 0.0, 0.0)))
         if voxel is None:
             raise ScaffoldError(f"{path.name} carries no voxel size and no run report beside it; give --voxel")
         field = np.asarray(field, np.float32)
@@ -1141,10 +1203,17 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
             # NaN compares as not negative: it was read as void without a word
             raise ScaffoldError(f"{path.name} holds {bad:,} non-finite values (NaN or inf); a signed distance is "
                                 "finite everywhere: write the field again")
-        return Scaffold("field", field < 0, float(voxel), origin, field, None, "the grid")
+        region, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid")
+        return Scaffold("field", field < 0, float(voxel), origin, field, region, name)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
         solid, step, note, selection, distance = _read_volume(path, spacing, voxel, label, threshold)
-        return Scaffold("volume", solid, step, (0.5 * step,) * 3, distance, None, "the whole volume", selection, note)
+        origin, region, name = (0.5 * step,) * 3, None, "the whole volume"
+        if distance is not None:
+            # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
+            own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
+            region, name = run_region(path, Grid(own, step, solid.shape), name)
+            origin = own if region is not None else origin
+        return Scaffold("volume", solid, step, origin, distance, region, name, selection, note)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
@@ -1160,15 +1229,20 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     solid = voxelize(mesh.vertices, mesh.faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
-    pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
-    inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
-    region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+    region = None
+    if run_grid is not None:
+        region, name = run_region(path, grid, "the mesh's bounding box")
+    if region is None:
+        pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
+        inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
+        region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+        name = "the mesh's bounding box"
     field = None
     if mesh_field:
         from ..fields.patient_mesh import MeshPatient
 
         field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
-    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, "the mesh's bounding box")
+    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, name, exact_distance=True)
 
 
 #: the voxels along a mesh's longest side that the suggestion of :func:`_voxel_needed` gives

@@ -15,7 +15,7 @@ Checks a scaffold's voxels against a printer profile (``printers.json``, or inli
 - overhangs: the share of downward-facing surface flatter than the profile's limit,
   for the build direction and for the best of the six axis directions;
 - as built: porosity and throat again after the profile's typical deviation is applied
-  as an offset of the solid.
+  as an offset of the solid (of a field, to first order in the deviation: :func:`grown_solid`).
 
 Every check gives pass, warn or fail; the certificate's verdict is the worst of them.
 :func:`certificate` measures a whole grid; :func:`certificate_by_slabs` the same figures
@@ -649,7 +649,8 @@ def _verdict(value, warn, fail, *, higher_is_worse=True) -> str:
     return "fail" if value < fail else "warn" if value < warn else "pass"
 
 
-def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, region=None, origin=(0.0, 0.0, 0.0)) -> dict:
+def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, region=None, origin=(0.0, 0.0, 0.0),
+                exact_distance: bool = False) -> dict:
     """The print certificate of a scaffold's voxels for `profile`.
 
     Parameters
@@ -666,6 +667,10 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
         Where the scaffold is (the patient): the void counted for porosity and drainage.
         By default the whole grid.
     origin : 3 floats, mm
+    exact_distance : bool
+        `field` is a true signed distance within the deviation of its surface (a mesh's
+        point-triangle distances): the as-built solid is then ``field < deviation``, exactly.
+        Otherwise (generate's blended field) it is the first-order offset of :func:`grown_solid`.
 
     Returns
     -------
@@ -704,15 +709,17 @@ def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, reg
     # signed distance (or by shrinking) it needs nothing of the other checks, so it is measured
     # beside them: its kernels fill the time the others leave one core idle (NumPy's passes,
     # the pieces' labels, first touches of new memory), 1-1.5 s of a 402^3 grid's certificate
-    sdf = field
+    sdf = None if field is None else np.asarray(field)
     beside = beside_pool = None
     if sdf is not None or profile.deviation_mm < 0:
         from concurrent.futures import ThreadPoolExecutor
 
         def grown_of():
+            if sdf is not None and exact_distance:
+                return sdf < profile.deviation_mm  # a true distance offsets by less than a voxel
             if sdf is not None:
-                # a signed distance offsets by less than a voxel too
-                return np.asarray(sdf) < profile.deviation_mm
+                # a field by its own gradient (less than a voxel too), in blocks of planes
+                return grown_solid(lambda lo, hi: sdf[lo:hi], sdf.shape, 0, sdf.shape[0], profile.deviation_mm, h)
             from .morphometry import _squared_edt
 
             return solid & ~(_squared_edt(solid) <= (profile.deviation_mm / h) ** 2)
@@ -801,6 +808,85 @@ def _as_built(grown, region, n_region: int, h: float, profile: PrinterProfile) -
             reached = reached_by(r2b, profile.drain_mm, h) & void_b
             as_built["void_reached_by_drain_share"] = float(np.count_nonzero(reached) / np.count_nonzero(void_b))
     return as_built
+
+
+#: the as-built offset works on blocks of about this many voxels: its gradient's temporaries (a few
+#: arrays of the field's type) stay this small whatever the grid or the slab
+OFFSET_BLOCK_VOXELS = 1 << 21
+
+
+def grown_solid(read, shape, x0: int, x1: int, deviation_mm: float, voxel: float) -> np.ndarray:
+    """The solid of planes ``[x0, x1)`` of a field offset outward by `deviation_mm`: ``φ < δ |∇φ|``.
+
+    The threshold ``φ < δ`` moves a field's zero set by ``δ / |∇φ|``: right for a signed distance
+    (``|∇φ| = 1``), not for generate's blended field (within a voxel of a 4 mm box's surface its central
+    ``|∇φ|`` has median 0.70 and 10th percentile 0.36: 0.05 mm moved it about 0.07 mm, and the as-built
+    porosity read 0.5132 where the exact offset of the run's mesh gives 0.5598). To first order in δ
+    the surface offset by δ along its normal is ``φ = δ |∇φ|``, for any field whose zero set is the
+    surface.
+
+    ``|∇φ|`` is Godunov's upwind gradient of a front moving outward (Osher & Fedkiw, *Level Set
+    Methods and Dynamic Implicit Surfaces*, 2003, ch. 6, motion in the normal direction; for δ < 0
+    the front moves inward and the differences look the other way): along each axis the larger of
+    the differences towards a lower neighbour, none at a valley. Central differences vanish on the
+    void's ridges (the middle of a gap, where the front arrives from both sides), so gaps narrower
+    than 2δ stayed open: the 4 mm box read porosity 0.5640 and throat 0.193 mm by central
+    differences, 0.5574 and 0.275 mm upwind, 0.5598 and 0.275 mm exact. First order only: at
+    δ = 0.1 mm, two voxels, the same box reads 0.3254 and 0.193 mm, exact 0.3431 and 0.225 mm. A true
+    distance needs none of this (``φ < δ`` is exact; :func:`certificate`'s ``exact_distance``).
+
+    Each plane reads one plane on either side: blocks and slabs read that halo (none beyond the
+    grid's faces, where that side's difference is left out), so every plane's value is the whole
+    grid's, bit for bit, however the planes are cut.
+
+    Parameters
+    ----------
+    read : callable(lo, hi) -> (hi - lo, ny, nz) float ndarray, mm
+        Planes of the field, negative in the solid (an array's slice, or a FieldFile's ``read``).
+    shape : (3,) ints
+        The whole grid's voxels.
+    x0, x1 : int
+        The planes wanted.
+    deviation_mm : float, mm
+        How much thicker the solid is built (negative: thinner).
+    voxel : float, mm
+
+    Returns
+    -------
+    (x1 - x0, ny, nz) bool ndarray
+        True where the offset field is solid.
+    """
+    nx, ny, nz = (int(n) for n in shape)
+    scale = float(deviation_mm) / float(voxel)  # δ |∇φ| = (δ / h) sqrt(sum of squared differences)
+    out = np.empty((x1 - x0, ny, nz), bool)
+    step = max(1, OFFSET_BLOCK_VOXELS // max(1, ny * nz))
+    for b0 in range(x0, x1, step):
+        b1 = min(b0 + step, x1)
+        lo, hi = max(0, b0 - 1), min(nx, b1 + 1)
+        f = np.asarray(read(lo, hi))
+        # the front moves into the void (δ > 0) from lower values, into the solid (δ < 0) from higher
+        g = f if scale >= 0 else -f
+        norm = np.zeros(f.shape, np.result_type(f.dtype, np.float32))
+        for axis in range(3):
+            n = f.shape[axis]
+            if n < 2:
+                continue
+            ahead = (slice(None),) * axis + (slice(1, None),)
+            behind = (slice(None),) * axis + (slice(None, n - 1),)
+            d = np.diff(g, axis=axis)  # g[i + 1] - g[i]
+            up = np.zeros_like(norm)
+            np.maximum(up[ahead], d, out=up[ahead])        # g[i] - g[i - 1]
+            np.negative(d, out=d)
+            np.maximum(up[behind], d, out=up[behind])      # g[i] - g[i + 1]
+            del d
+            norm += up * up
+            del up
+        np.sqrt(norm, out=norm)
+        norm *= scale
+        own = slice(b0 - lo, b1 - lo)
+        out[b0 - x0:b1 - x0] = f[own] < norm[own]
+        del f, g, norm
+    return out
 
 
 def _assemble(profile, h, shape, n_region, n_void, thinnest, below, throat, pores, drain, cells, sealed, floating,
@@ -1083,7 +1169,7 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     - reached void: the allowed centres with a halo of the sphere's radius;
     - sealed voids and floating solid: pieces joined across slab faces (:class:`~implicit_scaffold.run.tiles.SlabComponents`);
     - overhangs: the subsampled field assembled from its planes; as built: the same passes on
-      ``source < deviation``.
+      the solid offset by the deviation (:func:`grown_solid`, each block with its plane of halo).
 
     Parameters
     ----------
@@ -1204,7 +1290,8 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
             first = x0 + (-x0) % f
             if first < x1:
                 coarse[first // f:first // f + len(range(first, x1, f))] = field[first - x0::f, ::f, ::f]
-            tallies["void_b"] += int(np.count_nonzero((patient.read(x0, x1) < 0) & ~(field < profile.deviation_mm)))
+            grown = grown_solid(source.read, shape, x0, x1, profile.deviation_mm, h)
+            tallies["void_b"] += int(np.count_nonzero((patient.read(x0, x1) < 0) & ~grown))
 
         pores, reached = _pores_by_slabs(d2s, r2s, void_of, grid, h, max_voxels, diameters, visit, stage(2))
     finally:
@@ -1240,13 +1327,13 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
     best_axis = min(shares, key=lambda k: (shares[k], k))
     clock.mark("pieces and overhangs")
 
-    # as built: the solid grown by the process's deviation (a signed distance offsets by less than a voxel)
+    # as built: the solid grown by the process's deviation (:func:`grown_solid`: less than a voxel too)
     n_void_b = tallies["void_b"]
     as_built = {"deviation_mm": profile.deviation_mm, "porosity": float(n_void_b) / n_region,
                 "throat_mm": 0.0, "void_reached_by_drain_share": None}
     if n_void_b:
         def grown_of(lo, hi):
-            return source.read(lo, hi) < profile.deviation_mm
+            return grown_solid(source.read, shape, lo, hi, profile.deviation_mm, h)
 
         def void_b_of(x0, x1):
             return (patient.read(x0, x1) < 0) & ~grown_of(x0, x1)
