@@ -551,7 +551,8 @@ def test_cli_graded_run_takes_the_seed_rule(tmp_path):
 
     def run(name, *extra):
         out = tmp_path / name
-        argv = ["generate", "-o", str(out), "--size", "3", "--voxel", "0.08", "--grade", "0:0.4,1:0.7", "-q",
+        # 0.06 mm: the paper's rule's 0.4 mm pores have walls of 0.14 mm as printed, 1.8 voxels of 0.08
+        argv = ["generate", "-o", str(out), "--size", "3", "--voxel", "0.06", "--grade", "0:0.4,1:0.7", "-q",
                 "--seed", "1", *extra]
         assert main(argv) == 0
         return json.loads(out.with_suffix(".json").read_text())
@@ -564,6 +565,40 @@ def test_cli_graded_run_takes_the_seed_rule(tmp_path):
     # the paper's density over the pore-size rule's: (P^(1/3) / (0.98 Sv))^3 = 0.8 / 0.7360^3 = 2.0 (P 0.8)
     ratio = paper["grade"]["seeds_expected"] / default["grade"]["seeds_expected"]
     assert abs(ratio - 0.8 / (SV * _cube_root_mean()) ** 3) < 0.05, ratio
+
+
+def test_a_graded_voxel_is_checked_against_its_smallest_pores(tmp_path, capsys):
+    # 0.3 mm pores at the surface, 0.8 mm from 2 mm deep, in a 5 mm cube: the median wall (0.173 mm as
+    # printed) is 2.2 voxels of 0.08 mm, the 0.3 mm pores' walls (0.135 mm) 1.7, where the shell lost
+    # 2.2 % of the patient as fragments with exit 0 (7.6 % at 0.1 mm, 12 % for --grade 0:0.5 at 0.1 mm
+    # under the paper's rule); even runs are checked against their median wall, as before
+    import re
+
+    out = tmp_path / "s.npy"
+    code = main(["generate", "--size", "5", "--grade", "0:0.3,2:0.8", "--voxel", "0.08", "-q", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert "cannot hold the lattice: the walls of its smallest pores" in err and "pore sizes in the grade" in err
+    assert list(tmp_path.iterdir()) == []
+    voxel = float(re.search(r"use --voxel ([0-9.]+) or finer", err).group(1))
+    assert voxel < 0.08
+    # the oracle: the voxel it names holds the shell (0.68 % of the patient lost as fragments at 0.067 mm)
+    r = implicit_scaffold.generate(size=5.0, grade="0:0.3,2:0.8", voxel=voxel, mesh=False, morphometry=False)
+    assert r.report["fragments_removed_mm3"] < 0.01 * 125.0
+    assert abs(r.report["porosity_voxel"] - 0.8) < 0.01
+
+
+def test_smallest_pores_wall_scales_the_walls_to_the_densest_seeding():
+    from implicit_scaffold.pipeline import _smallest_pores_wall
+
+    # two thin walls where the seeds are densest (spacing 0.5 mm), three twice as thick where they are
+    # half as dense: scaled to the densest spacing all five are 0.1 mm, where their median is 0.2 mm
+    walls = np.array([0.1, 0.1, 0.2, 0.2, 0.2])
+    spans = np.array([0.5, 0.5, 1.0, 1.0, 1.0])
+    assert np.median(walls) == 0.2
+    assert _smallest_pores_wall(walls, spans, 0.5) == pytest.approx(0.1, rel=1e-12)
+    # no seed in the patient: the median
+    assert _smallest_pores_wall(walls, spans, float("inf")) == 0.2
 
 
 def test_callable_grade_end_to_end():
