@@ -370,7 +370,8 @@ def _add_build_options(g) -> None:
                         "(see --seed-rule) (default 0.6)")
     g.add_argument("--seed-rule", choices=["pore-size", "paper"], default=BUILD_DEFAULTS["seed_rule"],
                    help="pore-size: the seed count is solved so that the measured mean pore size is --pore-size; "
-                        "paper: the paper's n = V P / (pi Dp^3 / 6), whose measured pores come out smaller "
+                        "paper: the paper's n = V P / (pi Dp^3 / 6), whose measured pores come out smaller; "
+                        "a graded run (--grade, --calibration) applies the rule to the local pore size "
                         "(default pore-size)")
     g.add_argument("--porosity", default=BUILD_DEFAULTS["porosity"],
                    help="target porosity in (0, 1), met by offsetting the surface, or 'none' to keep the "
@@ -399,8 +400,9 @@ def _add_build_options(g) -> None:
     gg = g.add_argument_group("graded scaffolds (small pores at the cortex, large in the core)")
     gg.add_argument("--grade", default=None, metavar="DEPTH:SIZE,...",
                     help='pore size against depth below the patient surface, mm, linear between: "0:0.3,2:0.8" '
-                         "is 0.3 mm pores at the surface, 0.8 mm from 2 mm deep; the seed count follows the "
-                         "paper's formula locally and --porosity is met in every depth bin")
+                         "is 0.3 mm pores at the surface, 0.8 mm from 2 mm deep; the local seed density follows "
+                         "--seed-rule (pore-size: the cells measure these sizes) and --porosity is met in every "
+                         "depth bin")
     gg.add_argument("--calibration", type=float, nargs=2, default=None, metavar=("SLOPE", "INTERCEPT"),
                     help="grade from the patient's CT (--patient a CT volume): density g/cm3 = SLOPE * HU + "
                          "INTERCEPT, porosity = 1 - density / 1.8 within 0.5..0.9, pore size 0.3..0.8 mm "
@@ -458,10 +460,10 @@ def _check_report(path) -> None:
 
 def _check_graded_options(args) -> None:
     """Refuse the options a graded build replaces, where the command line changed them: --calibration sets the
-    porosity and the pore sizes from the CT, --grade the pore sizes by depth (each with the local seed count); they
-    were dropped without a word (the same bytes as without them)."""
+    porosity and the pore sizes from the CT, --grade the pore sizes by depth; they were dropped without a word (the
+    same bytes as without them). --seed-rule is not one: it turns each local pore size into a seed density."""
     designed = getattr(args, "from_design", set())  # a design.json's parameters (a CT design holds a pore size)
-    changed = [o for o, key in (("--porosity", "porosity"), ("--pore-size", "pore_size"), ("--seed-rule", "seed_rule"))
+    changed = [o for o, key in (("--porosity", "porosity"), ("--pore-size", "pore_size"))
                if key not in designed and str(getattr(args, key)).strip().lower() != str(BUILD_DEFAULTS[key]).lower()]
     if args.calibration is not None and changed:
         raise ScaffoldError(f"--calibration sets the porosity and the pore sizes from the CT; drop {' and '.join(changed)}")

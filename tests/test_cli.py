@@ -82,7 +82,6 @@ BAD = [
     (["--repair"], "--repair repairs for a printer's limits; add --printer NAME"),
     # options a graded build replaces were dropped without a word (the same bytes as without them)
     (["--grade", "0:0.5,1:0.8", "--pore-size", "2"], "--grade sets the pore sizes by depth"),
-    (["--grade", "0:0.5,1:0.8", "--seed-rule", "paper"], "drop --seed-rule"),
     (["--calibration", "0.001", "0", "--porosity", "0.6"], "--calibration sets the porosity and the pore sizes"),
     (["--calibration", "0.001", "0", "--pore-size", "2", "--porosity", "0.7"], "drop --porosity and --pore-size"),
     # the mechanics options without --mechanics: a typo (--nu 0.7) was taken without a word

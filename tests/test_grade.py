@@ -1,9 +1,11 @@
 """Graded scaffolds (issue 6): targets, graded seeds, Lloyd relaxation, the offset field, profiles.
 
-Oracles: Poisson counts (3 sigma) from the closed-form integral of the paper's seed
-density; the gamma law of Poisson-Voronoi cell volumes for the polyhedron-sphere pore
-size; the target porosity profile, recounted here from the field; the uniform run's
-statistics for a constant field; the known shell and core of a synthetic CT.
+Oracles: Poisson counts (3 sigma) from the closed-form integral of the seed density of
+either seed rule (the paper's ``P / (pi Dp^3 / 6)``; the pore-size rule's density, whose
+Poisson-Voronoi cells have the mean polyhedron-sphere size Dp by the gamma law of their
+volumes, written out here with scipy's gamma); the target porosity profile, recounted here
+from the field; the uniform run's statistics and seed count for a constant field; the
+known shell and core of a synthetic CT.
 """
 from __future__ import annotations
 
@@ -23,16 +25,33 @@ from implicit_scaffold.fields.patient import Box
 SV = 0.75
 
 
+RULES = ("pore-size", "paper")
+
+
 def _paper_density(dp, porosity):
     # the paper's seed count per mm³, written out here rather than taken from the module
     return porosity / (math.pi * dp ** 3 / 6)
 
 
-def _gamma_ps(dp, porosity, sv=SV, k=5.586):
+def _cube_root_mean(k=5.586):
+    # E[v^(1/3)] of gamma(k) Poisson-Voronoi cell volumes of unit mean (Ferenc & Néda 2007)
+    from scipy.special import gamma
+
+    return gamma(k + 1 / 3) / gamma(k) / k ** (1 / 3)
+
+
+def _pore_size_density(dp, sv=SV):
+    # the pore-size rule written out: Sv (6 / (π ρ))^(1/3) E[v^(1/3)] = Dp solved for ρ
+    return 6 / math.pi * (sv * _cube_root_mean() / dp) ** 3
+
+
+def _density(rule, dp, porosity, sv=SV):
+    return _paper_density(dp, porosity) if rule == "paper" else _pore_size_density(dp, sv)
+
+
+def _gamma_ps(rho, sv=SV):
     # E[Sv (6V/π)^(1/3)] for gamma(k)-distributed Poisson-Voronoi volumes of mean 1/ρ
-    rho = _paper_density(dp, porosity)
-    c = math.gamma(k + 1 / 3) / math.gamma(k) / k ** (1 / 3)
-    return sv * c * (6 / (math.pi * rho)) ** (1 / 3)
+    return sv * _cube_root_mean() * (6 / (math.pi * rho)) ** (1 / 3)
 
 
 # --- parsing and bad input ------------------------------------------------------------
@@ -100,7 +119,7 @@ def test_calibration_needs_a_ct():
 
 
 def test_grade_function_must_return_lengths():
-    fld = grade.grade_field(lambda x, y, z: np.where(z < 1, 0.4, -1.0), porosity=0.8)
+    fld = grade.grade_field(lambda x, y, z: np.where(z < 1, 0.4, -1.0), porosity=0.8, sv=SV)
     box = Box((2, 2, 2))
     with pytest.raises(ScaffoldError, match="grade function returned"):
         grade.seed_density(fld, box, box.lo, box.hi)
@@ -122,26 +141,66 @@ def test_cli_bad_grade_exit_2(tmp_path, capsys, argv, words):
 
 # --- graded seeds -----------------------------------------------------------------------
 
+@pytest.mark.parametrize("rule", RULES)
+def test_local_seed_density_follows_the_rule(rule):
+    # the field's density at points of a depth profile against the rule written out here (scipy's gamma for
+    # the pore-size rule; 1e-8: the module's constant E[v^(1/3)] has 8 digits, and the density goes as its cube)
+    fld = grade.grade_field(grade.parse_grade("0:0.3,2:0.8"), porosity=0.7, seed_rule=rule, sv=0.6)
+    pts = np.zeros((5, 3))
+    depth = np.array([-0.5, 0.0, 1.0, 2.0, 3.0])
+    dp = np.array([0.3, 0.3, 0.55, 0.8, 0.8])
+    np.testing.assert_allclose(fld.density(*fld.targets(pts, depth)), _density(rule, dp, 0.7, sv=0.6), rtol=1e-8)
+    # and the expected polyhedron-sphere size the report shows: the target under pore-size, 0.98 Sv Dp / P^(1/3)
+    # under the paper's rule
+    want = dp if rule == "pore-size" else _gamma_ps(_paper_density(dp, 0.7), sv=0.6)
+    np.testing.assert_allclose(grade.polyhedron_sphere_expected(dp, np.full(5, 0.7), fld), want, rtol=1e-8)
+
+
+@pytest.mark.parametrize("rule", RULES)
+def test_constant_field_count_is_the_rules_count(rule):
+    # a constant field integrates to ρ V over a box patient (every seeding voxel inside), ρ by the rule
+    box = Box((3.0, 2.0, 2.5))
+    fld = grade.grade_field(grade.parse_grade("0:0.5"), porosity=0.75, seed_rule=rule, sv=SV)
+    density = grade.seed_density(fld, box, box.lo, box.hi)
+    assert density.count == round(15.0 * _density(rule, 0.5, 0.75))
+    # the margin is one cell of the densest part: ρ^(-1/3)
+    assert density.margin == pytest.approx(_density(rule, 0.5, 0.75) ** (-1 / 3), rel=1e-8)
+
+
+def test_density_for_pore_size_takes_arrays():
+    from implicit_scaffold.geometry.seeds import density_for_pore_size, pore_size_for_density
+
+    dp = np.array([0.3, 0.6, 1.2])
+    rho = density_for_pore_size(dp, SV)
+    np.testing.assert_allclose(rho, [_pore_size_density(d) for d in dp], rtol=1e-8)  # as above
+    assert isinstance(density_for_pore_size(0.6, SV), float) and density_for_pore_size(0.6, SV) == rho[1]
+    np.testing.assert_allclose(pore_size_for_density(rho, SV), dp, rtol=1e-12)
+    with pytest.raises(ScaffoldError, match="--pore-size must be a positive number of mm, got -0.2"):
+        density_for_pore_size(np.array([0.3, -0.2]), SV)
+
+
+
 def _two_level(z_split=4.0, small=0.4, large=0.8):
     def pore_size(x, y, z):
         return np.where(z < z_split, small, large)
     return pore_size
 
 
-@pytest.fixture(scope="module")
-def two_level():
-    """Seeds of a two-level field in a 5 x 5 x 8 mm box: 0.4 mm pores below z = 4, 0.8 mm above."""
+@pytest.fixture(scope="module", params=RULES)
+def two_level(request):
+    """Seeds of a two-level field in a 5 x 5 x 8 mm box: 0.4 mm pores below z = 4, 0.8 mm above,
+    under each seed rule (the rule is the fixture's fourth value)."""
     box = Box((5, 5, 8))
-    fld = grade.grade_field(_two_level(), porosity=0.8)
+    fld = grade.grade_field(_two_level(), porosity=0.8, seed_rule=request.param, sv=SV)
     density = grade.seed_density(fld, box, box.lo, box.hi)
     seeds = grade.draw_seeds(density, np.random.default_rng(0))
-    return box, density, seeds
+    return box, density, seeds, request.param
 
 
 def test_two_level_seed_counts_are_poisson(two_level):
-    box, density, seeds = two_level
+    box, density, seeds, rule = two_level
     v = 5 * 5 * 4
-    lam_small, lam_large = _paper_density(0.4, 0.8) * v, _paper_density(0.8, 0.8) * v
+    lam_small, lam_large = _density(rule, 0.4, 0.8) * v, _density(rule, 0.8, 0.8) * v
     # the total is the field's integral (the step lies on a seeding-voxel boundary here)
     assert abs(len(seeds) - (lam_small + lam_large)) <= 1
     assert np.all(seeds >= box.lo) and np.all(seeds <= box.hi)
@@ -154,7 +213,7 @@ def test_two_level_seed_counts_are_poisson(two_level):
 def test_two_level_counts_over_several_seeds():
     # a further draw per rng seed: each within 3 sigma, and the mean within 3 sigma / sqrt(4)
     box = Box((3, 3, 4))
-    fld = grade.grade_field(_two_level(2.0, 0.4, 0.8), porosity=0.7)
+    fld = grade.grade_field(_two_level(2.0, 0.4, 0.8), porosity=0.7, sv=SV)
     density = grade.seed_density(fld, box, box.lo, box.hi)
     share = _paper_density(0.4, 0.7) / (_paper_density(0.4, 0.7) + _paper_density(0.8, 0.7))
     lam = density.count * share
@@ -164,7 +223,7 @@ def test_two_level_counts_over_several_seeds():
 
 
 def test_graded_seeds_reproducible(two_level):
-    box, density, seeds = two_level
+    box, density, seeds, _ = two_level
     again = grade.draw_seeds(density, np.random.default_rng(0))
     other = grade.draw_seeds(density, np.random.default_rng(1))
     assert np.array_equal(seeds, again) and not np.array_equal(seeds, other)
@@ -175,18 +234,20 @@ def _interior(points, lo, hi, margin):
 
 
 def test_pore_size_per_region_follows_target(two_level):
-    box, density, seeds = two_level
+    # under pore-size the cells measure the target itself; under paper 0.98 Sv Dp / P^(1/3) (0.79 Dp here)
+    box, density, seeds, rule = two_level
     d = pore_sizes(voronoi_cells(seeds, box.lo, box.hi), SV)
     for z0, z1, dp in ((0.0, 4.0, 0.4), (4.0, 8.0, 0.8)):
         # away from the walls (clipped cells) and the step (mixed cells) by about one large cell
         keep = _interior(seeds, [0, 0, z0], [5, 5, z1], 0.8 if dp > 0.5 else 0.45)
-        assert keep.sum() > 60
+        assert keep.sum() > 40  # 44 large cells under pore-size (the paper's rule seeds twice as many)
         mean = d[keep].mean()
-        assert abs(mean / _gamma_ps(dp, 0.8) - 1) < 0.10, (dp, mean, _gamma_ps(dp, 0.8))
+        expected = _gamma_ps(_density(rule, dp, 0.8))
+        assert abs(mean / expected - 1) < 0.10, (rule, dp, mean, expected)
 
 
 def test_lloyd_relaxation_narrows_spread_and_keeps_density(two_level):
-    box, density, seeds = two_level
+    box, density, seeds, rule = two_level
     relaxed = grade.lloyd_relax(seeds, density, 2)
     assert relaxed.shape == seeds.shape and np.all(relaxed >= box.lo) and np.all(relaxed <= box.hi)
     sel = lambda p: _interior(p, [0, 0, 0], [5, 5, 3.5], 0.45)  # noqa: E731
@@ -194,18 +255,20 @@ def test_lloyd_relaxation_narrows_spread_and_keeps_density(two_level):
     after = pore_sizes(voronoi_cells(relaxed, box.lo, box.hi), SV)[sel(relaxed)]
     assert after.std() / after.mean() < 0.7 * before.std() / before.mean()
     # the density survives: the small-pore half keeps its Poisson share within 3 sigma
-    lam = _paper_density(0.4, 0.8) * 100
+    lam = _density(rule, 0.4, 0.8) * 100
     assert abs(np.count_nonzero(relaxed[:, 2] < 4) - lam) < 3 * math.sqrt(lam)
 
 
 # --- end to end ---------------------------------------------------------------------------
 
 def test_constant_field_gives_uniform_statistics():
-    opts = dict(size=(5.0, 5.0, 5.0), porosity=0.7, voxel=0.08, mesh=False, morphometry=False, blend=0.04)
+    # under the paper's rule both runs draw the same count (the uniform run solves none), so their
+    # cells' statistics compare like for like; --seed-rule reaches the graded run
+    opts = dict(size=(5.0, 5.0, 5.0), porosity=0.7, voxel=0.08, mesh=False, morphometry=False, blend=0.04,
+                seed_rule="paper")
     stats = {"uniform": [], "graded": []}
     for s in range(2):
-        # a graded run's density is the paper's formula locally: the uniform run's counterpart is its rule
-        u = implicit_scaffold.generate(pore_size=0.6, seed=s, seed_rule="paper", **opts).report
+        u = implicit_scaffold.generate(pore_size=0.6, seed=s, **opts).report
         g = implicit_scaffold.generate(grade="0:0.6", seed=s, **opts).report
         assert g["seeds"] == u["seeds"] == round(125 * _paper_density(0.6, 0.7))
         stats["uniform"].append(u)
@@ -220,6 +283,19 @@ def test_constant_field_gives_uniform_statistics():
     sd_u = np.mean([r["pore_size_mm"]["sd"] for r in stats["uniform"]])
     sd_g = np.mean([r["pore_size_mm"]["sd"] for r in stats["graded"]])
     assert abs(sd_g / sd_u - 1) < 0.15
+
+
+def test_constant_field_gives_the_uniform_pore_size_count():
+    # the default rule: a constant graded field seeds the density of the uniform pore-size rule's first
+    # count (before the uniform run corrects it by measuring its cells), written out here; an Sv other
+    # than the default, so that the run's own Sv must reach the rule
+    opts = dict(size=(4.0, 4.0, 4.0), porosity=0.7, sv=0.6, voxel=0.08, mesh=False, morphometry=False)
+    u = implicit_scaffold.generate(pore_size=0.6, **opts).report
+    g = implicit_scaffold.generate(grade="0:0.6", **opts).report
+    n = round(64 * _pore_size_density(0.6, sv=0.6))
+    assert n == 115 != round(64 * _pore_size_density(0.6)) and n != round(64 * _paper_density(0.6, 0.7))
+    assert g["grade"]["seeds_expected"] == g["seeds"] == u["seed_solve"][0]["seeds_in_patient"] == n
+    assert g["seed_rule"].startswith("pore-size") and u["seed_rule"] == "pore-size"
 
 
 @pytest.fixture(scope="module")
@@ -263,15 +339,36 @@ def test_graded_run_is_one_interconnected_body(graded_run):
 
 
 def test_graded_run_pores_follow_depth(graded_run):
+    # the default seed rule (pore-size): the cells measure the target itself; the paper's local
+    # formula gave 0.83 of it here (0.98 Sv / 0.7^(1/3)), 17 % small
     prof = graded_run.report["grade"]["profiles"]["depth"]
     checked = []
-    for measured, target, cells in zip(prof["pore_size_mm"], prof["pore_size_target_mm"], prof["cells"]):
+    for measured, target, expected, cells in zip(prof["pore_size_mm"], prof["pore_size_target_mm"],
+                                                 prof["pore_size_expected_mm"], prof["cells"]):
         if cells >= 40:
-            # the polyhedron-sphere size expected for the bin's target (gamma law), within 10 %
-            expected = _gamma_ps(target, 0.7)
-            assert abs(measured / expected - 1) < 0.10, (measured, expected, cells)
+            # the bin's mean target (over its voxels), within 10 %: a bin's cells sit a little off its middle
+            assert abs(measured / target - 1) < 0.10, (measured, target, cells)
             checked.append(measured)
     assert len(checked) >= 4 and checked[0] < 0.75 * checked[-1]
+
+
+def test_graded_run_mean_pore_size_is_the_mean_target(graded_run):
+    # pooled over the cells in the patient: the measured polyhedron-sphere sizes (recomputed from the cells)
+    # against the targets at their seeds (the profile and the box's depth, written out here); 4 %: the
+    # Poisson-Voronoi mean itself, measured within 2 % of the gamma law, and the cells cut by the box walls
+    r = graded_run
+    seeds = r.cells.seeds
+    depth = np.min(np.minimum(seeds, np.array([4.0, 4.0, 5.0]) - seeds), axis=1)
+    inside = depth > 0
+    target = np.interp(depth[inside], [0.0, 1.0], [0.3, 0.6])
+    measured = pore_sizes(r.cells, SV)[inside]
+    assert inside.sum() > 300
+    assert abs(measured.mean() / target.mean() - 1) < 0.04, (measured.mean(), target.mean())
+    # the report's expectation under the run's rule is the target (the paper's would be 0.83 of it)
+    prof = r.report["grade"]["profiles"]["depth"]
+    for e, t, c in zip(prof["pore_size_expected_mm"], prof["pore_size_target_mm"], prof["cells"]):
+        if c >= 40:
+            assert abs(e / t - 1) < 0.05, (e, t)
 
 
 def _assert_profiles_recount(r):
@@ -392,7 +489,8 @@ def test_ct_dense_shell_gets_smaller_pores(tmp_path):
     core = axial & (radial < 1.2)
     assert shell.sum() > 50 and core.sum() > 5
     assert d[shell].mean() < 0.6 * d[core].mean()
-    assert abs(d[shell].mean() / _gamma_ps(0.3, 0.5) - 1) < 0.15
+    # the pore-size rule: 0.3 mm measured (the paper's rule gave 0.93 of it, below the calibration's floor)
+    assert abs(d[shell].mean() / 0.3 - 1) < 0.15
     # the shell is denser in solid too: its target porosity is 0.5, the core's 1 - 0.2 / 1.8
     x, y, z = np.meshgrid(*r.grid.axes(), indexing="ij")
     inside = (r.patient_sdf < 0) & (z > 1.5) & (z < 5.5)
@@ -446,6 +544,63 @@ def test_cli_graded_run_and_same_bytes(tmp_path, capsys):
     assert rep["grade"]["relax"] == 1 and rep["seeds_in"] == "patient (graded)"
 
 
+def test_cli_graded_run_takes_the_seed_rule(tmp_path):
+    # --seed-rule was refused beside --grade (it made no difference); now the paper's rule seeds the
+    # paper's local density, from the command line and from a design.json's parameters
+    import json
+
+    def run(name, *extra):
+        out = tmp_path / name
+        # 0.06 mm: the paper's rule's 0.4 mm pores have walls of 0.14 mm as printed, 1.8 voxels of 0.08
+        argv = ["generate", "-o", str(out), "--size", "3", "--voxel", "0.06", "--grade", "0:0.4,1:0.7", "-q",
+                "--seed", "1", *extra]
+        assert main(argv) == 0
+        return json.loads(out.with_suffix(".json").read_text())
+
+    default, paper = run("a.npy"), run("b.npy", "--seed-rule", "paper")
+    (tmp_path / "d.json").write_text(json.dumps({"parameters": {"seed_rule": "paper"}}))
+    designed = run("c.npy", "--design", str(tmp_path / "d.json"))
+    assert default["seed_rule"].startswith("pore-size") and paper["seed_rule"].startswith("paper")
+    assert designed["seed_rule"] == paper["seed_rule"] and designed["seeds"] == paper["seeds"]
+    # the paper's density over the pore-size rule's: (P^(1/3) / (0.98 Sv))^3 = 0.8 / 0.7360^3 = 2.0 (P 0.8)
+    ratio = paper["grade"]["seeds_expected"] / default["grade"]["seeds_expected"]
+    assert abs(ratio - 0.8 / (SV * _cube_root_mean()) ** 3) < 0.05, ratio
+
+
+def test_a_graded_voxel_is_checked_against_its_smallest_pores(tmp_path, capsys):
+    # 0.3 mm pores at the surface, 0.8 mm from 2 mm deep, in a 5 mm cube: the median wall (0.173 mm as
+    # printed) is 2.2 voxels of 0.08 mm, the 0.3 mm pores' walls (0.135 mm) 1.7, where the shell lost
+    # 2.2 % of the patient as fragments with exit 0 (7.6 % at 0.1 mm, 12 % for --grade 0:0.5 at 0.1 mm
+    # under the paper's rule); even runs are checked against their median wall, as before
+    import re
+
+    out = tmp_path / "s.npy"
+    code = main(["generate", "--size", "5", "--grade", "0:0.3,2:0.8", "--voxel", "0.08", "-q", "-o", str(out)])
+    err = capsys.readouterr().err
+    assert code == 2 and err.count("\n") == 1 and "Traceback" not in err
+    assert "cannot hold the lattice: the walls of its smallest pores" in err and "pore sizes in the grade" in err
+    assert list(tmp_path.iterdir()) == []
+    voxel = float(re.search(r"use --voxel ([0-9.]+) or finer", err).group(1))
+    assert voxel < 0.08
+    # the oracle: the voxel it names holds the shell (0.68 % of the patient lost as fragments at 0.067 mm)
+    r = implicit_scaffold.generate(size=5.0, grade="0:0.3,2:0.8", voxel=voxel, mesh=False, morphometry=False)
+    assert r.report["fragments_removed_mm3"] < 0.01 * 125.0
+    assert abs(r.report["porosity_voxel"] - 0.8) < 0.01
+
+
+def test_smallest_pores_wall_scales_the_walls_to_the_densest_seeding():
+    from implicit_scaffold.pipeline import _smallest_pores_wall
+
+    # two thin walls where the seeds are densest (spacing 0.5 mm), three twice as thick where they are
+    # half as dense: scaled to the densest spacing all five are 0.1 mm, where their median is 0.2 mm
+    walls = np.array([0.1, 0.1, 0.2, 0.2, 0.2])
+    spans = np.array([0.5, 0.5, 1.0, 1.0, 1.0])
+    assert np.median(walls) == 0.2
+    assert _smallest_pores_wall(walls, spans, 0.5) == pytest.approx(0.1, rel=1e-12)
+    # no seed in the patient: the median
+    assert _smallest_pores_wall(walls, spans, float("inf")) == 0.2
+
+
 def test_callable_grade_end_to_end():
     def pore_size(x, y, z):
         return np.where(z < 2.0, 0.4, 0.7)
@@ -454,7 +609,7 @@ def test_callable_grade_end_to_end():
                                    morphometry=False)
     assert r.report["grade"]["kind"] == "function" and r.report["grade"]["offset"]["coordinate"] == "pore_size"
     z = r.cells.seeds[:, 2]
-    lam = _paper_density(0.4, 0.75) * 18
+    lam = _pore_size_density(0.4) * 18
     assert abs(np.count_nonzero(z < 2) - lam) < 3 * math.sqrt(lam)
     inside = r.patient_sdf < 0
     zz = np.broadcast_to(r.grid.axes()[2][None, None, :], r.grid.shape)
@@ -473,7 +628,7 @@ def test_level_field_meets_each_bin_from_a_sample(monkeypatch):
     x, y, z = np.meshgrid(ax, ax, ax, indexing="ij")
     sdf = (np.sqrt((x - 2) ** 2 + (y - 2) ** 2 + (z - 2) ** 2) - 1.9).astype(np.float32)
     base = (np.sin(9 * x) * np.sin(7 * y) * np.sin(8 * z) + 0.3 * sdf).astype(np.float32)
-    fld = grade.grade_field(grade.parse_grade("0:0.3,1:0.6"), porosity=0.7)
+    fld = grade.grade_field(grade.parse_grade("0:0.3,1:0.6"), porosity=0.7, sv=SV)
     plan = grade.level_plan(fld, sdf, g)
     for sample in (10 ** 9, 20_000):
         monkeypatch.setattr(grade, "LEVEL_SAMPLE_VOXELS", sample)
@@ -490,16 +645,16 @@ def test_level_field_meets_each_bin_from_a_sample(monkeypatch):
 # --- weighted (power) cells -------------------------------------------------------------
 
 def test_power_radii_are_half_the_local_spacing(two_level):
-    box, density, seeds = two_level
+    box, density, seeds, rule = two_level
     r = grade.power_radii(density, seeds)
-    # r = ρ^(-1/3) / 2 with the paper's density, written out here
+    # r = ρ^(-1/3) / 2 with the rule's density, written out here (1e-8: the module's 8-digit E[v^(1/3)])
     small, large = seeds[:, 2] < 3.9, seeds[:, 2] > 4.1
-    np.testing.assert_allclose(r[small], 0.5 * _paper_density(0.4, 0.8) ** (-1 / 3), rtol=1e-12)
-    np.testing.assert_allclose(r[large], 0.5 * _paper_density(0.8, 0.8) ** (-1 / 3), rtol=1e-12)
+    np.testing.assert_allclose(r[small], 0.5 * _density(rule, 0.4, 0.8) ** (-1 / 3), rtol=1e-8)
+    np.testing.assert_allclose(r[large], 0.5 * _density(rule, 0.8, 0.8) ** (-1 / 3), rtol=1e-8)
 
 
 def test_weighted_cells_follow_the_target_across_a_step(two_level):
-    box, density, seeds = two_level
+    box, density, seeds, rule = two_level
     plain = voronoi_cells(seeds, box.lo, box.hi)
     power = voronoi_cells(seeds, box.lo, box.hi, radii=grade.power_radii(density, seeds))
     assert power.volumes.sum() == pytest.approx(200.0, rel=1e-9)
@@ -514,7 +669,7 @@ def test_weighted_cells_follow_the_target_across_a_step(two_level):
             # away from the walls only: the cells at the step count too
             keep = np.all((c.seeds[:, :2] >= 0.8) & (c.seeds[:, :2] <= 4.2), axis=1)
             keep &= (c.seeds[:, 2] >= z0) & (c.seeds[:, 2] < z1)
-            assert abs(d[keep].mean() / _gamma_ps(dp, 0.8) - 1) < 0.10, (dp, d[keep].mean())
+            assert abs(d[keep].mean() / _gamma_ps(_density(rule, dp, 0.8)) - 1) < 0.10, (rule, dp, d[keep].mean())
 
 
 def test_cli_weighted_graded_run(tmp_path):

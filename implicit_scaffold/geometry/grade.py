@@ -9,11 +9,16 @@ an offset field and the profiles of the report:
   callable of ``(x, y, z)`` in mm, or from the patient's CT: intensity (HU) -> bone
   density by a linear calibration -> porosity -> pore size (:class:`Calibration`); the
   porosity ``P(x)`` is the run's constant target, or the CT's;
-- **seeds** (:func:`seed_density`, :func:`draw_seeds`): the paper's seed count per unit
-  volume, ``ρ(x) = P(x) / (π Dp(x)³ / 6)``, integrated over the patient (plus one cell)
-  for the count, and honoured in expectation by rejection sampling against the field on
-  a fine grid; optional Lloyd relaxation (:func:`lloyd_relax`) narrows the spread of
-  the cells' sizes while keeping the density;
+- **seeds** (:func:`seed_density`, :func:`draw_seeds`): the seed count per unit volume
+  by the run's seed rule applied locally (:meth:`GradeField.density`): under
+  ``pore-size`` (the default, as for an even run) the density whose Poisson-Voronoi cells
+  measure a mean polyhedron-sphere pore size of ``Dp(x)``
+  (:func:`~implicit_scaffold.geometry.seeds.density_for_pore_size`), under ``paper`` the
+  paper's ``ρ(x) = P(x) / (π Dp(x)³ / 6)``, whose cells measure ``0.98 Sv Dp / P^(1/3)``
+  (0.83 Dp at P = 0.7, Sv = 0.75); integrated over the patient (plus one cell) for the
+  count, and honoured in expectation by rejection sampling against the field on a fine
+  grid; optional Lloyd relaxation (:func:`lloyd_relax`) narrows the spread of the cells'
+  sizes while keeping the density;
 - **offset** (:func:`level_plan`, :func:`solve_level_field`, :func:`shift_planes`): the
   surface offset becomes a field, piecewise linear in a coordinate (the depth, or the
   target pore size or porosity), whose value at each bin centre is the per-bin quantile
@@ -50,9 +55,6 @@ POROSITY_RANGE = (0.5, 0.9)
 #: pore sizes (mm) at the two ends of POROSITY_RANGE: the issue's cortical and
 #: cancellous targets
 PORE_RANGE = (0.3, 0.8)
-#: shape of the gamma law of the volumes of Poisson-Voronoi cells in 3-D (Ferenc & Néda
-#: 2007, after Kiang 1966): E[V^(1/3)] = Γ(k + 1/3) / (Γ(k) k^(1/3)) E[V]^(1/3)
-POISSON_VORONOI_GAMMA_SHAPE = 5.586
 #: Lloyd relaxation weights the density by this power: a centroidal Voronoi
 #: tessellation of density w has points of density w^(3/5) in 3-D (Gersho)
 LLOYD_EXPONENT = 5.0 / 3.0
@@ -226,9 +228,10 @@ class ModulusCalibration(Calibration):
        measured law inverted in closed form), clipped to the law's fitted span
        (``porosity_range`` is set to it): beyond it the bone is stiffer (or softer) than
        any scaffold built for the fit;
-    4. the pore size: the paper's ``Dp`` whose graded seed density ``P / (π Dp³ / 6)`` is the
-       density of cells of mean polyhedron-sphere pore size `pore_size_mm`
-       (:func:`~implicit_scaffold.geometry.seeds.density_for_pore_size`), so the cells have one size everywhere.
+    4. the pore size: `pore_size_mm` everywhere, the mean polyhedron-sphere pore size the cells
+       are seeded for by the run's seed rule (:meth:`GradeField.density`; under ``pore-size``,
+       :func:`~implicit_scaffold.geometry.seeds.density_for_pore_size`), so the cells have one size
+       everywhere and the porosity alone follows the bone.
 
     Attributes
     ----------
@@ -236,6 +239,7 @@ class ModulusCalibration(Calibration):
     scaffold : ModulusPorosity
     pore_size_mm : float, mm
     sv : float
+        The Sv of the fit's builds (the run's Sv seeds the cells).
     """
 
     law: object = None
@@ -258,11 +262,8 @@ class ModulusCalibration(Calibration):
         return np.clip(self.scaffold.porosity(self.bone_modulus(hu)), lo, hi)
 
     def pore_size(self, porosity) -> np.ndarray:
-        """The paper's pore size at `porosity` whose seed density gives cells of `pore_size_mm`, mm."""
-        from .seeds import density_for_pore_size
-
-        rho = density_for_pore_size(self.pore_size_mm, self.sv)
-        return np.cbrt(6.0 * np.asarray(porosity, np.float64) / (np.pi * rho))
+        """Target pore size at `porosity`: `pore_size_mm` whatever the porosity, mm (float64)."""
+        return np.full(np.shape(porosity), float(self.pore_size_mm))
 
     def to_json(self) -> dict:
         return {"calibration": [self.slope, self.intercept], "site": self.law.site, "law_a_mpa": self.law.a_mpa,
@@ -378,6 +379,10 @@ class GradeField:
     ct : CTImage, optional
     calibration : Calibration, optional
         Kind ct.
+    seed_rule : {'pore-size', 'paper'}
+        How a target pore size becomes a seed density (:meth:`density`), as ``--seed-rule``.
+    sv : float
+        The run's cell scale factor (the pore-size rule's pore is the cell scaled by it).
     """
 
     kind: str
@@ -386,6 +391,8 @@ class GradeField:
     function: Callable | None = None
     ct: CTImage | None = None
     calibration: Calibration | None = None
+    seed_rule: str = "pore-size"
+    sv: float = 0.75
 
     @property
     def coordinate(self) -> str:
@@ -433,6 +440,25 @@ class GradeField:
             size = self.calibration.pore_size(por)
         return size, por
 
+    def density(self, pore_size, porosity) -> np.ndarray:
+        """Seeds per mm³ for target pore sizes and porosities (float64), by :attr:`seed_rule`.
+
+        ``pore-size``: :func:`~implicit_scaffold.geometry.seeds.density_for_pore_size` of the
+        local ``Dp`` (the porosity plays no part: the offset meets it); ``paper``: the paper's
+        ``P / (π Dp³ / 6)`` (:func:`seed_density_of`).
+
+        Parameters
+        ----------
+        pore_size : (m,) array_like of float, mm
+        porosity : (m,) array_like of float
+        """
+        if self.seed_rule == "paper":
+            return seed_density_of(pore_size, porosity)
+        from .seeds import density_for_pore_size
+
+        size = np.asarray(pore_size, np.float64)
+        return np.broadcast_to(density_for_pore_size(size, self.sv), np.broadcast(size, porosity).shape).copy()
+
     def describe(self) -> str:
         if self.kind == "depth":
             return f"pore size by depth {self.profile.describe()} mm"
@@ -442,7 +468,8 @@ class GradeField:
         return f"CT {self.ct.source}, density = {c.slope:g} HU + {c.intercept:g} g/cm3"
 
 
-def grade_field(grade=None, calibration=None, ct=None, *, porosity: float) -> GradeField:
+def grade_field(grade=None, calibration=None, ct=None, *, porosity: float, seed_rule: str = "pore-size",
+                sv: float = 0.75) -> GradeField:
     """The :class:`GradeField` of a run's options.
 
     Parameters
@@ -453,15 +480,20 @@ def grade_field(grade=None, calibration=None, ct=None, *, porosity: float) -> Gr
         Needed with `calibration`.
     porosity : float
         The constant porosity target (kinds depth and function).
+    seed_rule : {'pore-size', 'paper'}
+        The run's ``--seed-rule``, applied locally (:meth:`GradeField.density`).
+    sv : float
+        The run's cell scale factor.
     """
+    rule = {"seed_rule": str(seed_rule), "sv": float(sv)}
     if calibration is not None:
         if ct is None:
             raise ScaffoldError("--calibration maps the patient's CT intensities to porosity; give --patient a "
                                 "CT volume (.nii, .nrrd, .mha or a DICOM folder)")
-        return GradeField("ct", float(porosity), ct=ct, calibration=calibration)
+        return GradeField("ct", float(porosity), ct=ct, calibration=calibration, **rule)
     if isinstance(grade, GradeProfile):
-        return GradeField("depth", float(porosity), profile=grade)
-    return GradeField("function", float(porosity), function=grade)
+        return GradeField("depth", float(porosity), profile=grade, **rule)
+    return GradeField("function", float(porosity), function=grade, **rule)
 
 
 def seed_density_of(pore_size, porosity) -> np.ndarray:
@@ -469,17 +501,26 @@ def seed_density_of(pore_size, porosity) -> np.ndarray:
     return np.asarray(porosity, np.float64) / (np.pi * np.asarray(pore_size, np.float64) ** 3 / 6.0)
 
 
-def polyhedron_sphere_expected(pore_size, porosity, sv: float) -> np.ndarray:
-    """Expected polyhedron-sphere diameter of Poisson-Voronoi cells seeded at the paper's density, mm.
+def polyhedron_sphere_expected(pore_size, porosity, field: GradeField) -> np.ndarray:
+    """Expected polyhedron-sphere diameter of Poisson-Voronoi cells seeded for these targets by
+    the field's seed rule, mm.
 
-    Cells of mean volume ``1/ρ`` with gamma-distributed volumes (shape
-    :data:`POISSON_VORONOI_GAMMA_SHAPE`) have ``E[Sv (6 V / π)^(1/3)] = Sv c (6 / (π ρ))^(1/3)``,
-    ``c = Γ(k + 1/3) / (Γ(k) k^(1/3)) ≈ 0.980``; with ``ρ = P / (π Dp³ / 6)`` this is
-    ``Sv c Dp / P^(1/3)``. It is what the uniform case measures for a target ``Dp``.
+    Cells of mean volume ``1/ρ`` with gamma-distributed volumes have
+    ``E[Sv (6 V / π)^(1/3)] = Sv c (6 / (π ρ))^(1/3)``, ``c = Γ(k + 1/3) / (Γ(k) k^(1/3)) ≈ 0.980``
+    (:func:`~implicit_scaffold.geometry.seeds.pore_size_for_density`). Under the pore-size rule
+    this is ``Dp`` itself; under the paper's, ``ρ = P / (π Dp³ / 6)``, it is ``Sv c Dp / P^(1/3)``
+    (0.83 Dp at P = 0.7, Sv = 0.75). It is what the uniform case measures for a target ``Dp``.
+
+    Parameters
+    ----------
+    pore_size : (m,) array_like of float, mm
+    porosity : (m,) array_like of float
+    field : GradeField
+        Its seed rule and Sv.
     """
-    k = POISSON_VORONOI_GAMMA_SHAPE
-    c = math.exp(math.lgamma(k + 1 / 3) - math.lgamma(k)) / k ** (1 / 3)
-    return sv * c * np.asarray(pore_size, np.float64) / np.cbrt(np.asarray(porosity, np.float64))
+    from .seeds import pore_size_for_density
+
+    return pore_size_for_density(field.density(pore_size, porosity), field.sv)
 
 
 # --- seeds --------------------------------------------------------------------------
@@ -523,8 +564,7 @@ class SeedDensity:
         out = np.zeros(len(p))
         keep = s < self.margin
         if keep.any():
-            size, por = self.field.targets(p[keep], -s[keep])
-            out[keep] = seed_density_of(size, por)
+            out[keep] = self.field.density(*self.field.targets(p[keep], -s[keep]))
         return out
 
 
@@ -537,10 +577,11 @@ def seed_density(field: GradeField, patient, lo, hi) -> SeedDensity:
     """Sample the graded seed density on a fine grid and integrate it into a seed count.
 
     The grid's voxels are at most half the smallest target pore size (when known) and
-    at most :data:`SEEDING_MAX_VOXELS` in number. The count is the integral of
-    ``ρ(x) = P(x) / (π Dp(x)³ / 6)`` over the box within ``s_P < margin`` (midpoint rule,
-    each voxel weighted by its overlap with the box, so a constant field gives
-    ``ρ V`` exactly), the margin being one cell of the densest part inside the patient.
+    at most :data:`SEEDING_MAX_VOXELS` in number. The count is the integral of the local
+    density ``ρ(x)`` of the field's seed rule (:meth:`GradeField.density`) over the box
+    within ``s_P < margin`` (midpoint rule, each voxel weighted by its overlap with the box,
+    so a constant field gives ``ρ V`` exactly: an even run's first count under the same
+    rule), the margin being one cell of the densest part inside the patient.
 
     Parameters
     ----------
@@ -567,8 +608,7 @@ def seed_density(field: GradeField, patient, lo, hi) -> SeedDensity:
     for i in range(grid.shape[0]):
         pts = np.stack(np.meshgrid([ax[0][i]], ax[1], ax[2], indexing="ij"), -1).reshape(-1, 3)
         s = sdf[i].ravel().astype(np.float64)
-        dp, por = field.targets(pts, -s)
-        r = seed_density_of(dp, por).reshape(grid.shape[1:])
+        r = field.density(*field.targets(pts, -s)).reshape(grid.shape[1:])
         rho[i] = r
         inside = sdf[i] < 0
         if inside.any():
@@ -582,9 +622,9 @@ def seed_density(field: GradeField, patient, lo, hi) -> SeedDensity:
     bound = float(rho[region].max())
     if field.kind == "ct":
         c = field.calibration
-        bound = max(bound, float(seed_density_of(min(c.pore_range), max(c.porosity_range))))
+        bound = max(bound, float(field.density(min(c.pore_range), max(c.porosity_range))))
     elif field.kind == "depth":
-        bound = max(bound, float(seed_density_of(min(field.profile.sizes), field.porosity)))
+        bound = max(bound, float(field.density(min(field.profile.sizes), field.porosity)))
     else:
         # a callable is known only at the grid's centres: allow for a peak between them
         bound *= 1.25
@@ -691,8 +731,9 @@ def lloyd_relax(seeds, density: SeedDensity, iterations: int) -> np.ndarray:
 def power_radii(density: SeedDensity, seeds) -> np.ndarray:
     """Power radii that make each seed's cell follow its local target size, mm.
 
-    The rule: ``r_i = L_i / 2``, ``L_i = ρ(s_i)^(-1/3)`` the seed spacing the paper's
-    density asks for at the seed (``ρ = P / (π Dp³ / 6)``, so ``L = Dp (π / (6 P))^(1/3)``).
+    The rule: ``r_i = L_i / 2``, ``L_i = ρ(s_i)^(-1/3)`` the seed spacing the field's seed
+    rule asks for at the seed (:meth:`GradeField.density`; under the paper's,
+    ``ρ = P / (π Dp³ / 6)``, so ``L = Dp (π / (6 P))^(1/3)``).
     For two neighbouring seeds at the mean of their spacings, ``d = (L_i + L_j) / 2``,
     the power plane ``|x - s_i|² - r_i² = |x - s_j|² - r_j²`` (weights ``w = r²``) lies
     at ``(d² + r_i² - r_j²) / (2 d) = L_i / 2`` from ``s_i``: each cell reaches half its
@@ -713,8 +754,7 @@ def power_radii(density: SeedDensity, seeds) -> np.ndarray:
 
     p = np.asarray(seeds, np.float64).reshape(-1, 3)
     depth = -sample(density.patient_sdf, density.grid, p).astype(np.float64)
-    size, por = density.field.targets(p, depth)
-    return 0.5 * np.cbrt(1.0 / seed_density_of(size, por))
+    return 0.5 * np.cbrt(1.0 / density.field.density(*density.field.targets(p, depth)))
 
 
 # --- offset field -------------------------------------------------------------------
@@ -1146,8 +1186,8 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
     Porosity is measured on the voxels (``1 - solid / patient`` per bin, the skin
     included); pore size is the mean polyhedron-sphere diameter of the cells whose seed
     lies in the bin, beside the mean target ``Dp`` of the bin's voxels and the
-    polyhedron-sphere size expected for the targets at the seeds
-    (:func:`polyhedron_sphere_expected`). Three passes over the planes (the range, the
+    polyhedron-sphere size expected for the targets at the seeds under the field's seed
+    rule (:func:`polyhedron_sphere_expected`: the target itself under ``pore-size``). Three passes over the planes (the range, the
     depth bins' counts, the sums), so a tiled run's fields on disk give the figures
     of the whole grid.
 
@@ -1206,7 +1246,7 @@ def profiles(s, grid: Grid, cells, sv: float, field: GradeField, patient_sdf, *,
     seed_in = seed_sdf < 0
     d_cells = pore_sizes(cells, sv)[seed_in]
     sp, sporo = field.targets(cells.seeds[seed_in], -seed_sdf[seed_in])
-    expected = polyhedron_sphere_expected(sp, sporo, sv)
+    expected = polyhedron_sphere_expected(sp, sporo, field)
     dlo, dhi, alo, ahi = np.inf, -np.inf, np.inf, -np.inf
     for _, _, depth, along in visit():
         if depth.size:

@@ -145,27 +145,48 @@ PORE_SIZE_TOLERANCE = 0.02
 PORE_SIZE_PASSES = 4
 
 
-def density_for_pore_size(pore_size: float, sv: float) -> float:
+def density_for_pore_size(pore_size, sv: float):
     """Seeds per mm³ whose cells have a mean polyhedron-sphere pore size of `pore_size`.
 
     The pore of a cell of volume ``V`` has the diameter ``D = Sv (6 V / π)^(1/3)`` (the
     paper's measure); for Poisson–Voronoi cells of density ``λ`` (mean volume ``1/λ``)
-    its mean is ``Sv (6 / (π λ))^(1/3) · E[v^(1/3)]``. Solved for ``λ``.
+    its mean is ``Sv (6 / (π λ))^(1/3) · E[v^(1/3)]``. Solved for ``λ``. A graded run
+    applies it locally, to the target pore size at each point.
 
     Parameters
     ----------
-    pore_size : float, mm
+    pore_size : float or (m,) array_like of float, mm
         Target mean pore size (polyhedron-sphere).
     sv : float
         Cell scale factor, 0 < Sv < 1.
 
     Returns
     -------
-    float, seeds per mm³
+    float, or (m,) float64 ndarray, seeds per mm³
+        A float for a scalar `pore_size`.
     """
-    if not (pore_size > 0 and math.isfinite(pore_size)):
-        raise ScaffoldError(f"--pore-size must be a positive number of mm, got {pore_size!r}")
-    return 6.0 / math.pi * (sv * PV_CUBE_ROOT_MEAN / pore_size) ** 3
+    size = np.asarray(pore_size, np.float64)
+    if not np.all((size > 0) & np.isfinite(size)):
+        bad = size if size.ndim == 0 else size[~((size > 0) & np.isfinite(size))][0]
+        raise ScaffoldError(f"--pore-size must be a positive number of mm, got {float(bad)!r}")
+    rho = 6.0 / math.pi * (sv * PV_CUBE_ROOT_MEAN / size) ** 3
+    return float(rho) if rho.ndim == 0 else rho
+
+
+def pore_size_for_density(density, sv: float):
+    """The mean polyhedron-sphere pore size of Poisson–Voronoi cells of `density`, mm: the
+    inverse of :func:`density_for_pore_size`, ``Sv (6 / (π λ))^(1/3) · E[v^(1/3)]``.
+
+    Parameters
+    ----------
+    density : float or (m,) array_like of float, seeds per mm³
+    sv : float
+
+    Returns
+    -------
+    float64 ndarray, mm
+    """
+    return sv * PV_CUBE_ROOT_MEAN * np.cbrt(6.0 / (math.pi * np.asarray(density, np.float64)))
 
 
 def corrected_count(n: int, measured: float, target: float) -> int:
