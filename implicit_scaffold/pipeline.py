@@ -1259,7 +1259,10 @@ class _RunPlan:
         # whose thinnest slab takes half the room beside them (the mesh's slab counted: without it, 650M asked a
         # 0.04 mm cube's STL for "a larger --voxel (e.g. 0.0263 mm)"); none where the room is within what a
         # process's resident set moves by from one run to the next
-        room = self.max_memory - held - (max(crowded - voxels_part, 0) if crowded > thinnest else 0)
+        # what the process holds, with the margin the budget named allows for: it grows by the cells' arrays after a
+        # check before them (`span`), and moves by tens of MiB from one process to the next (0.61 to 0.65 GiB for a
+        # 6 mm cube's run beside two others): a voxel offered on the held of one run was refused by the next
+        room = self.max_memory - SMALLEST_MARGIN * held - (max(crowded - voxels_part, 0) if crowded > thinnest else 0)
         fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest and crowded > 2 * voxels_part else
                f", or use a larger --voxel (e.g. {grid.spacing * (2 * thinnest / room) ** 0.5:.3g} mm)"
                if room >= VOXEL_ADVICE_ROOM and thinnest > room / 2 else "")

@@ -612,25 +612,31 @@ def test_a_budget_refusal_of_a_run_that_measures_its_build_names_one_its_solve_f
     assert all("\n" not in r for r in refusals)
 
 
-def test_a_slab_refusal_offers_a_larger_voxel_that_fits(tmp_path):
+def test_a_slab_refusal_offers_a_larger_voxel_that_fits(tmp_path, monkeypatch):
     """The voxel a slab refusal offers is larger than the run's and fits the budget refused: the mesh's slab, the
-    largest, was left out of it ("a larger --voxel (e.g. 0.0263 mm)" for a 0.04 mm run at 650M)."""
+    largest, was left out of it ("a larger --voxel (e.g. 0.0263 mm)" for a 0.04 mm run at 650M). What the process
+    holds is fixed here: from one process to the next it moves by tens of MiB."""
     import re
 
-    from implicit_scaffold.run.memory import parse_memory
+    from implicit_scaffold import pipeline
+    from implicit_scaffold.errors import ScaffoldError
+    from implicit_scaffold.fields.patient import primitive
+    from implicit_scaffold.run import memory
+    from implicit_scaffold.run.grid import Grid
 
-    options = dict(size=6.0, seed=0, output=str(tmp_path / "m.stl"))
-    first = _to_the_lattice(voxel=0.03, max_memory="100M", **options)["refused"]
-    named = parse_memory(re.search(r"pass --max-memory (\S+)", first).group(1))
-    # a voxel is offered where the budget holds what the run holds beside the grid, but not the grid's thinnest
-    # slab: just under the smallest budget named
-    for step in range(1, 13):
-        budget = f"{(named - step * 10 * 2**20) // 2**20}M"
-        out = _to_the_lattice(voxel=0.03, max_memory=budget, **options)
-        offered = re.search(r"a larger --voxel \(e\.g\. (\S+) mm\)", out.get("refused", ""))
-        if offered:
-            break
-    assert offered, out
+    monkeypatch.setattr(memory, "release", lambda: 300 * 2**20)
+    patient = primitive("box", 6.0)
+    budget = 690 * 2**20  # the 0.02 mm grid's thinnest slab (the mesh's, 106 MiB) does not fit beside 592 MiB held
+
+    def plan(voxel):
+        run = pipeline._RunPlan(pipeline.run_bytes_per_voxel(mesh=True, morphometry=True, repair=False), budget,
+                                None, None, patient, tmp_path / "m.stl", None)
+        return run.plan(Grid.covering(patient.lo, patient.hi, voxel), halo=2, reserve=36 * 2**20)
+
+    with pytest.raises(ScaffoldError) as refused:
+        plan(0.02)
+    offered = re.search(r"a larger --voxel \(e\.g\. (\S+) mm\)", str(refused.value))
+    assert offered, str(refused.value)
     voxel = float(offered.group(1))
-    assert voxel > 0.03
-    assert _to_the_lattice(voxel=voxel, max_memory=budget, **options).get("reached"), (budget, voxel)
+    assert voxel > 0.02
+    plan(voxel)  # not refused
