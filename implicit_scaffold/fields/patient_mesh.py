@@ -725,7 +725,13 @@ class MeshPatient:
 
         Integrated along grid lines: each line's inside intervals (from its crossings)
         are cut exactly by the half-spaces, so the only error is the quadrature across
-        the lines at the silhouette of what is kept.
+        the lines at the silhouette of what is kept. A line through a hole in the surface
+        crosses it an odd number of times and has no inside intervals to pair: it is left
+        out, and the lines run along the axis where the fewest do so (the cheapest first,
+        the others only when it has any). Along one axis a hole's whole shadow was lost: a
+        femur whose shaft lost 30 triangles (a 218 mm² hole, 0.37 % of its surface), cut
+        to the 20 mm around it, read 5,937 mm³ for 9,780 along x, where its lines along
+        the shaft pass the hole edge-on.
 
         Parameters
         ----------
@@ -744,8 +750,19 @@ class MeshPatient:
         """
         hs = np.asarray(halfspaces, np.float64).reshape(-1, 4)
         lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+        best = None
+        for axis in self._axes_by_cost(lo, hi):
+            out, odd = self._volume_along(axis, hs, lo, hi, columns)
+            if best is None or odd < best[1]:
+                best = (out, odd)
+            if odd == 0:
+                break
+        return best[0]
+
+    def _volume_along(self, axis: int, hs: np.ndarray, lo: np.ndarray, hi: np.ndarray, columns: int):
+        """:meth:`volume_within` by lines along `axis`: ``((volume, lo, hi), odd)``, `odd` the area (mm²) of the
+        lines that cross the surface an odd number of times within the box's shadow (left out)."""
         size = np.maximum(hi - lo, 1e-9)
-        axis = self._cheapest_axis(lo, hi)
         ua, va = _axes_uv(axis)
         hc = math.sqrt(size[ua] * size[va] / columns)
         nu, nv = (max(int(math.ceil(size[a] / hc)), 1) for a in (ua, va))
@@ -754,10 +771,13 @@ class MeshPatient:
         col, t = crossings(self.vertices, self.faces, axis, u0, hu, nu, v0, hv, nv)
         order = np.lexsort((t, col))
         col, t = col[order], t[order]
+        per_col = np.bincount(col, minlength=nu * nv)
+        odd_lines = per_col % 2 == 1
+        odd = float(np.count_nonzero(odd_lines)) * hu * hv
         first = np.searchsorted(col, col, side="left")
         rank = np.arange(len(col)) - first
-        # entries pair with the next crossing on the same line
-        entry = np.flatnonzero((rank % 2 == 0)[:-1] & (col[1:] == col[:-1]))
+        # entries pair with the next crossing on the same line; a line of an odd count has none to trust
+        entry = np.flatnonzero((rank % 2 == 0)[:-1] & (col[1:] == col[:-1]) & ~odd_lines[col[:-1]])
         c, t0, t1 = col[entry], t[entry], t[entry + 1]
         ci, cj = np.divmod(c, nv)
         pu, pv = u0 + ci * hu, v0 + cj * hv
@@ -776,17 +796,17 @@ class MeshPatient:
         keep = s1 > s0
         volume = float(np.sum(s1[keep] - s0[keep]) * hu * hv)
         if not keep.any():
-            return 0.0, None, None
+            return (0.0, None, None), odd
         klo, khi = np.empty(3), np.empty(3)
         klo[axis], khi[axis] = s0[keep].min(), s1[keep].max()
         for a_, p_, h_ in ((ua, pu, hu), (va, pv, hv)):
             # a line stands for a cell of width h_: the kept part may reach half a cell beyond it
             klo[a_] = max(p_[keep].min() - h_ / 2, lo[a_])
             khi[a_] = min(p_[keep].max() + h_ / 2, hi[a_])
-        return volume, klo, khi
+        return (volume, klo, khi), odd
 
-    def _cheapest_axis(self, lo, hi) -> int:
-        """The line direction that meets the fewest (triangle, line) pairs in the box ``[lo, hi]``."""
+    def _axes_by_cost(self, lo, hi) -> list[int]:
+        """The line directions, those that meet the fewest (triangle, line) pairs in the box ``[lo, hi]`` first."""
         tri = self.vertices[self.faces]
         tmin, tmax = tri.min(axis=1), tri.max(axis=1)
         cost = []
@@ -797,7 +817,7 @@ class MeshPatient:
                                                                                   lo[[ua, va]])
             cost.append(float(np.sum(np.prod(np.maximum(ext, 0), axis=1)) / ((hi[ua] - lo[ua]) * (hi[va] - lo[va])
                                                                              + 1e-30)))
-        return int(np.argmin(cost))
+        return [int(a) for a in np.argsort(cost, kind="stable")]
 
 
 def mesh_patient_from_trimesh(mesh, *, name: str, scale: float = 1.0) -> MeshPatient:
