@@ -87,7 +87,7 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
             image = reader.Execute()
             check_series(path, reader, files[best], image)
             return image
-        check_gzip(path)
+        check_compressed(path)
         image = sitk.ReadImage(str(path))
         if suffix(path) in (".nrrd", ".nhdr"):
             nrrd_units(path, image)
@@ -118,29 +118,82 @@ LENGTH_UNITS = {"mm": 1.0, "millimeter": 1.0, "millimetre": 1.0, "millimeters": 
                 "micrometers": 1e-3, "micrometres": 1e-3, "\u00b5m": 1e-3, "\\u00b5m": 1e-3, "nm": 1e-6}
 
 
-def check_gzip(path) -> None:
-    """A one-line :class:`ScaffoldError` when the file at `path` is a gzip stream (a ``.nii.gz``) cut short or corrupt.
+def _header(path, sep: str) -> tuple[dict, int]:
+    """The text header of the NRRD (`sep` ``":"``) or MetaImage (``"="``) file at `path`: its fields (keys lower
+    case, values stripped) and the byte at which the data attached to it start (a NRRD's blank line, the line
+    after a MetaImage's ``ElementDataFile``); an offset of -1 where the header does not end in its first 64 KiB."""
+    with open(path, "rb") as fh:
+        raw = fh.read(65536)
+    fields, offset = {}, 0
+    for line in raw.split(b"\n"):
+        offset += len(line) + 1
+        text = line.decode("latin-1").rstrip("\r")
+        if sep == ":" and not text.strip():
+            return fields, offset
+        key, found, value = text.partition(sep)
+        if found:
+            fields.setdefault(key.strip().lower(), value.strip())
+        if sep == "=" and key.strip().lower() == "elementdatafile":
+            return fields, offset
+    return fields, -1
+
+
+def _stream_ends(path, offset: int, wbits: int) -> bool:
+    """Whether the zlib (`wbits` 15) or gzip (31) stream from byte `offset` of `path` reaches its end marker, its
+    check sum verified, decompressed :data:`GZIP_CHUNK` bytes at a time (its memory, whatever the volume's size);
+    zlib.error where it is corrupt."""
+    stream = zlib.decompressobj(wbits)
+    with open(path, "rb") as fh:
+        fh.seek(offset)
+        while not stream.eof:
+            data = stream.unconsumed_tail or fh.read(GZIP_CHUNK)
+            if not data:
+                return False
+            stream.decompress(data, GZIP_CHUNK)
+    return True
+
+
+def check_compressed(path) -> None:
+    """A one-line :class:`ScaffoldError` when the compressed data of the volume file at `path` are cut short or corrupt.
 
     ITK's NIfTI reader fills what a truncated ``.nii.gz`` (an interrupted download) lacks with zeros, without a
-    word, so the bone loses its slices; Python's :mod:`gzip` checks the end-of-stream marker, the CRC and the
-    length. The stream is decompressed :data:`GZIP_CHUNK` bytes at a time (its memory, whatever the volume's
-    size). A NRRD's or MetaImage's compressed data follow a text header: ITK refuses those cut short itself.
+    word, so the bone loses its slices; its NRRD and MetaImage readers refuse such data, but in messages that
+    name no cause ("No such file or directory") or lose it in teem's trace. Checked: a file that is a gzip
+    stream (``.nii.gz``), a NRRD's gzip data (attached, or its ``data file``), a MetaImage's zlib data
+    (``CompressedData = True``, attached or its ``ElementDataFile``).
     """
-    name = _name(Path(path))
+    path = Path(path)
     with open(path, "rb") as fh:
-        if fh.read(2) != b"\x1f\x8b":
+        gzipped = fh.read(2) == b"\x1f\x8b"
+    where, offset, wbits = path, 0, 31
+    if not gzipped and suffix(path) in (".nrrd", ".nhdr"):
+        fields, offset = _header(path, ":")
+        if fields.get("encoding", "").lower() not in ("gzip", "gz"):
             return
-        fh.seek(0)
-        try:
-            with gzip.GzipFile(fileobj=fh) as stream:
-                while stream.read(GZIP_CHUNK):
-                    pass
-        except EOFError:
-            raise ScaffoldError(f"{name} is cut short: its gzip stream ends before its end (an interrupted download "
-                                "or copy); download or copy it again") from None
-        except (gzip.BadGzipFile, zlib.error, OSError) as exc:
-            raise ScaffoldError(f"{name} is corrupt: its gzip stream fails its check ({exc}); download or copy "
-                                "it again") from None
+        data = fields.get("data file", fields.get("datafile"))
+        if data is not None:
+            where, offset = path.parent / data, 0
+    elif not gzipped and suffix(path) in (".mha", ".mhd"):
+        fields, offset = _header(path, "=")
+        if fields.get("compresseddata", "").lower() != "true":
+            return
+        data = fields.get("elementdatafile", "LOCAL")
+        if data.upper() != "LOCAL":
+            where, offset = path.parent / data, 0
+        wbits = 15
+    elif not gzipped:
+        return
+    if offset < 0 or not where.is_file():
+        return      # no data where this looks: ITK's reader says what is wrong
+    which = f"{_name(path)}" + ("" if where == path else f" (its data file {where.name})")
+    try:
+        whole = _stream_ends(where, offset, wbits)
+    except zlib.error as exc:
+        raise ScaffoldError(f"{which} is corrupt: its compressed data fail their check ({exc}); download or copy "
+                            "it again") from None
+    if not whole:
+        raise ScaffoldError(f"{which} is cut short: its compressed data stop before their end marker (an interrupted "
+                            "download or copy); download or copy it again")
 
 
 def check_series(path, reader, files, image) -> None:
@@ -212,17 +265,14 @@ def nrrd_units(path, image) -> None:
     """
     import re
 
-    with open(path, "rb") as fh:
-        head = fh.read(65536).decode("latin-1", "replace").replace("\r\n", "\n").split("\n\n")[0]
-    stated = [line.partition(":")[2] for line in head.split("\n") if line.partition(":")[0].strip().lower() ==
-              "space units"]
-    units = [u.strip().lower() for u in re.findall(r'"([^"]*)"', stated[0])] if stated else []
+    stated = _header(path, ":")[0].get("space units")
+    units = [u.strip().lower() for u in re.findall(r'"([^"]*)"', stated)] if stated else []
     units = [u for u in units if u]
     if not units:
         return
     scales = {LENGTH_UNITS.get(u) for u in units}
     if None in scales or len(scales) > 1:
-        raise ScaffoldError(f"{_name(Path(path))} states space units {stated[0].strip()}, not one length unit "
+        raise ScaffoldError(f"{_name(Path(path))} states space units {stated}, not one length unit "
                             "known here (mm, um or microns, cm, m); rewrite its header in one of them")
     scale = scales.pop()
     image.SetSpacing(tuple(v * scale for v in image.GetSpacing()))
