@@ -101,8 +101,9 @@ def _junk(tmp_path):
     return files
 
 
-@pytest.mark.parametrize("case", ["unknown", "unreadable", "empty", "nan", "open", "cut_short", "missing", "clip_misses",
-                                  "label_on_mesh", "threshold_on_mesh", "bad_units_on_volume", "empty_clip"])
+@pytest.mark.parametrize("case", ["unknown", "unreadable", "empty", "nan", "open", "cut_short", "missing",
+                                  "clip_misses", "label_on_mesh", "threshold_on_mesh", "bad_units_on_volume",
+                                  "empty_clip"])
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, cyl_stl, case):
     files = _junk(tmp_path)
     extra = []

@@ -18,7 +18,7 @@ from .formats import IMAGE_STACKS, VOLUME_READERS, suffix
 
 #: what a folder may hold: a DICOM series (a CT) or TIFF slices (a binary scaffold)
 FOLDER_KINDS = ("dicom", "tiff")
-#: bytes decompressed per step when a gzip stream is checked: its memory, whatever the volume's size
+#: bytes decompressed per step when a compressed volume's stream is checked: its memory, whatever the volume's size
 GZIP_CHUNK = 1 << 22
 #: a DICOM series' slices may stray from one even step along their normal (and from that normal) by this
 #: share of the step, or by :data:`SLICE_TOLERANCE_MM` where that is more: positions are written to
@@ -53,6 +53,11 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
         several, with a warning), or TIFF slices in name order.
     what : str
         How the error messages name what was expected.
+
+    Where ITK would read a file wrong without a word, it is refused or warned about here: compressed data cut
+    short or corrupt (:func:`check_compressed`), a tilted, duplicated or unevenly spaced DICOM series
+    (:func:`check_series`), a NRRD's ``space units`` (:func:`nrrd_units`, to mm), a NIfTI's sform that
+    disagrees with where ITK places it (:func:`warn_sform`).
     """
     import SimpleITK as sitk
 
