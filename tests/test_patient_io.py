@@ -89,11 +89,21 @@ def _junk(tmp_path):
     cup = trimesh.Trimesh(sphere.vertices, sphere.faces[sphere.triangles_center[:, 2] > 0], process=False)
     cup.export(tmp_path / "cup.stl")
     files["open"] = (tmp_path / "cup.stl", "too open to tell inside from outside")
+    # an interrupted download: half a .nii.gz (ITK alone reads the missing half as zeros)
+    import SimpleITK as sitk
+
+    ball = np.linalg.norm(np.indices((30, 30, 30)) - 14.5, axis=0) <= 10
+    noise = np.random.default_rng(3).integers(0, 3, ball.shape)
+    sitk.WriteImage(sitk.GetImageFromArray(np.where(ball, 31, noise).astype(np.uint8)), str(tmp_path / "whole.nii.gz"))
+    data = (tmp_path / "whole.nii.gz").read_bytes()
+    (tmp_path / "half.nii.gz").write_bytes(data[: len(data) // 2])
+    files["cut_short"] = (tmp_path / "half.nii.gz", "half.nii.gz is cut short")
     return files
 
 
-@pytest.mark.parametrize("case", ["unknown", "unreadable", "empty", "nan", "open", "missing", "clip_misses",
-                                  "label_on_mesh", "threshold_on_mesh", "bad_units_on_volume", "empty_clip"])
+@pytest.mark.parametrize("case", ["unknown", "unreadable", "empty", "nan", "open", "cut_short", "missing",
+                                  "clip_misses", "label_on_mesh", "threshold_on_mesh", "bad_units_on_volume",
+                                  "empty_clip"])
 def test_bad_input_one_line_exit_2_nothing_written(tmp_path, capsys, cyl_stl, case):
     files = _junk(tmp_path)
     extra = []

@@ -6,6 +6,7 @@ cuboid) through SimpleITK with non-unit spacing, offset origins and rotated dire
 from __future__ import annotations
 
 import math
+import re
 
 import numpy as np
 import pytest
@@ -342,6 +343,16 @@ def test_a_ct_given_as_labels_is_refused_in_one_line(tmp_path):
         load_volume(tmp_path / "prob.nii.gz", label=1)
     _one_line(e, "intensities", "--label 1")
     assert load_volume(tmp_path / "prob.nii.gz", threshold=0.5).mask_voxels == int(ball.sum())
+    # a label map resampled linearly: fractional values 0 to 117, no negative one. The example threshold is one
+    # the image reaches (200 kept no voxel), and it loads as the message says
+    lin = np.where(ball, 117.0, 0.0) + (np.arange(np.prod(shape)).reshape(shape) % 5) * 0.25
+    _write(tmp_path / "lin.nii.gz", lin.astype(np.float32), spacing, (0, 0, 0))
+    with pytest.raises(ScaffoldError) as e:
+        load_volume(tmp_path / "lin.nii.gz", label=31)
+    _one_line(e, "intensities", "--label 31", "nearest neighbour")
+    example = float(re.search(r"e\.g\. --threshold (\S+),", str(e.value)).group(1))
+    assert lin.min() < example <= lin.max()
+    assert load_volume(tmp_path / "lin.nii.gz", threshold=example).mask_voxels == int(np.count_nonzero(lin >= example))
     # a label map of a hundred labels is a label map
     labels = (np.arange(np.prod(shape)).reshape(shape) % 100).astype(np.uint8)
     labels[ball] = 101

@@ -159,9 +159,12 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
             what = f"--label {label} would keep only its voxels of exactly {label}" if label is not None \
                 else "every non-zero voxel would be bone"
             ct = " (bone is about 200 HU and above in a CT)" if span[0] < 0 else ""
+            # the example is one the image reaches: 200 HU for a CT, else its range's middle (a label map
+            # resampled linearly holds 0 to its largest label, and 200 would keep no voxel)
+            example = 200 if span[0] < 200 <= span[1] else float(f"{(span[0] + span[1]) / 2:.2g}")
             raise ScaffoldError(f"{name} holds intensities ({span[0]:g} to {span[1]:g}), not labels, so {what}; "
-                                f"pass --threshold with the bone's lowest intensity{ct}, e.g. --threshold 200, "
-                                "or give its segmentation's label map with --label N")
+                                f"pass --threshold with the bone's lowest intensity{ct}, e.g. --threshold {example:g}, "
+                                "or give its segmentation's label map with --label N (resampled to nearest neighbour)")
     if label is not None:
         labs = _labels(label)
         mask = np.isin(array, labs)
