@@ -335,8 +335,11 @@ def _mechanics(args) -> int:
 
 def _add_patient_cuts(pg) -> None:
     """A mesh patient's units and the part of the bone kept: generate's and design's."""
-    pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
-                    help="units of a mesh file (default mm; a warning says when the size suggests others)")
+    from .io.patient_io import UNITS
+
+    pg.add_argument("--units", choices=list(UNITS), default=None,
+                    help="units of a mesh file (in: inch; default the unit the file declares (3MF) or mm; a warning "
+                         "says when the size suggests others)")
     pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                     default=None, help="keep the part of the bone inside this box (mm)")
     pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
