@@ -1646,7 +1646,8 @@ def _pieces_report(report: dict, rows: list[dict]) -> str | None:
     # each piece's main body is no fragment (the morphometry counts pieces besides one: _fragments_per_piece)
     report["patient_pieces_with_solid"] = sum(1 for r in rows if r.get("bodies"))
     pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
-    return small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore) if pore else None
+    return (small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore, source=report.get("patient_source"))
+            if pore else None)
 
 
 def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, grid: Grid, cells, cells_in,
