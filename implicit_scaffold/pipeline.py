@@ -1748,7 +1748,13 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
     if run.slices is not None:
         report["slices"] = _write_stack(s, grid, run.slices, prog)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
+    precision = None
+    if mesh and result.mesh is not None and out_path is not None:
+        from .mesh.writers import float32_collapse_warning
+
+        # the summary is of the float64 mesh; an STL holds float32 (exact: its vertices are here)
+        precision = float32_collapse_warning(out_path, grid, result.mesh.vertices)
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings, precision])
     if out_path is not None and not written:
         with prog.stage("write"):
             write_outputs(result, out_path)
@@ -1819,7 +1825,13 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     if run.slices is not None:
         report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
+    precision = None
+    if mesh and ext in MESH_FORMATS:
+        from .mesh.writers import float32_collapse_warning
+
+        # streamed: no vertices held, so the bound from the grid's farthest corner
+        precision = float32_collapse_warning(out_path, grid)
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings, precision])
     # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
     field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
                               for f in (tf.field, tf.patient))
