@@ -765,3 +765,21 @@ def test_an_stl_far_from_the_origin_is_warned_about_when_float32_merges_vertices
         m3 = write_mesh(mesh, tmp_path / "s.3mf")
         assert trimesh.load(m3, force="mesh").is_watertight
         assert float32_collapse_warning(m3, grid, mesh.vertices) is None
+
+
+def test_generate_warns_of_an_stl_whose_float32_coordinates_merge_vertices(tmp_path):
+    import trimesh
+
+    import implicit_scaffold
+    from implicit_scaffold.errors import ScaffoldWarning
+    from implicit_scaffold.io.patient_io import load_patient
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ball.apply_translation([1e4, 1e4, 1e4])  # float32's step there: 0.001 mm, a twentieth of the voxel
+    ball.export(tmp_path / "far.stl")
+    out = tmp_path / "s.stl"
+    with pytest.warns(ScaffoldWarning, match="merge in the STL's float32 coordinates"):
+        r = implicit_scaffold.generate(patient=load_patient(tmp_path / "far.stl"), pore_size=0.4, porosity=0.7,
+                                       voxel=0.02, seed=1, morphometry=False, output=out)
+    assert r.report["watertight"]  # the float64 mesh measured
+    assert not trimesh.load(out, force="mesh").is_watertight  # what the file holds
