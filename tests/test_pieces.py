@@ -381,3 +381,11 @@ def test_the_speck_advice_names_the_inputs_own_remedy(source, words):
     said = speck_remedy(source)
     assert words in said
     assert ("--threshold" in said) == (words == "a higher --threshold")
+
+
+def test_a_mesh_patient_smaller_than_one_pore_is_asked_for_its_unit():
+    from implicit_scaffold.run.pieces import speck_remedy
+
+    mesh = {"file": "/x/femur_m.stl", "threshold": None, "label": None}
+    assert "--units" in speck_remedy(mesh, whole=True)
+    assert "--units" not in speck_remedy(mesh)
