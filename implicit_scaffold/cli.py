@@ -335,8 +335,11 @@ def _mechanics(args) -> int:
 
 def _add_patient_cuts(pg) -> None:
     """A mesh patient's units and the part of the bone kept: generate's and design's."""
-    pg.add_argument("--units", choices=["mm", "cm", "m", "um"], default=None,
-                    help="units of a mesh file (default mm; a warning says when the size suggests others)")
+    from .io.patient_io import UNITS
+
+    pg.add_argument("--units", choices=list(UNITS), default=None,
+                    help="units of a mesh file (in: inch; default the unit the file declares (3MF) or mm; a warning "
+                         "says when the size suggests others)")
     pg.add_argument("--clip", type=float, nargs=6, metavar=("XMIN", "YMIN", "ZMIN", "XMAX", "YMAX", "ZMAX"),
                     default=None, help="keep the part of the bone inside this box (mm)")
     pg.add_argument("--cut-planes", type=float, nargs=12, default=None,
@@ -598,6 +601,8 @@ def _check(args) -> int:
                        origin=scaffold.origin, exact_distance=scaffold.exact_distance)
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
                  "timings_s": {"check": round(time.perf_counter() - t0, 4)}})
+    if scaffold.axes:
+        cert["axes"] = scaffold.axes  # a volume's index axes put on the world's x, y, z
     if args.output is not None:
         from .io.files import write_json
 
@@ -605,7 +610,8 @@ def _check(args) -> int:
     if not args.quiet:
         lines = [f"{cert['source']}: voxel {cert['voxel_mm']:.4g} mm, grid "
                  f"{'x'.join(str(v) for v in cert['grid_shape'])}, region {scaffold.region_name}, "
-                 f"porosity {cert['porosity']:.4f}"] + _certificate_lines(cert)
+                 f"porosity {cert['porosity']:.4f}" + (f"; {scaffold.axes}" if scaffold.axes else "")]
+        lines += _certificate_lines(cert)
         if args.output:
             lines.append(f"wrote {args.output}")
         lines.append(f"  time {time.perf_counter() - t0:.1f} s")
@@ -995,6 +1001,8 @@ def _analyze(args) -> int:
         head = f"{r['source']}: {r['kind']}{chosen}, voxel {r['voxel_mm']:.4g} mm, grid {grid}, region {r['region']}"
         if r.get("resampled"):
             head += f"; resampled {r['resampled']}"
+        if r.get("axes"):
+            head += f"; {r['axes']}"
         written = [p for p in (args.output, args.report) if p]
         lines = [head, analyze_table(r)]
         if written:

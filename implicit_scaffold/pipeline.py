@@ -1651,7 +1651,8 @@ def _pieces_report(report: dict, rows: list[dict]) -> str | None:
     # each piece's main body is no fragment (the morphometry counts pieces besides one: _fragments_per_piece)
     report["patient_pieces_with_solid"] = sum(1 for r in rows if r.get("bodies"))
     pore = report["pore_size_target_mm"] or (report.get("pore_size_mm") or {}).get("mean")
-    return small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore) if pore else None
+    return (small_pieces_warning(rows, math.pi * pore ** 3 / 6, pore, source=report.get("patient_source"))
+            if pore else None)
 
 
 def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, grid: Grid, cells, cells_in,
@@ -1752,7 +1753,13 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
     if run.slices is not None:
         report["slices"] = _write_stack(s, grid, run.slices, prog)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
+    precision = None
+    if mesh and result.mesh is not None and out_path is not None:
+        from .mesh.writers import float32_collapse_warning
+
+        # the summary is of the float64 mesh; an STL holds float32 (exact: its vertices are here)
+        precision = float32_collapse_warning(out_path, grid, result.mesh.vertices)
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings, precision])
     if out_path is not None and not written:
         with prog.stage("write"):
             write_outputs(result, out_path)
@@ -1823,7 +1830,13 @@ def _finish_in_slabs(tf, report: dict, run: _RunPlan, params: Params, patient, g
     if run.slices is not None:
         report["slices"] = _write_stack(tf.field, grid, run.slices, prog, max_voxels=slab_voxels)
         report.setdefault("porosity_printed", 1.0 - report["slices"]["grey_volume_mm3"] / float(patient.volume))
-    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings])
+    precision = None
+    if mesh and ext in MESH_FORMATS:
+        from .mesh.writers import float32_collapse_warning
+
+        # streamed: no vertices held, so the bound from the grid's farthest corner
+        precision = float32_collapse_warning(out_path, grid)
+    report["warnings"] = _check_built(report, params, [small_pieces, *simplify_warnings, precision])
     # the API's arrays: maps of the slab store, whose files stay on disk (unlinked) while mapped
     field_map, patient_map = (np.memmap(f.path, np.float32, mode="r", shape=tuple(grid.shape))
                               for f in (tf.field, tf.patient))

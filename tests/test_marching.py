@@ -726,3 +726,60 @@ def test_ambiguous_faces_match_numpy_slicing(shape):
     got = _ambiguous_faces(work)
     assert got.dtype == np.int64 and got.shape == expected.shape
     np.testing.assert_array_equal(got, expected)
+
+
+def _sphere_mesh(origin, h=0.01, r=0.2, n=50):
+    """Marching cubes of a sphere of radius `r` mm on an n^3 grid of voxel `h` mm at `origin`."""
+    from implicit_scaffold.mesh.marching import mesh_field
+    from implicit_scaffold.run.grid import Grid
+
+    grid = Grid(tuple(float(v) for v in origin), h, (n, n, n))
+    x = [grid.origin[a] + h * np.arange(n) for a in range(3)]
+    c = np.array(grid.origin) + h * (n - 1) / 2
+    # the distance from the grid's own centre: exact in float64 wherever the grid lies
+    d = np.sqrt(((x[0] - c[0]) ** 2)[:, None, None] + ((x[1] - c[1]) ** 2)[None, :, None]
+                + ((x[2] - c[2]) ** 2)[None, None, :]) - r
+    return mesh_field(d, grid), grid
+
+
+@pytest.mark.parametrize("far", [False, True])
+def test_an_stl_far_from_the_origin_is_warned_about_when_float32_merges_vertices(tmp_path, far):
+    import trimesh
+
+    from implicit_scaffold.mesh.writers import float32_collapse_warning, write_mesh
+
+    # 10,000 mm: float32's step there (0.001 mm) is a tenth of the 0.01 mm voxel
+    mesh, grid = _sphere_mesh((1e4, 1e4, 1e4) if far else (-0.25, -0.25, -0.25))
+    assert mesh.is_watertight  # the float64 mesh is closed either way
+    stl = write_mesh(mesh, tmp_path / "s.stl")
+    # independent oracle: trimesh reads the float32 file back (merging vertices by position, as slicers do)
+    back = trimesh.load(stl, force="mesh")
+    said = float32_collapse_warning(stl, grid, mesh.vertices)
+    assert back.is_watertight is (not far)
+    assert (said is not None) is far
+    streamed = float32_collapse_warning(stl, grid)  # the bound a streamed mesh gets
+    assert (streamed is not None) is far
+    if far:
+        assert ".3mf" in said and "near the origin" in said and "float32" in said
+        # the way out it names keeps the precision: the 3MF (9 digits) reads back closed, and is not warned about
+        m3 = write_mesh(mesh, tmp_path / "s.3mf")
+        assert trimesh.load(m3, force="mesh").is_watertight
+        assert float32_collapse_warning(m3, grid, mesh.vertices) is None
+
+
+def test_generate_warns_of_an_stl_whose_float32_coordinates_merge_vertices(tmp_path):
+    import trimesh
+
+    import implicit_scaffold
+    from implicit_scaffold.errors import ScaffoldWarning
+    from implicit_scaffold.io.patient_io import load_patient
+
+    ball = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
+    ball.apply_translation([1e4, 1e4, 1e4])  # float32's step there: 0.001 mm, a twentieth of the voxel
+    ball.export(tmp_path / "far.stl")
+    out = tmp_path / "s.stl"
+    with pytest.warns(ScaffoldWarning, match="merge in the STL's float32 coordinates"):
+        r = implicit_scaffold.generate(patient=load_patient(tmp_path / "far.stl"), pore_size=0.4, porosity=0.7,
+                                       voxel=0.02, seed=1, morphometry=False, output=out)
+    assert r.report["watertight"]  # the float64 mesh measured
+    assert not trimesh.load(out, force="mesh").is_watertight  # what the file holds

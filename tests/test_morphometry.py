@@ -487,3 +487,84 @@ def test_a_field_whose_runs_patient_cannot_be_built_again_is_measured_over_its_g
     with pytest.warns(ScaffoldWarning, match="could not be built again.*measured over the grid instead"):
         scaffold = read_scaffold(tmp_path / "s.npy")
     assert scaffold.region is None and scaffold.region_name == "the grid"
+
+
+def _write_oriented(path, array, spacing, direction, origin=(0.0, 0.0, 0.0)):
+    """`array` (the file's index axes i, j, k) written with a direction matrix (row-major, column a:
+    the world direction of index axis a) and origin, mm."""
+    import SimpleITK as sitk
+
+    img = sitk.GetImageFromArray(np.ascontiguousarray(np.transpose(array, (2, 1, 0))))
+    img.SetSpacing(tuple(float(v) for v in spacing))
+    img.SetDirection(tuple(float(v) for v in np.asarray(direction, float).ravel()))
+    img.SetOrigin(tuple(float(v) for v in origin))
+    sitk.WriteImage(img, str(path))
+    return path
+
+
+def _world_copies(tmp_path):
+    """A small solid with no symmetry between its axes, on the world axes (identity direction), and two
+    copies of the same world geometry: stored (k, i, j) (index axes along +z, +x, +y) and with i reversed."""
+    rng = np.random.default_rng(7)
+    # odd sizes, anisotropic spacing: a mix-up of axes or of their spacing shows
+    solid = (ndimage.gaussian_filter(rng.normal(size=(13, 17, 11)), 1.5) > 0.1).astype(np.uint8)
+    spacing = np.array([0.1, 0.2, 0.3])
+    ident = _write_oriented(tmp_path / "ident.nii.gz", solid, spacing, np.eye(3))
+    # column a of the direction: the world axis index axis a runs along (+z, +x, +y)
+    perm = _write_oriented(tmp_path / "perm.nii.gz", np.transpose(solid, (2, 0, 1)), spacing[[2, 0, 1]],
+                           [[0, 1, 0], [0, 0, 1], [1, 0, 0]])
+    flip = _write_oriented(tmp_path / "flip.nii.gz", solid[::-1], spacing, np.diag([-1.0, 1.0, 1.0]),
+                           origin=((solid.shape[0] - 1) * spacing[0], 0.0, 0.0))
+    return solid, ident, perm, flip
+
+
+def test_a_permuted_or_flipped_volume_is_read_on_the_world_axes(tmp_path):
+    import SimpleITK as sitk
+
+    solid, ident, perm, flip = _world_copies(tmp_path)
+    # independent oracle: ITK's own index-to-world map puts each copy's voxel centres where the
+    # identity copy's are
+    for path in (perm, flip):
+        img = sitk.ReadImage(str(path))
+        arr = np.transpose(sitk.GetArrayFromImage(img), (2, 1, 0))
+        ijk = np.argwhere(arr)
+        world = np.array([img.TransformIndexToPhysicalPoint(tuple(int(v) for v in p)) for p in ijk])
+        back = np.rint(world / [0.1, 0.2, 0.3]).astype(int)
+        assert sorted(map(tuple, back)) == sorted(map(tuple, np.argwhere(solid)))
+    ref = M.read_scaffold(ident, voxel=0.1)
+    assert ref.axes is None
+    for path, words in ((perm, "+j, +k, +i"), (flip, "-i, +j, +k")):
+        got = M.read_scaffold(path, voxel=0.1)
+        assert got.solid.shape == ref.solid.shape and np.array_equal(got.solid, ref.solid)
+        assert words in got.axes
+
+
+def test_check_and_mechanics_figures_per_axis_agree_on_permuted_and_flipped_copies(tmp_path):
+    import json
+
+    from implicit_scaffold.cli import main
+    from implicit_scaffold.measure.mechanics import load_sample
+
+    _, ident, perm, flip = _world_copies(tmp_path)
+    figures = {}
+    for path in (ident, perm, flip):
+        out = tmp_path / f"{path.name}.json"
+        assert main(["check", str(path), "--printer", "dlp-resin", "--voxel", "0.1", "-o", str(out), "-q"]) == 0
+        cert = json.loads(out.read_text())
+        figures[path.name] = {k: v for k, v in cert.items() if k not in ("source", "timings_s", "seconds", "axes")}
+        sample, _ = load_sample(path, voxel=0.1)
+        figures[path.name]["solved_solid"] = sample.solid.tolist()
+    assert figures["perm.nii.gz"] == figures["ident.nii.gz"]
+    assert figures["flip.nii.gz"] == figures["ident.nii.gz"]
+
+
+def test_an_oblique_volume_stays_on_its_index_axes_and_says_so(tmp_path):
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    solid = np.zeros((9, 10, 11), np.uint8)
+    solid[2:7, 3:8, 2:9] = 1
+    c, s = math.cos(math.radians(30)), math.sin(math.radians(30))
+    path = _write_oriented(tmp_path / "obl.nii.gz", solid, (0.1, 0.1, 0.1), [[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    with pytest.warns(ScaffoldWarning, match="oblique direction"):
+        got = M.read_scaffold(path)
+    assert np.array_equal(got.solid, solid.astype(bool)) and "oblique" in got.axes

@@ -62,6 +62,67 @@ def test_cm_scales_a_mesh(tmp_path):
     np.testing.assert_allclose(p.hi, [10, 10, 10], rtol=1e-6)
 
 
+def _3mf_in_unit(path, mesh, unit):
+    """Write `mesh` (coordinates already in `unit`) as a 3MF whose ``<model unit=...>`` says `unit`
+    (trimesh's writer always says millimeter)."""
+    import io
+    import re
+    import zipfile
+
+    src = zipfile.ZipFile(io.BytesIO(mesh.export(file_type="3mf")))
+    with zipfile.ZipFile(path, "w") as out:
+        for name in src.namelist():
+            data = src.read(name)
+            if name.endswith(".model"):
+                data = re.sub(rb'unit="[a-z]+"', f'unit="{unit}"'.encode(), data, count=1)
+            out.writestr(name, data)
+
+
+@pytest.mark.parametrize("unit, mm_per_unit", [("inch", 25.4), ("centimeter", 10.0), ("meter", 1000.0),
+                                               ("micron", 1e-3)])
+def test_a_3mf_declared_unit_is_converted_to_mm(tmp_path, unit, mm_per_unit):
+    path = tmp_path / f"bone_{unit}.3mf"
+    _3mf_in_unit(path, cylinder(1 / mm_per_unit), unit)
+    # independent oracle: trimesh reads the unit and converts the mesh itself
+    ref = trimesh.load(path, force="mesh")
+    assert ref.units == unit
+    ref.convert_units("millimeters")
+    with pytest.warns(ScaffoldWarning, match=f"declares its unit as {unit}"):
+        p = load_patient(path)
+    np.testing.assert_allclose(p.hi, ref.bounds[1], rtol=1e-9)
+    np.testing.assert_allclose(p.hi, [10, 10, 10], rtol=1e-6)
+    assert p.volume == pytest.approx(abs(ref.volume), rel=1e-9)
+    assert p.volume == pytest.approx(cylinder().volume, rel=1e-6)
+
+
+def test_units_given_override_a_3mf_declared_unit_with_a_warning(tmp_path):
+    path = tmp_path / "bone.3mf"
+    _3mf_in_unit(path, cylinder(1 / 25.4), "inch")
+    with warnings.catch_warnings():
+        # the unit asked agrees with the file's: nothing to say
+        warnings.simplefilter("error")
+        agree = load_patient(path, units="in")
+    np.testing.assert_allclose(agree.hi, [10, 10, 10], rtol=1e-6)
+    with pytest.warns(ScaffoldWarning, match="declares its unit as inch.*--units mm overrides"):
+        raw = load_patient(path, units="mm")
+    np.testing.assert_allclose(raw.hi, np.full(3, 10 / 25.4), rtol=1e-6)
+
+
+def test_inch_units_scale_a_mesh_by_25_4(tmp_path):
+    path = tmp_path / "bone.stl"
+    cylinder(1 / 25.4).export(path)  # an STL in inches: it cannot say so
+    p = load_patient(path, units="in")
+    np.testing.assert_allclose(p.hi, [10, 10, 10], rtol=1e-6)
+    assert p.volume == pytest.approx(cylinder().volume, rel=1e-6)
+
+
+def test_units_in_on_the_command_line(tmp_path):
+    from implicit_scaffold.cli import build_parser
+
+    args = build_parser().parse_args(["generate", "--patient", "x.stl", "--units", "in", "-o", "x.stl"])
+    assert args.units == "in"
+
+
 def test_clip_and_cut_planes_keep_the_segment(cyl_stl):
     clipped = load_patient(cyl_stl, clip=(-1, -1, 2, 11, 11, 6))
     segment = load_patient(cyl_stl, cut_planes=(0, 0, 2, 0, 0, 1, 0, 0, 6, 0, 0, -1))

@@ -349,3 +349,43 @@ def test_fragments_are_the_pieces_besides_each_patient_pieces_main_body(tiled):
     inside = r.patient_sdf < 0
     _, pieces = ndimage.label((r.field < 0) & inside)
     assert r.report["fragments"] == pieces - 2 == 0
+
+
+def test_the_speck_advice_fits_a_mesh_patient(tmp_path):
+    # a mesh has no --threshold: the advice names what removes a mesh's specks
+    import trimesh
+
+    from implicit_scaffold.io.patient_io import load_patient
+
+    big = trimesh.creation.icosphere(subdivisions=3, radius=2.5)
+    big.apply_translation([3, 3, 3])
+    speck = trimesh.creation.icosphere(subdivisions=2, radius=0.3)
+    speck.apply_translation([7, 3, 3])
+    path = tmp_path / "two.stl"
+    trimesh.util.concatenate([big, speck]).export(path)
+    with pytest.warns(ScaffoldWarning) as seen:
+        implicit_scaffold.generate(patient=load_patient(path), pore_size=1.0, porosity=0.7, voxel=0.1,
+                                   morphometry=False, mesh=False)
+    text = [str(w.message) for w in seen if "cannot hold a pore" in str(w.message)]
+    assert len(text) == 1 and "--threshold" not in text[0] and "from the mesh" in text[0]
+
+
+@pytest.mark.parametrize("source, words", [
+    ({"file": "/x/bone.stl", "threshold": None, "label": None}, "from the mesh"),
+    ({"file": "/x/ct.nii.gz", "threshold": 300.0, "label": None}, "a higher --threshold"),
+    ({"file": "/x/seg.nii.gz", "threshold": None, "label": [31]}, "from the segmentation"),
+    (None, "from the patient")])
+def test_the_speck_advice_names_the_inputs_own_remedy(source, words):
+    from implicit_scaffold.run.pieces import speck_remedy
+
+    said = speck_remedy(source)
+    assert words in said
+    assert ("--threshold" in said) == (words == "a higher --threshold")
+
+
+def test_a_mesh_patient_smaller_than_one_pore_is_asked_for_its_unit():
+    from implicit_scaffold.run.pieces import speck_remedy
+
+    mesh = {"file": "/x/femur_m.stl", "threshold": None, "label": None}
+    assert "--units" in speck_remedy(mesh, whole=True)
+    assert "--units" not in speck_remedy(mesh)

@@ -9,6 +9,7 @@ A clip box or two osteotomy planes then keep the part of the bone a surgeon keep
 """
 from __future__ import annotations
 
+import math
 import struct
 import time
 import warnings
@@ -20,8 +21,8 @@ import numpy as np
 from ..errors import ScaffoldError, ScaffoldWarning
 
 from .formats import MESH_READERS as MESH_EXTENSIONS, VOLUME_READERS as VOLUME_EXTENSIONS  # noqa: E402
-#: mm per unit of a mesh file
-UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3}
+#: mm per unit of a mesh file (``in``: the inch, exactly 25.4 mm)
+UNITS = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "um": 1e-3, "in": 25.4}
 #: a bone (or a defect in one) spans between these sizes in mm; outside them the file's
 #: unit is probably not mm (a femur 0.45 long is in metres, a vertebra 90,000 wide in µm)
 PLAUSIBLE_MM = (2.0, 2000.0)
@@ -53,8 +54,10 @@ def load_patient(path, *, label=None, threshold=None, units=None, clip=None, cut
         Volume only: keep this segmentation label.
     threshold : float, optional
         Volume only: keep intensities at or above it (HU).
-    units : {'mm', 'cm', 'm', 'um'}, optional
-        Mesh only: the file's length unit (default mm; a warning names a likelier one).
+    units : {'mm', 'cm', 'm', 'um', 'in'}, optional
+        Mesh only: the file's length unit (default: the unit the file declares, a 3MF's
+        ``<model unit=...>``, else mm; a warning names a likelier one). Given, it overrides
+        a declared unit, with a warning.
     spacing : float or (3,) floats, mm, optional
         Volume only: the voxel spacing of a file whose header states none (required then).
     clip : (6,) sequence of float, mm, optional
@@ -124,15 +127,31 @@ def _set(obj, name, value):
         object.__setattr__(obj, name, value)
 
 
+def _declared_unit(mesh, path: Path) -> tuple[str | None, float]:
+    """The length unit a mesh file declares (trimesh's ``units``: a 3MF's ``<model unit=...>``) and
+    its mm per unit; ``(None, 1.0)`` when the file declares none (STL, OBJ, PLY, OFF)."""
+    import trimesh
+
+    declared = getattr(mesh, "units", None)
+    if not declared:
+        return None, 1.0
+    try:
+        return str(declared), float(trimesh.units.unit_conversion(str(declared), "millimeters"))
+    except (ValueError, KeyError):
+        raise ScaffoldError(f"{path.name} declares the unit {declared!r}, which is not a length unit known to "
+                            "trimesh; export it again in mm") from None
+
+
 def load_mesh(path, *, units=None):
     """A :class:`~implicit_scaffold.fields.patient_mesh.MeshPatient` from a mesh file, in mm.
 
     Parameters
     ----------
     path : str or Path
-    units : {'mm', 'cm', 'm', 'um'}, optional
-        The file's unit; when not given and the size suggests metres or micrometres,
-        a warning says so and names the ``--units`` that fixes it.
+    units : {'mm', 'cm', 'm', 'um', 'in'}, optional
+        The file's unit. When not given, a unit the file declares (a 3MF's ``<model unit=...>``,
+        as trimesh reads it) is converted to mm, with a warning saying so; with neither, a size
+        that suggests metres or micrometres is warned about, naming the ``--units`` that fixes it.
     """
     import trimesh
 
@@ -160,11 +179,29 @@ def load_mesh(path, *, units=None):
         bad = int(np.count_nonzero(~np.all(np.isfinite(v[used]), axis=1)))
         raise ScaffoldError(f"{path.name} has {bad} vertices with NaN or infinite coordinates; "
                             "repair or export the mesh again")
-    scale = UNITS[units] if units is not None else 1.0
     size = float(np.max(v[used].max(axis=0) - v[used].min(axis=0)))
     if size == 0:
         raise ScaffoldError(f"{path.name} has all its vertices at one point; it encloses no bone")
-    if units is None and not PLAUSIBLE_MM[0] <= size <= PLAUSIBLE_MM[1]:
+    declared, declared_scale = _declared_unit(mesh, path)
+    if units is not None:
+        scale = UNITS[units]
+        if declared is not None and not math.isclose(scale, declared_scale, rel_tol=1e-9):
+            warnings.warn(f"{path.name} declares its unit as {declared} ({declared_scale:g} mm); --units {units} "
+                          f"overrides it ({scale:g} mm per unit); drop --units to use the file's",
+                          ScaffoldWarning, stacklevel=2)
+    elif declared is not None and declared_scale != 1.0:
+        scale = declared_scale
+        # the file says so, but the user should hear that the numbers were scaled
+        warnings.warn(f"{path.name} declares its unit as {declared}: read as {declared_scale:g} mm per unit "
+                      f"({size * scale:.4g} mm across); pass --units mm (or another) to override",
+                      ScaffoldWarning, stacklevel=2)
+        if not PLAUSIBLE_MM[0] <= size * scale <= PLAUSIBLE_MM[1]:
+            warnings.warn(f"{path.name} is {size * scale:.4g} mm across in its declared unit {declared}, which is "
+                          "not a bone's size; if its coordinates are in another unit, pass it with --units",
+                          ScaffoldWarning, stacklevel=2)
+    else:
+        scale = 1.0
+    if units is None and declared_scale == 1.0 and not PLAUSIBLE_MM[0] <= size <= PLAUSIBLE_MM[1]:
         guess = "m" if size < PLAUSIBLE_MM[0] else "um"
         unit_name = {"m": "metres", "um": "micrometres"}[guess]
         warnings.warn(f"{path.name} is {size:.4g} units across, which suggests {unit_name}, not mm; "

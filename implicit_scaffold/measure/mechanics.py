@@ -2742,6 +2742,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
             else "the mesh voxelised on its run's grid (the report beside it)",
             "volume": f"the volume resampled {sample.resampled}" if sample.resampled else "the volume's own voxel"}
     note = f"mechanics voxel {sample.voxel:.4g} mm: {what.get(sample.kind, 'the sample' + chr(39) + 's own voxel')}"
+    if sample.axes:
+        note += f"; {sample.axes}"
     if solid.shape != read:
         note += (f"; the sample is the solid's bounding box, {' x '.join(map(str, solid.shape))} of the "
                  f"{' x '.join(map(str, read))} voxels read (the platens touch its ends)")

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import ScaffoldError, positive_mm, round_down
+from ..errors import ScaffoldError, ScaffoldWarning, positive_mm, round_down
 from ..run.threads import count
 
 #: histograms of thickness get at most this many bins (bin width a whole number of voxels)
@@ -952,7 +952,8 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         report = morphometry(solid, step, region=scaffold.region)
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
-                       "region": scaffold.region_name, "resampled": scaffold.resampled, "selection": scaffold.selection})
+                       "region": scaffold.region_name, "resampled": scaffold.resampled, "selection": scaffold.selection,
+                       "axes": scaffold.axes})
         return Analysis(report, solid, grid)
     if suffix == ".npy":
         if region is not None:
@@ -1039,6 +1040,7 @@ class Scaffold:
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
     resampled: str | None = None  # a volume's resampling to another voxel (its note), or None
     exact_distance: bool = False
+    axes: str | None = None  # a volume's index axes put on the world's x, y, z (world_axes' note), or None
 
 
 def run_grid(run: dict):
@@ -1206,14 +1208,14 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         region, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid")
         return Scaffold("field", field < 0, float(voxel), origin, field, region, name)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, note, selection, distance = _read_volume(path, spacing, voxel, label, threshold)
+        solid, step, note, selection, distance, axes = _read_volume(path, spacing, voxel, label, threshold)
         origin, region, name = (0.5 * step,) * 3, None, "the whole volume"
         if distance is not None:
             # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
             own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
             region, name = run_region(path, Grid(own, step, solid.shape), name)
             origin = own if region is not None else origin
-        return Scaffold("volume", solid, step, origin, distance, region, name, selection, note)
+        return Scaffold("volume", solid, step, origin, distance, region, name, selection, note, axes=axes)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
@@ -1294,8 +1296,9 @@ def _own_field(path, zyx_shape) -> bool:
 
 
 def _read_volume(path, spacing, voxel, label=None, threshold=None):
-    """The solid of a volume (x, y, z), its voxel (mm), a note on its resampling (or None) and how
-    its solid was chosen: every non-zero voxel of a binary volume, a segmentation's `label`, or a
+    """The solid of a volume on the world's axes (x, y, z; :func:`world_axes`), its voxel (mm), a note on
+    its resampling (or None), how its solid was chosen, generate's own distance (or None) and a note on
+    its axes (or None). The solid is every non-zero voxel of a binary volume, a segmentation's `label`, or a
     CT's intensities from `threshold` (HU) up (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
     import SimpleITK as sitk
 
@@ -1341,6 +1344,12 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
     del array
     solid = np.ascontiguousarray(np.transpose(mask, (2, 1, 0)))
     del mask
+    # figures per axis (moduli, overhangs) name the patient's x, y, z, as generate places it, not the
+    # file's storage order: a volume stored (k, i, j) or flipped is the same bone
+    order, flip, axes = world_axes(np.asarray(image.GetDirection(), np.float64).reshape(3, 3), path.name)
+    solid, step = _reorient(solid, order, flip), step[list(order)]
+    if distance is not None:
+        distance = _reorient(distance, order, flip)
     target = voxel if voxel is not None else float(step.min())
     note = None
     if not np.allclose(step, target, rtol=1e-6):
@@ -1354,4 +1363,55 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
         distance = None  # not resampled: the solid's values only
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel (all zero)")
-    return solid, float(target), note, selection, distance
+    return solid, float(target), note, selection, distance, axes
+
+
+#: largest departure of a direction matrix's entries from 0 and ±1 still read as a signed permutation
+#: (headers store cosines in float32 or rounded to a few digits; a real tilt is degrees, 1e-2 and more)
+AXIS_TOLERANCE = 1e-3
+
+
+def world_axes(direction: np.ndarray, name: str) -> tuple[tuple, tuple, str | None]:
+    """How to put a volume's (x, y, z)-ordered index axes on the world axes.
+
+    Parameters
+    ----------
+    direction : (3, 3) float ndarray
+        The image's direction matrix (column ``a``: the world direction of index axis ``a``).
+    name : str
+        The file's name, for the messages.
+
+    Returns
+    -------
+    order : (3,) tuple of int
+        Index axis that runs along world x, y, z.
+    flip : (3,) tuple of bool
+        Whether that index axis runs along -x, -y, -z (so is reversed).
+    note : str or None
+        What was done (None for the identity). An oblique direction (not a signed permutation) is
+        left on the index axes, with a :class:`ScaffoldWarning` that says so.
+    """
+    import warnings
+
+    d = np.asarray(direction, np.float64)
+    r = np.rint(d)
+    if not (np.all(np.abs(d - r) <= AXIS_TOLERANCE) and np.array_equal(np.abs(r).sum(axis=0), np.ones(3))
+            and np.array_equal(np.abs(r).sum(axis=1), np.ones(3))):
+        warnings.warn(f"{name} has an oblique direction matrix (its voxel axes are not along x, y, z): its figures "
+                      "per axis (x, y, z) are along the volume's index axes i, j, k, not the patient's; resample it "
+                      "onto the world axes for per-axis figures of the patient", ScaffoldWarning, stacklevel=4)
+        return (0, 1, 2), (False, False, False), "oblique direction: x, y, z are the volume's index axes i, j, k"
+    order = tuple(int(np.flatnonzero(r[w])[0]) for w in range(3))
+    flip = tuple(bool(r[w, order[w]] < 0) for w in range(3))
+    if order == (0, 1, 2) and not any(flip):
+        return order, flip, None
+    ijk = "ijk"
+    return order, flip, "x, y, z along the volume's " + ", ".join(
+        ("-" if f else "+") + ijk[a] for a, f in zip(order, flip)) + " (its direction matrix)"
+
+
+def _reorient(a: np.ndarray, order, flip) -> np.ndarray:
+    """`a` (index axes i, j, k) with its axes put in world order and reversed where they run backwards."""
+    out = np.transpose(a, order)
+    flips = tuple(w for w in range(3) if flip[w])
+    return np.ascontiguousarray(np.flip(out, flips) if flips else out)

@@ -21,7 +21,7 @@ from ..io.formats import MESH_WRITERS as MESH_FORMATS
 from .marching import _NO_MEASURES, _NO_NUMBERS, FACE_CHUNK, compiled_kernels
 from ..run.threads import imap
 
-__all__ = ["MESH_FORMATS", "STL_HEADER", "ply_header", "stl_buffer", "stl_chunk", "write_mesh", "write_mesh_from_ply"]
+__all__ = ["FLOAT32_FORMATS", "MESH_FORMATS", "STL_HEADER", "float32_collapse_warning", "ply_header", "stl_buffer", "stl_chunk", "write_mesh", "write_mesh_from_ply"]
 
 STL_HEADER = b"binary STL written by implicit_scaffold; units: mm".ljust(80, b" ")
 _ZIP_DATE = (1980, 1, 1, 0, 0, 0)
@@ -53,6 +53,56 @@ def stl_chunk(verts, faces, f0: int, f1: int, buf, *, grid=None, x0: int = 0, re
     ref = np.zeros(3) if ref is None else np.asarray(ref, np.float64)
     compiled_kernels()["triangles"](verts, faces, f0, f1, grid is not None, float(x0), h, origin, ref, buf, area, vol)
     return buf[:25 * (f1 - f0)]
+
+
+#: formats whose coordinates are float32 (binary STL); PLY writes float64, OBJ and 3MF 9 digits
+FLOAT32_FORMATS = (".stl",)
+
+
+def float32_collapse_warning(path, grid, vertices=None) -> str | None:
+    """A one-line warning when a float32 format cannot hold the mesh's vertices apart, or None.
+
+    Marching cubes keeps a vertex at least ``_NUDGE / (_NUDGE + _CLAMP)`` of a voxel from a grid
+    point (:mod:`~implicit_scaffold.mesh.marching`), so two vertices differ by at least that;
+    float32 coordinates far from the origin are coarser (their step is 2^-23 of the coordinate:
+    0.001 mm at 10,000 mm), and vertices closer than that step merge in the file: triangles
+    collapse, edges join more than two triangles and the file is not watertight, though the mesh
+    measured (float64) is.
+
+    Parameters
+    ----------
+    path : str or Path
+        The output; only a float32 format (:data:`FLOAT32_FORMATS`) is checked.
+    grid : Grid
+        The run's grid (its far corner bounds the coordinates), mm.
+    vertices : (V, 3) float ndarray, mm, optional
+        The mesh as written (float64): given, the vertices that merge in float32 are counted
+        (exact); without it (a streamed mesh) the grid's farthest coordinate is compared with
+        the smallest gap marching cubes leaves (a bound: it says "can").
+    """
+    from .marching import _CLAMP, _NUDGE
+
+    if Path(path).suffix.lower() not in FLOAT32_FORMATS:
+        return None
+    corners = np.abs(np.stack([np.asarray(grid.origin, np.float64),
+                               np.asarray(grid.origin, np.float64) + np.asarray(grid.shape) * grid.spacing]))
+    far = float(corners.max())
+    step = float(np.spacing(np.float32(far)))
+    gap = _NUDGE / (_NUDGE + _CLAMP) * float(grid.spacing)
+    way_out = (f"write .3mf or .ply (their coordinates keep the precision), or move the patient near the origin "
+               f"(a float32 step is {step:.2g} mm at {far:.6g} mm from it)")
+    if vertices is not None:
+        v = np.asarray(vertices, np.float64)
+        merged = len(np.unique(v, axis=0)) - len(np.unique(v.astype(np.float32), axis=0))
+        if merged == 0:
+            return None
+        return (f"{Path(path).name}: {merged:,} vertices merge in the STL's float32 coordinates, so some triangles "
+                "collapse and the file is not watertight (the report measured the float64 mesh); " + way_out)
+    if step < gap:
+        return None
+    return (f"{Path(path).name}: the STL's float32 coordinates are coarser than the smallest gap between the mesh's "
+            f"vertices ({gap:.2g} mm at --voxel {grid.spacing:g}), so vertices can merge, triangles collapse and "
+            "the file not be watertight though the report (measured in float64) says so; " + way_out)
 
 
 def write_mesh(mesh, path) -> Path:

@@ -512,7 +512,37 @@ def seed_pieces(piece_labels: np.ndarray, grid, seeds: np.ndarray) -> np.ndarray
     return out
 
 
-def small_pieces_warning(rows: list[dict], pore_volume: float, pore_size: float) -> str | None:
+def speck_remedy(source: dict | None, *, whole: bool = False) -> str:
+    """How to remove specks from the patient, in the terms of what it was read from.
+
+    Parameters
+    ----------
+    source : dict or None
+        The report's ``patient_source`` (:func:`~implicit_scaffold.io.patient_io.load_patient`'s
+        ``load_options``): ``file``, ``threshold``, ``label``; None for a patient given in code.
+    whole : bool
+        Every piece is a speck: the whole patient is smaller than one pore.
+    """
+    from pathlib import Path
+
+    from ..io.patient_io import _kind
+
+    file = (source or {}).get("file")
+    if not file:
+        return "remove such specks from the patient"
+    if _kind(Path(file)) == "mesh":
+        if whole:
+            # a bone smaller than one pore is most often a mesh in metres or inches read as mm
+            return "check the mesh's unit (--units m, --units in, ...)"
+        # --threshold selects bone in a CT; a mesh's specks are its own small closed shells
+        return "remove such specks from the mesh (e.g. MeshLab's Remove Isolated Pieces)"
+    if source.get("threshold") is not None:
+        return "remove such specks from the patient (e.g. a higher --threshold)"
+    return "remove such specks from the segmentation (e.g. keep its largest connected components)"
+
+
+def small_pieces_warning(rows: list[dict], pore_volume: float, pore_size: float, *,
+                         source: dict | None = None) -> str | None:
     """A plain-words warning for the patient pieces too small to hold one pore, or None.
 
     Parameters
@@ -522,6 +552,8 @@ def small_pieces_warning(rows: list[dict], pore_volume: float, pore_size: float)
     pore_volume : float, mm³
         The volume of one pore (a sphere of the pore size).
     pore_size : float, mm
+    source : dict, optional
+        The report's ``patient_source``: the advice fits it (:func:`speck_remedy`).
     """
     small = [r for r in rows if r["volume_mm3"] < pore_volume]
     if not small:
@@ -532,4 +564,4 @@ def small_pieces_warning(rows: list[dict], pore_volume: float, pore_size: float)
     return (f"{len(small)} of the patient's {len(rows)} pieces ({total:.4g} mm3 in all; the largest of them "
             f"{first['volume_mm3']:.4g} mm3 near {where} mm) are smaller than one {pore_size:.3g} mm pore "
             f"({pore_volume:.4g} mm3): they cannot hold a pore, so their scaffold is a solid speck or nothing; "
-            "use smaller pores, or remove such specks from the patient (e.g. a higher --threshold)")
+            f"use smaller pores, or {speck_remedy(source, whole=len(small) == len(rows))}")
