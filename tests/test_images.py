@@ -117,8 +117,27 @@ def test_a_nifti_gz_corrupt_or_whole(tmp_path):
 def _dicom_series(folder, positions, orientation=(1, 0, 0, 0, 1, 0), names=None):
     """Write one 8 x 8 DICOM slice per position (mm, LPS) with these ImagePositionPatient and
     ImageOrientationPatient tags: the oracle of the series' geometry."""
+    import locale
+
     folder.mkdir()
     series = "1.2.826.0.1.3680043.2.1125.1.4242"
+    # GDCM's writer leaves the process in the C locale: text files the next tests read without an encoding were
+    # then read as ASCII (a report page's 'µ' failed in whichever test came next in this worker)
+    saved = locale.setlocale(locale.LC_ALL)
+    try:
+        _write_slices(folder, series, positions, orientation, names)
+    finally:
+        locale.setlocale(locale.LC_ALL, saved)
+    # the tags are on disk as written (GDCM may take them from the image's geometry instead)
+    back = sitk.ImageFileReader()
+    back.SetFileName(str(folder / (names[0] if names else "s000.dcm")))
+    back.ReadImageInformation()
+    assert np.allclose([float(v) for v in back.GetMetaData("0020|0032").split("\\")], positions[0], atol=1e-5)
+    assert np.allclose([float(v) for v in back.GetMetaData("0020|0037").split("\\")], orientation, atol=1e-6)
+    return folder
+
+
+def _write_slices(folder, series, positions, orientation, names):
     for n, pos in enumerate(positions):
         img = sitk.GetImageFromArray(np.full((1, 8, 8), 100 + n, np.int16))
         img.SetSpacing((0.5, 0.5, 1.0))
@@ -132,13 +151,6 @@ def _dicom_series(folder, positions, orientation=(1, 0, 0, 0, 1, 0), names=None)
         writer.KeepOriginalImageUIDOn()
         writer.SetFileName(str(folder / (names[n] if names else f"s{n:03d}.dcm")))
         writer.Execute(img)
-    # the tags are on disk as written (GDCM may take them from the image's geometry instead)
-    back = sitk.ImageFileReader()
-    back.SetFileName(str(folder / (names[0] if names else "s000.dcm")))
-    back.ReadImageInformation()
-    assert np.allclose([float(v) for v in back.GetMetaData("0020|0032").split("\\")], positions[0], atol=1e-5)
-    assert np.allclose([float(v) for v in back.GetMetaData("0020|0037").split("\\")], orientation, atol=1e-6)
-    return folder
 
 
 def test_an_even_dicom_series_reads_without_a_word(tmp_path):
