@@ -114,13 +114,13 @@ def test_a_nifti_gz_corrupt_or_whole(tmp_path):
     assert np.array_equal(sitk.GetArrayFromImage(read_image(tmp_path / "whole.nii.gz")), _ball())
 
 
-def _dicom_series(folder, positions, orientation=(1, 0, 0, 0, 1, 0), names=None):
+def _dicom_series(folder, positions, orientation=(1, 0, 0, 0, 1, 0), names=None,
+                  series="1.2.826.0.1.3680043.2.1125.1.4242"):
     """Write one 8 x 8 DICOM slice per position (mm, LPS) with these ImagePositionPatient and
     ImageOrientationPatient tags: the oracle of the series' geometry."""
     import locale
 
-    folder.mkdir()
-    series = "1.2.826.0.1.3680043.2.1125.1.4242"
+    folder.mkdir(exist_ok=True)
     # GDCM's writer leaves the process in the C locale: text files the next tests read without an encoding were
     # then read as ASCII (a report page's 'µ' failed in whichever test came next in this worker)
     saved = locale.setlocale(locale.LC_ALL)
@@ -258,3 +258,16 @@ def test_a_nifti_whose_sform_disagrees_with_its_qform_is_warned_about(tmp_path, 
         assert len(said) == 1 and "sform (code 2) puts the volume up to 50 mm from where ITK reads it" in said[0]
     else:
         assert not said
+
+
+def test_a_folder_of_two_dicom_series_reads_the_larger_and_says_so(tmp_path):
+    """Two series in one folder: the one of more slices is read, with a warning of the tool's kind that counts
+    both (it was a plain UserWarning naming an empty series ID)."""
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    folder = _dicom_series(tmp_path / "two", [(0.0, 0.0, 2.0 * k) for k in range(6)])
+    _dicom_series(folder, [(50.0, 0.0, 2.0 * k) for k in range(3)], names=[f"b{k}.dcm" for k in range(3)],
+                  series="1.2.826.0.1.3680043.2.1125.1.4343")
+    with pytest.warns(ScaffoldWarning, match=r"holds 2 DICOM series; using .*\(6 slices; the others have 3\)"):
+        image = read_image(folder)
+    assert image.GetSize()[2] == 6

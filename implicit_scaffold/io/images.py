@@ -85,8 +85,12 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
             files = [reader.GetGDCMSeriesFileNames(str(path), s) for s in series]
             best = max(range(len(series)), key=lambda i: len(files[i]))
             if len(series) > 1:
-                warnings.warn(f"folder {path} holds {len(series)} DICOM series; using {series[best]} "
-                              f"({len(files[best])} slices)", stacklevel=3)
+                # a series without its UID has an empty ID: name it by its first file
+                which = series[best] or f"the one of {Path(files[best][0]).name}"
+                warnings.warn(f"folder {path} holds {len(series)} DICOM series; using {which} "
+                              f"({len(files[best])} slices; the others have "
+                              f"{', '.join(str(len(f)) for i, f in enumerate(files) if i != best)}): give a folder of "
+                              "one series to choose another", ScaffoldWarning, stacklevel=3)
             reader.SetFileNames(files[best])
             reader.MetaDataDictionaryArrayUpdateOn()   # each slice's position, for check_series
             image = reader.Execute()
