@@ -60,7 +60,14 @@ FLOAT32_FORMATS = (".stl",)
 
 
 def float32_collapse_warning(path, grid, vertices=None) -> str | None:
-    """A one-line warning when a float32 format cannot hold the mesh's vertices apart, or None.
+    """A one-line warning when a float32 format cannot hold the mesh's vertices apart, or None
+    (:func:`float32_merges`' warning)."""
+    return float32_merges(path, grid, vertices)[1]
+
+
+def float32_merges(path, grid, vertices=None) -> tuple[int | None, str | None]:
+    """The vertices a float32 format merges (None when not counted: not a float32 format, or a streamed mesh)
+    and a one-line warning when it cannot hold them apart, or None.
 
     Marching cubes keeps a vertex at least ``_NUDGE / (_NUDGE + _CLAMP)`` of a voxel from a grid
     point (:mod:`~implicit_scaffold.mesh.marching`), so two vertices differ by at least that;
@@ -83,7 +90,7 @@ def float32_collapse_warning(path, grid, vertices=None) -> str | None:
     from .marching import _CLAMP, _NUDGE
 
     if Path(path).suffix.lower() not in FLOAT32_FORMATS:
-        return None
+        return None, None
     corners = np.abs(np.stack([np.asarray(grid.origin, np.float64),
                                np.asarray(grid.origin, np.float64) + np.asarray(grid.shape) * grid.spacing]))
     far = float(corners.max())
@@ -95,14 +102,16 @@ def float32_collapse_warning(path, grid, vertices=None) -> str | None:
         v = np.asarray(vertices, np.float64)
         merged = len(np.unique(v, axis=0)) - len(np.unique(v.astype(np.float32), axis=0))
         if merged == 0:
-            return None
-        return (f"{Path(path).name}: {merged:,} vertices merge in the STL's float32 coordinates, so some triangles "
-                "collapse and the file is not watertight (the report measured the float64 mesh); " + way_out)
+            return 0, None
+        return merged, (f"{Path(path).name}: {merged:,} vertices merge in the STL's float32 coordinates, so some "
+                        "triangles collapse and the file is not watertight (the report's watertight is the file's; "
+                        "the mesh in float64 was closed); " + way_out)
     if step < gap:
-        return None
-    return (f"{Path(path).name}: the STL's float32 coordinates are coarser than the smallest gap between the mesh's "
-            f"vertices ({gap:.2g} mm at --voxel {grid.spacing:g}), so vertices can merge, triangles collapse and "
-            "the file not be watertight though the report (measured in float64) says so; " + way_out)
+        return None, None
+    return None, (f"{Path(path).name}: the STL's float32 coordinates are coarser than the smallest gap between the "
+                  f"mesh's vertices ({gap:.2g} mm at --voxel {grid.spacing:g}), so vertices can merge, triangles "
+                  "collapse and the file not be watertight though the report (measured in float64) says so; "
+                  + way_out)
 
 
 def write_mesh(mesh, path) -> Path:
