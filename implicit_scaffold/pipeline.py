@@ -1257,11 +1257,10 @@ class _RunPlan:
             thinnest = max(thinnest, (1 + 2 * MESH_HALO_PLANES) * plane * MESH_SLAB_BYTES_PER_VOXEL)
         # a slab's voxels go as the plane's, 1 / voxel^2; the cells' primitives and what is held do not: the voxel
         # whose thinnest slab takes half the room beside them (the mesh's slab counted: without it, 650M asked a
-        # 0.04 mm cube's STL for "a larger --voxel (e.g. 0.0263 mm)"); none where the room is within what a
-        # process's resident set moves by from one run to the next
-        # what the process holds, with the margin the budget named allows for: it grows by the cells' arrays after a
-        # check before them (`span`), and moves by tens of MiB from one process to the next (0.61 to 0.65 GiB for a
-        # 6 mm cube's run beside two others): a voxel offered on the held of one run was refused by the next
+        # 0.04 mm cube's STL for "a larger --voxel (e.g. 0.0263 mm)"). What is held counts with the margin a named
+        # budget allows for: it grows by the cells' arrays after a check before them (`span`), and moves by tens of
+        # MiB from one process to the next (0.61 to 0.65 GiB for a 6 mm cube's run beside two others); no voxel is
+        # offered where the room is within that
         room = self.max_memory - SMALLEST_MARGIN * held - (max(crowded - voxels_part, 0) if crowded > thinnest else 0)
         fix = (", or use a larger --pore-size (fewer cells)" if crowded > thinnest and crowded > 2 * voxels_part else
                f", or use a larger --voxel (e.g. {grid.spacing * (2 * thinnest / room) ** 0.5:.3g} mm)"
@@ -1760,7 +1759,8 @@ def _finish_in_memory(tf, report: dict, run: _RunPlan, params: Params, patient, 
         # the summary is of the float64 mesh; an STL holds float32 (exact: its vertices are here). The report
         # says what the file holds: a femur moved 10,000 mm from the origin said "watertight True" of an STL
         # whose float32 coordinates had merged 631 vertices
-        merged, precision = float32_merges(out_path, grid, result.mesh.vertices)
+        merged, precision = float32_merges(out_path, grid, result.mesh.vertices,
+                                           on_grid_edges="simplification" not in report)
         if merged:
             report["watertight"] = False
             report["float32_merged_vertices"] = int(merged)
