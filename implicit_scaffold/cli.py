@@ -14,7 +14,7 @@ from pathlib import Path
 
 from . import __version__
 from .errors import ScaffoldError
-from .io.formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS
+from .io.formats import FIELD_WRITERS, IMAGE_STACKS, MESH_READERS, MESH_WRITERS, VOLUME_READERS, report_path
 
 
 #: the build options' defaults (generate, slice): an option a graded build does not read is refused when its value
@@ -269,13 +269,19 @@ def _mechanics_lines(mech: dict) -> list[str]:
     return lines
 
 
+def _only_with(options: list, what: str, needed: str) -> str:
+    """The refusal of `options` given without `needed`: "--voxel applies to ...; add ... or drop it"."""
+    many = len(options) > 1
+    return (f"{', '.join(options)} {'apply' if many else 'applies'} to {what}; add {needed} or drop "
+            f"{'them' if many else 'it'}")
+
+
 def _check_json_output(args) -> None:
     """`-o` of analyze, check and mechanics: a .json that can be written, and not the run's report beside FILE, which
     they read (its grid: the mesh voxelised on it, a field's walls): overwritten, the next read of FILE lost it."""
     if args.output is None:
         return
     from .io.files import check_writable
-    from .io.formats import report_path
 
     check_writable(args.output, formats=(".json",))
     beside = report_path(args.file)
@@ -663,13 +669,11 @@ def _design(args) -> int:
         return _design_from_ct(args, t0)
     ct_only = _given(args, "--calibration") + (["--site"] if args.site != "pooled" else [])
     if ct_only:
-        raise ScaffoldError(f"{', '.join(ct_only)} {'apply' if len(ct_only) > 1 else 'applies'} to a design graded "
-                            f"from the CT; add --stiffness-from-ct or drop {'them' if len(ct_only) > 1 else 'it'}")
+        raise ScaffoldError(_only_with(ct_only, "a design graded from the CT", "--stiffness-from-ct"))
     patient_only = _given(args, "--scaffold", "--voxel", "--max-memory", "--units", "--clip", "--cut-planes",
                           "--threshold", "--label", "--spacing")
     if patient_only and args.patient is None:
-        raise ScaffoldError(f"{', '.join(patient_only)} {'apply' if len(patient_only) > 1 else 'applies'} to the "
-                            f"build on the patient; add --patient FILE or drop {'them' if len(patient_only) > 1 else 'it'}")
+        raise ScaffoldError(_only_with(patient_only, "the build on the patient", "--patient FILE"))
     if args.porosity is None:
         raise ScaffoldError("design needs --porosity (or --stiffness-from-ct, which takes it from the CT)")
     min_strut = _design_min_strut(args)
@@ -822,7 +826,7 @@ def _generate(args) -> int:
                   else f"strut radius {r['strut_radius_mm']:.4f} mm")
         target = "none" if r["porosity_target"] is None else f"{r['porosity_target']:.3f}"
         lines = [
-            f"wrote {args.output} and {result_json(args.output)}"
+            f"wrote {args.output} and {report_path(args.output)}"
             + (f" and {args.report}" if args.report else ""),
             _seeds_line(r),
             f"  {offset}, blend {r['blend_mm']:.4f} mm",
@@ -1012,17 +1016,10 @@ def _analyze(args) -> int:
     return 0
 
 
-def result_json(output) -> str:
-    from .io.formats import report_path
-
-    return str(report_path(output))
-
-
 def _slice(args) -> int:
     from .mesh.slices import check_stack_output
 
     from .io.files import check_writable, write_json
-    from .io.formats import report_path
 
     t0 = time.perf_counter()
     check_stack_output(args.output, pixel=args.pixel, layer=args.layer)  # before the scaffold is built
