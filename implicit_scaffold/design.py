@@ -140,7 +140,8 @@ def check_targets(targets: Targets) -> Targets:
     from .measure.mechanics import material
 
     solid = material(targets.material)  # unknown names refused here, before any build
-    if targets.stiffness is not None and num("stiffness", targets.stiffness) >= solid.E_gpa:
+    stiffness = None if targets.stiffness is None else num("stiffness", targets.stiffness)
+    if stiffness is not None and stiffness >= solid.E_gpa:
         # no porous scaffold is as stiff as its solid: the search ran and named "a porosity of about 0.000"
         raise ScaffoldError(f"--stiffness {float(targets.stiffness):g} GPa is at or above the solid "
                             f"{solid.name}'s own modulus, {solid.E_gpa:g} GPa: no porous scaffold of it reaches it; "
@@ -148,7 +149,7 @@ def check_targets(targets: Targets) -> Targets:
     return Targets(porosity=num("porosity", targets.porosity, 0.0, 1.0),
                    pore_size=num("pore-size", targets.pore_size),
                    min_strut=None if targets.min_strut is None else num("min-strut", targets.min_strut),
-                   stiffness=None if targets.stiffness is None else num("stiffness", targets.stiffness),
+                   stiffness=stiffness,
                    material=targets.material)
 
 

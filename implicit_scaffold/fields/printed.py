@@ -157,14 +157,14 @@ def printed_measure(by: str, grid, ys: slice, zs: slice, *, pixel: float | None 
     # pixel and layer and as much again to sample them, a 4 mm cube sliced at 0.001 mm pixels took 24 GB and was
     # killed by the system, whatever --max-memory said
     block = max(1, PRINTED_BLOCK_POINTS // max(1, cy.size * cz.size))
-    grids = [np.stack([g.ravel() for g in np.meshgrid(cx[a:a + block], cy, cz, indexing="ij")])
-             for a in range(0, cx.size, block)] if cx.size <= block else None
+    # one block: its coordinates made once for every level tried
+    whole = (np.stack([g.ravel() for g in np.meshgrid(cx, cy, cz, indexing="ij")]) if cx.size <= block else None)
 
     def grey_levels(s):
         s = np.asarray(s, np.float32)
         total, ramp = 0.0, 0
         for a in range(0, cx.size, block):
-            coords = grids[0] if grids is not None else \
+            coords = whole if whole is not None else \
                 np.stack([g.ravel() for g in np.meshgrid(cx[a:a + block], cy, cz, indexing="ij")])
             v = ndimage.map_coordinates(s, coords, order=1, mode="nearest")
             cover = np.clip(0.5 - v / pixel, 0.0, 1.0)

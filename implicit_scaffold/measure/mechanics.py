@@ -2706,7 +2706,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     from .morphometry import report_beside
 
     path = Path(path)
-    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
+    # no region is measured here: the run's patient is not built again
+    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold, region=False)
     beside = report_beside(path)  # the run's report, read once: the generator's walls, the grid a mesh was read on
     if sample.field is not None:
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)

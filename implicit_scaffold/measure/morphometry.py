@@ -1039,8 +1039,12 @@ class Scaffold:
     region_name: str
     selection: str | None = None  # a volume's: how its solid was chosen (bone_mask's phrase)
     resampled: str | None = None  # a volume's resampling to another voxel (its note), or None
-    exact_distance: bool = False
     axes: str | None = None  # a volume's index axes put on the world's x, y, z (world_axes' note), or None
+
+    @property
+    def exact_distance(self) -> bool:
+        """Whether `field` is a true signed distance near its surface: a mesh's point-triangle distances."""
+        return self.kind == "mesh"
 
 
 def run_grid(run: dict):
@@ -1069,7 +1073,7 @@ def report_beside(path) -> dict | None:
     return report if isinstance(report, dict) else None
 
 
-def run_region(path, grid, otherwise: str) -> tuple[np.ndarray | None, str]:
+def run_region(path, grid, otherwise: str, *, build: bool = True) -> tuple[np.ndarray | None, str]:
     """The region the run that wrote `path` measured: its patient's voxels on `grid`, and its name.
 
     From the JSON report beside `path` (:func:`report_beside`), whose patient is built again as
@@ -1085,6 +1089,9 @@ def run_region(path, grid, otherwise: str) -> tuple[np.ndarray | None, str]:
         The grid the scaffold's voxels lie on (mm).
     otherwise : str
         The region's name when the run's patient is not used (the caller's region then).
+    build : bool
+        False: only whether the run's patient would be used, as an empty region (a reader that measures no
+        region, the stiffness solve, need not build the patient again: a CT is segmented anew).
 
     Returns
     -------
@@ -1111,14 +1118,14 @@ def run_region(path, grid, otherwise: str) -> tuple[np.ndarray | None, str]:
             or not np.allclose(own.origin, grid.origin, rtol=0, atol=1e-6 * own.spacing)):
         # another voxel (--voxel) or another run's report: its patient would not lie on these voxels
         return None, otherwise
+    if not build:
+        return np.zeros(0, bool), otherwise
     from ..io.formats import report_path
 
     try:
         patient, _, what = load_region(report_path(path))
     except ScaffoldError as exc:
         import warnings
-
-        from ..errors import ScaffoldWarning
 
         warnings.warn(f"the run's patient could not be built again ({exc}); measured over {otherwise} instead",
                       ScaffoldWarning, stacklevel=3)
@@ -1149,7 +1156,8 @@ def run_grid_beside(path, voxel=None):
     return grid
 
 
-def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False) -> Scaffold:
+def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False,
+                  region: bool = True) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
@@ -1205,17 +1213,18 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
             # NaN compares as not negative: it was read as void without a word
             raise ScaffoldError(f"{path.name} holds {bad:,} non-finite values (NaN or inf); a signed distance is "
                                 "finite everywhere: write the field again")
-        region, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid")
-        return Scaffold("field", field < 0, float(voxel), origin, field, region, name)
+        where, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid", build=region)
+        return Scaffold("field", field < 0, float(voxel), origin, field, where if region else None, name)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
         solid, step, note, selection, distance, axes = _read_volume(path, spacing, voxel, label, threshold)
-        origin, region, name = (0.5 * step,) * 3, None, "the whole volume"
+        origin, where, name = (0.5 * step,) * 3, None, "the whole volume"
         if distance is not None:
             # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
             own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
-            region, name = run_region(path, Grid(own, step, solid.shape), name)
-            origin = own if region is not None else origin
-        return Scaffold("volume", solid, step, origin, distance, region, name, selection, note, axes=axes)
+            where, name = run_region(path, Grid(own, step, solid.shape), name, build=region)
+            origin = own if where is not None else origin
+        return Scaffold("volume", solid, step, origin, distance, where if region else None, name, selection, note,
+                        axes=axes)
     if suffix not in MESH_SUFFIXES:
         raise ScaffoldError(f"cannot read {path.name}: use a mesh ({' '.join(MESH_SUFFIXES)}), a .npy field or a "
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
@@ -1231,20 +1240,20 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     solid = voxelize(mesh.vertices, mesh.faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
-    region = None
-    if run_grid is not None:
-        region, name = run_region(path, grid, "the mesh's bounding box")
-    if region is None:
+    where = None
+    if run_grid is not None and region:
+        where, name = run_region(path, grid, "the mesh's bounding box")
+    if where is None:
         pts = [grid.origin[a] + grid.spacing * np.arange(grid.shape[a]) for a in range(3)]
         inside = [(p >= lo[a]) & (p <= hi[a]) for a, p in enumerate(pts)]
-        region = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
+        where = inside[0][:, None, None] & inside[1][None, :, None] & inside[2][None, None, :]
         name = "the mesh's bounding box"
     field = None
     if mesh_field:
         from ..fields.patient_mesh import MeshPatient
 
         field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
-    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, region, name, exact_distance=True)
+    return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, where, name)
 
 
 #: the voxels along a mesh's longest side that the suggestion of :func:`_voxel_needed` gives
