@@ -34,9 +34,11 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import warnings
+
 import numpy as np
 
-from ..errors import ScaffoldError
+from ..errors import ScaffoldError, ScaffoldWarning
 from ..run.grid import Grid, evaluate_by_slabs
 
 #: Gaussian width of the staircase removal, in voxels of the volume (per axis); 1.5 measured
@@ -144,10 +146,6 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
     if np.issubdtype(array.dtype, np.floating):
         nan = int(array.size - np.count_nonzero(np.isfinite(array)))
         if nan:
-            import warnings
-
-            from ..errors import ScaffoldWarning
-
             # NaN reaches no threshold and is no label: read as no bone, holes in it without a word
             warnings.warn(f"{name} holds {nan:,} voxels that are not numbers (NaN or inf), read as no bone; "
                           "fill them in the image if they lie in the bone", ScaffoldWarning, stacklevel=2)
@@ -191,10 +189,6 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
             raise ScaffoldError(f"no voxel of {name} reaches the threshold {thr:g} (intensities "
                                 f"{np.nanmin(array):g} to {np.nanmax(array):g}); use a lower --threshold")
         if mask.all() and mask.size > 1:
-            import warnings
-
-            from ..errors import ScaffoldWarning
-
             # air and soft tissue too: the bone is the image's whole box
             warnings.warn(f"every voxel of {name} reaches the threshold {thr:g} (intensities {np.nanmin(array):g} "
                           f"to {np.nanmax(array):g}): the bone is the whole image; bone is about 200 HU and above "
