@@ -318,3 +318,119 @@ def test_overlapping_surfaces_make_their_union_and_a_cavity_stays_hollow():
                                            name="hollow.stl")
     assert apart.volume == pytest.approx(2.0, rel=1e-12) and hollow.volume == pytest.approx(7.0, rel=1e-12)
     assert np.all(hollow.sdf_grid(grid)[13:17, 13:17, 13:17] > 0)
+
+
+def _balls(*placed, subdivisions=4):
+    """One mesh of icospheres ((radius, centre, inward) each) and the volume of each polyhedron, mm3."""
+    parts = []
+    for radius, centre, inward in placed:
+        b = trimesh.creation.icosphere(subdivisions=subdivisions, radius=radius)
+        b.apply_translation(centre)
+        if inward:
+            b.invert()
+        parts.append(b)
+    return trimesh.util.concatenate(parts), [abs(float(p.volume)) for p in parts]
+
+
+#: 1 mm along a direction no two icosphere vertices share
+_SKEW = np.array([1.0, 0.3, 0.2]) / math.sqrt(1.13)
+
+
+def _ball_volume(r):
+    return 4 / 3 * math.pi * r ** 3
+
+
+def _read(mesh, name):
+    """mesh_patient_from_trimesh, with the warnings it gave; the patient's own winding agrees with its volume
+    (or is reversed throughout, as a file wound inward everywhere has always been read)."""
+    import warnings
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        patient = mesh_patient_from_trimesh(mesh, name=name)
+    said = [str(w.message) for w in caught]
+    wound = float(trimesh.Trimesh(patient.vertices, patient.faces, process=False).volume)
+    assert abs(wound) == pytest.approx(patient.volume, rel=1e-12)  # the faces as written enclose the volume
+    return patient, said
+
+
+@pytest.mark.parametrize("outer_inward, inner_inward", [(False, False), (False, True), (True, False)])
+def test_a_surface_inside_another_is_a_cavity_whatever_its_winding(outer_inward, inner_inward):
+    # a ball of radius 2 holding a concentric ball of radius 1: 4/3 pi (8 - 1), the canal wound either way
+    # (or both reversed, which the volume's magnitude read right already)
+    mesh, (outer, inner) = _balls((2.0, (0, 0, 0), outer_inward), (1.0, (0, 0, 0), inner_inward))
+    patient, said = _read(mesh, "canal.stl")
+    assert patient.volume == pytest.approx(outer - inner, rel=1e-12)
+    assert patient.volume == pytest.approx(_ball_volume(2) - _ball_volume(1), rel=5e-3)  # polyhedra of 642 vertices
+    if inner_inward != outer_inward:
+        assert said == []  # wound as nested already: as before, no warning (the faces as they were)
+        assert np.array_equal(patient.faces, mesh_patient_from_trimesh(mesh, name="canal.stl").faces)
+    else:
+        assert len(said) == 1 and said[0].startswith(
+            "canal.stl: 1 closed surface inside another is wound outward; read as a cavity")
+    grid = Grid((-2.5, -2.5, -2.5), 0.25, (21, 21, 21))
+    sdf = patient.sdf_grid(grid)
+    assert sdf[10, 10, 10] > 0 and sdf[10, 10, 3] < 0  # the centre is in the cavity, the wall between the balls solid
+
+
+@pytest.mark.parametrize("windings, cavities, solids", [((False, False, False), 1, 0),   # exported shell by shell
+                                                        ((False, True, False), 0, 0),    # nested as it should
+                                                        ((False, True, True), 0, 1)])    # the island wound inward
+def test_an_island_in_a_cavity_is_solid(windings, cavities, solids):
+    # radii 3, 2, 1 nested: solid, cavity, solid again: 4/3 pi (27 - 8 + 1)
+    mesh, (a, b, c) = _balls(*((r, (0.1 * r, 0, 0), w) for r, w in zip((3.0, 2.0, 1.0), windings)))
+    patient, said = _read(mesh, "island.stl")
+    assert patient.volume == pytest.approx(a - b + c, rel=1e-12)
+    assert patient.volume == pytest.approx(_ball_volume(3) - _ball_volume(2) + _ball_volume(1), rel=5e-3)
+    assert len(said) == (1 if cavities or solids else 0)
+    if cavities:
+        assert "1 closed surface inside another is wound outward; read as a cavity" in said[0]
+    if solids:
+        assert "1 closed surface enclosing solid is wound inward; read as solid" in said[0]
+
+
+def test_surfaces_that_cross_are_joined_not_nested():
+    # two balls of radius 1 whose centres are 1 mm apart: their union, 2 (4/3 pi) minus the lens
+    # pi (4r + d) (2r - d)^2 / 12 (apart along a skew direction: no vertex of one on the other)
+    mesh, _ = _balls((1.0, (0, 0, 0), False), (1.0, _SKEW, False), subdivisions=5)
+    patient, said = _read(mesh, "two.stl")
+    lens = math.pi * (4 + 1) * (2 - 1) ** 2 / 12
+    assert patient.volume == pytest.approx(2 * _ball_volume(1) - lens, rel=2e-3)
+    assert len(said) == 1 and "2 closed surfaces that overlap" in said[0]
+    # an L-shaped plate 1 mm thick (12 mm3) and a bar 3 x 1 x 0.5 across its inner corner at 45 degrees: the
+    # bar's box lies within the L's and all its vertices inside it (parity from any says nested), yet its
+    # middle crosses the L's notch, a right triangle of legs 0.5 + sqrt(2)/2, 0.5 thick, which joins
+    ell = trimesh.boolean.union([trimesh.creation.box(bounds=[(0, 0, 0), (4, 2, 1)]),
+                                 trimesh.creation.box(bounds=[(0, 0, 0), (2, 4, 1)])], engine="manifold")
+    bar = trimesh.creation.box(extents=[3, 1, 0.5])
+    bar.apply_transform(trimesh.transformations.rotation_matrix(-math.pi / 4, [0, 0, 1]))
+    bar.apply_translation([2.25, 2.25, 0.5])
+    x, y = bar.vertices[:, 0], bar.vertices[:, 1]
+    assert np.all((x > 0) & (y > 0) & (np.minimum(x, y) < 2) & (np.maximum(x, y) < 4))  # every vertex in the L
+    patient, said = _read(trimesh.util.concatenate([ell, bar]), "ell.stl")
+    assert patient.volume == pytest.approx(12 + 0.5 * (0.5 + math.sqrt(0.5)) ** 2 * 0.5, rel=1e-12)
+    assert len(said) == 1 and "2 closed surfaces that overlap" in said[0]
+
+
+def test_two_cavities_apart_and_two_that_cross():
+    # two balls of radius 1 apart inside one of radius 4, wound outward: two cavities
+    mesh, (outer, a, b) = _balls((4.0, (0, 0, 0), False), (1.0, (-2, 0, 0), False), (1.0, (2, 0, 0), False))
+    patient, said = _read(mesh, "two_canals.stl")
+    assert patient.volume == pytest.approx(outer - a - b, rel=1e-12)
+    assert len(said) == 1 and "2 closed surfaces inside another are wound outward; read as cavities" in said[0]
+    # the two cross (centres 1 mm apart): not a nesting; as before, the union of all three (the outer ball)
+    mesh, (outer, a, b) = _balls((4.0, (0, 0, 0), False), (1.0, -_SKEW / 2, False), (1.0, _SKEW / 2, False))
+    patient, said = _read(mesh, "crossing_canals.stl")
+    assert patient.volume == pytest.approx(outer, rel=1e-9)
+    assert len(said) == 1 and "3 closed surfaces that overlap" in said[0]
+
+
+def test_a_piece_in_anothers_box_but_outside_it_is_solid():
+    # a ball in the notch of an L-shaped plate (within its box, outside it), wound inward: parity reads it
+    # as solid, a piece beside the L, so the volume is the sum, not the difference
+    ell = trimesh.boolean.union([trimesh.creation.box(bounds=[(0, 0, 0), (4, 2, 1)]),
+                                 trimesh.creation.box(bounds=[(0, 0, 0), (2, 4, 1)])], engine="manifold")
+    ball, (ball_volume,) = _balls((0.4, (3, 3, 0.5), True))
+    patient, said = _read(trimesh.util.concatenate([ell, ball]), "beside.stl")
+    assert patient.volume == pytest.approx(12 + ball_volume, rel=1e-12)
+    assert len(said) == 1 and "1 closed surface enclosing solid is wound inward; read as solid" in said[0]

@@ -824,7 +824,10 @@ def mesh_patient_from_trimesh(mesh, *, name: str, scale: float = 1.0) -> MeshPat
     """A :class:`MeshPatient` from a loaded ``trimesh.Trimesh``, cleaned (no NaN check: do it first).
 
     Vertices are merged and duplicate faces removed (a duplicate would cross a line
-    twice at one point and spoil its parity).
+    twice at one point and spoil its parity). A closed mesh's surfaces nested one in another
+    are wound by their depth (:func:`orient_nested_shells`: a cavity wound outward no longer
+    counts as solid); surfaces that cross are joined (:func:`union_of_overlapping_shells`).
+    Either warns.
     """
     import trimesh
 
@@ -841,39 +844,56 @@ def mesh_patient_from_trimesh(mesh, *, name: str, scale: float = 1.0) -> MeshPat
     m = trimesh.Trimesh(m.vertices, faces, process=False)
     volume = None
     if len(faces) and m.is_watertight and m.is_winding_consistent:
-        union = union_of_overlapping_shells(m)
-        if union is not None:
-            m, count = union
+        import warnings
+
+        from ..errors import ScaffoldWarning
+
+        shells = closed_shells(m)
+        nested = orient_nested_shells(m, shells)
+        if nested is not None:
+            m, cavities, solids = nested
             faces = np.asarray(m.faces, np.int64)
-            import warnings
-
-            from ..errors import ScaffoldWarning
-
-            warnings.warn(f"{Path(name).name} holds {count} closed surfaces that overlap: the patient is their union "
-                          f"({abs(float(m.volume)):.6g} mm3), not the parity of their crossings", ScaffoldWarning,
-                          stacklevel=3)
+            said = []
+            if cavities:
+                said.append(f"{cavities} closed surface{'s' if cavities > 1 else ''} inside another "
+                            f"{'are' if cavities > 1 else 'is'} wound outward; read as "
+                            f"{'cavities' if cavities > 1 else 'a cavity'}")
+            if solids:
+                said.append(f"{solids} closed surface{'s' if solids > 1 else ''} enclosing solid "
+                            f"{'are' if solids > 1 else 'is'} wound inward; read as solid")
+            warnings.warn(f"{Path(name).name}: {'; '.join(said)} (the even-odd rule of nested surfaces: the patient "
+                          f"{abs(float(m.volume)):.6g} mm3)", ScaffoldWarning, stacklevel=3)
+        else:
+            union = union_of_overlapping_shells(m, shells)
+            if union is not None:
+                m, count = union
+                faces = np.asarray(m.faces, np.int64)
+                warnings.warn(f"{Path(name).name} holds {count} closed surfaces that overlap: the patient is their "
+                              f"union ({abs(float(m.volume)):.6g} mm3), not the parity of their crossings",
+                              ScaffoldWarning, stacklevel=3)
         volume = abs(float(m.volume))
     return MeshPatient(np.asarray(m.vertices), faces, name=Path(name).name, watertight_volume=volume)
 
 
-#: meshes of more closed surfaces than this are not checked for overlaps (a pair test each, and
-#: a union): a bone's pieces are a few, a mesh of thousands of specks is noise
+#: meshes of more closed surfaces than this are not checked for nesting or overlaps (a pair test
+#: each, and unions): a bone's pieces are a few, a mesh of thousands of specks is noise
 UNION_MAX_SHELLS = 64
 #: nor meshes of more triangles: a bone surface holds some 10^4 to 10^6; a scaffold's mesh (``analyze``,
 #: ``check``) millions, in pieces that do not overlap
 UNION_MAX_TRIANGLES = 2_000_000
 
 
-def union_of_overlapping_shells(mesh):
-    """(the union as a ``trimesh.Trimesh``, the number of surfaces) of a closed mesh's surfaces that
-    overlap, or None: one surface, none that overlaps another, one wound inwards (a cavity: a hollow
-    bone's inner wall, whose union with the outer one would fill it), more than :data:`UNION_MAX_SHELLS`,
-    or more than :data:`UNION_MAX_TRIANGLES`.
+def closed_shells(mesh):
+    """The closed surfaces of a closed, consistently wound mesh, or None: one surface, surfaces
+    that meet at a vertex (left to parity), more than :data:`UNION_MAX_SHELLS`, or more than
+    :data:`UNION_MAX_TRIANGLES`.
 
-    Inside by ray parity, the part of the patient that two surfaces enclose is crossed twice and
-    reads as outside: two copies of the L3 vertebra 20 mm apart, overlapping by 25,327 mm3, left a
-    hole there in the scaffold, and the volume was their sum (126,534 mm3 against 101,207). The
-    union is manifold3d's boolean (exact on the surfaces' own vertices, closed and 2-manifold).
+    Returns
+    -------
+    face_label : (m,) int64 ndarray
+        The surface of each of the mesh's faces.
+    parts : list of ``trimesh.Trimesh``
+        Each surface on its own vertices, as wound in the file.
     """
     import trimesh
 
@@ -897,6 +917,133 @@ def union_of_overlapping_shells(mesh):
         own = faces[face_label == c]
         used, local = np.unique(own, return_inverse=True)
         parts.append(trimesh.Trimesh(vertices[used], local.reshape(-1, 3), process=False))
+    return face_label, parts
+
+
+def _manifold(part, outward: bool = False):
+    """`part` (a closed ``trimesh.Trimesh``) as a ``manifold3d.Manifold``, wound outward if asked,
+    or None where manifold3d does not take it."""
+    import manifold3d
+
+    faces = np.ascontiguousarray(part.faces[:, ::-1] if outward and part.volume < 0 else part.faces, np.uint64)
+    solid = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=np.ascontiguousarray(part.vertices, np.float64),
+                                                  tri_verts=faces))
+    return solid if solid.status() == manifold3d.Error.NoError else None
+
+
+def orient_nested_shells(mesh, shells=None):
+    """A closed mesh whose surfaces are strictly nested, each wound by its nesting depth, or None
+    (as wound already, or surfaces that cross, or not :func:`closed_shells`).
+
+    A surface inside no other encloses solid, one inside one other a cavity, inside two an island
+    of solid in that cavity, and so on (the even-odd rule of slicers, and what ray parity reads
+    inside). The file's winding may disagree: an exporter that fixes normals surface by surface
+    winds a bone's medullary canal outward, and the volume then counted the canal as solid, and
+    :func:`union_of_overlapping_shells` filled it (a femur's shaft read 9,780 mm3 for 8,213).
+
+    Depth is counted by ray parity from one vertex of each surface against every surface whose box
+    holds its box, then checked by manifold3d on the surfaces wound outward: the surfaces of each
+    depth enclose disjoint volumes (their union's volume is their sum) and those one deeper lie within
+    them (adding them leaves the union's volume as it was). So surfaces that cross fail it, whatever
+    the parity of one vertex said, and are left to :func:`union_of_overlapping_shells`. Its cost is
+    one parity line per pair of nested boxes and two unions per depth.
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+        Closed and consistently wound (as :func:`mesh_patient_from_trimesh` checks).
+    shells : tuple, optional
+        :func:`closed_shells` of `mesh`, if known already.
+
+    Returns
+    -------
+    mesh : trimesh.Trimesh
+        The same vertices and faces in the same order, the faces of the surfaces re-wound reversed.
+    cavities : int
+        Surfaces at odd depth that were wound outward.
+    solids : int
+        Surfaces at even depth that were wound inward.
+    """
+    import trimesh
+
+    shells = closed_shells(mesh) if shells is None else shells
+    if shells is None:
+        return None
+    face_label, parts = shells
+    volumes = np.array([float(p.volume) for p in parts])
+    if np.any(volumes == 0):
+        return None  # a surface enclosing nothing has no winding to read
+    size = np.abs(volumes)
+    lo = np.array([p.bounds[0] for p in parts])
+    hi = np.array([p.bounds[1] for p in parts])
+    # holds[j, i]: j's box holds i's box and j encloses more (a surface within another has both)
+    holds = np.all((lo[:, None] <= lo[None]) & (hi[None] <= hi[:, None]), axis=2) & (size[:, None] > size[None])
+    if not holds.any():
+        return None
+    depth = np.zeros(len(parts), np.int64)
+    for j, i in zip(*np.nonzero(holds)):
+        # the line along z through a vertex of i: parity of j's crossings below it. Surfaces that do
+        # not cross hold no vertex of i on j, and a line through j's edges or vertices is decided by
+        # simulation of simplicity (counted once)
+        p = parts[i].vertices[0]
+        _, t = crossings(parts[j].vertices, parts[j].faces, 2, float(p[0]), 1.0, 1, float(p[1]), 1.0, 1)
+        depth[i] += int(np.count_nonzero(t < p[2])) % 2
+    wrong = np.sign(volumes) != np.where(depth % 2, -1.0, 1.0)
+    if not wrong.any() or wrong.all():
+        # wound as nested (or every surface reversed, which the volume's magnitude reads so): as before
+        return None
+    import manifold3d
+
+    solids = [_manifold(p, outward=True) for p in parts]
+    if any(s is None for s in solids):
+        return None
+
+    def union_volume(which):
+        chosen = [solids[k] for k in np.flatnonzero(which)]
+        return chosen[0].volume() if len(chosen) == 1 else \
+            manifold3d.Manifold.batch_boolean(chosen, manifold3d.OpType.Add).volume()
+
+    own = np.array([s.volume() for s in solids])
+    for d in range(int(depth.max()) + 1):
+        level = depth == d
+        enclosed = own[level].sum()
+        # relative 1e-9: the booleans' rounding, far below any real overlap of two surfaces
+        if level.sum() > 1 and union_volume(level) < enclosed * (1 - 1e-9):
+            return None  # two surfaces at one depth overlap: they cross (or parity was misled)
+        deeper = depth == d + 1
+        if deeper.any() and union_volume(level | deeper) > enclosed * (1 + 1e-9):
+            return None  # a surface one deeper reaches out of those at this depth: they cross
+    faces = np.array(mesh.faces, np.int64)
+    flip = wrong[face_label]
+    faces[flip] = faces[flip][:, ::-1]
+    odd = depth % 2 == 1
+    return (trimesh.Trimesh(np.asarray(mesh.vertices), faces, process=False), int(np.count_nonzero(wrong & odd)),
+            int(np.count_nonzero(wrong & ~odd)))
+
+
+def union_of_overlapping_shells(mesh, shells=None):
+    """(the union as a ``trimesh.Trimesh``, the number of surfaces) of a closed mesh's surfaces that
+    overlap, or None: not :func:`closed_shells`, none that overlaps another, or one wound inwards (a
+    cavity: a hollow bone's inner wall, whose union with the outer one would fill it; a cavity wound
+    outward is :func:`orient_nested_shells`'s, to be tried first).
+
+    Inside by ray parity, the part of the patient that two surfaces enclose is crossed twice and
+    reads as outside: two copies of the L3 vertebra 20 mm apart, overlapping by 25,327 mm3, left a
+    hole there in the scaffold, and the volume was their sum (126,534 mm3 against 101,207). The
+    union is manifold3d's boolean (exact on the surfaces' own vertices, closed and 2-manifold).
+
+    Parameters
+    ----------
+    mesh : trimesh.Trimesh
+    shells : tuple, optional
+        :func:`closed_shells` of `mesh`, if known already.
+    """
+    import trimesh
+
+    shells = closed_shells(mesh) if shells is None else shells
+    if shells is None:
+        return None
+    _, parts = shells
     volumes = np.array([float(p.volume) for p in parts])
     if np.any(volumes <= 0):
         return None
@@ -908,13 +1055,9 @@ def union_of_overlapping_shells(mesh):
         return None
     import manifold3d
 
-    solids = []
-    for p in parts:
-        solid = manifold3d.Manifold(manifold3d.Mesh64(vert_properties=np.ascontiguousarray(p.vertices, np.float64),
-                                                      tri_verts=np.ascontiguousarray(p.faces, np.uint64)))
-        if solid.status() != manifold3d.Error.NoError:
-            return None  # not a manifold manifold3d takes: parity, as before
-        solids.append(solid)
+    solids = [_manifold(p) for p in parts]
+    if any(s is None for s in solids):
+        return None  # not a manifold manifold3d takes: parity, as before
     union = manifold3d.Manifold.batch_boolean(solids, manifold3d.OpType.Add)
     if not union.volume() < volumes.sum() * (1 - 1e-9):
         return None  # the boxes meet, the surfaces do not
