@@ -646,6 +646,32 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     raise ValueError(f"preconditioner must be 'multigrid', 'fft' or 'direct', got {kind!r}")
 
 
+#: the solves run with BLAS on one thread (:func:`_one_blas_thread`); False: BLAS's own thread count
+ONE_BLAS_THREAD = True
+
+
+def _one_blas_thread(solve):
+    """`solve` with BLAS (OpenBLAS's threads) held to the calling thread while it runs.
+
+    The solve's BLAS calls are small (the coarsest level's pseudo-inverse once a V-cycle, the eigenvalue
+    estimates' dot products), but after each one OpenBLAS's worker threads spin, waiting for more, on the
+    cores the OpenCL operator runs on next: on the 128^3 benchmark scaffold (six cases, one run each, the
+    machine shared) the fine product's median in the solve took 16.5 ms against 11.6 with BLAS on one
+    thread (8.5 and 9.2 ms by itself in the same processes), and the solve 20.1 s against 15.6."""
+    import functools
+
+    @functools.wraps(solve)
+    def run(*args, **kwargs):
+        if not ONE_BLAS_THREAD:
+            return solve(*args, **kwargs)
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            return solve(*args, **kwargs)
+
+    return run
+
+
 def _norms(v: np.ndarray) -> np.ndarray:
     """(m,) Euclidean norms of the m load cases of `v` (m, 3, N), without a squared copy."""
     flat = v.reshape(len(v), -1)
@@ -1239,6 +1265,7 @@ def _counting(progress):
     return tell
 
 
+@_one_blas_thread
 def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, preconditioner, progress,
                      cases_per_block, accuracy):
     """:func:`homogenize` of held pieces, its tensor over `total` voxels' volume: (C, iterations, the
@@ -1568,6 +1595,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
                        sum(len(ids) for _, ids, _ in crops) or 1, bool(converged))
 
 
+@_one_blas_thread
 def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, preconditioner, progress, accuracy):
     """:func:`compress` of the pieces that join both platens: (the upper platen's force in kN, the von
     Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error,
