@@ -582,6 +582,59 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     assert got.dtype == np.float64 and close(got, want)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_fused_chebyshev_step_is_numpys_bit_for_bit(dtype, rows):
+    # the coarse levels' smoothing step in one pass must round each product as NumPy's in-place operations
+    # did (the V-cycle, and so the CG's iterates, are the same bits either way)
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(11)
+    m, n = 3, 1013
+    r, a, b, d, x = (rng.standard_normal((m, 3, n)).astype(dtype) for _ in range(5))
+    g = rng.random((rows, n)).astype(dtype)
+    c1, c2 = 0.731, 1.27
+    want_r, want_d, want_x = r - a, d.copy(), x.copy()
+    want_d *= c1
+    t = g * want_r
+    t *= c2
+    want_d += t
+    want_x += want_d
+    assert fused.chebyshev_step(r, a, d, x, g, c1, c2)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_x)
+    # the first step from an iterate: r = b - A x, d = c2 g r, x += d
+    want_r = b - a
+    want_d = g * want_r
+    want_d *= c2
+    want_x = x + want_d
+    assert fused.chebyshev_step(r, a, d, x, g, 0.0, c2, b=b)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_x)
+    # arrays it cannot take are left to NumPy, untouched
+    before = r.copy()
+    assert not fused.chebyshev_step(r, a.astype(np.float64 if dtype == np.float32 else np.float32), d, x, g, c1, c2)
+    assert np.array_equal(r, before)
+
+
+def test_chebyshev_smoothing_reduces_the_error_as_its_polynomial_says():
+    # _chebyshev (fused steps) against the polynomial in closed form: on A = diag(lams), D = I, b = A e, from
+    # x = 0 the error after degree k is T_k((theta - lam) / delta) / T_k(theta / delta) e per eigenvalue
+    from numpy.polynomial.chebyshev import chebval
+
+    lmax = 4.0
+    lams = np.linspace(0.05, lmax, 3 * 500).reshape(1, 3, 500)
+    e = np.random.default_rng(2).standard_normal(lams.shape)
+    lo, hi = G.LOWER * lmax, G.UPPER * lmax
+    theta, delta = (hi + lo) / 2, (hi - lo) / 2
+    for degree in (1, 2, 3):
+        x = G._chebyshev(lambda v: lams * v, np.ones((3, 500)), lmax, lams * e, degree=degree)
+        tk = chebval((theta - lams) / delta, [0] * degree + [1]) / chebval(theta / delta, [0] * degree + [1])
+        assert np.allclose(e - x, tk * e, rtol=1e-9, atol=1e-9)
+        # and from an iterate (the post-smoothing): one more degree's worth from x0 = the last result
+        x0 = x.copy()
+        x = G._chebyshev(lambda v: lams * v, np.ones((3, 500)), lmax, lams * e, x0, degree=degree)
+        assert np.allclose(e - x, tk * tk * e, rtol=1e-9, atol=1e-9)
+
+
 @pytest.mark.parametrize("kind", ["sparse", "all"])
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_spreading_onto_used_memory_zeroes_every_other_node(kind, dtype):

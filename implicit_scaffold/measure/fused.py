@@ -164,7 +164,38 @@ def _kernels():
                             j = idx[i]
                             out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[i] * (wd[i] * src[c, d, i] - ax[c, d, j]))
 
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows
+    # a Chebyshev smoothing step of a coarse level (multigrid._chebyshev), a = A d (or A x) given:
+    # mode 0, r -= a; d = c1 d + c2 g r; x += d. Mode 1 (the first step from an iterate x): r = b - a;
+    # d = c2 g r; x += d. Each product rounded to the vectors' float as NumPy's in-place operations round it
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def chebyshev_rows(r, a, b, dv, x, g, c1, c2, mode, pieces, lo, hi):  # pragma: no cover - compiled
+        m, _, n = r.shape
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    rd, ad, bd, dd, xd = r[c, d, n0:n1], a[c, d, n0:n1], b[c, d, n0:n1], dv[c, d, n0:n1], x[c, d, n0:n1]
+                    gd = g[d if g.shape[0] == 3 else 0, n0:n1]
+                    if mode == 0:
+                        for i in range(n1 - n0):
+                            v = rd[i] - ad[i]
+                            rd[i] = v
+                            u = dd[i] * c1
+                            t = gd[i] * v
+                            t = t * c2
+                            u = u + t
+                            dd[i] = u
+                            xd[i] += u
+                    else:
+                        for i in range(n1 - n0):
+                            v = bd[i] - ad[i]
+                            rd[i] = v
+                            t = gd[i] * v
+                            t = t * c2
+                            dd[i] = t
+                            xd[i] += t
+
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows, chebyshev_rows
 
 
 def _weight(w, n: int, dtype) -> np.ndarray:
@@ -325,3 +356,24 @@ def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarra
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, x.dtype),
               _weight(g, k, x.dtype), x.dtype.type(s), out, x, ax, 2, pieces)
     return out
+
+
+def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g: np.ndarray, c1: float, c2: float,
+                   b: np.ndarray | None = None) -> bool:
+    """One step of :func:`~implicit_scaffold.measure.multigrid._chebyshev` in one pass, in place: ``r -= a``,
+    ``d = c1 d + c2 g r``, ``x += d`` (`a` = A d); with `b`, the first step from an iterate x (`a` = A x):
+    ``r = b - a``, ``d = c2 g r``, ``x += d``. `g` is the level's inverse diagonal, (1, N) or (3, N). The
+    same bits as those NumPy operations (each product rounded to the vectors' float). Returns False, with
+    nothing done, where the arrays are not all C-contiguous (m, 3, N) of one float32 or float64 type."""
+    from ..run.threads import over_rows
+
+    arrays = [r, a, d, x] + ([] if b is None else [b])
+    dtype = r.dtype
+    if dtype.kind != "f" or any(v.dtype != dtype or not v.flags.c_contiguous or v.shape != r.shape for v in arrays) \
+            or g.dtype != dtype or g.ndim != 2 or g.shape[1] != r.shape[2]:
+        return False
+    n = r.shape[2]
+    pieces = _pieces(n)
+    over_rows(_kernels()[6], pieces, r, a, r if b is None else b, d, x, np.ascontiguousarray(g), dtype.type(c1),
+              dtype.type(c2), 0 if b is None else 1, pieces)
+    return True

@@ -645,34 +645,40 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
 
     `x` (updated in place) and the new iterate are aligned (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`),
     so the OpenCL operator reads them in place."""
+    from .fused import chebyshev_step
     from .mechanics_cl import aligned_copy, aligned_empty
 
     lo, hi = LOWER * lmax, UPPER * lmax
     theta, delta = (hi + lo) / 2, (hi - lo) / 2
     sigma = theta / delta
     rho = 1 / sigma
+    d = aligned_empty(b.shape, b.dtype)
     if x is None:
         r = b if degree == 1 else b.copy()  # read only when there is no further step
-    else:
-        r = apply(x)
-        np.subtract(b, r, out=r)
-    d = aligned_empty(r.shape, r.dtype)
-    np.multiply(inv_diag, r, out=d)
-    d *= 1 / theta
-    if x is None:
+        np.multiply(inv_diag, r, out=d)
+        d *= 1 / theta
         x = d if degree == 1 else aligned_copy(d)
     else:
-        x += d
+        # each step one compiled pass where NumPy made five or six over the block's vectors (the same bits)
+        r = apply(x)
+        if not chebyshev_step(r, r, d, x, inv_diag, 0.0, 1 / theta, b=b):
+            np.subtract(b, r, out=r)
+            np.multiply(inv_diag, r, out=d)
+            d *= 1 / theta
+            x += d
     for _ in range(degree - 1):
-        r -= apply(d)
+        a = apply(d)
         rho_new = 1 / (2 * sigma - rho)
-        d *= rho_new * rho
-        t = inv_diag * r
-        t *= 2 * rho_new / delta
-        d += t
-        del t
+        if not chebyshev_step(r, a, d, x, inv_diag, rho_new * rho, 2 * rho_new / delta):
+            r -= a
+            d *= rho_new * rho
+            t = inv_diag * r
+            t *= 2 * rho_new / delta
+            d += t
+            del t
+            x += d
+        del a
         rho = rho_new
-        x += d
     return x
 
 
