@@ -185,6 +185,14 @@ def test_the_fine_level_by_slabs_is_the_whole_grids(shape, periodic, monkeypatch
     r = rng.standard_normal((2, 3, live.size))
     monkeypatch.setattr(G, "FINE_SLAB_NODES", 0)
     whole = mg.compact(live)(r)
+    # handed over case by case, r.z with each as the CG sums it (wdot, weighed by ones)
+    from implicit_scaffold.measure.fused import wdot
+
+    seen = []
+    mg.compact(live)(r, lambda c, z, rz: seen.append((c, z.copy(), rz)))
+    assert [c for c, _, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z, _ in seen]), whole)
+    ones = np.ones((1, live.size), np.float32)
+    assert all(rz == wdot(r[c:c + 1], z, ones)[0] for c, z, rz in seen)
     plane = model.shape[1] * model.shape[2]
     for planes in (1, 2, 3, 5):
         monkeypatch.setattr(G, "FINE_SLAB_NODES", planes * plane)
@@ -192,8 +200,8 @@ def test_the_fine_level_by_slabs_is_the_whole_grids(shape, periodic, monkeypatch
         got = mg.compact(live)(r)
         assert np.abs(got - whole).max() <= 1e-6 * np.abs(whole).max(), planes
         seen = []
-        mg.compact(live)(r, lambda c, z: seen.append((c, z.copy())))
-        assert [c for c, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z in seen]), got)
+        mg.compact(live)(r, lambda c, z, rz: seen.append((c, z.copy(), rz)))
+        assert [c for c, _, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z, _ in seen]), got)
 
 
 def test_the_v_cycle_is_symmetric_positive(scaffolds):
@@ -580,6 +588,34 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     want = w[:, idx] * (x[:, :, idx] + 0.7 * g[:, idx] * (w[:, idx] * src - b[:, :, idx]))
     got = fused.take_smoothed(x, b, src, idx, w[:, idx], g[:, idx], 0.7)
     assert got.dtype == np.float64 and close(got, want)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_dots_summed_while_taking_are_wdots_bit_for_bit(dtype, rows):
+    # the CG's p.Kp summed as the product's live nodes are taken, and r.z as the V-cycle takes z: the same
+    # bits as wdot over the taken vectors (the CG's step lengths, and so its iterates, do not change)
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(rows + 7)
+    m, n = 1, 5003
+    idx = np.flatnonzero(rng.random(n) < 0.45)
+    k = len(idx)
+    grid = rng.standard_normal((m, 3, n)).astype(dtype)
+    w = (rng.random((rows, k)) < 0.9).astype(np.float32)
+    p = rng.standard_normal((m, 3, k)).astype(dtype)
+    ones = np.ones((1, k), np.float32)  # as the CG takes K p: unmasked, and p.Kp weighed by the free mask
+    got, dot = fused.take_dot(grid, idx, ones, p, w, np.float64)
+    want = fused.take(grid, idx, ones, np.float64)
+    assert np.array_equal(got, want) and np.array_equal(dot, fused.wdot(p, want, w))
+    assert dot[0] == pytest.approx(float((p * want * w).sum()), rel=1e-9)  # and it is that sum
+    x, ax = (rng.standard_normal((m, 3, n)).astype(dtype) for _ in range(2))
+    g = rng.random((3, k)).astype(dtype)
+    src = rng.standard_normal((m, 3, k))  # the CG's residual, in double
+    z, rz = fused.take_smoothed(x, ax, src, idx, w, g, 0.7, np.float32, dot=True)
+    assert np.array_equal(z, fused.take_smoothed(x, ax, src, idx, w, g, 0.7, np.float32))
+    assert np.array_equal(rz, fused.wdot(src, z, np.ones((1, k), np.float32)))
+    assert rz[0] == pytest.approx(float((src * z.astype(float)).sum()), rel=1e-9)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

@@ -750,7 +750,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     """
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
-    from .fused import cg_update, put, take, wdot, xpby
+    from .fused import cg_update, put, take, take_dot, wdot, xpby
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM, reusing
 
     n = np.shape(free)[-1]
@@ -770,7 +770,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         out *= wl
         return out
 
-    def on_live_product(product, v, w_out, spread=None) -> np.ndarray:
+    def on_live_product(product, v, w_out, spread=None, dot_weight=None):
         """``w_out K v`` on the live nodes in double, from live-node values `v` (spread in `spread`, default
         the values' own float). A double OpenCL product by slabs of the grid (its ``live_product``): its
         whole-grid input and output held 48 bytes a node, above the float cycle's at the homogenization's
@@ -778,14 +778,20 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         script: one case a block peaked 483 bytes a solid voxel, 394 by slabs; a compression 636 and 572),
         for some 10 ms more a product there (49 against 39). Float ones over the whole grid (by slabs of 2^18
         they took 27 ms against 21) but on a grid of more than
-        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, whose V-cycle runs by slabs too."""
-        if not hasattr(product, "live_product"):
-            return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, whose V-cycle runs by slabs too.
+
+        With `dot_weight`: ``(K v, v . K v)`` (weighed by it, as ``wdot`` sums it), summed in the pass that takes
+        the product's live nodes where the product is a whole grid's."""
+        if not hasattr(product, "live_product") or (not product.double and n <= FLOAT_SLABS_FROM):
+            out = product(put(v, live, n, ones, spread))
+            if dot_weight is not None:
+                return take_dot(out, live, w_out, v, dot_weight, np.float64)
+            return take(out, live, w_out, np.float64)
         if product.double:
-            return product.live_product(v, live, ones, w_out, np.float64)
-        if n > FLOAT_SLABS_FROM:  # by larger slabs, on a large grid
-            return product.live_product(v, live, ones, w_out, np.float64, FLOAT_SLAB_NODES)
-        return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
+            q = product.live_product(v, live, ones, w_out, np.float64)
+        else:  # by larger slabs, on a large grid
+            q = product.live_product(v, live, ones, w_out, np.float64, FLOAT_SLAB_NODES)
+        return q if dot_weight is None else (q, wdot(v, q, dot_weight))
 
     r = on_live(b)  # F b on the live nodes
     del b
@@ -804,7 +810,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         def pre(v, sink):
             z = take(precond(put(v, live, n, ones)), live, ones)
             for c in range(len(z)):
-                sink(c, z[c:c + 1])
+                sink(c, z[c:c + 1], None)
     # the preconditioned residual z is handed over one case at a time (pre's sink) and folded into
     # p at once, so that the block's z is never held beside x, r and p
     rz = np.zeros(m)
@@ -812,12 +818,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # the dot products by a compiled pass (wdot, in double whatever z's float), not np.vdot: a BLAS
     # call leaves OpenBLAS's threads spinning, and beside them the OpenCL operator ran 1.8 times
     # slower (64^3 scaffold, one case a block: 34 s of CPU against 23)
-    def r_dot(c, z) -> float:
-        return float(wdot(r[c:c + 1], z, ones)[0])
+    def r_dot(c, z, given=None) -> float:
+        # `given`: the preconditioner summed it as it made z (the same bits)
+        return float(wdot(r[c:c + 1], z, ones)[0]) if given is None else given
 
-    def first(c, z):
+    def first(c, z, given=None):
         p[c] = z[0]
-        rz[c] = r_dot(c, z)
+        rz[c] = r_dot(c, z, given)
 
     with reusing():  # the cycle's whole-grid vectors, case after case, from one pool
         pre(r, first)
@@ -877,8 +884,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             for c in np.flatnonzero(going):
                 one = slice(c, c + 1)
                 # masked to the free unknowns below
-                q = on_live_product(product, p[one], ones, spread)
-                pq = wdot(p[one], q, wl)[0]
+                q, pq = on_live_product(product, p[one], ones, spread, dot_weight=wl)
+                pq = pq[0]
                 if pq > 0:
                     live_cases[c] = True
                     rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
@@ -889,8 +896,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 del q
             rz_new = np.zeros(m)
 
-            def step(c, z):
-                rz_new[c] = r_dot(c, z)
+            def step(c, z, given=None):
+                rz_new[c] = r_dot(c, z, given)
                 if live_cases[c]:
                     rhos[c].append(rz_new[c])
                 beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
@@ -932,9 +939,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         # jigsaw femur at 1.5 mm (kinematic) it said 5.2e-7 where C33 was 4.3e-4 off
         true_rz = np.zeros(m)
 
-        def again_from(c, z):
-            true_rz[c] = r_dot(c, z)
-            first(c, z)  # p = z and rz, for a case that restarts
+        def again_from(c, z, given=None):
+            true_rz[c] = r_dot(c, z, given)
+            first(c, z, given)  # p = z and rz, for a case that restarts
 
         if by_energy or (res > tol).any():
             with reusing():

@@ -911,8 +911,9 @@ class Multigrid:
         the residual is spread over the grid in the cycle's float, the result's live nodes
         taken back in `dtype` (default the residual's; one pass each, no whole-grid vector in the
         solver's float).
-        ``apply(r, sink)`` hands each case's result to ``sink(case, z)`` ((1, 3, len(live))) as soon as
-        it is made, and returns None: the caller need not hold the block's result.
+        ``apply(r, sink)`` hands each case's result to ``sink(case, z, rz)`` ((1, 3, len(live)), and ``r.z``
+        summed as :func:`~implicit_scaffold.measure.fused.wdot` sums it, or None) as soon as it is made, and
+        returns None: the caller need not hold the block's result.
 
         With degree-1 fine smoothing (the default) the fine level runs one load case at a time
         (:meth:`_fine_cases`): the whole-grid vectors are one case's, not the block's.
@@ -947,7 +948,7 @@ class Multigrid:
             if sink is None:
                 return z
             for c in range(len(z)):
-                sink(c, z[c:c + 1])
+                sink(c, z[c:c + 1], None)
 
         return apply
 
@@ -1008,11 +1009,15 @@ class Multigrid:
                 x = put_smoothed(r[c:c + 1], live, n, w, g, s, self.dtype)
                 prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
             ax = self.op(x)
+            if sink is not None:
+                # r.z in the same pass, handed over with z: the CG's own, the same bits (it weighs r.z by ones)
+                one, rz = take_smoothed(x, ax, r[c:c + 1], live, w, g, s, r.dtype if dtype is None else dtype,
+                                        dot=True)
+                del x, ax
+                sink(c, one, float(rz[0]))
+                continue
             one = take_smoothed(x, ax, r[c:c + 1], live, w, g, s, r.dtype if dtype is None else dtype)
             del x, ax
-            if sink is not None:
-                sink(c, one)
-                continue
             if z is None:  # made here, beside one whole-grid vector only
                 z = np.empty(r.shape, one.dtype)
             z[c] = one[0]
@@ -1105,7 +1110,7 @@ class Multigrid:
                               s, out=one[:, :, k0:k1])
                 del x, ax
             if sink is not None:
-                sink(c, one)
+                sink(c, one, None)
                 continue
             if z is None:
                 z = np.empty(r.shape, one.dtype)
