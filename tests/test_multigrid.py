@@ -645,10 +645,28 @@ def test_fused_chebyshev_step_is_numpys_bit_for_bit(dtype, rows):
     want_x = x + want_d
     assert fused.chebyshev_step(r, a, d, x, g, 0.0, c2, b=b)
     assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_x)
+    # the first step from 0: r = b, d = c2 g b, x = d
+    want_r = b.copy()
+    want_d = g * b
+    want_d *= c2
+    assert fused.chebyshev_step(r, b, d, x, g, 0.0, c2, b=b, start=True)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_d)
     # arrays it cannot take are left to NumPy, untouched
     before = r.copy()
     assert not fused.chebyshev_step(r, a.astype(np.float64 if dtype == np.float32 else np.float32), d, x, g, c1, c2)
     assert np.array_equal(r, before)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_an_unweighted_prolongation_added_in_place_is_prolong_then_add(dtype):
+    # a coarse level's correction x += P e in one pass: the bits of prolong then +=
+    rng = np.random.default_rng(4)
+    fine = (9, 8, 7)
+    e = rng.standard_normal((2, 3, int(np.prod(G.coarse_shape(fine))))).astype(dtype)
+    x = rng.standard_normal((2, 3, int(np.prod(fine)))).astype(dtype)
+    want = x + G.prolong(e, fine)
+    G.prolong_add(e, x, None, fine)
+    assert np.array_equal(x, want)
 
 
 def test_chebyshev_smoothing_reduces_the_error_as_its_polynomial_says():

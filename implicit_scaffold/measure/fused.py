@@ -188,7 +188,7 @@ def _kernels():
 
     # a Chebyshev smoothing step of a coarse level (multigrid._chebyshev), a = A d (or A x) given:
     # mode 0, r -= a; d = c1 d + c2 g r; x += d. Mode 1 (the first step from an iterate x): r = b - a;
-    # d = c2 g r; x += d. Each product rounded to the vectors' float as NumPy's in-place operations round it
+    # d = c2 g r; x += d. Mode 2 (the first step from 0, a not read): r = b; d = c2 g b; x = d. Each product rounded to the vectors' float as NumPy's in-place operations round it
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def chebyshev_rows(r, a, b, dv, x, g, c1, c2, mode, pieces, lo, hi):  # pragma: no cover - compiled
         m, _, n = r.shape
@@ -208,7 +208,7 @@ def _kernels():
                             u = u + t
                             dd[i] = u
                             xd[i] += u
-                    else:
+                    elif mode == 1:
                         for i in range(n1 - n0):
                             v = bd[i] - ad[i]
                             rd[i] = v
@@ -216,6 +216,14 @@ def _kernels():
                             t = t * c2
                             dd[i] = t
                             xd[i] += t
+                    else:
+                        for i in range(n1 - n0):
+                            v = bd[i]
+                            rd[i] = v
+                            t = gd[i] * v
+                            t = t * c2
+                            dd[i] = t
+                            xd[i] = t
 
     return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows, chebyshev_rows
 
@@ -399,10 +407,11 @@ def take_dot(src: np.ndarray, idx: np.ndarray, w, v: np.ndarray, vw, dtype=None)
 
 
 def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g: np.ndarray, c1: float, c2: float,
-                   b: np.ndarray | None = None) -> bool:
+                   b: np.ndarray | None = None, start: bool = False) -> bool:
     """One step of :func:`~implicit_scaffold.measure.multigrid._chebyshev` in one pass, in place: ``r -= a``,
     ``d = c1 d + c2 g r``, ``x += d`` (`a` = A d); with `b`, the first step from an iterate x (`a` = A x):
-    ``r = b - a``, ``d = c2 g r``, ``x += d``. `g` is the level's inverse diagonal, (1, N) or (3, N). The
+    ``r = b - a``, ``d = c2 g r``, ``x += d``; with `b` and `start`, the first step from 0 (`a` not read):
+    ``r = b``, ``d = c2 g b``, ``x = d``. `g` is the level's inverse diagonal, (1, N) or (3, N). The
     same bits as those NumPy operations (each product rounded to the vectors' float). Returns False, with
     nothing done, where the arrays are not all C-contiguous (m, 3, N) of one float32 or float64 type."""
     from ..run.threads import over_rows
@@ -415,5 +424,5 @@ def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g
     n = r.shape[2]
     pieces = _pieces(n)
     over_rows(_kernels()[6], pieces, r, a, r if b is None else b, d, x, np.ascontiguousarray(g), dtype.type(c1),
-              dtype.type(c2), 0 if b is None else 1, pieces)
+              dtype.type(c2), 0 if b is None else (2 if start else 1), pieces)
     return True

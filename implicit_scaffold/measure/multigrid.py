@@ -250,7 +250,7 @@ def _kernels():
     # mode 0: out = the plane sums of src's rows; 1: those of src's rows times w's (a restriction of
     # w r, without the pass that makes w r; w on src's grid); 2: out += w times them (a prolongation
     # added onto out, without the whole-grid correction and the pass that adds it; w on out's
-    # grid). The sums are in the same order in every mode. w is (1 or 3, n1, n2, n3), a row's
+    # grid); 3: out += them (mode 2 without a weight). The sums are in the same order in every mode. w is (1 or 3, n1, n2, n3), a row's
     # component a % 3 (a (1, 1, 1, 1) dummy in mode 0)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def plane_rows(src, out, ia, wa, ib, wb, w, mode, lo, hi):  # pragma: no cover - compiled
@@ -260,7 +260,7 @@ def _kernels():
             for a in range(m):
                 wr = w[a % 3 if w.shape[0] == 3 else 0]
                 for j in range(n2):
-                    o = row if mode == 2 else out[a, i, j]
+                    o = row if mode >= 2 else out[a, i, j]
                     o[:] = 0.0
                     for s in range(ia.shape[1]):
                         for t in range(ib.shape[1]):
@@ -279,24 +279,28 @@ def _kernels():
                         oo, u = out[a, i, j], wr[i, j]
                         for k in range(nb_):
                             oo[k] += u[k] * row[k]
+                    elif mode == 3:
+                        oo = out[a, i, j]
+                        for k in range(nb_):
+                            oo[k] += row[k]
 
     def galerkin(fine_index, fine_mats, fine_free, elems, out):
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
-    def transfer(src, out, stencils, last_first, weight=None):
+    def transfer(src, out, stencils, last_first, weight=None, add=False):
         from .mechanics_cl import aligned_empty
 
         # src (m, 3, s1, s2, s3) -> out (m, 3, n1, n2, n3) through stencils[axis] = (idx, w); the
         # last axis first (a prolongation: the intermediate is the coarse planes' fine rows) or
         # after the first two (a restriction: the fine rows of the coarse planes). With `weight` on
         # the fine grid ((1 or 3, fine nodes)): a prolongation is added onto out times it, a
-        # restriction restricts src times it
+        # restriction restricts src times it; with `add` and no weight, a prolongation is added onto out
         (ia, wa), (ib, wb), (ig, wg) = [(i, w.astype(src.dtype)) for i, w in stencils]
         m = src.shape[0] * 3
         s1, s2, s3 = src.shape[2:]
         n1, n2, n3 = out.shape[2:]
         if weight is None:
-            mode, w = 0, np.ones((1, 1, 1, 1), src.dtype)
+            mode, w = 3 if add and last_first else 0, np.ones((1, 1, 1, 1), src.dtype)
         else:  # on the fine grid: out's for a prolongation, src's for a restriction
             mode, w = (2, weight.reshape(-1, n1, n2, n3)) if last_first else (1, weight.reshape(-1, s1, s2, s3))
         if last_first:
@@ -363,14 +367,14 @@ def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     return out.reshape(m, 3, -1)
 
 
-def prolong_add(y: np.ndarray, x: np.ndarray, w: np.ndarray, fine_shape) -> None:
-    """``x += w * prolong(y)`` in place, in one pass over x (`w` (1, N) or (3, N) on the fine grid;
-    the same arithmetic, without the whole-grid correction)."""
+def prolong_add(y: np.ndarray, x: np.ndarray, w: np.ndarray | None, fine_shape) -> None:
+    """``x += w * prolong(y)`` in place, in one pass over x (`w` (1, N) or (3, N) on the fine grid, or None:
+    ``x += prolong(y)``; the same arithmetic, without the whole-grid correction)."""
     fine_shape = tuple(int(v) for v in fine_shape)
     m = y.shape[0]
     _kernels()[2](np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)),
                   x.reshape((m, 3) + fine_shape), [_stencils(n)[:2] for n in fine_shape], True,
-                  np.ascontiguousarray(w, x.dtype))
+                  None if w is None else np.ascontiguousarray(w, x.dtype), add=True)
 
 
 def restrict(r: np.ndarray, fine_shape, w: np.ndarray | None = None) -> np.ndarray:
@@ -657,18 +661,25 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
     `x` (updated in place) and the new iterate are aligned (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`),
     so the OpenCL operator reads them in place."""
     from .fused import chebyshev_step
-    from .mechanics_cl import aligned_copy, aligned_empty
+    from .mechanics_cl import aligned_empty
 
     lo, hi = LOWER * lmax, UPPER * lmax
     theta, delta = (hi + lo) / 2, (hi - lo) / 2
     sigma = theta / delta
     rho = 1 / sigma
     d = aligned_empty(b.shape, b.dtype)
-    if x is None:
-        r = b if degree == 1 else b.copy()  # read only when there is no further step
+    if x is None and degree == 1:
+        r = b  # read only when there is no further step
         np.multiply(inv_diag, r, out=d)
         d *= 1 / theta
-        x = d if degree == 1 else aligned_copy(d)
+        x = d
+    elif x is None:
+        r, x = aligned_empty(b.shape, b.dtype), aligned_empty(b.shape, b.dtype)
+        if not chebyshev_step(r, b, d, x, inv_diag, 0.0, 1 / theta, b=b, start=True):
+            r[...] = b
+            np.multiply(inv_diag, r, out=d)
+            d *= 1 / theta
+            x[...] = d
     else:
         # each step one compiled pass where NumPy made five or six over the block's vectors (the same bits)
         r = apply(x)
@@ -875,12 +886,16 @@ class Multigrid:
             r *= self.free
         rc = restrict(r, shape)
         del r
-        corr = prolong(self._cycle(depth + 1, rc), shape)
+        e = self._cycle(depth + 1, rc)
         del rc
         if depth == 0:
+            corr = prolong(e, shape)
             corr *= self.free
-        x += corr
-        del corr
+            x += corr
+            del corr
+        else:  # x += P e in one pass (no whole-grid correction, and the same bits)
+            prolong_add(e, x, None, shape)
+        del e
         return _chebyshev(apply, inv_diag, lmax, b, x, degree=degree)
 
     def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
