@@ -1926,3 +1926,12 @@ def test_a_refused_solve_offers_no_voxel_too_coarse_for_the_walls():
                 assert m.plan_voxel((150, 150, 150), 1_000_000, 0.03, max_memory=held + k * 8 * 2**20, wall=wall,
                                     voxel=voxel, boundary="periodic")[0] == voxel
     assert coarse, "no budget left the finest fitting voxel too coarse for the walls"
+
+def test_the_most_strained_voxels_are_placed_at_their_centres():
+    # the sample's origin is the centre of its voxel [0, 0, 0]: a voxel's centre is origin + index h (it read half a
+    # voxel further along each axis)
+    field = np.zeros((4, 5, 6))
+    field[2, 3, 4], field[0, 0, 0] = 5.0, 1.0
+    top = m.most_strained(field, 0.5, origin=(10.0, 20.0, 30.0), count=3)
+    assert [t["index"] for t in top] == [[2, 3, 4], [0, 0, 0]]
+    assert top[0]["centre_mm"] == [11.0, 21.5, 32.0] and top[1]["centre_mm"] == [10.0, 20.0, 30.0]

@@ -1831,7 +1831,8 @@ def bone_verdict(modulus_gpa: float) -> str:
 
 
 def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count: int = 10) -> list[dict]:
-    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain."""
+    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain; `origin` is the centre
+    of voxel [0, 0, 0] (mm, as :class:`SolveSample` holds it)."""
     flat = field_vm.ravel()
     count = min(count, int((flat > 0).sum()))
     if count == 0:
@@ -1842,7 +1843,7 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
     for t in top:
         ijk = np.unravel_index(t, field_vm.shape)
         out.append({"index": [int(v) for v in ijk],
-                    "centre_mm": [round(float(o + (i + 0.5) * h), 6) for o, i in zip(origin, ijk)],
+                    "centre_mm": [round(float(o + i * h), 6) for o, i in zip(origin, ijk)],
                     "von_mises_strain": float(flat[t])})
     return out
 
@@ -1866,6 +1867,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         Relative residual of the CG solves (the report's ``solver.tolerance``). None, the default:
         :data:`TOL`, or sooner the energy accuracy :data:`ACCURACY` (the report's ``solver.accuracy``), which
         stops where the figures have converged; a tolerance given is the stop alone.
+    origin : (3,) floats, mm
+        The centre of ``solid[0, 0, 0]``: where the most strained voxels are placed.
     preconditioner : {"multigrid", "fft"}
         See :func:`make_preconditioner`.
     progress : callable, optional

@@ -948,7 +948,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         # generate's own field (its report beside it) over its run's patient, as read_scaffold reads it for check
         scaffold = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
         solid, step = scaffold.solid, scaffold.voxel
-        grid = Grid((0.5 * step,) * 3, step, solid.shape)
+        grid = Grid(scaffold.origin, step, solid.shape)  # where the file places its voxels (read_scaffold's)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         report = morphometry(solid, step, region=scaffold.region)
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
@@ -1216,8 +1216,8 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         where, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid", build=region)
         return Scaffold("field", field < 0, float(voxel), origin, field, where if region else None, name)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, note, selection, distance, axes = _read_volume(path, spacing, voxel, label, threshold)
-        origin, where, name = (0.5 * step,) * 3, None, "the whole volume"
+        solid, step, note, selection, distance, axes, origin = _read_volume(path, spacing, voxel, label, threshold)
+        where, name = None, "the whole volume"
         if distance is not None:
             # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
             own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
@@ -1306,9 +1306,12 @@ def _own_field(path, zyx_shape) -> bool:
 
 def _read_volume(path, spacing, voxel, label=None, threshold=None):
     """The solid of a volume on the world's axes (x, y, z; :func:`world_axes`), its voxel (mm), a note on
-    its resampling (or None), how its solid was chosen, generate's own distance (or None) and a note on
-    its axes (or None). The solid is every non-zero voxel of a binary volume, a segmentation's `label`, or a
-    CT's intensities from `threshold` (HU) up (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
+    its resampling (or None), how its solid was chosen, generate's own distance (or None), a note on
+    its axes (or None) and the centre of its voxel [0, 0, 0] (mm, x, y, z): where the file's origin, direction
+    and spacing place it, so that positions (the most strained voxels, a certificate's defects) read in the
+    scanner's frame; an oblique volume, left on its index axes, starts half a voxel from 0. The solid is every
+    non-zero voxel of a binary volume, a segmentation's `label`, or a CT's intensities from `threshold` (HU) up
+    (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
     import SimpleITK as sitk
 
     from ..fields.patient_volume import bone_mask, intensity_range
@@ -1355,8 +1358,15 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
     del mask
     # figures per axis (moduli, overhangs) name the patient's x, y, z, as generate places it, not the
     # file's storage order: a volume stored (k, i, j) or flipped is the same bone
-    order, flip, axes = world_axes(np.asarray(image.GetDirection(), np.float64).reshape(3, 3), path.name)
+    direction = np.asarray(image.GetDirection(), np.float64).reshape(3, 3)
+    order, flip, axes = world_axes(direction, path.name)
     solid, step = _reorient(solid, order, flip), step[list(order)]
+    if np.all(np.abs(np.abs(direction[np.arange(3), list(order)]) - 1) <= AXIS_TOLERANCE):
+        # world axis w is index axis order[w]: its lowest voxel centre is the origin's, or, where that axis runs
+        # along -w, the far end's
+        first = np.asarray(image.GetOrigin(), np.float64) - np.where(flip, (np.asarray(solid.shape) - 1) * step, 0.0)
+    else:  # oblique: on its index axes, as before
+        first = 0.5 * step
     if distance is not None:
         distance = _reorient(distance, order, flip)
     target = voxel if voxel is not None else float(step.min())
@@ -1372,7 +1382,9 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
         distance = None  # not resampled: the solid's values only
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel (all zero)")
-    return solid, float(target), note, selection, distance, axes
+    # the new voxels tile the same box: its corner is half an old voxel below the first centre
+    origin = tuple(float(v) for v in first - step / 2 + target / 2)
+    return solid, float(target), note, selection, distance, axes, origin
 
 
 #: largest departure of a direction matrix's entries from 0 and ±1 still read as a signed permutation
