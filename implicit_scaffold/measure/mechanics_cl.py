@@ -459,15 +459,16 @@ class StencilLevelOperator(_Gather):
     (:func:`~implicit_scaffold.measure.multigrid.node_stencils`, ``stencil_rows`` /
     ``stencil_ends``), in the float of its matrices.
 
-    Each work item reads its node's 243 stencil words and its 27 neighbours' values at consecutive
-    addresses along a row (full vectors, as the fine operator), where :class:`LevelOperator` gathers
-    one 24 x 24 matrix per element around each node. The stencils take 243 words a node, the
-    element matrices 576 an element."""
+    Each work item reads its node's 126 stencil words (the blocks of the node and of its 13 neighbours
+    after it) and the 13 other blocks, transposed, from its neighbours' words (the matrix is symmetric),
+    and its 27 neighbours' values, at consecutive addresses along a row (full vectors, as the fine
+    operator), where :class:`LevelOperator` gathers one 24 x 24 matrix per element around each node. The
+    stencils take 126 words a node, the element matrices 576 an element."""
 
     def __init__(self, level):
         from .multigrid import node_stencils
 
-        # by row: entry x of node (r, k) at (243 r + x) n3 + k (the kernel reads a row's block in order;
+        # by row: entry x of node (r, k) at (126 r + x) n3 + k (the kernel reads a row's block in order;
         # entry-major, 243 streams a vector, the 32^3 level of the 128^3 benchmark took 7.4 ms for six cases),
         # made so (aligned, in the level's float): the device reads that one array in place
         by_row, live = node_stencils(level)

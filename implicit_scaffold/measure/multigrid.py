@@ -452,21 +452,31 @@ class Level:
         return A
 
 
+#: the neighbours whose blocks :func:`node_stencils` stores per node: the node itself (13) and the 13 at
+#: offsets after it; the others' blocks are their transposes, stored at the neighbour (the matrix is symmetric)
+STENCIL_OWN = 13
+
+
 def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
-    """A level's product as assembled node stencils (the layout of ``stencil_rows`` in
+    """A level's product as assembled node stencils, half of them (the layout of ``stencil_rows`` in
     ``kernels/mechanics.cl``).
 
-    Built a node plane (along the first axis) at a time, into the array returned: on the 128^3 benchmark
-    scaffold the 32^3 level's stencils are 32 MiB, made beside its element matrices (72 MiB), at the
-    solve's peak with one load case a block; a whole-grid build and then a copy to the kernel's layout
-    held them twice.
+    A level's matrix is symmetric: the 3 x 3 block of neighbour q at node n is the transpose of the
+    block of neighbour ``26 - q`` at node ``n + offset(q)``. So each node keeps the blocks of the
+    neighbours ``q >= 13`` (:data:`STENCIL_OWN`: itself and the 13 after it), 126 words where the 27
+    blocks took 243, and the kernel reads the others, transposed, at the neighbour: on the 128^3
+    benchmark scaffold the 32^3 level's stencils and those below took 58 bytes a solid voxel of the
+    one-case solve's peak. :func:`full_stencils` gives the 27 blocks back.
+
+    Built a node plane (along the first axis) at a time, into the array returned: a whole-grid build and
+    then a copy to the kernel's layout held them twice.
 
     Returns
     -------
-    stencils : (n1 n2, 243, n3) float ndarray of the level's float, page-aligned, GPa mm
+    stencils : (n1 n2, 126, n3) float ndarray of the level's float, page-aligned, GPa mm
         By node row, as the kernel reads them (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`:
         the device reads the array in place): ``[r, x, k]`` is entry x of node (r, k) (r = i n2 + j),
-        entry ``9 q + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q (offset
+        entry ``9 (q - 13) + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q >= 13 (offset
         ``(q % 3, q // 3 % 3, q // 9) - 1``) adds to a node's force, summed over the elements
         around the node (rows ``3 b + d`` and columns ``3 a + e`` of each one's matrix, the node
         its corner b and the neighbour its corner a).
@@ -478,9 +488,10 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
 
     n1, n2, n3 = level.shape
     plane = n2 * n3
-    out = aligned_empty((n1 * n2, 243, n3), level.mats.dtype)
+    kept = 27 - STENCIL_OWN
+    out = aligned_empty((n1 * n2, 9 * kept, n3), level.mats.dtype)
     live = np.zeros(n1 * plane, np.uint8)
-    one = np.zeros((27, 3, 3, plane), level.mats.dtype)
+    one = np.zeros((kept, 3, 3, plane), level.mats.dtype)
     for i in range(n1):
         one.fill(0)
         for b in range(8):
@@ -491,9 +502,26 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
             live[i * plane + has] = 1
             rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
             for a in range(8):
-                one[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
-        out[i * n2:(i + 1) * n2] = one.reshape(243, n2, n3).transpose(1, 0, 2)
+                q = int(_QTAB[b, a])
+                if q >= STENCIL_OWN:
+                    one[q - STENCIL_OWN][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
+        out[i * n2:(i + 1) * n2] = one.reshape(9 * kept, n2, n3).transpose(1, 0, 2)
     return out, live
+
+
+def full_stencils(stencils: np.ndarray, shape) -> np.ndarray:
+    """All 27 blocks per node from :func:`node_stencils`' half: (27, 3, 3, N), block q of node n, those of
+    ``q < 13`` the transposes of block ``26 - q`` of node ``n + offset(q)`` (periodic)."""
+    n1, n2, n3 = (int(v) for v in shape)
+    kept = 27 - STENCIL_OWN
+    own = stencils.reshape(n1, n2, kept, 3, 3, n3).transpose(2, 3, 4, 0, 1, 5)  # (kept, 3, 3, n1, n2, n3)
+    out = np.empty((27, 3, 3, n1, n2, n3), stencils.dtype)
+    out[STENCIL_OWN:] = own
+    for q in range(STENCIL_OWN):
+        off = (q % 3 - 1, q // 3 % 3 - 1, q // 9 - 1)
+        # block 26 - q of node n + off, at node n
+        out[q] = np.roll(own[26 - q - STENCIL_OWN], tuple(-v for v in off), axis=(2, 3, 4)).transpose(1, 0, 2, 3, 4)
+    return out.reshape(27, 3, 3, -1)
 
 
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
