@@ -617,6 +617,28 @@ def _inverse_diagonal(d: np.ndarray) -> np.ndarray:
     return np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
 
 
+def _fine_inverse_diagonal(d: np.ndarray, free: np.ndarray, dtype) -> np.ndarray:
+    """``free * _inverse_diagonal(d)`` in `dtype`, bit for bit, without its whole-grid temporaries in double
+    (three beside `d`: on the 128^3 benchmark scaffold the peak of the one-case solve's set-up); one row,
+    (1, N), where its three rows are equal.
+
+    The rows are equal where the mask is per node, as the solvers' are, and the element matrix's diagonal
+    is one value, as an isotropic material's is (a node's diagonal is then the number of solid voxels around
+    it times that value): the V-cycle's passes broadcast a row (12 against 4 bytes a node in float32, on
+    that scaffold 27 bytes a solid voxel at the peak of its set-up).
+    """
+    # _inverse_diagonal's test and quotient, written straight into the result's float (the product by the
+    # 0/1 mask, in double before, is exact either way)
+    live = d > 1e-12 * d.max() if d.size else d > 0
+    out = np.zeros(d.shape, dtype)
+    np.divide(1.0, d, out=out, where=live)
+    del live
+    out *= free
+    if len(out) == 3 and np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2]):
+        out = out[:1].copy()
+    return out
+
+
 def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """The largest eigenvalue of ``D^-1 A`` (`inv_diag` ``D^-1``), estimated from below by
     :data:`LANCZOS_STEPS` Lanczos steps on ``D^-1/2 A D^-1/2`` (the same spectrum), from a random start.
@@ -634,10 +656,11 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """
     from scipy.linalg import eigvalsh_tridiagonal
 
-    from .mechanics_cl import reusing
+    from .mechanics_cl import aligned_empty, reusing
 
+    # `inv_diag` (3, N), or (1, N) for three equal rows (_fine_inverse_diagonal): the vectors are (1, 3, N)
     g = np.sqrt(inv_diag)
-    v = (rng.standard_normal((1,) + inv_diag.shape) * (inv_diag > 0)).astype(inv_diag.dtype)
+    v = _random_start(rng, inv_diag)
     norm = float(np.linalg.norm(v))
     if norm == 0:
         return 1.0
@@ -647,16 +670,23 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     # the products' outputs from one pool: fresh pages every step otherwise (a fine grid vector
     # of the 200^3 benchmark scaffold is 96 MB)
     with reusing():
+        # one scratch vector for the product's input (aligned: the device reads it in place, where v * g was
+        # a temporary and its aligned copy) and for the steps' alpha v and beta prev (temporaries too): on the
+        # 128^3 benchmark scaffold three whole-grid vectors (120 bytes a solid voxel) at the one-case solve's peak
+        t = aligned_empty(v.shape, v.dtype)
         for step in range(LANCZOS_STEPS):
-            w = apply(v * g)
+            np.multiply(v, g, out=t)
+            w = apply(t)
             w *= g
             alpha = float(np.vdot(v, w))
             alphas.append(alpha)
             if step == LANCZOS_STEPS - 1:
                 break
-            w -= alpha * v
+            np.multiply(v, alpha, out=t)  # alpha v, rounded to the vectors' float as before
+            w -= t
             if prev is not None:
-                w -= beta * prev
+                np.multiply(prev, beta, out=t)
+                w -= t
             beta = float(np.linalg.norm(w))
             if not beta > 1e-12 * max(abs(alpha), 1e-300):  # an invariant subspace: its Ritz values are exact
                 break
@@ -666,6 +696,24 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     top = float(eigvalsh_tridiagonal(np.array(alphas), np.array(betas[:len(alphas) - 1]),
                                      select="i", select_range=(len(alphas) - 1, len(alphas) - 1))[0])
     return max(top, 1e-12)
+
+
+#: the random start of :func:`_largest_eigenvalue` is drawn this many values at a time (in double)
+RANDOM_CHUNK = 1 << 20
+
+
+def _random_start(rng, inv_diag: np.ndarray) -> np.ndarray:
+    """(1, 3, N) normal values of `rng` in `inv_diag`'s float, 0 where it is 0: the values a single draw of
+    (1, 3, N) would give (a generator's draws run on in order), drawn a chunk at a time, without the whole
+    draw and its masked copy in double (on the 128^3 benchmark scaffold 80 bytes a solid voxel each)."""
+    n = inv_diag.shape[-1]
+    v = np.empty((1, 3, n), inv_diag.dtype)
+    for d in range(3):
+        row = inv_diag[d if len(inv_diag) == 3 else 0]
+        for a in range(0, n, RANDOM_CHUNK):
+            b = min(n, a + RANDOM_CHUNK)
+            v[0, d, a:b] = rng.standard_normal(b - a) * (row[a:b] > 0)
+    return v
 
 
 def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
@@ -767,7 +815,7 @@ class Multigrid:
         self._touched = int(np.count_nonzero(model.active))
         self.op = op
         rng = np.random.default_rng(seed)
-        self._inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
+        self._inv_diag = _fine_inverse_diagonal(diagonal(model), self.free, self.dtype)
         # (live nodes, the inverse diagonal on them) once compact() has let the whole grid's go
         self._inv_diag_live = None
         self.lmax = _largest_eigenvalue(self.op, self._inv_diag, rng)
@@ -807,13 +855,14 @@ class Multigrid:
 
     @property
     def inv_diag(self) -> np.ndarray:
-        """(3, N) the fine grid's inverse diagonal, 0 on the fixed unknowns, in the cycle's float (spread
-        again from the live nodes' when :meth:`compact` has let the whole grid's go)."""
+        """(3, N) the fine grid's inverse diagonal, or (1, N) where its rows are equal
+        (:func:`_fine_inverse_diagonal`), 0 on the fixed unknowns, in the cycle's float (spread again from
+        the live nodes' when :meth:`compact` has let the whole grid's go)."""
         if self._inv_diag is None:
-            from .fused import put
-
             live, g = self._inv_diag_live
-            self._inv_diag = put(g[None], live, self.free.shape[1], np.ones((1, live.size), self.dtype))[0]
+            whole = np.zeros((len(g), self.free.shape[1]), g.dtype)
+            whole[:, live] = g
+            self._inv_diag = whole
         return self._inv_diag
 
     def _live_inverse_diagonal(self, live: np.ndarray) -> np.ndarray:
