@@ -41,7 +41,9 @@ def _kernels():
                     ad, bd = a[c, d, n0:n1], b[c, d, n0:n1]
                     wd = w[d if w.shape[0] == 3 else 0, n0:n1]
                     for i in range(n1 - n0):
-                        s += ad[i] * bd[i] * wd[i]
+                        # in double whatever the floats: a float32 a times a float32 b is exact there, as
+                        # when either comes in double (the CG's p.q with q in the float product's float)
+                        s += np.float64(ad[i]) * bd[i] * wd[i]
                 out[piece, c] = s
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)

@@ -75,14 +75,17 @@ FINE_SLAB_NODES = None
 STENCIL_LEVELS = True
 
 
-def fine_slab_planes(shape) -> int:
+def fine_slab_planes(shape, slab_nodes: int | None = None) -> int:
     """The node planes (along the first axis) a slab of the V-cycle's fine level holds inside its halo on a
-    node grid of `shape`, by :data:`FINE_SLAB_NODES`; ``shape[0]`` where the whole grid is one slab."""
+    node grid of `shape`, by :data:`FINE_SLAB_NODES`, or by `slab_nodes` when given (and that is None);
+    ``shape[0]`` where the whole grid is one slab."""
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
 
     n1, n2, n3 = (int(v) for v in shape)
     plane = n2 * n3
-    if FINE_SLAB_NODES is None:
+    if FINE_SLAB_NODES is None and slab_nodes is not None:
+        nodes = int(slab_nodes)
+    elif FINE_SLAB_NODES is None:
         nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
     else:
         nodes = FINE_SLAB_NODES
@@ -796,9 +799,12 @@ class Multigrid:
     dtype : numpy float type
         Of the cycle's vectors (float32 halves its time and memory; the coarse matrices and
         the coarsest solve stay float64).
+    slab_nodes : int, optional
+        The fine level by slabs of this many nodes' planes (:func:`fine_slab_planes`), on any grid;
+        default: by :data:`FINE_SLAB_NODES`.
     """
 
-    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64):
+    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64, slab_nodes: int | None = None):
         from .mechanics import diagonal
 
         n = int(np.prod(model.shape))
@@ -810,6 +816,7 @@ class Multigrid:
         # the mask the result is multiplied by (the caller's own array)
         self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
+        self.slab_nodes = slab_nodes
         # the nodes a solid voxel touches: where they are all free (periodic), a fine product reads no other
         # node into a free one's, so the cycle need not zero the rest (_fine_cases)
         self._touched = int(np.count_nonzero(model.active))
@@ -849,7 +856,7 @@ class Multigrid:
                 if isinstance(level.device, LevelOperator):
                     # the device reads the matrices in place: the level keeps that one copy
                     level.mats = level.device.host_mats(level.mats.shape)
-                if level is self.levels[0] and fine_slab_planes(self.fine_shape) >= self.fine_shape[0]:
+                if level is self.levels[0] and fine_slab_planes(self.fine_shape, slab_nodes) >= self.fine_shape[0]:
                     level.device = _GalerkinOneCase(level.device, self)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
 
@@ -1081,7 +1088,7 @@ class Multigrid:
         the coarse planes its planes interpolate from and theirs)."""
         n1, n2, n3 = self.fine_shape
         plane = n2 * n3
-        thick = fine_slab_planes(self.fine_shape)
+        thick = fine_slab_planes(self.fine_shape, self.slab_nodes)
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
