@@ -336,6 +336,27 @@ def test_the_half_node_stencils_give_back_every_block_of_the_dense_level(shape):
         assert np.array_equal(live.astype(bool), A.any(axis=(0, 2, 3)))
 
 
+def test_the_fine_inverse_diagonal_is_the_masked_inverse_in_one_row_where_its_rows_are_equal(monkeypatch):
+    # oracle: the formula it replaced, free * _inverse_diagonal(d) in double, cast after; one row where the
+    # rows are equal (a mask per node, an isotropic element), three where they are not. And the Lanczos
+    # start drawn a chunk at a time is one whole draw, masked and cast
+    rng = np.random.default_rng(4)
+    model = M.voxel_model(rng.random((9, 10, 11)) < 0.4, 0.1, MAT, periodic=True)
+    d = M.diagonal(model)
+    node = model.active.astype(np.float32)
+    other = node * (rng.random(d.shape[1]) < 0.7)
+    for free in (node[None], np.stack([node, node, other]), (rng.random((3, d.shape[1])) < 0.7).astype(np.float32)):
+        want = (free * G._inverse_diagonal(d)).astype(np.float32)
+        got = G._fine_inverse_diagonal(d, free, np.float32)
+        assert got.dtype == np.float32
+        assert np.array_equal(np.broadcast_to(got, want.shape), want)
+        assert len(got) == (1 if len(free) == 1 else 3)
+        monkeypatch.setattr(G, "RANDOM_CHUNK", 97)
+        start = G._random_start(np.random.default_rng(1), got)
+        whole = (np.random.default_rng(1).standard_normal((1, 3, d.shape[1])) * (want > 0)).astype(np.float32)
+        assert np.array_equal(start, whole)
+
+
 def test_a_float32_level_coarsens_in_float32_as_its_float64_copy_would_without_holding_one():
     # oracle: the next level of the same matrices widened to float64 (exactly), rounded to float32 after
     import tracemalloc
