@@ -660,6 +660,34 @@ def test_a_large_grid_s_float_products_by_slabs_give_the_whole_grid_s_tensor(bou
     assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max()
 
 
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_one_case_a_block_runs_by_slabs_and_gives_the_whole_grid_s_tensor(boundary, monkeypatch):
+    # one load case a block (the memory-lean choice) runs the CG's float products and the V-cycle's fine level
+    # by slabs of ONE_CASE_SLAB_NODES (lowered here to two node planes of this grid) on any grid, and six a
+    # block over the whole grid; the oracle is the same solve with the slabs off (one_case_slabs None)
+    from implicit_scaffold.measure import mechanics_cl as mc
+    from implicit_scaffold.measure import multigrid as G
+
+    solid = _channels((10, 9, 12))
+    shape = [s + (boundary != "periodic") for s in solid.shape]
+    assert m.one_case_slabs(shape, 1) == mc.ONE_CASE_SLAB_NODES and m.one_case_slabs(shape, 6) is None
+    monkeypatch.setattr(mc, "ONE_CASE_SLAB_NODES", 2 * shape[1] * shape[2])
+    slabs = m.one_case_slabs
+    monkeypatch.setattr(m, "one_case_slabs", lambda *a: None)
+    want = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl", cases_per_block=1)
+    monkeypatch.setattr(m, "one_case_slabs", slabs)
+    calls = []
+    product = mc.StiffnessOperator.live_product
+    monkeypatch.setattr(mc.StiffnessOperator, "live_product",
+                        lambda self, *a, **k: calls.append(self.double) or product(self, *a, **k))
+    cut = []
+    fine = G.Multigrid._fine_cases_by_slabs
+    monkeypatch.setattr(G.Multigrid, "_fine_cases_by_slabs", lambda self, *a, **k: cut.append(1) or fine(self, *a, **k))
+    got = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl", cases_per_block=1)
+    assert False in calls and cut  # the float products and the cycle's fine level went by slabs
+    assert np.abs(got.stiffness - want.stiffness).max() <= 1e-5 * np.abs(want.stiffness).max()
+
+
 @pytest.mark.parametrize("bonded", [False, True])
 def test_the_compression_on_the_device_is_the_numpy_references(bonded):
     # on the device the platen's load is taken on the two node planes under it, by slabs, and handed to

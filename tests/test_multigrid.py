@@ -315,6 +315,56 @@ def test_a_level_on_node_stencils_is_the_dense_levels_product(shape, density, vo
                         assert not got[:, :, untouched].any(), check.name
 
 
+@pytest.mark.parametrize("shape", [(10, 12, 9), (9, 2, 3)])
+def test_the_half_node_stencils_give_back_every_block_of_the_dense_level(shape):
+    # node_stencils keeps the blocks of neighbours q >= 13 only (the kernel reads the others transposed at
+    # the neighbour); full_stencils' 27 blocks, summed per neighbour node, against the level's dense matrix
+    # (np.add.at over the element matrices): odd axes, and axes of 2 and 3 nodes, where neighbours on both
+    # sides are one node and their blocks add
+    rng = np.random.default_rng(sum(shape))
+    model = M.voxel_model(rng.random(shape) < 0.4, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    first = G._first_coarse(model, free, np.float64)
+    for level in (first, G._next_coarse(first)):
+        n1, n2, n3 = level.shape
+        nc = n1 * n2 * n3
+        half, live = G.node_stencils(level)
+        assert half.shape == (n1 * n2, 126, n3)
+        blocks = G.full_stencils(half, level.shape)
+        got = np.zeros((3, nc, 3, nc))
+        ijk = np.array(np.unravel_index(np.arange(nc), level.shape))
+        for q in range(27):
+            off = np.array([q % 3 - 1, q // 3 % 3 - 1, q // 9 - 1])[:, None]
+            m = np.ravel_multi_index(tuple((ijk + off) % np.array(level.shape)[:, None]), level.shape)
+            for d in range(3):
+                for e in range(3):
+                    np.add.at(got, (d, np.arange(nc), e, m), blocks[q, d, e])
+        A = level.matrix().reshape(3, nc, 3, nc)
+        assert np.abs(got - A).max() <= 1e-12 * np.abs(A).max()
+        assert np.array_equal(live.astype(bool), A.any(axis=(0, 2, 3)))
+
+
+def test_the_fine_inverse_diagonal_is_the_masked_inverse_in_one_row_where_its_rows_are_equal(monkeypatch):
+    # oracle: the formula it replaced, free * _inverse_diagonal(d) in double, cast after; one row where the
+    # rows are equal (a mask per node, an isotropic element), three where they are not. And the Lanczos
+    # start drawn a chunk at a time is one whole draw, masked and cast
+    rng = np.random.default_rng(4)
+    model = M.voxel_model(rng.random((9, 10, 11)) < 0.4, 0.1, MAT, periodic=True)
+    d = M.diagonal(model)
+    node = model.active.astype(np.float32)
+    other = node * (rng.random(d.shape[1]) < 0.7)
+    for free in (node[None], np.stack([node, node, other]), (rng.random((3, d.shape[1])) < 0.7).astype(np.float32)):
+        want = (free * G._inverse_diagonal(d)).astype(np.float32)
+        got = G._fine_inverse_diagonal(d, free, np.float32)
+        assert got.dtype == np.float32
+        assert np.array_equal(np.broadcast_to(got, want.shape), want)
+        assert len(got) == (1 if len(free) == 1 else 3)
+        monkeypatch.setattr(G, "RANDOM_CHUNK", 97)
+        start = G._random_start(np.random.default_rng(1), got)
+        whole = (np.random.default_rng(1).standard_normal((1, 3, d.shape[1])) * (want > 0)).astype(np.float32)
+        assert np.array_equal(start, whole)
+
+
 def test_a_float32_level_coarsens_in_float32_as_its_float64_copy_would_without_holding_one():
     # oracle: the next level of the same matrices widened to float64 (exactly), rounded to float32 after
     import tracemalloc

@@ -44,7 +44,9 @@ def _kernels():
                     ad, bd = a[c, d, n0:n1], b[c, d, n0:n1]
                     wd = w[d if w.shape[0] == 3 else 0, n0:n1]
                     for i in range(n1 - n0):
-                        s += ad[i] * bd[i] * wd[i]
+                        # in double whatever the floats: a float32 a times a float32 b is exact there, as
+                        # when either comes in double (the CG's p.q with q in the float product's float)
+                        s += np.float64(ad[i]) * bd[i] * wd[i]
                 out[piece, c] = s
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
@@ -128,7 +130,7 @@ def _kernels():
                         dd = dw[d if dw.shape[0] == 3 else 0]
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
-                            acc += dv[c, d, i] * out[c, d, i] * dd[i]
+                            acc += np.float64(dv[c, d, i]) * out[c, d, i] * dd[i]  # in double, as wdot
                     else:
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
@@ -178,7 +180,7 @@ def _kernels():
                         for i in range(n0, n1):
                             j = idx[i]
                             out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[i] * (wd[i] * src[c, d, i] - ax[c, d, j]))
-                            acc += src[c, d, i] * out[c, d, i]
+                            acc += np.float64(src[c, d, i]) * out[c, d, i]
                     else:
                         for i in range(n0, n1):
                             j = idx[i]

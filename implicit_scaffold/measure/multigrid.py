@@ -86,14 +86,17 @@ FINE_SLAB_NODES = None
 STENCIL_LEVELS = True
 
 
-def fine_slab_planes(shape) -> int:
+def fine_slab_planes(shape, slab_nodes: int | None = None) -> int:
     """The node planes (along the first axis) a slab of the V-cycle's fine level holds inside its halo on a
-    node grid of `shape`, by :data:`FINE_SLAB_NODES`; ``shape[0]`` where the whole grid is one slab."""
+    node grid of `shape`, by :data:`FINE_SLAB_NODES`, or by `slab_nodes` when given (and that is None);
+    ``shape[0]`` where the whole grid is one slab."""
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
 
     n1, n2, n3 = (int(v) for v in shape)
     plane = n2 * n3
-    if FINE_SLAB_NODES is None:
+    if FINE_SLAB_NODES is None and slab_nodes is not None:
+        nodes = int(slab_nodes)
+    elif FINE_SLAB_NODES is None:
         nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
     else:
         nodes = FINE_SLAB_NODES
@@ -467,21 +470,31 @@ class Level:
         return A
 
 
+#: the neighbours whose blocks :func:`node_stencils` stores per node: the node itself (13) and the 13 at
+#: offsets after it; the others' blocks are their transposes, stored at the neighbour (the matrix is symmetric)
+STENCIL_OWN = 13
+
+
 def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
-    """A level's product as assembled node stencils (the layout of ``stencil_rows`` in
+    """A level's product as assembled node stencils, half of them (the layout of ``stencil_rows`` in
     ``kernels/mechanics.cl``).
 
-    Built a node plane (along the first axis) at a time, into the array returned: on the 128^3 benchmark
-    scaffold the 32^3 level's stencils are 32 MiB, made beside its element matrices (72 MiB), at the
-    solve's peak with one load case a block; a whole-grid build and then a copy to the kernel's layout
-    held them twice.
+    A level's matrix is symmetric: the 3 x 3 block of neighbour q at node n is the transpose of the
+    block of neighbour ``26 - q`` at node ``n + offset(q)``. So each node keeps the blocks of the
+    neighbours ``q >= 13`` (:data:`STENCIL_OWN`: itself and the 13 after it), 126 words where the 27
+    blocks took 243, and the kernel reads the others, transposed, at the neighbour: on the 128^3
+    benchmark scaffold the 32^3 level's stencils and those below took 58 bytes a solid voxel of the
+    one-case solve's peak. :func:`full_stencils` gives the 27 blocks back.
+
+    Built a node plane (along the first axis) at a time, into the array returned: a whole-grid build and
+    then a copy to the kernel's layout held them twice.
 
     Returns
     -------
-    stencils : (n1 n2, 243, n3) float ndarray of the level's float, page-aligned, GPa mm
+    stencils : (n1 n2, 126, n3) float ndarray of the level's float, page-aligned, GPa mm
         By node row, as the kernel reads them (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`:
         the device reads the array in place): ``[r, x, k]`` is entry x of node (r, k) (r = i n2 + j),
-        entry ``9 q + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q (offset
+        entry ``9 (q - 13) + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q >= 13 (offset
         ``(q % 3, q // 3 % 3, q // 9) - 1``) adds to a node's force, summed over the elements
         around the node (rows ``3 b + d`` and columns ``3 a + e`` of each one's matrix, the node
         its corner b and the neighbour its corner a).
@@ -493,9 +506,10 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
 
     n1, n2, n3 = level.shape
     plane = n2 * n3
-    out = aligned_empty((n1 * n2, 243, n3), level.mats.dtype)
+    kept = 27 - STENCIL_OWN
+    out = aligned_empty((n1 * n2, 9 * kept, n3), level.mats.dtype)
     live = np.zeros(n1 * plane, np.uint8)
-    one = np.zeros((27, 3, 3, plane), level.mats.dtype)
+    one = np.zeros((kept, 3, 3, plane), level.mats.dtype)
     for i in range(n1):
         one.fill(0)
         for b in range(8):
@@ -506,9 +520,26 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
             live[i * plane + has] = 1
             rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
             for a in range(8):
-                one[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
-        out[i * n2:(i + 1) * n2] = one.reshape(243, n2, n3).transpose(1, 0, 2)
+                q = int(_QTAB[b, a])
+                if q >= STENCIL_OWN:
+                    one[q - STENCIL_OWN][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
+        out[i * n2:(i + 1) * n2] = one.reshape(9 * kept, n2, n3).transpose(1, 0, 2)
     return out, live
+
+
+def full_stencils(stencils: np.ndarray, shape) -> np.ndarray:
+    """All 27 blocks per node from :func:`node_stencils`' half: (27, 3, 3, N), block q of node n, those of
+    ``q < 13`` the transposes of block ``26 - q`` of node ``n + offset(q)`` (periodic)."""
+    n1, n2, n3 = (int(v) for v in shape)
+    kept = 27 - STENCIL_OWN
+    own = stencils.reshape(n1, n2, kept, 3, 3, n3).transpose(2, 3, 4, 0, 1, 5)  # (kept, 3, 3, n1, n2, n3)
+    out = np.empty((27, 3, 3, n1, n2, n3), stencils.dtype)
+    out[STENCIL_OWN:] = own
+    for q in range(STENCIL_OWN):
+        off = (q % 3 - 1, q // 3 % 3 - 1, q // 9 - 1)
+        # block 26 - q of node n + off, at node n
+        out[q] = np.roll(own[26 - q - STENCIL_OWN], tuple(-v for v in off), axis=(2, 3, 4)).transpose(1, 0, 2, 3, 4)
+    return out.reshape(27, 3, 3, -1)
 
 
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
@@ -604,6 +635,28 @@ def _inverse_diagonal(d: np.ndarray) -> np.ndarray:
     return np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
 
 
+def _fine_inverse_diagonal(d: np.ndarray, free: np.ndarray, dtype) -> np.ndarray:
+    """``free * _inverse_diagonal(d)`` in `dtype`, bit for bit, without its whole-grid temporaries in double
+    (three beside `d`: on the 128^3 benchmark scaffold the peak of the one-case solve's set-up); one row,
+    (1, N), where its three rows are equal.
+
+    The rows are equal where the mask is per node, as the solvers' are, and the element matrix's diagonal
+    is one value, as an isotropic material's is (a node's diagonal is then the number of solid voxels around
+    it times that value): the V-cycle's passes broadcast a row (12 against 4 bytes a node in float32, on
+    that scaffold 27 bytes a solid voxel at the peak of its set-up).
+    """
+    # _inverse_diagonal's test and quotient, written straight into the result's float (the product by the
+    # 0/1 mask, in double before, is exact either way)
+    live = d > 1e-12 * d.max() if d.size else d > 0
+    out = np.zeros(d.shape, dtype)
+    np.divide(1.0, d, out=out, where=live)
+    del live
+    out *= free
+    if len(out) == 3 and np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2]):
+        out = out[:1].copy()
+    return out
+
+
 def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """The largest eigenvalue of ``D^-1 A`` (`inv_diag` ``D^-1``), estimated from below by
     :data:`LANCZOS_STEPS` Lanczos steps on ``D^-1/2 A D^-1/2`` (the same spectrum), from a random start.
@@ -621,10 +674,11 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """
     from scipy.linalg import eigvalsh_tridiagonal
 
-    from .mechanics_cl import reusing
+    from .mechanics_cl import aligned_empty, reusing
 
+    # `inv_diag` (3, N), or (1, N) for three equal rows (_fine_inverse_diagonal): the vectors are (1, 3, N)
     g = np.sqrt(inv_diag)
-    v = (rng.standard_normal((1,) + inv_diag.shape) * (inv_diag > 0)).astype(inv_diag.dtype)
+    v = _random_start(rng, inv_diag)
     norm = float(np.linalg.norm(v))
     if norm == 0:
         return 1.0
@@ -634,16 +688,23 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     # the products' outputs from one pool: fresh pages every step otherwise (a fine grid vector
     # of the 200^3 benchmark scaffold is 96 MB)
     with reusing():
+        # one scratch vector for the product's input (aligned: the device reads it in place, where v * g was
+        # a temporary and its aligned copy) and for the steps' alpha v and beta prev (temporaries too): on the
+        # 128^3 benchmark scaffold three whole-grid vectors (120 bytes a solid voxel) at the one-case solve's peak
+        t = aligned_empty(v.shape, v.dtype)
         for step in range(LANCZOS_STEPS):
-            w = apply(v * g)
+            np.multiply(v, g, out=t)
+            w = apply(t)
             w *= g
             alpha = float(np.vdot(v, w))
             alphas.append(alpha)
             if step == LANCZOS_STEPS - 1:
                 break
-            w -= alpha * v
+            np.multiply(v, alpha, out=t)  # alpha v, rounded to the vectors' float as before
+            w -= t
             if prev is not None:
-                w -= beta * prev
+                np.multiply(prev, beta, out=t)
+                w -= t
             beta = float(np.linalg.norm(w))
             if not beta > 1e-12 * max(abs(alpha), 1e-300):  # an invariant subspace: its Ritz values are exact
                 break
@@ -653,6 +714,24 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     top = float(eigvalsh_tridiagonal(np.array(alphas), np.array(betas[:len(alphas) - 1]),
                                      select="i", select_range=(len(alphas) - 1, len(alphas) - 1))[0])
     return max(top, 1e-12)
+
+
+#: the random start of :func:`_largest_eigenvalue` is drawn this many values at a time (in double)
+RANDOM_CHUNK = 1 << 20
+
+
+def _random_start(rng, inv_diag: np.ndarray) -> np.ndarray:
+    """(1, 3, N) normal values of `rng` in `inv_diag`'s float, 0 where it is 0: the values a single draw of
+    (1, 3, N) would give (a generator's draws run on in order), drawn a chunk at a time, without the whole
+    draw and its masked copy in double (on the 128^3 benchmark scaffold 80 bytes a solid voxel each)."""
+    n = inv_diag.shape[-1]
+    v = np.empty((1, 3, n), inv_diag.dtype)
+    for d in range(3):
+        row = inv_diag[d if len(inv_diag) == 3 else 0]
+        for a in range(0, n, RANDOM_CHUNK):
+            b = min(n, a + RANDOM_CHUNK)
+            v[0, d, a:b] = rng.standard_normal(b - a) * (row[a:b] > 0)
+    return v
 
 
 def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
@@ -748,9 +827,12 @@ class Multigrid:
     dtype : numpy float type
         Of the cycle's vectors (float32 halves its time and memory; the coarse matrices and
         the coarsest solve stay float64).
+    slab_nodes : int, optional
+        The fine level by slabs of this many nodes' planes (:func:`fine_slab_planes`), on any grid;
+        default: by :data:`FINE_SLAB_NODES`.
     """
 
-    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64):
+    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64, slab_nodes: int | None = None):
         from .mechanics import diagonal
 
         n = int(np.prod(model.shape))
@@ -762,12 +844,13 @@ class Multigrid:
         # the mask the result is multiplied by (the caller's own array)
         self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
+        self.slab_nodes = slab_nodes
         # the nodes a solid voxel touches: where they are all free (periodic), a fine product reads no other
         # node into a free one's, so the cycle need not zero the rest (_fine_cases)
         self._touched = int(np.count_nonzero(model.active))
         self.op = op
         rng = np.random.default_rng(seed)
-        self._inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
+        self._inv_diag = _fine_inverse_diagonal(diagonal(model), self.free, self.dtype)
         # (live nodes, the inverse diagonal on them) once compact() has let the whole grid's go
         self._inv_diag_live = None
         self.lmax = _largest_eigenvalue(self.op, self._inv_diag, rng)
@@ -801,19 +884,20 @@ class Multigrid:
                 if isinstance(level.device, LevelOperator):
                     # the device reads the matrices in place: the level keeps that one copy
                     level.mats = level.device.host_mats(level.mats.shape)
-                if level is self.levels[0] and fine_slab_planes(self.fine_shape) >= self.fine_shape[0]:
+                if level is self.levels[0] and fine_slab_planes(self.fine_shape, slab_nodes) >= self.fine_shape[0]:
                     level.device = _GalerkinOneCase(level.device, self)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
 
     @property
     def inv_diag(self) -> np.ndarray:
-        """(3, N) the fine grid's inverse diagonal, 0 on the fixed unknowns, in the cycle's float (spread
-        again from the live nodes' when :meth:`compact` has let the whole grid's go)."""
+        """(3, N) the fine grid's inverse diagonal, or (1, N) where its rows are equal
+        (:func:`_fine_inverse_diagonal`), 0 on the fixed unknowns, in the cycle's float (spread again from
+        the live nodes' when :meth:`compact` has let the whole grid's go)."""
         if self._inv_diag is None:
-            from .fused import put
-
             live, g = self._inv_diag_live
-            self._inv_diag = put(g[None], live, self.free.shape[1], np.ones((1, live.size), self.dtype))[0]
+            whole = np.zeros((len(g), self.free.shape[1]), g.dtype)
+            whole[:, live] = g
+            self._inv_diag = whole
         return self._inv_diag
 
     def _live_inverse_diagonal(self, live: np.ndarray) -> np.ndarray:
@@ -1045,7 +1129,7 @@ class Multigrid:
         the coarse planes its planes interpolate from and theirs)."""
         n1, n2, n3 = self.fine_shape
         plane = n2 * n3
-        thick = fine_slab_planes(self.fine_shape)
+        thick = fine_slab_planes(self.fine_shape, self.slab_nodes)
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
