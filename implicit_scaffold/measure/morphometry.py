@@ -1167,7 +1167,7 @@ def run_grid_beside(path, voxel=None):
 
 
 def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False,
-                  region: bool = True) -> Scaffold:
+                  region: bool = True, max_memory: int | None = None) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
@@ -1181,6 +1181,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     signed distance on the grid (exact near the surface: the print check's as-built offset, a fraction
     of a voxel, and its surface normals come from it; without it a printer's deviation under a voxel
     moved nothing).
+
+    With `max_memory` (bytes), a binary STL's read and voxels are checked against it before the work
+    (:func:`check_mesh_read`): before the file is read, and once its bounds give the grid.
     """
     from pathlib import Path
 
@@ -1240,6 +1243,14 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
     _volume_only(path, label, threshold)
     run_grid = run_grid_beside(path, voxel)
+    triangles = binary_stl_triangles(path) if max_memory is not None else None
+    if triangles:
+        from ..run.memory import release
+
+        held = release()
+        # the grid's voxels when the run's report gives it; else the triangles alone, and the voxels once read
+        check_mesh_read(path.name, triangles, 0 if run_grid is None else int(np.prod(run_grid.shape)), held,
+                        max_memory)
     vertices, faces = read_mesh_arrays(path)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     if voxel is None and run_grid is None:
@@ -1247,6 +1258,8 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     # its layer of outside all round: the scaffold's faces open onto free space (the run's grid has one)
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
+    if triangles and run_grid is None:
+        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory)
     solid = voxelize(vertices, faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
@@ -1334,7 +1347,7 @@ def _read_binary_stl(path, n: int):
 
     trimesh held some 660 bytes a triangle at its peak while it read, merged and checked (3.2 GiB for the
     default cube's 5.2 M triangles): here the corners are 36 bytes a triangle (float32, as the file holds them),
-    and the whole read and voxelisation took 514 MiB. trimesh's merge (``merge_vertices``): corners whose coordinates times 1e8, rounded,
+    and the whole read and voxelisation at most :data:`MESH_READ_BYTES_PER_TRIANGLE`. trimesh's merge (``merge_vertices``): corners whose coordinates times 1e8, rounded,
     are equal are one vertex, the first of them in the file's order, and the vertices are in the order of their
     first corner. Equal float32 corners are merged first (exactly), then their distinct values by the rounded
     keys: the same vertices, in the same order, so the same voxels.
@@ -1396,6 +1409,45 @@ def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
         cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
         total += float(np.sum(cross[:, 0] * tri[:, :, 0].sum(axis=1)))
     return total / 6.0
+
+
+#: what reading a binary STL and voxelising it holds at most beyond what the process held before: a fixed
+#: part (the crossings' compiled kernel and the imports it brings, 145 MiB of a small mesh's 147), bytes a
+#: triangle (the read's sort and merge; the mesh then held), bytes a triangle of one block of the crossings
+#: (:data:`VOXELIZE_FACES`: the kernel compiles while the mesh and the block are held) and bytes a voxel of the
+#: grid. Measured in a fresh process (``peak_memory`` less what it held before), against these bounds: the
+#: default cube's 5.2 M triangles on its run's 7.4 M voxels 514 MiB (bound 629), on 65 M voxels
+#: (``--voxel 0.025``) 768 (959); a 1.3 M-triangle ball on 1.1 M voxels 260 (296), on 38 M 333 (507); the
+#: 3 mm cube's 152 k triangles, 147 (190).
+MESH_READ_FIXED_BYTES = 160 * 2**20
+MESH_READ_BYTES_PER_TRIANGLE = 80
+MESH_READ_BYTES_PER_CROSSED_FACE = 120
+MESH_READ_BYTES_PER_VOXEL = 6
+
+
+def mesh_read_memory(triangles: int, voxels: int) -> int:
+    """Bytes reading a binary STL of `triangles` and voxelising it on `voxels` holds at most beyond what the
+    process held (:data:`MESH_READ_FIXED_BYTES` and the rest: an upper bound of the peaks measured)."""
+    n = int(triangles)
+    return int(MESH_READ_FIXED_BYTES + MESH_READ_BYTES_PER_TRIANGLE * n
+               + MESH_READ_BYTES_PER_CROSSED_FACE * min(n, VOXELIZE_FACES) + MESH_READ_BYTES_PER_VOXEL * int(voxels))
+
+
+def check_mesh_read(name: str, triangles: int, voxels: int, held: int, total: int) -> None:
+    """Refuse, before the work, a mesh whose read and voxels (:func:`mesh_read_memory`) do not fit `total` bytes
+    beside the `held` ones: one line naming the ``--max-memory`` that would do (a coarser voxel saves little:
+    the triangles take most)."""
+    from ..run.memory import format_size
+    from .mechanics import held_margin
+
+    need = mesh_read_memory(triangles, voxels)
+    if held + need > total:
+        named = held + need + held_margin(held)
+        grid = f" on {voxels:,} voxels" if voxels else ""
+        raise ScaffoldError.for_budget(
+            f"reading {name} ({triangles:,} triangles{grid}) needs about {format_size(need)} beside the "
+            f"{format_size(held)} held, over --max-memory {format_size(total)}; use --max-memory "
+            f"{format_size(named)}", named)
 
 
 def read_mesh_arrays(path):
