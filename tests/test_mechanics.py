@@ -1603,6 +1603,33 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     assert json.loads(out.read_text())["voxel"]["voxel_mm"] == voxel
 
 
+def test_cli_mechanics_refuses_a_mesh_whose_read_does_not_fit_before_reading_it(tmp_path, capsys, monkeypatch):
+    # trimesh's read of the default cube's STL held 3.3 GiB under --max-memory 500M, before the solve's check:
+    # a binary STL's read is checked before it is read, in one line naming the budget that would do
+    import re
+
+    import trimesh
+
+    from implicit_scaffold.measure import morphometry
+    from implicit_scaffold.run.memory import parse_memory
+
+    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(tmp_path / "box.stl")
+    reads = []
+    real = morphometry.read_mesh_arrays
+    monkeypatch.setattr(morphometry, "read_mesh_arrays", lambda p: reads.append(p) or real(p))
+    small = f"{(_held() + morphometry.MESH_READ_FIXED_BYTES // 2) // 2**20}M"
+    argv = ["mechanics", tmp_path / "box.stl", "--voxel", 0.25, "-q", "--max-memory"]
+    code, cap = _run(argv + [small], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and "Traceback" not in cap.err and not reads, cap.err
+    named = re.search(r"reading box\.stl \(12 triangles\) needs about \S+ beside the \S+ held, over --max-memory "
+                      r"\S+; use --max-memory (\S+)$", cap.err.strip())
+    assert named, cap.err
+    assert parse_memory(named.group(1)) > parse_memory(small)
+    # the budget named reads it (the solve is checked on its own after)
+    code, cap = _run(argv + [named.group(1)], capsys)
+    assert reads and "reading box.stl" not in cap.err, cap.err
+
+
 def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys, large_solve):
     import json
 

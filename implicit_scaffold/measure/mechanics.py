@@ -2782,7 +2782,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     """The solid of a file at the voxel of its solve, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
 
     The solve's memory is checked before anything is solved (:func:`solid_for_solve`,
-    :func:`check_solve`).
+    :func:`check_solve`), and a binary STL's read before it is read
+    (:func:`~implicit_scaffold.measure.morphometry.check_mesh_read`).
 
     Parameters
     ----------
@@ -2812,9 +2813,13 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
 
     from .morphometry import report_beside
 
+    from ..run.memory import budget
+
     path = Path(path)
-    # no region is measured here: the run's patient is not built again
-    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold, region=False)
+    # no region is measured here: the run's patient is not built again. A mesh's read is checked against the
+    # budget too: trimesh's read of the default cube's STL held 3.3 GiB before the solve's check
+    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold, region=False,
+                           max_memory=budget(max_memory))
     beside = report_beside(path)  # the run's report, read once: the generator's walls, the grid a mesh was read on
     if sample.field is not None:
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)
