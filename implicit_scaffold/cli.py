@@ -153,8 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
                            "(negative = solid)")
     _add_mechanics_options(me)
     me.add_argument("--max-memory", default=None, metavar="SIZE",
-                    help="memory the solve may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
-                         "less); checked before the solve, a refusal names the budget and the voxel that would do")
+                    help="memory the run may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
+                         "less); a binary STL's read is checked before it is read, the solve before the solve; a "
+                         "refusal names the budget (and for the solve the voxel) that would do")
     me.add_argument("-o", "--output", metavar="JSON", default=None, help="write the results as JSON")
     me.add_argument("--report", metavar="HTML", default=None, help="also write a visual report")
     me.add_argument("-q", "--quiet", action="store_true", help="print nothing but errors and warnings")

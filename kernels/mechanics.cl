@@ -326,20 +326,22 @@ static inline __attribute__((always_inline)) void pattern_node(
 __kernel void pattern_rows(NODE_ARGS) ROWS_BODY(pattern_node)
 __kernel void pattern_ends(NODE_ARGS) ENDS_BODY(pattern_node)
 
-/* A coarse level as assembled node stencils: `st` holds, for every node, the 3 x 3 block of each
- * of its 27 neighbours q (offset (q % 3, q / 3 % 3, q / 9) - 1), entry x = 9 q + 3 d + e (row d,
- * column e) of node (row r = i n2 + j, k) at st[(243 r + x) n3 + k]: a row's stencils are one
- * contiguous block, read in order; `live` is 1 at a node some element touches. The same sums as
- * stiffness_apply (the elements' row blocks added per neighbour by the host,
- * implicit_scaffold.multigrid.node_stencils), in the structure of the fine kernels (3-D range,
- * rows and ends, neighbours as literals): a vector's work items read consecutive words of every
- * stencil entry and of u, where stiffness_apply gathers one element matrix per work item. Each
- * neighbour's block is read once for all NCASE cases. */
-#define STENCIL_A(q)                                                                                      \
+/* A coarse level as assembled node stencils: `st` holds, for every node, the 3 x 3 blocks of its
+ * neighbours q = 13 .. 26 (offset (q % 3, q / 3 % 3, q / 9) - 1: the node itself and the 13 "forward"
+ * ones), entry x = 9 (q - 13) + 3 d + e (row d, column e) of node (row r = i n2 + j, k) at
+ * st[(126 r + x) n3 + k]: a row's stencils are one contiguous block, read in order; `live` is 1 at a
+ * node some element touches. A level's matrix is symmetric, so the block of a neighbour q < 13 at
+ * node n is the transpose of the block of neighbour 26 - q at that neighbour, n + offset(q): read
+ * there, transposed (126 words a node stored where all 27 blocks took 243: on the 128^3 benchmark
+ * scaffold the 32^3 level's and those below took 58 bytes a solid voxel of the one-case solve's
+ * peak, half of it now). The same sums as stiffness_apply (the elements' row blocks added per
+ * neighbour by the host, implicit_scaffold.multigrid.node_stencils), in the structure of the fine
+ * kernels (3-D range, rows and ends, neighbours as literals): a vector's work items read consecutive
+ * words of every stencil entry and of u, where stiffness_apply gathers one element matrix per work
+ * item. Each neighbour's block is read once for all NCASE cases. */
+/* one neighbour's block s0 .. s8 (row-major) times its values, for every case */
+#define STENCIL_MAC(q)                                                                                    \
     {                                                                                                     \
-        __global const real *s = row + (size_t)(9 * (q)) * n3;                                           \
-        const real s0 = s[0], s1 = s[n3], s2 = s[2 * n3], s3 = s[3 * n3], s4 = s[4 * n3], s5 = s[5 * n3], \
-                   s6 = s[6 * n3], s7 = s[7 * n3], s8 = s[8 * n3];                                       \
         const size_t m = (size_t)(R[(q) % 9] + K[(q) / 9]);                                               \
         _Pragma("unroll") for (int c = 0; c < NCASE; ++c)                                                 \
         {                                                                                                 \
@@ -349,6 +351,23 @@ __kernel void pattern_ends(NODE_ARGS) ENDS_BODY(pattern_node)
             acc[3 * c + 1] = fma(s3, vx, fma(s4, vy, fma(s5, vz, acc[3 * c + 1])));                       \
             acc[3 * c + 2] = fma(s6, vx, fma(s7, vy, fma(s8, vz, acc[3 * c + 2])));                       \
         }                                                                                                 \
+    }
+/* neighbour q >= 13: its block in this node's own stencil */
+#define STENCIL_OWN(q)                                                                                    \
+    {                                                                                                     \
+        __global const real *s = row + (size_t)(9 * ((q) - 13)) * n3;                                    \
+        const real s0 = s[0], s1 = s[n3], s2 = s[2 * n3], s3 = s[3 * n3], s4 = s[4 * n3], s5 = s[5 * n3], \
+                   s6 = s[6 * n3], s7 = s[7 * n3], s8 = s[8 * n3];                                       \
+        STENCIL_MAC(q)                                                                                    \
+    }
+/* neighbour q < 13: the transpose of block 26 - q of the neighbour's stencil (its row R[q % 9], its
+   node K[q / 9]: consecutive along a row, as this node's own) */
+#define STENCIL_T(q)                                                                                      \
+    {                                                                                                     \
+        __global const real *s = st + (size_t)R[(q) % 9] * 126 + K[(q) / 9] + (size_t)(9 * (13 - (q))) * n3; \
+        const real s0 = s[0], s3 = s[n3], s6 = s[2 * n3], s1 = s[3 * n3], s4 = s[4 * n3], s7 = s[5 * n3], \
+                   s2 = s[6 * n3], s5 = s[7 * n3], s8 = s[8 * n3];                                       \
+        STENCIL_MAC(q)                                                                                    \
     }
 
 static inline __attribute__((always_inline)) void stencil_node(
@@ -360,17 +379,18 @@ static inline __attribute__((always_inline)) void stencil_node(
     const int node = R[4] + k;
     const int any = live[node];
     const int go = vote ? VECTOR_ANY(any) : any;
-    /* this node's row of the stencils: its 243 entries, each a run of the row's n3 nodes */
-    __global const real *row = st + (size_t)R[4] * 243 + k;
+    /* this node's row of the stencils: its 126 entries, each a run of the row's n3 nodes */
+    __global const real *row = st + (size_t)R[4] * 126 + k;
     real acc[3 * NCASE];
 #pragma unroll
     for (int t = 0; t < 3 * NCASE; ++t) acc[t] = (real)0;
     /* an untouched node's stencil is 0: in a vector that runs, its sums stay 0 */
     if (go) {
-        STENCIL_A(0) STENCIL_A(1) STENCIL_A(2) STENCIL_A(3) STENCIL_A(4) STENCIL_A(5) STENCIL_A(6) STENCIL_A(7)
-        STENCIL_A(8) STENCIL_A(9) STENCIL_A(10) STENCIL_A(11) STENCIL_A(12) STENCIL_A(13) STENCIL_A(14)
-        STENCIL_A(15) STENCIL_A(16) STENCIL_A(17) STENCIL_A(18) STENCIL_A(19) STENCIL_A(20) STENCIL_A(21)
-        STENCIL_A(22) STENCIL_A(23) STENCIL_A(24) STENCIL_A(25) STENCIL_A(26)
+        /* in the order of q, as with the 27 blocks stored */
+        STENCIL_T(0) STENCIL_T(1) STENCIL_T(2) STENCIL_T(3) STENCIL_T(4) STENCIL_T(5) STENCIL_T(6) STENCIL_T(7)
+        STENCIL_T(8) STENCIL_T(9) STENCIL_T(10) STENCIL_T(11) STENCIL_T(12) STENCIL_OWN(13) STENCIL_OWN(14)
+        STENCIL_OWN(15) STENCIL_OWN(16) STENCIL_OWN(17) STENCIL_OWN(18) STENCIL_OWN(19) STENCIL_OWN(20)
+        STENCIL_OWN(21) STENCIL_OWN(22) STENCIL_OWN(23) STENCIL_OWN(24) STENCIL_OWN(25) STENCIL_OWN(26)
     }
 #pragma unroll
     for (int c = 0; c < NCASE; ++c) {

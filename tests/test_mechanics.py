@@ -660,6 +660,34 @@ def test_a_large_grid_s_float_products_by_slabs_give_the_whole_grid_s_tensor(bou
     assert np.abs(got - want).max() <= 1e-5 * np.abs(want).max()
 
 
+@pytest.mark.parametrize("boundary", ["periodic", "kinematic"])
+def test_one_case_a_block_runs_by_slabs_and_gives_the_whole_grid_s_tensor(boundary, monkeypatch):
+    # one load case a block (the memory-lean choice) runs the CG's float products and the V-cycle's fine level
+    # by slabs of ONE_CASE_SLAB_NODES (lowered here to two node planes of this grid) on any grid, and six a
+    # block over the whole grid; the oracle is the same solve with the slabs off (one_case_slabs None)
+    from implicit_scaffold.measure import mechanics_cl as mc
+    from implicit_scaffold.measure import multigrid as G
+
+    solid = _channels((10, 9, 12))
+    shape = [s + (boundary != "periodic") for s in solid.shape]
+    assert m.one_case_slabs(shape, 1) == mc.ONE_CASE_SLAB_NODES and m.one_case_slabs(shape, 6) is None
+    monkeypatch.setattr(mc, "ONE_CASE_SLAB_NODES", 2 * shape[1] * shape[2])
+    slabs = m.one_case_slabs
+    monkeypatch.setattr(m, "one_case_slabs", lambda *a: None)
+    want = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl", cases_per_block=1)
+    monkeypatch.setattr(m, "one_case_slabs", slabs)
+    calls = []
+    product = mc.StiffnessOperator.live_product
+    monkeypatch.setattr(mc.StiffnessOperator, "live_product",
+                        lambda self, *a, **k: calls.append(self.double) or product(self, *a, **k))
+    cut = []
+    fine = G.Multigrid._fine_cases_by_slabs
+    monkeypatch.setattr(G.Multigrid, "_fine_cases_by_slabs", lambda self, *a, **k: cut.append(1) or fine(self, *a, **k))
+    got = m.homogenize(solid, 0.1, TI, boundary=boundary, tol=1e-7, backend="opencl", cases_per_block=1)
+    assert False in calls and cut  # the float products and the cycle's fine level went by slabs
+    assert np.abs(got.stiffness - want.stiffness).max() <= 1e-5 * np.abs(want.stiffness).max()
+
+
 @pytest.mark.parametrize("bonded", [False, True])
 def test_the_compression_on_the_device_is_the_numpy_references(bonded):
     # on the device the platen's load is taken on the two node planes under it, by slabs, and handed to
@@ -1575,6 +1603,33 @@ def test_mechanics_refuses_a_small_budget_before_the_solve_and_the_named_one_wor
     assert json.loads(out.read_text())["voxel"]["voxel_mm"] == voxel
 
 
+def test_cli_mechanics_refuses_a_mesh_whose_read_does_not_fit_before_reading_it(tmp_path, capsys, monkeypatch):
+    # trimesh's read of the default cube's STL held 3.3 GiB under --max-memory 500M, before the solve's check:
+    # a binary STL's read is checked before it is read, in one line naming the budget that would do
+    import re
+
+    import trimesh
+
+    from implicit_scaffold.measure import morphometry
+    from implicit_scaffold.run.memory import parse_memory
+
+    trimesh.creation.box(extents=(2.0, 2.0, 2.0)).export(tmp_path / "box.stl")
+    reads = []
+    real = morphometry.read_mesh_arrays
+    monkeypatch.setattr(morphometry, "read_mesh_arrays", lambda p: reads.append(p) or real(p))
+    small = f"{(_held() + morphometry.MESH_READ_FIXED_BYTES // 2) // 2**20}M"
+    argv = ["mechanics", tmp_path / "box.stl", "--voxel", 0.25, "-q", "--max-memory"]
+    code, cap = _run(argv + [small], capsys)
+    assert code == 2 and cap.err.count("\n") == 1 and "Traceback" not in cap.err and not reads, cap.err
+    named = re.search(r"reading box\.stl \(12 triangles\) needs about \S+ beside the \S+ held, over --max-memory "
+                      r"\S+; use --max-memory (\S+)$", cap.err.strip())
+    assert named, cap.err
+    assert parse_memory(named.group(1)) > parse_memory(small)
+    # the budget named reads it (the solve is checked on its own after)
+    code, cap = _run(argv + [named.group(1)], capsys)
+    assert reads and "reading box.stl" not in cap.err, cap.err
+
+
 def test_the_default_mechanics_voxel_is_the_finest_that_fits_and_the_report_says_why(tmp_path, capsys, large_solve):
     import json
 
@@ -1926,3 +1981,12 @@ def test_a_refused_solve_offers_no_voxel_too_coarse_for_the_walls():
                 assert m.plan_voxel((150, 150, 150), 1_000_000, 0.03, max_memory=held + k * 8 * 2**20, wall=wall,
                                     voxel=voxel, boundary="periodic")[0] == voxel
     assert coarse, "no budget left the finest fitting voxel too coarse for the walls"
+
+def test_the_most_strained_voxels_are_placed_at_their_centres():
+    # the sample's origin is the centre of its voxel [0, 0, 0]: a voxel's centre is origin + index h (it read half a
+    # voxel further along each axis)
+    field = np.zeros((4, 5, 6))
+    field[2, 3, 4], field[0, 0, 0] = 5.0, 1.0
+    top = m.most_strained(field, 0.5, origin=(10.0, 20.0, 30.0), count=3)
+    assert [t["index"] for t in top] == [[2, 3, 4], [0, 0, 0]]
+    assert top[0]["centre_mm"] == [11.0, 21.5, 32.0] and top[1]["centre_mm"] == [10.0, 20.0, 30.0]

@@ -185,6 +185,14 @@ def test_the_fine_level_by_slabs_is_the_whole_grids(shape, periodic, monkeypatch
     r = rng.standard_normal((2, 3, live.size))
     monkeypatch.setattr(G, "FINE_SLAB_NODES", 0)
     whole = mg.compact(live)(r)
+    # handed over case by case, r.z with each as the CG sums it (wdot, weighed by ones)
+    from implicit_scaffold.measure.fused import wdot
+
+    seen = []
+    mg.compact(live)(r, lambda c, z, rz: seen.append((c, z.copy(), rz)))
+    assert [c for c, _, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z, _ in seen]), whole)
+    ones = np.ones((1, live.size), np.float32)
+    assert all(rz == wdot(r[c:c + 1], z, ones)[0] for c, z, rz in seen)
     plane = model.shape[1] * model.shape[2]
     for planes in (1, 2, 3, 5):
         monkeypatch.setattr(G, "FINE_SLAB_NODES", planes * plane)
@@ -192,8 +200,8 @@ def test_the_fine_level_by_slabs_is_the_whole_grids(shape, periodic, monkeypatch
         got = mg.compact(live)(r)
         assert np.abs(got - whole).max() <= 1e-6 * np.abs(whole).max(), planes
         seen = []
-        mg.compact(live)(r, lambda c, z: seen.append((c, z.copy())))
-        assert [c for c, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z in seen]), got)
+        mg.compact(live)(r, lambda c, z, rz: seen.append((c, z.copy(), rz)))
+        assert [c for c, _, _ in seen] == [0, 1] and np.array_equal(np.concatenate([z for _, z, _ in seen]), got)
 
 
 def test_the_v_cycle_is_symmetric_positive(scaffolds):
@@ -305,6 +313,56 @@ def test_a_level_on_node_stencils_is_the_dense_levels_product(shape, density, vo
                         assert got.dtype == dtype
                         assert np.abs(got - ref).max() <= tol * np.abs(ref).max(), check.name
                         assert not got[:, :, untouched].any(), check.name
+
+
+@pytest.mark.parametrize("shape", [(10, 12, 9), (9, 2, 3)])
+def test_the_half_node_stencils_give_back_every_block_of_the_dense_level(shape):
+    # node_stencils keeps the blocks of neighbours q >= 13 only (the kernel reads the others transposed at
+    # the neighbour); full_stencils' 27 blocks, summed per neighbour node, against the level's dense matrix
+    # (np.add.at over the element matrices): odd axes, and axes of 2 and 3 nodes, where neighbours on both
+    # sides are one node and their blocks add
+    rng = np.random.default_rng(sum(shape))
+    model = M.voxel_model(rng.random(shape) < 0.4, 0.1, MAT, periodic=True)
+    free = np.repeat(model.active[None], 3, axis=0).astype(float)
+    first = G._first_coarse(model, free, np.float64)
+    for level in (first, G._next_coarse(first)):
+        n1, n2, n3 = level.shape
+        nc = n1 * n2 * n3
+        half, live = G.node_stencils(level)
+        assert half.shape == (n1 * n2, 126, n3)
+        blocks = G.full_stencils(half, level.shape)
+        got = np.zeros((3, nc, 3, nc))
+        ijk = np.array(np.unravel_index(np.arange(nc), level.shape))
+        for q in range(27):
+            off = np.array([q % 3 - 1, q // 3 % 3 - 1, q // 9 - 1])[:, None]
+            m = np.ravel_multi_index(tuple((ijk + off) % np.array(level.shape)[:, None]), level.shape)
+            for d in range(3):
+                for e in range(3):
+                    np.add.at(got, (d, np.arange(nc), e, m), blocks[q, d, e])
+        A = level.matrix().reshape(3, nc, 3, nc)
+        assert np.abs(got - A).max() <= 1e-12 * np.abs(A).max()
+        assert np.array_equal(live.astype(bool), A.any(axis=(0, 2, 3)))
+
+
+def test_the_fine_inverse_diagonal_is_the_masked_inverse_in_one_row_where_its_rows_are_equal(monkeypatch):
+    # oracle: the formula it replaced, free * _inverse_diagonal(d) in double, cast after; one row where the
+    # rows are equal (a mask per node, an isotropic element), three where they are not. And the Lanczos
+    # start drawn a chunk at a time is one whole draw, masked and cast
+    rng = np.random.default_rng(4)
+    model = M.voxel_model(rng.random((9, 10, 11)) < 0.4, 0.1, MAT, periodic=True)
+    d = M.diagonal(model)
+    node = model.active.astype(np.float32)
+    other = node * (rng.random(d.shape[1]) < 0.7)
+    for free in (node[None], np.stack([node, node, other]), (rng.random((3, d.shape[1])) < 0.7).astype(np.float32)):
+        want = (free * G._inverse_diagonal(d)).astype(np.float32)
+        got = G._fine_inverse_diagonal(d, free, np.float32)
+        assert got.dtype == np.float32
+        assert np.array_equal(np.broadcast_to(got, want.shape), want)
+        assert len(got) == (1 if len(free) == 1 else 3)
+        monkeypatch.setattr(G, "RANDOM_CHUNK", 97)
+        start = G._random_start(np.random.default_rng(1), got)
+        whole = (np.random.default_rng(1).standard_normal((1, 3, d.shape[1])) * (want > 0)).astype(np.float32)
+        assert np.array_equal(start, whole)
 
 
 def test_a_float32_level_coarsens_in_float32_as_its_float64_copy_would_without_holding_one():
@@ -580,6 +638,105 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
     want = w[:, idx] * (x[:, :, idx] + 0.7 * g[:, idx] * (w[:, idx] * src - b[:, :, idx]))
     got = fused.take_smoothed(x, b, src, idx, w[:, idx], g[:, idx], 0.7)
     assert got.dtype == np.float64 and close(got, want)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_dots_summed_while_taking_are_wdots_bit_for_bit(dtype, rows):
+    # the CG's p.Kp summed as the product's live nodes are taken, and r.z as the V-cycle takes z: the same
+    # bits as wdot over the taken vectors (the CG's step lengths, and so its iterates, do not change)
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(rows + 7)
+    m, n = 1, 5003
+    idx = np.flatnonzero(rng.random(n) < 0.45)
+    k = len(idx)
+    grid = rng.standard_normal((m, 3, n)).astype(dtype)
+    w = (rng.random((rows, k)) < 0.9).astype(np.float32)
+    p = rng.standard_normal((m, 3, k)).astype(dtype)
+    ones = np.ones((1, k), np.float32)  # as the CG takes K p: unmasked, and p.Kp weighed by the free mask
+    got, dot = fused.take_dot(grid, idx, ones, p, w, np.float64)
+    want = fused.take(grid, idx, ones, np.float64)
+    assert np.array_equal(got, want) and np.array_equal(dot, fused.wdot(p, want, w))
+    assert dot[0] == pytest.approx(float((p * want * w).sum()), rel=1e-9)  # and it is that sum
+    x, ax = (rng.standard_normal((m, 3, n)).astype(dtype) for _ in range(2))
+    g = rng.random((3, k)).astype(dtype)
+    src = rng.standard_normal((m, 3, k))  # the CG's residual, in double
+    z, rz = fused.take_smoothed(x, ax, src, idx, w, g, 0.7, np.float32, dot=True)
+    assert np.array_equal(z, fused.take_smoothed(x, ax, src, idx, w, g, 0.7, np.float32))
+    assert np.array_equal(rz, fused.wdot(src, z, np.ones((1, k), np.float32)))
+    assert rz[0] == pytest.approx(float((src * z.astype(float)).sum()), rel=1e-9)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_fused_chebyshev_step_is_numpys_bit_for_bit(dtype, rows):
+    # the coarse levels' smoothing step in one pass must round each product as NumPy's in-place operations
+    # did (the V-cycle, and so the CG's iterates, are the same bits either way)
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(11)
+    m, n = 3, 1013
+    r, a, b, d, x = (rng.standard_normal((m, 3, n)).astype(dtype) for _ in range(5))
+    g = rng.random((rows, n)).astype(dtype)
+    c1, c2 = 0.731, 1.27
+    want_r, want_d, want_x = r - a, d.copy(), x.copy()
+    want_d *= c1
+    t = g * want_r
+    t *= c2
+    want_d += t
+    want_x += want_d
+    assert fused.chebyshev_step(r, a, d, x, g, c1, c2)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_x)
+    # the first step from an iterate: r = b - A x, d = c2 g r, x += d
+    want_r = b - a
+    want_d = g * want_r
+    want_d *= c2
+    want_x = x + want_d
+    assert fused.chebyshev_step(r, a, d, x, g, 0.0, c2, b=b)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_x)
+    # the first step from 0: r = b, d = c2 g b, x = d
+    want_r = b.copy()
+    want_d = g * b
+    want_d *= c2
+    assert fused.chebyshev_step(r, b, d, x, g, 0.0, c2, b=b, start=True)
+    assert np.array_equal(r, want_r) and np.array_equal(d, want_d) and np.array_equal(x, want_d)
+    # arrays it cannot take are left to NumPy, untouched
+    before = r.copy()
+    assert not fused.chebyshev_step(r, a.astype(np.float64 if dtype == np.float32 else np.float32), d, x, g, c1, c2)
+    assert np.array_equal(r, before)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_an_unweighted_prolongation_added_in_place_is_prolong_then_add(dtype):
+    # a coarse level's correction x += P e in one pass: the bits of prolong then +=
+    rng = np.random.default_rng(4)
+    fine = (9, 8, 7)
+    e = rng.standard_normal((2, 3, int(np.prod(G.coarse_shape(fine))))).astype(dtype)
+    x = rng.standard_normal((2, 3, int(np.prod(fine)))).astype(dtype)
+    want = x + G.prolong(e, fine)
+    G.prolong_add(e, x, None, fine)
+    assert np.array_equal(x, want)
+
+
+def test_chebyshev_smoothing_reduces_the_error_as_its_polynomial_says():
+    # _chebyshev (fused steps) against the polynomial in closed form: on A = diag(lams), D = I, b = A e, from
+    # x = 0 the error after degree k is T_k((theta - lam) / delta) / T_k(theta / delta) e per eigenvalue
+    from numpy.polynomial.chebyshev import chebval
+
+    lmax = 4.0
+    lams = np.linspace(0.05, lmax, 3 * 500).reshape(1, 3, 500)
+    e = np.random.default_rng(2).standard_normal(lams.shape)
+    lo, hi = G.LOWER * lmax, G.UPPER * lmax
+    theta, delta = (hi + lo) / 2, (hi - lo) / 2
+    for degree in (1, 2, 3):
+        x = G._chebyshev(lambda v: lams * v, np.ones((3, 500)), lmax, lams * e, degree=degree)
+        tk = chebval((theta - lams) / delta, [0] * degree + [1]) / chebval(theta / delta, [0] * degree + [1])
+        assert np.allclose(e - x, tk * e, rtol=1e-9, atol=1e-9)
+        # and from an iterate (the post-smoothing): one more degree's worth from x0 = the last result
+        x0 = x.copy()
+        x = G._chebyshev(lambda v: lams * v, np.ones((3, 500)), lmax, lams * e, x0, degree=degree)
+        assert np.allclose(e - x, tk * tk * e, rtol=1e-9, atol=1e-9)
 
 
 @pytest.mark.parametrize("kind", ["sparse", "all"])

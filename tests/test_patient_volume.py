@@ -468,8 +468,25 @@ def test_nan_voxels_and_a_threshold_that_takes_everything_are_warned_about():
     ct = np.full((6, 6, 6), -1000.0, np.float32)
     ct[1:5, 1:5, 1:5] = 800.0
     ct[2, 2, 2] = np.nan
-    with pytest.warns(ScaffoldWarning, match="holds 1 voxels that are not numbers"):
+    with pytest.warns(ScaffoldWarning, match="holds 1 NaN voxels, read as no bone;"):
         mask, _ = pv.bone_mask(ct, "ct.nii", None, 200)
     assert mask.sum() == 4 ** 3 - 1
     with pytest.warns(ScaffoldWarning, match="every voxel of ct.nii reaches the threshold -2000"):
         pv.bone_mask(np.nan_to_num(ct), "ct.nii", None, -2000)
+
+
+@pytest.mark.parametrize("label, threshold, inside, said", [
+    (None, 200, [True, False], "+inf read as bone, -inf as no bone"),  # +inf reaches every threshold
+    (800, None, [False, False], "read as no bone"),  # inf is no label
+])
+def test_infinite_voxels_are_warned_about_as_what_they_become(label, threshold, inside, said):
+    # the warning said NaN or inf were read as no bone, where +inf over a threshold was bone
+    from implicit_scaffold.errors import ScaffoldWarning
+
+    # a CT (air at -1000 HU), or a label map (0 around the bone's label): an infinite voxel is neither's
+    ct = np.full((6, 6, 6), -1000.0 if threshold is not None else 0.0, np.float32)
+    ct[1:5, 1:5, 1:5] = 800.0
+    ct[2, 2, 2], ct[2, 2, 3] = np.inf, -np.inf
+    with pytest.warns(ScaffoldWarning, match=re.escape(f"2 infinite voxels, {said};")):
+        mask, _ = pv.bone_mask(ct, "ct.nii", label, threshold)
+    assert [bool(mask[2, 2, 2]), bool(mask[2, 2, 3])] == inside

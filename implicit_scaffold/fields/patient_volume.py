@@ -102,7 +102,12 @@ def intensity_range(array: np.ndarray) -> tuple[float, float] | None:
         sample = sample[np.isfinite(sample)]
         if sample.size == 0:
             return None
-        lo, hi = float(np.nanmin(flat)), float(np.nanmax(flat))
+        # the finite values' range: an infinite voxel (warned about by bone_mask) is no intensity, and -inf
+        # made a label map read as a CT ("intensities (-inf to inf)")
+        finite = np.isfinite(flat)
+        lo = float(np.min(flat, where=finite, initial=np.inf))
+        hi = float(np.max(flat, where=finite, initial=-np.inf))
+        del finite
         fractional = bool(np.any(sample != np.round(sample)))
     else:
         lo, hi = float(flat.min()), float(flat.max())
@@ -132,6 +137,24 @@ def _labels(label) -> list[int]:
     return out
 
 
+def _warn_not_numbers(array: np.ndarray, name: str, label, threshold) -> None:
+    """A :class:`ScaffoldWarning` naming the voxels of a float image that are NaN or infinite, and what
+    :func:`bone_mask`'s selection makes of them: NaN reaches no threshold, is no label and is left out of a
+    mask (no bone, holes in it without a word); +inf reaches every threshold and -inf none, and a mask's
+    non-zero voxels take both."""
+    nan = int(np.count_nonzero(np.isnan(array)))
+    inf = int(np.count_nonzero(np.isinf(array)))
+    if not (nan or inf):
+        return
+    parts = [f"{nan:,} NaN voxels, read as no bone"] if nan else []
+    if inf:
+        how = ("read as no bone" if label is not None else
+               "+inf read as bone, -inf as no bone" if threshold is not None else "read as bone")
+        parts.append(f"{inf:,} infinite voxels, {how}")
+    warnings.warn(f"{name} holds {' and '.join(parts)}; replace them in the image with the intensities they "
+                  "stand for", ScaffoldWarning, stacklevel=3)
+
+
 def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarray, str]:
     """The bone voxels of `array` and a phrase saying how they were chosen.
 
@@ -144,11 +167,7 @@ def bone_mask(array: np.ndarray, name: str, label, threshold) -> tuple[np.ndarra
     if label is not None and threshold is not None:
         raise ScaffoldError("give --label (a segmentation) or --threshold (a CT), not both")
     if np.issubdtype(array.dtype, np.floating):
-        nan = int(array.size - np.count_nonzero(np.isfinite(array)))
-        if nan:
-            # NaN reaches no threshold and is no label: read as no bone, holes in it without a word
-            warnings.warn(f"{name} holds {nan:,} voxels that are not numbers (NaN or inf), read as no bone; "
-                          "fill them in the image if they lie in the bone", ScaffoldWarning, stacklevel=2)
+        _warn_not_numbers(array, name, label, threshold)
     if threshold is None:
         # a CT given as if it were a segmentation: a label would keep the voxels of exactly that
         # many HU (scattered soft tissue), no selection every voxel but those of 0 HU

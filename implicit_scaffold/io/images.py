@@ -94,8 +94,7 @@ def read_image(path, *, folder: str = "dicom", what: str = "a volume"):
             reader.SetFileNames(files[best])
             reader.MetaDataDictionaryArrayUpdateOn()   # each slice's position, for check_series
             image = reader.Execute()
-            check_series(path, reader, files[best], image)
-            return image
+            return check_series(path, reader, files[best], image)
         check_compressed(path)
         image = sitk.ReadImage(str(path))
         if suffix(path) in (".nrrd", ".nhdr"):
@@ -205,12 +204,14 @@ def check_compressed(path) -> None:
                             "download or copy); download or copy it again")
 
 
-def check_series(path, reader, files, image) -> None:
-    """Refuse a DICOM series that ITK would misplace, and warn where it stretches one, in one line each.
+def check_series(path, reader, files, image):
+    """`image`, a DICOM series as ITK read it, placed where its slices' tags put them: refused where ITK would
+    misplace it, warned about where it stretches it, in one line each; a gantry-tilted series resampled.
 
     ITK places slice k of `image` at the first slice's position plus k times one step (the mean) along the
     slice normal (ImageOrientationPatient's row x column): a gantry-tilted (sheared) series, whose slices
-    step along the table while their normal leans, is then misplaced by millimetres, two slices at one
+    step along the table while their normal leans, is then misplaced by millimetres (each slice is shifted
+    in its plane back to where its tags put it, :func:`_untilt`, with a warning), two slices at one
     position (a copied file) halve the step, and a missing or irregular slice stretches the slices around
     it. The slices' positions (ImagePositionPatient), as `reader` read them from `files` in ITK's order,
     say so, within :data:`SLICE_TOLERANCE` of the step or :data:`SLICE_TOLERANCE_MM`.
@@ -227,7 +228,7 @@ def check_series(path, reader, files, image) -> None:
     pos = [tag(i, "0020|0032") for i in range(len(files))]
     ori = [tag(i, "0020|0037") for i in range(len(files))]
     if len(files) < 2 or any(len(p) != 3 for p in pos) or any(len(o) != 6 for o in ori):
-        return      # no positions to check ITK's geometry against
+        return image  # no positions to check ITK's geometry against
     pos, ori = np.asarray(pos), np.asarray(ori)
     if np.abs(ori - ori[0]).max() > 1e-4:
         raise ScaffoldError(f"the slices of {name} differ in orientation (ImageOrientationPatient); give a folder "
@@ -241,12 +242,6 @@ def check_series(path, reader, files, image) -> None:
     step = np.diff(along[order])
     typical = float(np.median(step))
     tol = max(SLICE_TOLERANCE_MM, SLICE_TOLERANCE * typical)
-    if across.max() > tol:
-        k = int(np.argmax(across))
-        tilt = math.degrees(math.atan2(across[k], abs(along[k])))
-        raise ScaffoldError(f"the slices of {name} are not stacked along their normal: {files[k]} lies {across[k]:.3g} "
-                            f"mm off it (a gantry-tilted or sheared series, {tilt:.3g} degrees); resample it onto an "
-                            "orthogonal grid first, e.g. with dcm2niix, which corrects the tilt")
     same = np.nonzero(step <= tol)[0]
     if same.size:
         a, b = order[same[0]], order[same[0] + 1]
@@ -262,6 +257,47 @@ def check_series(path, reader, files, image) -> None:
                       f"apart, the others {typical:.4g} mm (a missing or extra slice); read with one step of "
                       f"{image.GetSpacing()[2]:.4g} mm, slices lie up to {off:.3g} mm from their place; give the whole "
                       "series, or resample it onto even slices", ScaffoldWarning, stacklevel=4)
+    if across.max() > tol:
+        k = int(np.argmax(across))
+        tilt = math.degrees(math.atan2(across[k], abs(along[k])))
+        image = _untilt(image, pos[order], ori[0], along[order])
+        warnings.warn(f"the slices of {name} are not stacked along their normal (a gantry-tilted or sheared series, "
+                      f"{tilt:.3g} degrees): each slice is shifted in its plane to where its tags put it, up to "
+                      f"{across.max():.3g} mm, onto an orthogonal grid (linear interpolation, as dcm2niix corrects a "
+                      "tilt)", ScaffoldWarning, stacklevel=4)
+    return image
+
+
+def _untilt(image, pos, orientation, along):
+    """A sheared DICOM series, as ITK stacked it (`image`: slice k at the first slice's position plus k steps
+    along the normal), with each slice moved in its plane to where its ImagePositionPatient `pos` (mm, in
+    ITK's slice order) puts it: bilinear in the slice, the image's lowest value where a slice has no data,
+    the step along the normal the slices' mean (`along`, their positions along it). Rows along `orientation`'s
+    first three cosines, columns along its last three."""
+    import numpy as np
+    import SimpleITK as sitk
+    from scipy import ndimage
+
+    row, col = np.asarray(orientation[:3], float), np.asarray(orientation[3:], float)
+    spacing = image.GetSpacing()
+    array = sitk.GetArrayFromImage(image)  # (slice, column index j, row index i)
+    out = np.empty(array.shape, array.dtype)
+    fill = float(array.min())
+    for k in range(array.shape[0]):
+        # slice k's offset in its plane from the normal through the first: where its pixel (i, j) lies, the
+        # grid's pixel (i + di, j + dj) is
+        off = pos[k] - pos[0]
+        di, dj = off @ row / spacing[0], off @ col / spacing[1]
+        moved = ndimage.shift(array[k].astype(np.float64), (dj, di), order=1, mode="constant", cval=fill)
+        out[k] = np.rint(moved).astype(array.dtype) if array.dtype.kind in "iu" else moved.astype(array.dtype)
+    fixed = sitk.GetImageFromArray(out)
+    fixed.SetOrigin(tuple(float(v) for v in pos[0]))
+    fixed.SetDirection(image.GetDirection())
+    step = float((along[-1] - along[0]) / (len(along) - 1))
+    fixed.SetSpacing((spacing[0], spacing[1], step))
+    for key in image.GetMetaDataKeys():
+        fixed.SetMetaData(key, image.GetMetaData(key))
+    return fixed
 
 
 def nrrd_units(path, image) -> None:

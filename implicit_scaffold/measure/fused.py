@@ -19,6 +19,9 @@ import numpy as np
 
 #: the node axis is cut into this many pieces (the rows handed to the threads)
 PIECES = 64
+#: the compiled passes' "no array" arguments (their types fixed, so that one compiled version serves every call)
+_NONE2 = np.zeros((0, 0))
+_NONE3 = np.zeros((0, 0, 0))
 
 
 @functools.lru_cache(maxsize=None)
@@ -41,7 +44,9 @@ def _kernels():
                     ad, bd = a[c, d, n0:n1], b[c, d, n0:n1]
                     wd = w[d if w.shape[0] == 3 else 0, n0:n1]
                     for i in range(n1 - n0):
-                        s += ad[i] * bd[i] * wd[i]
+                        # in double whatever the floats: a float32 a times a float32 b is exact there, as
+                        # when either comes in double (the CG's p.q with q in the float product's float)
+                        s += np.float64(ad[i]) * bd[i] * wd[i]
                 out[piece, c] = s
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
@@ -106,12 +111,14 @@ def _kernels():
     # both cores (128^3 benchmark scaffold, one case in float: put 2.7 against 3.5 ms with the
     # zeroing pass first, put_smoothed 3.7 against 4.3; a zeroing of each gap between live nodes
     # as the scatter met it took 5.4 and 6.8)
+    # taking, with dots.shape[0] > 0 also each case's sum of dv * out * dw over the piece (wdot's, in its order)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def move_rows(src, idx, w, out, spread, pieces, lo, hi):  # pragma: no cover - compiled
+    def move_rows(src, idx, w, out, spread, dv, dw, dots, pieces, lo, hi):  # pragma: no cover - compiled
         m, n = src.shape[0], idx.shape[0]
         for piece in range(lo, hi):
             n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
             for c in range(m):
+                acc = 0.0
                 for d in range(3):
                     wd = w[d if w.shape[0] == 3 else 0]
                     if spread:
@@ -119,21 +126,31 @@ def _kernels():
                         od[_own(idx, n0, n1, piece, pieces, od.shape[0])] = 0
                         for i in range(n0, n1):
                             od[idx[i]] = wd[i] * src[c, d, i]
+                    elif dots.shape[0] > 0:
+                        dd = dw[d if dw.shape[0] == 3 else 0]
+                        for i in range(n0, n1):
+                            out[c, d, i] = wd[i] * src[c, d, idx[i]]
+                            acc += np.float64(dv[c, d, i]) * out[c, d, i] * dd[i]  # in double, as wdot
                     else:
                         for i in range(n0, n1):
                             out[c, d, i] = wd[i] * src[c, d, idx[i]]
+                if dots.shape[0] > 0:
+                    dots[piece, c] = acc
 
     # the fine level of the V-cycle on live-node residuals src: mode 0, the pre-smoothed
     # x = s g (w src) spread onto the grid vector out (g the inverse diagonal on the live nodes,
     # as src); mode 1, w src added onto out (mode 3: subtracted); mode 2, the post-smoothed result's live nodes
     # out = w (x + s g (w src - ax)) taken back (x, ax whole grids). Each piece writes its own
     # entries of idx (distinct nodes); mode 0 zeroes the other nodes as move_rows spreads
+    # mode 2 with dots.shape[0] > 0: also each case's sum of src * out over the piece (wdot's with a weight of
+    # ones, in its order)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def live_rows(src, idx, w, g, s, out, x, ax, mode, pieces, lo, hi):  # pragma: no cover - compiled
+    def live_rows(src, idx, w, g, s, out, x, ax, mode, dots, pieces, lo, hi):  # pragma: no cover - compiled
         m, n = src.shape[0], idx.shape[0]
         for piece in range(lo, hi):
             n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
             for c in range(m):
+                acc = 0.0
                 for d in range(3):
                     wd, gd = w[d if w.shape[0] == 3 else 0], g[d if g.shape[0] == 3 else 0]
                     if mode == 0 or mode == 5:
@@ -159,12 +176,58 @@ def _kernels():
                             out[c, d, j] = wd[i] * src[c, d, i]
                             v = s * gd[i] * out[c, d, j]
                             out[c, d, j] = v + wd[i] * pe
+                    elif dots.shape[0] > 0:
+                        for i in range(n0, n1):
+                            j = idx[i]
+                            out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[i] * (wd[i] * src[c, d, i] - ax[c, d, j]))
+                            acc += np.float64(src[c, d, i]) * out[c, d, i]
                     else:
                         for i in range(n0, n1):
                             j = idx[i]
                             out[c, d, i] = wd[i] * (x[c, d, j] + s * gd[i] * (wd[i] * src[c, d, i] - ax[c, d, j]))
+                if dots.shape[0] > 0:
+                    dots[piece, c] = acc
 
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows
+    # a Chebyshev smoothing step of a coarse level (multigrid._chebyshev), a = A d (or A x) given:
+    # mode 0, r -= a; d = c1 d + c2 g r; x += d. Mode 1 (the first step from an iterate x): r = b - a;
+    # d = c2 g r; x += d. Mode 2 (the first step from 0, a not read): r = b; d = c2 g b; x = d. Each product rounded to the vectors' float as NumPy's in-place operations round it
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def chebyshev_rows(r, a, b, dv, x, g, c1, c2, mode, pieces, lo, hi):  # pragma: no cover - compiled
+        m, _, n = r.shape
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    rd, ad, bd, dd, xd = r[c, d, n0:n1], a[c, d, n0:n1], b[c, d, n0:n1], dv[c, d, n0:n1], x[c, d, n0:n1]
+                    gd = g[d if g.shape[0] == 3 else 0, n0:n1]
+                    if mode == 0:
+                        for i in range(n1 - n0):
+                            v = rd[i] - ad[i]
+                            rd[i] = v
+                            u = dd[i] * c1
+                            t = gd[i] * v
+                            t = t * c2
+                            u = u + t
+                            dd[i] = u
+                            xd[i] += u
+                    elif mode == 1:
+                        for i in range(n1 - n0):
+                            v = bd[i] - ad[i]
+                            rd[i] = v
+                            t = gd[i] * v
+                            t = t * c2
+                            dd[i] = t
+                            xd[i] += t
+                    else:
+                        for i in range(n1 - n0):
+                            v = bd[i]
+                            rd[i] = v
+                            t = gd[i] * v
+                            t = t * c2
+                            dd[i] = t
+                            xd[i] = t
+
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows, chebyshev_rows
 
 
 def _weight(w, n: int, dtype) -> np.ndarray:
@@ -248,7 +311,7 @@ def take(src: np.ndarray, idx: np.ndarray, w, dtype=None, out: np.ndarray | None
     if out is None:
         out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
     pieces = _pieces(n)
-    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n, out.dtype), out, False, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n, out.dtype), out, False, _NONE3, _NONE2, _NONE2, pieces)
     return out
 
 
@@ -261,7 +324,7 @@ def put(src: np.ndarray, idx: np.ndarray, n: int, w, dtype=None) -> np.ndarray:
     out = aligned_empty(src.shape[:2] + (int(n),), src.dtype if dtype is None else dtype)  # every entry written
     k = len(idx)
     pieces = _pieces(k)
-    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k, out.dtype), out, True, pieces)
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, k, out.dtype), out, True, _NONE3, _NONE2, _NONE2, pieces)
     return out
 
 
@@ -280,7 +343,7 @@ def put_smoothed(src: np.ndarray, idx: np.ndarray, n: int, w, g: np.ndarray, s: 
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype),
-              _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0 if zero else 5, pieces)
+              _weight(g, k, out.dtype), out.dtype.type(s), out, out, out, 0 if zero else 5, _NONE2, pieces)
     return out
 
 
@@ -295,7 +358,7 @@ def put_smoothed_onto(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: n
     k = len(idx)
     pieces = _pieces(k)
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, out.dtype), _weight(g, k, out.dtype),
-              out.dtype.type(s), out, out, out, 4, pieces)
+              out.dtype.type(s), out, out, out, 4, _NONE2, pieces)
 
 
 def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool = False) -> None:
@@ -306,15 +369,17 @@ def put_add(out: np.ndarray, src: np.ndarray, idx: np.ndarray, w, subtract: bool
     k = len(idx)
     pieces = _pieces(k)
     wk = _weight(w, k, out.dtype)
-    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 3 if subtract else 1, pieces)
+    over_rows(_kernels()[5], pieces, src, idx, wk, wk, out.dtype.type(1), out, out, out, 3 if subtract else 1, _NONE2,
+              pieces)
 
 
 def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarray, w, g: np.ndarray, s: float,
-                  dtype=None, out: np.ndarray | None = None) -> np.ndarray:
+                  dtype=None, out: np.ndarray | None = None, dot: bool = False):
     """``w (x + s g (w src - ax))`` on the nodes `idx`, (m, 3, len(idx)) in `dtype` (default `src`'s):
     a damped Jacobi step on the right-hand side ``w src`` from `x` (``ax = A x``, whole grids; `g`
     the inverse diagonal on the nodes `idx`), and its live nodes taken, in one pass; or into `out` (an array
-    of that shape, a view of a larger one may do)."""
+    of that shape, a view of a larger one may do). With `dot`, ``(out, (m,) src . out)`` in the same pass, the
+    same bits as ``wdot(src, out, ones)`` (the CG's ``r.z``, which read both again)."""
     from .mechanics_cl import aligned_empty
     from ..run.threads import over_rows
 
@@ -322,6 +387,44 @@ def take_smoothed(x: np.ndarray, ax: np.ndarray, src: np.ndarray, idx: np.ndarra
     if out is None:
         out = aligned_empty(src.shape[:2] + (k,), src.dtype if dtype is None else dtype)  # as take's
     pieces = _pieces(k)
+    dots = np.zeros((pieces, src.shape[0])) if dot else _NONE2
     over_rows(_kernels()[5], pieces, src, idx, _weight(w, k, x.dtype),
-              _weight(g, k, x.dtype), x.dtype.type(s), out, x, ax, 2, pieces)
-    return out
+              _weight(g, k, x.dtype), x.dtype.type(s), out, x, ax, 2, dots, pieces)
+    return (out, dots.sum(axis=0)) if dot else out
+
+
+def take_dot(src: np.ndarray, idx: np.ndarray, w, v: np.ndarray, vw, dtype=None) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`take`'s ``w * src[:, :, idx]`` and, in the same pass, (m,) ``sum v * out * vw`` per case: the same
+    bits as ``take`` then ``wdot(v, out, vw)`` (the CG's ``p.Kp`` on the product it takes)."""
+    from .mechanics_cl import aligned_empty
+    from ..run.threads import over_rows
+
+    n = len(idx)
+    out = aligned_empty(src.shape[:2] + (n,), src.dtype if dtype is None else dtype)
+    pieces = _pieces(n)
+    dots = np.zeros((pieces, src.shape[0]))
+    over_rows(_kernels()[4], pieces, src, idx, _weight(w, n, out.dtype), out, False, v, _weight(vw, n, v.dtype),
+              dots, pieces)
+    return out, dots.sum(axis=0)
+
+
+def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g: np.ndarray, c1: float, c2: float,
+                   b: np.ndarray | None = None, start: bool = False) -> bool:
+    """One step of :func:`~implicit_scaffold.measure.multigrid._chebyshev` in one pass, in place: ``r -= a``,
+    ``d = c1 d + c2 g r``, ``x += d`` (`a` = A d); with `b`, the first step from an iterate x (`a` = A x):
+    ``r = b - a``, ``d = c2 g r``, ``x += d``; with `b` and `start`, the first step from 0 (`a` not read):
+    ``r = b``, ``d = c2 g b``, ``x = d``. `g` is the level's inverse diagonal, (1, N) or (3, N). The
+    same bits as those NumPy operations (each product rounded to the vectors' float). Returns False, with
+    nothing done, where the arrays are not all C-contiguous (m, 3, N) of one float32 or float64 type."""
+    from ..run.threads import over_rows
+
+    arrays = [r, a, d, x] + ([] if b is None else [b])
+    dtype = r.dtype
+    if dtype.kind != "f" or any(v.dtype != dtype or not v.flags.c_contiguous or v.shape != r.shape for v in arrays) \
+            or g.dtype != dtype or g.ndim != 2 or g.shape[1] != r.shape[2]:
+        return False
+    n = r.shape[2]
+    pieces = _pieces(n)
+    over_rows(_kernels()[6], pieces, r, a, r if b is None else b, d, x, np.ascontiguousarray(g), dtype.type(c1),
+              dtype.type(c2), 0 if b is None else (2 if start else 1), pieces)
+    return True

@@ -612,7 +612,8 @@ def direct_preconditioner(model: VoxelModel, free: np.ndarray):
 FLOAT_TOL = 1e-7
 
 
-def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol: float):
+def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol: float,
+                        slab_nodes: int | None = None):
     """The conjugate gradients' preconditioner for the system ``F K F`` of `model`.
 
     Parameters
@@ -628,6 +629,8 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     tol : float
         The solve's tolerance (from :data:`FLOAT_TOL` the preconditioner runs in float32: it need only be
         close to ``K^-1``, and CG to 1e-6 does not feel its rounding).
+    slab_nodes : int, optional
+        The multigrid's fine level by slabs of this many nodes (``Multigrid``'s `slab_nodes`).
     """
     if kind == "multigrid":
         from .multigrid import COARSEST_UNKNOWNS, Multigrid
@@ -636,8 +639,8 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
         # exactly) would get smoothing only: the FFT one serves it better
         if min(model.shape) >= 4 or 3 * np.prod(model.shape) <= COARSEST_UNKNOWNS:
             if tol >= FLOAT_TOL and hasattr(op, "single"):
-                return Multigrid(model, op.single(), free, dtype=np.float32)
-            return Multigrid(model, op, free)
+                return Multigrid(model, op.single(), free, dtype=np.float32, slab_nodes=slab_nodes)
+            return Multigrid(model, op, free, slab_nodes=slab_nodes)
         kind = "fft"
     if kind == "fft":
         return fft_preconditioner(model, free, single=tol >= FLOAT_TOL)
@@ -646,16 +649,46 @@ def make_preconditioner(kind: str, model: VoxelModel, op, free: np.ndarray, tol:
     raise ValueError(f"preconditioner must be 'multigrid', 'fft' or 'direct', got {kind!r}")
 
 
+#: the solves run with BLAS on one thread (:func:`_one_blas_thread`); False: BLAS's own thread count
+ONE_BLAS_THREAD = True
+
+
+def _one_blas_thread(solve):
+    """`solve` with BLAS (OpenBLAS's threads) held to the calling thread while it runs.
+
+    The solve's BLAS calls are small (the coarsest level's pseudo-inverse once a V-cycle, the eigenvalue
+    estimates' dot products), but after each one OpenBLAS's worker threads spin, waiting for more, on the
+    cores the OpenCL operator runs on next: on the 128^3 benchmark scaffold (six cases, one run each, the
+    machine shared) the fine product's median in the solve took 16.5 ms against 11.6 with BLAS on one
+    thread (8.5 and 9.2 ms by itself in the same processes), and the solve 20.1 s against 15.6."""
+    import functools
+
+    @functools.wraps(solve)
+    def run(*args, **kwargs):
+        if not ONE_BLAS_THREAD:
+            return solve(*args, **kwargs)
+        from threadpoolctl import threadpool_limits
+
+        with threadpool_limits(1, user_api="blas"):
+            return solve(*args, **kwargs)
+
+    return run
+
+
 def _norms(v: np.ndarray) -> np.ndarray:
     """(m,) Euclidean norms of the m load cases of `v` (m, 3, N), without a squared copy."""
     flat = v.reshape(len(v), -1)
     return np.sqrt(np.einsum("mk,mk->m", flat, flat))
 
 
+#: :func:`pcg` makes a case's right-hand side again (its true residual) this many live nodes at a time
+LOAD_CHUNK = 1 << 18
+
+
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
         maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False,
         energy: np.ndarray | None = None, accuracy: float | None = None, info: dict | None = None,
-        whole: bool = True):
+        whole: bool = True, slab_nodes: int | None = None):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -717,6 +750,11 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Return x over the whole grid (m, 3, N); False: as the CG holds it, on the live nodes, with them:
         ``(x (m, 3, L), live (L,))``, which spares the whole grid's x in double (on the 128^3 benchmark
         scaffold 84 bytes a solid voxel a case, at the solve's end).
+    slab_nodes : int, optional
+        The float products (`fast`'s) by slabs of this many nodes' planes (the OpenCL operator's
+        ``live_product``) on a grid of at most
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes (above it they run by slabs of
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` anyway); default: over the whole grid.
 
     Returns
     -------
@@ -724,27 +762,46 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     """
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
-    from .fused import cg_update, put, take, wdot, xpby
+    from .fused import cg_update, put, take, take_dot, wdot, xpby
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM, reusing
 
     n = np.shape(free)[-1]
     w = np.asarray(free).reshape(-1, n)  # not copied: a float32 mask stays 4 bytes a node
     live = np.flatnonzero(w.any(axis=0))
+    if n < 2**31:  # int32 indices, half int64's bytes (128^3 benchmark scaffold: 6 bytes a solid voxel)
+        live = live.astype(np.int32)
     # in the mask's own float: a float32 mask (the solver's) stays 4 bytes an unknown here too, and the
     # compiled passes widen it exactly as they read it; the V-cycle shares this copy (compact's weights)
     wl = np.ascontiguousarray(w[:, live], w.dtype if w.dtype.kind == "f" else np.float64)
     # a mask per node is 1 on every live node: its live part is the weight of ones
     ones = wl if len(wl) == 1 else np.ones((1, live.size), wl.dtype)
 
-    def on_live(src) -> np.ndarray:
-        """F src on the live nodes, from a whole-grid array or from a callable of the nodes."""
+    def on_live(src, out=None, add: bool = False) -> np.ndarray:
+        """F src on the live nodes, from a whole-grid array or from a callable of the nodes; into `out` (a
+        case's (1, 3, len(live)) in double) when given, or added to it with `add`, from a callable a chunk of
+        :data:`LOAD_CHUNK` nodes at a time: a case's loads on every live node and their indices were two
+        temporaries of the true residual's (on the 128^3 benchmark scaffold 47 bytes a solid voxel beside x, r
+        and p)."""
         if not callable(src):
-            return take(src, live, wl)
-        out = np.asarray(src(live), np.float64)
-        out *= wl
+            if add:
+                out += take(src, live, wl, out.dtype)
+                return out
+            return take(src, live, wl, out=out)
+        if out is None:
+            out = np.asarray(src(live), np.float64)
+            out *= wl
+            return out
+        for a in range(0, live.size, LOAD_CHUNK):
+            b = min(live.size, a + LOAD_CHUNK)
+            part = np.asarray(src(live[a:b]), np.float64)
+            part *= wl[:, a:b]
+            if add:
+                out[:, :, a:b] += part
+            else:
+                out[:, :, a:b] = part
         return out
 
-    def on_live_product(product, v, w_out, spread=None) -> np.ndarray:
+    def on_live_product(product, v, w_out, spread=None, dtype=np.float64, dot_weight=None):
         """``w_out K v`` on the live nodes in double, from live-node values `v` (spread in `spread`, default
         the values' own float). A double OpenCL product by slabs of the grid (its ``live_product``): its
         whole-grid input and output held 48 bytes a node, above the float cycle's at the homogenization's
@@ -752,14 +809,27 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         script: one case a block peaked 483 bytes a solid voxel, 394 by slabs; a compression 636 and 572),
         for some 10 ms more a product there (49 against 39). Float ones over the whole grid (by slabs of 2^18
         they took 27 ms against 21) but on a grid of more than
-        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, whose V-cycle runs by slabs too."""
-        if not hasattr(product, "live_product"):
-            return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
-        if product.double:
-            return product.live_product(v, live, ones, w_out, np.float64)
-        if n > FLOAT_SLABS_FROM:  # by larger slabs, on a large grid
-            return product.live_product(v, live, ones, w_out, np.float64, FLOAT_SLAB_NODES)
-        return take(product(put(v, live, n, ones, spread)), live, w_out, np.float64)
+        :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes, whose V-cycle runs by slabs too,
+        or by `slab_nodes` (pcg's) where given. A float product's result in `dtype` (default double).
+
+        With `dot_weight`: ``(K v, v . K v)`` (weighed by it, as ``wdot`` sums it), summed in the pass that takes
+        the product's live nodes where the product is a whole grid's."""
+        def dotted(q):
+            return q if dot_weight is None else (q, wdot(v, q, dot_weight))
+
+        if hasattr(product, "live_product"):
+            if product.double:
+                return dotted(product.live_product(v, live, ones, w_out, np.float64))
+            if n > FLOAT_SLABS_FROM:  # by larger slabs, on a large grid
+                return dotted(product.live_product(v, live, ones, w_out, dtype, FLOAT_SLAB_NODES))
+            if slab_nodes is not None:
+                return dotted(product.live_product(v, live, ones, w_out, dtype, slab_nodes))
+        else:
+            dtype = np.float64
+        out = product(put(v, live, n, ones, spread))
+        if dot_weight is not None:
+            return take_dot(out, live, w_out, v, dot_weight, dtype)
+        return take(out, live, w_out, dtype)
 
     r = on_live(b)  # F b on the live nodes
     del b
@@ -778,7 +848,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         def pre(v, sink):
             z = take(precond(put(v, live, n, ones)), live, ones)
             for c in range(len(z)):
-                sink(c, z[c:c + 1])
+                sink(c, z[c:c + 1], None)
     # the preconditioned residual z is handed over one case at a time (pre's sink) and folded into
     # p at once, so that the block's z is never held beside x, r and p
     rz = np.zeros(m)
@@ -786,12 +856,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # the dot products by a compiled pass (wdot, in double whatever z's float), not np.vdot: a BLAS
     # call leaves OpenBLAS's threads spinning, and beside them the OpenCL operator ran 1.8 times
     # slower (64^3 scaffold, one case a block: 34 s of CPU against 23)
-    def r_dot(c, z) -> float:
-        return float(wdot(r[c:c + 1], z, ones)[0])
+    def r_dot(c, z, given=None) -> float:
+        # `given`: the preconditioner summed it as it made z (the same bits)
+        return float(wdot(r[c:c + 1], z, ones)[0]) if given is None else given
 
-    def first(c, z):
+    def first(c, z, given=None):
         p[c] = z[0]
-        rz[c] = r_dot(c, z)
+        rz[c] = r_dot(c, z, given)
 
     with reusing():  # the cycle's whole-grid vectors, case after case, from one pool
         pre(r, first)
@@ -850,9 +921,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             rr = np.zeros(m)
             for c in np.flatnonzero(going):
                 one = slice(c, c + 1)
-                # masked to the free unknowns below
-                q = on_live_product(product, p[one], ones, spread)
-                pq = wdot(p[one], q, wl)[0]
+                # masked to the free unknowns below; a float product's q in its float, in which it was made (half
+                # the bytes of double: on the 128^3 benchmark scaffold 18 bytes a solid voxel, and its buffer is the
+                # one the V-cycle's result of the same size was in), which wdot and cg_update widen exactly; p.q summed
+                # in the pass that takes it (take_dot, wdot's bits)
+                q, pq = on_live_product(product, p[one], ones, spread, np.float64 if spread is None else spread,
+                                        dot_weight=wl)
+                pq = pq[0]
                 if pq > 0:
                     live_cases[c] = True
                     rr[c] = cg_update(x[one], p[one], r[one], q, wl, [rz[c] / pq])[0]  # x += alpha p, r -= alpha F q
@@ -863,8 +938,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 del q
             rz_new = np.zeros(m)
 
-            def step(c, z):
-                rz_new[c] = r_dot(c, z)
+            def step(c, z, given=None):
+                rz_new[c] = r_dot(c, z, given)
                 if live_cases[c]:
                     rhos[c].append(rz_new[c])
                 beta = rz_new[c] / rz[c] if live_cases[c] and rz[c] != 0 else 0.0
@@ -893,8 +968,16 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         # idle buffers are gone before the right-hand sides' whole grids are made
         for c in range(m):
             one = slice(c, c + 1)
-            r[one] = on_live(rhs(c))
-            r[one] -= on_live_product(apply, x[one], wl)
+            if hasattr(apply, "live_product") and apply.double:
+                # F K x written into r, then negated and F b added: the same bits as F b - F K x (a - b is
+                # a + (-b)), without K x's own vector in double beside x, r and F b's (on the 128^3 benchmark
+                # scaffold, one case a block, 35 bytes a solid voxel of the solve's peak)
+                apply.live_product(x[one], live, ones, wl, np.float64, out=r[one])
+                np.negative(r[one], out=r[one])
+                on_live(rhs(c), out=r[one], add=True)
+            else:
+                on_live(rhs(c), out=r[one])
+                r[one] -= on_live_product(apply, x[one], wl)
         res = _norms(r) / scale
         # a case still above tol restarts (p = z): its directions and steps belong to the recurrence's
         # r. Kept (residual replacement), a drift of 1e-3 stalled the CG, its next beta some 1e10,
@@ -906,9 +989,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         # jigsaw femur at 1.5 mm (kinematic) it said 5.2e-7 where C33 was 4.3e-4 off
         true_rz = np.zeros(m)
 
-        def again_from(c, z):
-            true_rz[c] = r_dot(c, z)
-            first(c, z)  # p = z and rz, for a case that restarts
+        def again_from(c, z, given=None):
+            true_rz[c] = r_dot(c, z, given)
+            first(c, z, given)  # p = z and rz, for a case that restarts
 
         if by_energy or (res > tol).any():
             with reusing():
@@ -1239,6 +1322,20 @@ def _counting(progress):
     return tell
 
 
+def one_case_slabs(node_shape, block: int) -> int | None:
+    """The slabs (nodes) of a homogenization's float products and of its V-cycle's fine level on a node grid of
+    `node_shape` with `block` load cases a CG block: :data:`~implicit_scaffold.measure.mechanics_cl.
+    ONE_CASE_SLAB_NODES` for one case a block (the memory-lean choice) on a grid of at most
+    :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes; None: the default (the whole grid,
+    or slabs of :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` above that)."""
+    from .mechanics_cl import FLOAT_SLABS_FROM, ONE_CASE_SLAB_NODES
+
+    if block == 1 and int(np.prod(node_shape, dtype=np.int64)) <= FLOAT_SLABS_FROM:
+        return ONE_CASE_SLAB_NODES
+    return None
+
+
+@_one_blas_thread
 def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, preconditioner, progress,
                      cases_per_block, accuracy):
     """:func:`homogenize` of held pieces, its tensor over `total` voxels' volume: (C, iterations, the
@@ -1258,9 +1355,10 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
         free = (model.active & inner.ravel()).astype(np.float32)
         del inner
     scale = np.sqrt(ns) * np.linalg.norm(model.ke @ u0e.T, axis=0)
-    precond = make_preconditioner(preconditioner, model, op, free, tol)
-    fast = _fast(op, tol)
     block = max(1, min(6, int(cases_per_block)))
+    slab_nodes = one_case_slabs(model.shape, block)
+    precond = make_preconditioner(preconditioner, model, op, free, tol, slab_nodes)
+    fast = _fast(op, tol)
     ue_sum = np.empty((6, 24))
     cross = np.zeros((6, 6))  # x_i . r_j within each block (Notes: the energy form)
     iterations, res, err, err_abs = 0, np.zeros(6), np.full(6, np.nan), np.full(6, np.nan)
@@ -1286,7 +1384,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
         (x, live), its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol,
                                     maxiter=maxiter, progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]),
                                     cross=True, energy=lifting[list(cases)], accuracy=accuracy, info=info,
-                                    whole=False)
+                                    whole=False, slab_nodes=slab_nodes)
         if tell is not None:
             tell.next()
         cross[np.ix_(list(cases), list(cases))] = xr
@@ -1568,6 +1666,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
                        sum(len(ids) for _, ids, _ in crops) or 1, bool(converged))
 
 
+@_one_blas_thread
 def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, preconditioner, progress, accuracy):
     """:func:`compress` of the pieces that join both platens: (the upper platen's force in kN, the von
     Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error,
@@ -1796,7 +1895,8 @@ def bone_verdict(modulus_gpa: float) -> str:
 
 
 def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count: int = 10) -> list[dict]:
-    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain."""
+    """The `count` voxels of highest equivalent strain: index, centre (mm) and strain; `origin` is the centre
+    of voxel [0, 0, 0] (mm, as :class:`SolveSample` holds it)."""
     flat = field_vm.ravel()
     count = min(count, int((flat > 0).sum()))
     if count == 0:
@@ -1807,7 +1907,7 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
     for t in top:
         ijk = np.unravel_index(t, field_vm.shape)
         out.append({"index": [int(v) for v in ijk],
-                    "centre_mm": [round(float(o + (i + 0.5) * h), 6) for o, i in zip(origin, ijk)],
+                    "centre_mm": [round(float(o + i * h), 6) for o, i in zip(origin, ijk)],
                     "von_mises_strain": float(flat[t])})
     return out
 
@@ -1831,6 +1931,8 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         Relative residual of the CG solves (the report's ``solver.tolerance``). None, the default:
         :data:`TOL`, or sooner the energy accuracy :data:`ACCURACY` (the report's ``solver.accuracy``), which
         stops where the figures have converged; a tolerance given is the stop alone.
+    origin : (3,) floats, mm
+        The centre of ``solid[0, 0, 0]``: where the most strained voxels are placed.
     preconditioner : {"multigrid", "fft"}
         See :func:`make_preconditioner`.
     progress : callable, optional
@@ -2006,6 +2108,11 @@ def stopped_by(solve, tol: float, accuracy: float | None) -> str | None:
 #: 2,273.3 against 2,725.2). The fit counted a slab as 2^22 nodes; :func:`cycle_nodes` now counts its whole planes
 #: and two halo planes, as :func:`~implicit_scaffold.measure.multigrid.fine_slab_planes` makes them, which raises
 #: the 272^3 and 300^3 estimates by at most 1.6 MiB (2,725.2 to 2,726.8).
+#: Since one case a block runs by slabs (:func:`one_case_slabs`), with the coarse levels' half stencils and the
+#: leaner set-up, the one-case homogenizations hold less than the fit saw: ``--memory 128 --memory-solves
+#: homogenize --memory-blocks 1`` (2026-12-07) 149.8, 219.1, 216.2 and 338.3 MiB (periodic 0.30, 0.60, kinematic
+#: 0.30, 0.60) against 201.6, 271.4, 265.7 and 420.1 above, the estimates 397.9-526.9 MiB (1.56-2.66 times; the
+#: compression's part is the larger there). The parts are left as fitted: the estimate stays above every row.
 SOLVE_FIXED_BYTES = {"multigrid": 100 * 2**20, "fft": 120 * 2**20}
 SOLVE_BYTES_PER_NODE = {"multigrid": {"periodic": 76, "kinematic": 67},
                         "fft": {"periodic": 700, "kinematic": 950}}
@@ -2675,7 +2782,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     """The solid of a file at the voxel of its solve, as ``analyze`` reads it, plus a ``.npy`` signed-distance field.
 
     The solve's memory is checked before anything is solved (:func:`solid_for_solve`,
-    :func:`check_solve`).
+    :func:`check_solve`), and a binary STL's read before it is read
+    (:func:`~implicit_scaffold.measure.morphometry.check_mesh_read`).
 
     Parameters
     ----------
@@ -2705,9 +2813,13 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
 
     from .morphometry import report_beside
 
+    from ..run.memory import budget
+
     path = Path(path)
-    # no region is measured here: the run's patient is not built again
-    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold, region=False)
+    # no region is measured here: the run's patient is not built again. A mesh's read is checked against the
+    # budget too: trimesh's read of the default cube's STL held 3.3 GiB before the solve's check
+    sample = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold, region=False,
+                           max_memory=budget(max_memory))
     beside = report_beside(path)  # the run's report, read once: the generator's walls, the grid a mesh was read on
     if sample.field is not None:
         grid = Grid(tuple(float(v) for v in sample.origin), float(sample.voxel), sample.field.shape)

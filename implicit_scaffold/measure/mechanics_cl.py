@@ -97,6 +97,12 @@ SLAB_NODES = 1 << 18
 #: the benchmark's, where memory is what stops a solve (the lumbar micro-CT's 27.3 million nodes)
 FLOAT_SLAB_NODES = 1 << 22
 FLOAT_SLABS_FROM = 1 << 24
+#: a homogenization of one load case a block (what a tight memory budget takes: ``block_for``) runs its float
+#: products, the CG's and the V-cycle's fine level, by slabs of this many nodes' planes on any grid (the
+#: default of six a block keeps its whole-grid vectors, which are a small part of its peak): on the 128^3
+#: benchmark scaffold the two whole-grid float vectors were 80 bytes a solid voxel of the one-case solve's
+#: peak, some 11 by slabs of 2^18 nodes (2^19: the same peak; 2^20: 17 bytes a solid voxel more)
+ONE_CASE_SLAB_NODES = 1 << 18
 _pool: list | None = None
 
 
@@ -298,18 +304,23 @@ class StiffnessOperator(_Gather):
         Compute in double (default: when the device can).
     """
 
-    def __init__(self, model, *, double: bool | None = None):
+    def __init__(self, model, *, double: bool | None = None, _flags=None):
         self.model = model
-        super().__init__(model.shape, model.solid, model.ke, double=has_double() if double is None else double,
+        # the solid flags the device reads (an aligned uint8 copy), and those of the slabs (:meth:`slab`) by their
+        # planes: shared with the operator in the other float (:meth:`single`), whose flags are the same bytes
+        # (on the 128^3 benchmark scaffold each copy of the grid's was 3.3 bytes a solid voxel, the slabs' 3.8)
+        flags, self._slab_flags = (model.solid, {}) if _flags is None else _flags
+        super().__init__(model.shape, flags, model.ke, double=has_double() if double is None else double,
                          per_element=False)
 
     def single(self) -> "StiffnessOperator":
         """The same operator in float (a preconditioner's, and the CG's iterations': half the time
-        and memory of double); one instance, shared by every caller."""
+        and memory of double); one instance, shared by every caller, which reads this one's solid flags."""
         if not self.double:
             return self
         if getattr(self, "_single", None) is None:
-            self._single = StiffnessOperator(self.model, double=False)
+            self._single = StiffnessOperator(self.model, double=False,
+                                             _flags=(self._owner_host.reshape(self.shape), self._slab_flags))
         return self._single
 
     def __call__(self, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
@@ -321,7 +332,7 @@ class StiffnessOperator(_Gather):
         return super().__call__(u)
 
     def live_product(self, u: np.ndarray, live: np.ndarray, w_in, w_out, dtype=np.float64,
-                     slab_nodes: int | None = None) -> np.ndarray:
+                     slab_nodes: int | None = None, out: np.ndarray | None = None) -> np.ndarray:
         """``w_out K (w_in u)`` on the nodes `live` from values `u` on them, (m, 3, len(live)) in `dtype`:
         bit for bit ``take(self(put(u, live, N, w_in)), live, w_out, dtype)``, a slab of node planes at a
         time (:data:`SLAB_NODES` nodes, plus a plane on either side), so that no vector of the whole
@@ -338,6 +349,8 @@ class StiffnessOperator(_Gather):
         dtype : numpy float type
         slab_nodes : int, optional
             The slabs' nodes (default :data:`SLAB_NODES`).
+        out : (m, 3, L) ndarray of `dtype`, optional
+            Written with the result (and returned) instead of a new array.
         """
         from .fused import put, put_add, take
 
@@ -349,7 +362,8 @@ class StiffnessOperator(_Gather):
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
         w_in = np.asarray(w_in).reshape(-1, live.size)
         w_out = np.asarray(w_out).reshape(-1, live.size)
-        out = aligned_empty(u.shape[:2] + (live.size,), dtype)
+        if out is None:
+            out = aligned_empty(u.shape[:2] + (live.size,), dtype)
         for i0 in range(0, n1, thick):
             i1 = min(n1, i0 + thick)
             if starts[i1] == starts[i0]:
@@ -384,7 +398,9 @@ class StiffnessOperator(_Gather):
         cache = self.__dict__.setdefault("_slabs", {})
         if (i0, i1) not in cache:
             planes = np.arange(i0 - 1, i1 + 1) % self.shape[0]
-            flags = np.ascontiguousarray(self.model.solid[planes])
+            flags = self._slab_flags.get((i0, i1))
+            if flags is None:  # aligned uint8, as the device reads them: no copy of its own in _Gather
+                flags = self._slab_flags[(i0, i1)] = aligned_copy(self.model.solid[planes], np.uint8)
             cache[(i0, i1)] = planes, _Gather(flags.shape, flags, self._mats_host, double=self.double,
                                               per_element=False)
         return cache[(i0, i1)]
@@ -459,15 +475,16 @@ class StencilLevelOperator(_Gather):
     (:func:`~implicit_scaffold.measure.multigrid.node_stencils`, ``stencil_rows`` /
     ``stencil_ends``), in the float of its matrices.
 
-    Each work item reads its node's 243 stencil words and its 27 neighbours' values at consecutive
-    addresses along a row (full vectors, as the fine operator), where :class:`LevelOperator` gathers
-    one 24 x 24 matrix per element around each node. The stencils take 243 words a node, the
-    element matrices 576 an element."""
+    Each work item reads its node's 126 stencil words (the blocks of the node and of its 13 neighbours
+    after it) and the 13 other blocks, transposed, from its neighbours' words (the matrix is symmetric),
+    and its 27 neighbours' values, at consecutive addresses along a row (full vectors, as the fine
+    operator), where :class:`LevelOperator` gathers one 24 x 24 matrix per element around each node. The
+    stencils take 126 words a node, the element matrices 576 an element."""
 
     def __init__(self, level):
         from .multigrid import node_stencils
 
-        # by row: entry x of node (r, k) at (243 r + x) n3 + k (the kernel reads a row's block in order;
+        # by row: entry x of node (r, k) at (126 r + x) n3 + k (the kernel reads a row's block in order;
         # entry-major, 243 streams a vector, the 32^3 level of the 128^3 benchmark took 7.4 ms for six cases),
         # made so (aligned, in the level's float): the device reads that one array in place
         by_row, live = node_stencils(level)

@@ -772,6 +772,10 @@ def morphometry_by_slabs(source, patient, voxel: float, *, max_voxels: int, halo
 _RAY_SHIFT = (math.sqrt(2) * 1e-6, math.sqrt(3) * 1e-6)
 
 
+#: faces :func:`voxelize` hands to the crossings at a time (some 30 MiB of their arrays)
+VOXELIZE_FACES = 1 << 18
+
+
 def voxelize(vertices, faces, grid) -> np.ndarray:
     """Which voxel centres of `grid` lie inside a closed triangle mesh (ray parity along z).
 
@@ -801,8 +805,14 @@ def voxelize(vertices, faces, grid) -> np.ndarray:
     nx, ny, nz = (int(n) for n in grid.shape)
     h, o = float(grid.spacing), np.asarray(grid.origin, np.float64)
     # the rays pass a hair beside the voxel centres: a mesh marched on this very grid has its
-    # vertices on the lines through the centres, where a ray would meet them exactly
-    col, z = crossings(v, f, 2, o[0] - _RAY_SHIFT[0] * h, h, nx, o[1] - _RAY_SHIFT[1] * h, h, ny)
+    # vertices on the lines through the centres, where a ray would meet them exactly. A block of
+    # faces at a time: crossings holds some 115 bytes a face it is given (the default cube's 5.2 M
+    # faces took 580 MiB at once), and the parity below does not depend on the crossings' order
+    found = [crossings(v, f[f0:f0 + VOXELIZE_FACES], 2, o[0] - _RAY_SHIFT[0] * h, h, nx,
+                       o[1] - _RAY_SHIFT[1] * h, h, ny) for f0 in range(0, len(f), VOXELIZE_FACES)]
+    col = np.concatenate([c for c, _ in found]) if found else np.zeros(0, np.int64)
+    z = np.concatenate([t for _, t in found]) if found else np.zeros(0)
+    del found
     if not len(col):
         return np.zeros(grid.shape, bool)
     odd_cols = np.count_nonzero(np.bincount(col, minlength=nx * ny) % 2)
@@ -948,7 +958,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         # generate's own field (its report beside it) over its run's patient, as read_scaffold reads it for check
         scaffold = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
         solid, step = scaffold.solid, scaffold.voxel
-        grid = Grid((0.5 * step,) * 3, step, solid.shape)
+        grid = Grid(scaffold.origin, step, solid.shape)  # where the file places its voxels (read_scaffold's)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         report = morphometry(solid, step, region=scaffold.region)
         report.update({"version": __version__, "source": path.name, "kind": "volume", "voxel_mm": step, "grid_shape": list(solid.shape),
@@ -1157,7 +1167,7 @@ def run_grid_beside(path, voxel=None):
 
 
 def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False,
-                  region: bool = True) -> Scaffold:
+                  region: bool = True, max_memory: int | None = None) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
@@ -1171,6 +1181,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     signed distance on the grid (exact near the surface: the print check's as-built offset, a fraction
     of a voxel, and its surface normals come from it; without it a printer's deviation under a voxel
     moved nothing).
+
+    With `max_memory` (bytes), a binary STL's read and voxels are checked against it before the work
+    (:func:`check_mesh_read`): before the file is read, and once its bounds give the grid.
     """
     from pathlib import Path
 
@@ -1216,8 +1229,8 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         where, name = run_region(path, Grid(origin, float(voxel), field.shape), "the grid", build=region)
         return Scaffold("field", field < 0, float(voxel), origin, field, where if region else None, name)
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
-        solid, step, note, selection, distance, axes = _read_volume(path, spacing, voxel, label, threshold)
-        origin, where, name = (0.5 * step,) * 3, None, "the whole volume"
+        solid, step, note, selection, distance, axes, origin = _read_volume(path, spacing, voxel, label, threshold)
+        where, name = None, "the whole volume"
         if distance is not None:
             # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
             own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
@@ -1230,14 +1243,24 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
                             f"volume ({' '.join(VOLUME_SUFFIXES)})")
     _volume_only(path, label, threshold)
     run_grid = run_grid_beside(path, voxel)
-    mesh = _read_mesh(path)
-    lo, hi = mesh.bounds
+    triangles = binary_stl_triangles(path) if max_memory is not None else None
+    if triangles:
+        from ..run.memory import release
+
+        held = release()
+        # the grid's voxels when the run's report gives it; else the triangles alone, and the voxels once read
+        check_mesh_read(path.name, triangles, 0 if run_grid is None else int(np.prod(run_grid.shape)), held,
+                        max_memory)
+    vertices, faces = read_mesh_arrays(path)
+    lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     if voxel is None and run_grid is None:
         raise ScaffoldError(_voxel_needed(lo, hi))
     # its layer of outside all round: the scaffold's faces open onto free space (the run's grid has one)
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
-    solid = voxelize(mesh.vertices, mesh.faces, grid)
+    if triangles and run_grid is None:
+        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory)
+    solid = voxelize(vertices, faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
     where = None
@@ -1252,7 +1275,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     if mesh_field:
         from ..fields.patient_mesh import MeshPatient
 
-        field = np.asarray(MeshPatient(mesh.vertices, mesh.faces, name=path.name).sdf_grid(grid), np.float32)
+        field = np.asarray(MeshPatient(vertices, faces, name=path.name).sdf_grid(grid), np.float32)
     return Scaffold("mesh", solid, float(voxel), tuple(grid.origin), field, where, name)
 
 
@@ -1276,6 +1299,181 @@ def _volume_only(path, label, threshold) -> None:
                             "(a mesh or a .npy field is solid where it is closed or negative)")
 
 
+#: bytes of a binary STL's header (80) and triangle count (4), and of each triangle's record (normal, three
+#: float32 corners, a 2-byte attribute)
+STL_HEAD_BYTES, STL_RECORD_BYTES = 84, 50
+#: triangles read from a binary STL at a time (50 MB of records)
+STL_READ_CHUNK = 1 << 20
+
+
+def binary_stl_triangles(path) -> int | None:
+    """The triangles of a binary STL, from its header: None when `path` is not one (another format, an ASCII
+    STL, or a size that its count does not give, as trimesh tells them apart)."""
+    from pathlib import Path
+
+    path = Path(path)
+    if _suffix(path) != ".stl" or not path.is_file():
+        return None
+    size = path.stat().st_size
+    if size < STL_HEAD_BYTES:
+        return None
+    with open(path, "rb") as fh:
+        fh.seek(80)
+        n = int(np.frombuffer(fh.read(4), "<u4")[0])
+    return n if size == STL_HEAD_BYTES + STL_RECORD_BYTES * n else None
+
+
+def _group_rows(columns, count: int):
+    """Equal rows of `columns` (1-D arrays of length `count`, one per coordinate): for each row its group
+    (groups numbered in the rows' sorted order) and each group's first row (the lowest index: the sort is
+    stable). Indices are int32 where `count` allows: 4 bytes a row where numpy's were 8."""
+    index = np.int32 if count < 2**31 else np.int64
+    order = np.lexsort(tuple(columns[::-1])).astype(index)
+    new = np.zeros(count, bool)
+    new[0] = True
+    for c in columns:  # one column at a time: a sorted copy of all three was 12 bytes a row more
+        col = c[order]
+        new[1:] |= col[1:] != col[:-1]
+        del col
+    first = order[new]
+    group = np.empty(count, index)
+    group[order] = np.cumsum(new, dtype=index) - 1
+    return group, first
+
+
+def _read_binary_stl(path, n: int):
+    """A binary STL's vertices (float64, mm) and faces (int64), merged as trimesh merges them, or None when a
+    corner is not finite (trimesh then drops its faces: :func:`_read_mesh` reads it).
+
+    trimesh held some 660 bytes a triangle at its peak while it read, merged and checked (3.2 GiB for the
+    default cube's 5.2 M triangles): here the corners are 36 bytes a triangle (float32, as the file holds them),
+    and the whole read and voxelisation at most :data:`MESH_READ_BYTES_PER_TRIANGLE`. trimesh's merge (``merge_vertices``): corners whose coordinates times 1e8, rounded,
+    are equal are one vertex, the first of them in the file's order, and the vertices are in the order of their
+    first corner. Equal float32 corners are merged first (exactly), then their distinct values by the rounded
+    keys: the same vertices, in the same order, so the same voxels.
+    """
+    rec = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attr", "<u2")])
+    pts = np.empty((3 * n, 3), np.float32)
+    with open(path, "rb") as fh:
+        fh.seek(STL_HEAD_BYTES)
+        for f0 in range(0, n, STL_READ_CHUNK):
+            k = min(STL_READ_CHUNK, n - f0)
+            block = np.fromfile(fh, rec, k)
+            if len(block) != k:
+                return None
+            pts[3 * f0:3 * (f0 + k)] = block["corners"].reshape(-1, 3)
+            del block
+    if not np.isfinite(pts).all():
+        return None
+    bits = pts.view(np.uint32)
+    group, first = _group_rows([bits[:, a] for a in range(3)], len(pts))
+    del bits
+    exact = pts[first].astype(np.float64)
+    keys = np.round(exact * 1e8).astype(np.int64)
+    merged, _ = _group_rows([keys[:, a] for a in range(3)], len(keys))
+    del keys
+    # each merged vertex is its first corner in the file; vertices numbered by it
+    rep = np.full(int(merged.max()) + 1, len(pts), np.int64)
+    np.minimum.at(rep, merged, first)
+    rank = np.argsort(rep, kind="stable")
+    number = np.empty(len(rank), np.int64)
+    number[rank] = np.arange(len(rank))
+    vertices = pts[rep[rank]].astype(np.float64)
+    del pts
+    # each distinct corner's vertex, then each corner's
+    faces = number[merged][group].reshape(n, 3)
+    return vertices, faces
+
+
+def _watertight(faces: np.ndarray, nverts: int) -> bool:
+    """Whether every edge of `faces` belongs to exactly two of them (trimesh's ``is_watertight``), with one
+    8-byte key an edge (trimesh's edges, sorted and grouped, held some 120 bytes a triangle)."""
+    n = len(faces)
+    key = np.empty(3 * n, np.int64)
+    for e in range(3):
+        a, b = faces[:, e], faces[:, (e + 1) % 3]
+        key[e * n:(e + 1) * n] = np.minimum(a, b) * nverts + np.maximum(a, b)
+    key.sort()
+    if len(key) % 2:
+        return False
+    # in pairs, and no three alike: each pair differs from the next
+    return bool(np.array_equal(key[0::2], key[1::2]) and not np.any(key[1:-1:2] == key[2::2]))
+
+
+def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
+    """The volume a closed mesh encloses, mm^3, negative when its normals point in: trimesh's sum
+    (``mass_properties``: the x term of the divergence theorem), a block of faces at a time."""
+    total = 0.0
+    for f0 in range(0, len(faces), STL_READ_CHUNK):
+        tri = vertices[faces[f0:f0 + STL_READ_CHUNK]]
+        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        total += float(np.sum(cross[:, 0] * tri[:, :, 0].sum(axis=1)))
+    return total / 6.0
+
+
+#: what reading a binary STL and voxelising it holds at most beyond what the process held before: a fixed
+#: part (the crossings' compiled kernel and the imports it brings, 145 MiB of a small mesh's 147), bytes a
+#: triangle (the read's sort and merge; the mesh then held), bytes a triangle of one block of the crossings
+#: (:data:`VOXELIZE_FACES`: the kernel compiles while the mesh and the block are held) and bytes a voxel of the
+#: grid. Measured in a fresh process (``peak_memory`` less what it held before), against these bounds: the
+#: default cube's 5.2 M triangles on its run's 7.4 M voxels 514 MiB (bound 629), on 65 M voxels
+#: (``--voxel 0.025``) 768 (959); a 1.3 M-triangle ball on 1.1 M voxels 260 (296), on 38 M 333 (507); the
+#: 3 mm cube's 152 k triangles, 147 (190).
+MESH_READ_FIXED_BYTES = 160 * 2**20
+MESH_READ_BYTES_PER_TRIANGLE = 80
+MESH_READ_BYTES_PER_CROSSED_FACE = 120
+MESH_READ_BYTES_PER_VOXEL = 6
+
+
+def mesh_read_memory(triangles: int, voxels: int) -> int:
+    """Bytes reading a binary STL of `triangles` and voxelising it on `voxels` holds at most beyond what the
+    process held (:data:`MESH_READ_FIXED_BYTES` and the rest: an upper bound of the peaks measured)."""
+    n = int(triangles)
+    return int(MESH_READ_FIXED_BYTES + MESH_READ_BYTES_PER_TRIANGLE * n
+               + MESH_READ_BYTES_PER_CROSSED_FACE * min(n, VOXELIZE_FACES) + MESH_READ_BYTES_PER_VOXEL * int(voxels))
+
+
+def check_mesh_read(name: str, triangles: int, voxels: int, held: int, total: int) -> None:
+    """Refuse, before the work, a mesh whose read and voxels (:func:`mesh_read_memory`) do not fit `total` bytes
+    beside the `held` ones: one line naming the ``--max-memory`` that would do (a coarser voxel saves little:
+    the triangles take most)."""
+    from ..run.memory import format_size
+    from .mechanics import held_margin
+
+    need = mesh_read_memory(triangles, voxels)
+    if held + need > total:
+        named = held + need + held_margin(held)
+        grid = f" on {voxels:,} voxels" if voxels else ""
+        raise ScaffoldError.for_budget(
+            f"reading {name} ({triangles:,} triangles{grid}) needs about {format_size(need)} beside the "
+            f"{format_size(held)} held, over --max-memory {format_size(total)}; use --max-memory "
+            f"{format_size(named)}", named)
+
+
+def read_mesh_arrays(path):
+    """A closed mesh's vertices (float64, mm) and faces (int64): a binary STL read by numpy
+    (:func:`_read_binary_stl`, a sixth of trimesh's memory), any other mesh by trimesh (:func:`_read_mesh`).
+    The same arrays either way; the same one-line refusals of a mesh that holds no triangles or is not closed."""
+    from pathlib import Path
+
+    path = Path(path)
+    n = binary_stl_triangles(path)
+    read = _read_binary_stl(path, n) if n else None
+    if read is None:
+        mesh = _read_mesh(path)
+        return np.asarray(mesh.vertices), np.asarray(mesh.faces)
+    vertices, faces = read
+    if not _watertight(faces, len(vertices)):
+        raise ScaffoldError(_NOT_CLOSED.format(name=path.name))
+    if _signed_volume(vertices, faces) < 0:
+        faces = np.ascontiguousarray(faces[:, ::-1])  # normals pointing in: the same solid (trimesh's invert)
+    return vertices, faces
+
+
+_NOT_CLOSED = ("{name} is not a closed surface (some edges belong to one triangle only); repair it (fill its holes) "
+               "before analysing it")
+
+
 def _read_mesh(path):
     import trimesh
 
@@ -1287,8 +1485,7 @@ def _read_mesh(path):
     if not isinstance(mesh, trimesh.Trimesh) or len(mesh.faces) == 0:
         raise ScaffoldError(f"{path.name} holds no triangles; give a closed surface mesh")
     if not mesh.is_watertight:
-        raise ScaffoldError(f"{path.name} is not a closed surface (some edges belong to one triangle only); "
-                            "repair it (fill its holes) before analysing it")
+        raise ScaffoldError(_NOT_CLOSED.format(name=path.name))
     if mesh.volume < 0:
         mesh.invert()  # normals pointing in: the same solid
     return mesh
@@ -1306,9 +1503,12 @@ def _own_field(path, zyx_shape) -> bool:
 
 def _read_volume(path, spacing, voxel, label=None, threshold=None):
     """The solid of a volume on the world's axes (x, y, z; :func:`world_axes`), its voxel (mm), a note on
-    its resampling (or None), how its solid was chosen, generate's own distance (or None) and a note on
-    its axes (or None). The solid is every non-zero voxel of a binary volume, a segmentation's `label`, or a
-    CT's intensities from `threshold` (HU) up (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
+    its resampling (or None), how its solid was chosen, generate's own distance (or None), a note on
+    its axes (or None) and the centre of its voxel [0, 0, 0] (mm, x, y, z): where the file's origin, direction
+    and spacing place it, so that positions (the most strained voxels, a certificate's defects) read in the
+    scanner's frame; an oblique volume, left on its index axes, starts half a voxel from 0. The solid is every
+    non-zero voxel of a binary volume, a segmentation's `label`, or a CT's intensities from `threshold` (HU) up
+    (:func:`~implicit_scaffold.fields.patient_volume.bone_mask`)."""
     import SimpleITK as sitk
 
     from ..fields.patient_volume import bone_mask, intensity_range
@@ -1355,8 +1555,15 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
     del mask
     # figures per axis (moduli, overhangs) name the patient's x, y, z, as generate places it, not the
     # file's storage order: a volume stored (k, i, j) or flipped is the same bone
-    order, flip, axes = world_axes(np.asarray(image.GetDirection(), np.float64).reshape(3, 3), path.name)
+    direction = np.asarray(image.GetDirection(), np.float64).reshape(3, 3)
+    order, flip, axes = world_axes(direction, path.name)
     solid, step = _reorient(solid, order, flip), step[list(order)]
+    if np.all(np.abs(np.abs(direction[np.arange(3), list(order)]) - 1) <= AXIS_TOLERANCE):
+        # world axis w is index axis order[w]: its lowest voxel centre is the origin's, or, where that axis runs
+        # along -w, the far end's
+        first = np.asarray(image.GetOrigin(), np.float64) - np.where(flip, (np.asarray(solid.shape) - 1) * step, 0.0)
+    else:  # oblique: on its index axes, as before
+        first = 0.5 * step
     if distance is not None:
         distance = _reorient(distance, order, flip)
     target = voxel if voxel is not None else float(step.min())
@@ -1372,7 +1579,9 @@ def _read_volume(path, spacing, voxel, label=None, threshold=None):
         distance = None  # not resampled: the solid's values only
     if not solid.any():
         raise ScaffoldError(f"{path.name} holds no solid voxel (all zero)")
-    return solid, float(target), note, selection, distance, axes
+    # the new voxels tile the same box: its corner is half an old voxel below the first centre
+    origin = tuple(float(v) for v in first - step / 2 + target / 2)
+    return solid, float(target), note, selection, distance, axes, origin
 
 
 #: largest departure of a direction matrix's entries from 0 and ±1 still read as a signed permutation

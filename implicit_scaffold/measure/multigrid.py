@@ -33,6 +33,12 @@ is built from the solid itself:
   symmetric preconditioner, as conjugate gradients need; it is also positive definite only while
   no eigenvalue lies above the smoothing's interval (Jacobi's weight times the largest eigenvalue
   under 2), which is why that eigenvalue is estimated by Lanczos (:func:`_largest_eigenvalue`).
+  On a block of six load cases the first level runs degree 2 (:data:`FIRST_BLOCK_DEGREE`): its product,
+  by the child patterns' kernel with each node's stencil built once for the block, then costs a case
+  some 3.7 ms against 11 for a fine product (128^3 benchmark scaffold), and the iterations fell from 23
+  to 19 there (64^3 and 96^3 crops of it under kinematic conditions: 20 to 15 and 21 to 17; degree 3:
+  18 on the 128^3, higher degrees below the first level: no fewer). One case a block keeps degree 1:
+  its first level's product is a fine product's (:class:`_GalerkinOneCase`).
 
 The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
 OpenCL one the coarse levels run on the device too (a gather kernel of the same file, one matrix
@@ -55,6 +61,11 @@ COARSEST_UNKNOWNS = 1000
 DEGREE = 3
 FINE_DEGREE = 1
 FIRST_DEGREE = 1
+#: the first coarse level's degree on a block of at least :data:`FIRST_BLOCK_CASES` load cases, whose product
+#: (the child patterns' kernel) builds each node's stencil once for the block: a case's share of a product is
+#: then a fraction of a fine product's, and a stronger smoother there saves iterations (see the module's notes)
+FIRST_BLOCK_DEGREE = 2
+FIRST_BLOCK_CASES = 6
 LOWER = 0.1
 UPPER = 1.1
 #: Lanczos steps of the estimate of each level's largest eigenvalue of ``D^-1 A`` (one product each)
@@ -75,14 +86,17 @@ FINE_SLAB_NODES = None
 STENCIL_LEVELS = True
 
 
-def fine_slab_planes(shape) -> int:
+def fine_slab_planes(shape, slab_nodes: int | None = None) -> int:
     """The node planes (along the first axis) a slab of the V-cycle's fine level holds inside its halo on a
-    node grid of `shape`, by :data:`FINE_SLAB_NODES`; ``shape[0]`` where the whole grid is one slab."""
+    node grid of `shape`, by :data:`FINE_SLAB_NODES`, or by `slab_nodes` when given (and that is None);
+    ``shape[0]`` where the whole grid is one slab."""
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM
 
     n1, n2, n3 = (int(v) for v in shape)
     plane = n2 * n3
-    if FINE_SLAB_NODES is None:
+    if FINE_SLAB_NODES is None and slab_nodes is not None:
+        nodes = int(slab_nodes)
+    elif FINE_SLAB_NODES is None:
         nodes = FLOAT_SLAB_NODES if n1 * plane > FLOAT_SLABS_FROM else 0
     else:
         nodes = FINE_SLAB_NODES
@@ -239,7 +253,7 @@ def _kernels():
     # mode 0: out = the plane sums of src's rows; 1: those of src's rows times w's (a restriction of
     # w r, without the pass that makes w r; w on src's grid); 2: out += w times them (a prolongation
     # added onto out, without the whole-grid correction and the pass that adds it; w on out's
-    # grid). The sums are in the same order in every mode. w is (1 or 3, n1, n2, n3), a row's
+    # grid); 3: out += them (mode 2 without a weight). The sums are in the same order in every mode. w is (1 or 3, n1, n2, n3), a row's
     # component a % 3 (a (1, 1, 1, 1) dummy in mode 0)
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def plane_rows(src, out, ia, wa, ib, wb, w, mode, lo, hi):  # pragma: no cover - compiled
@@ -249,7 +263,7 @@ def _kernels():
             for a in range(m):
                 wr = w[a % 3 if w.shape[0] == 3 else 0]
                 for j in range(n2):
-                    o = row if mode == 2 else out[a, i, j]
+                    o = row if mode >= 2 else out[a, i, j]
                     o[:] = 0.0
                     for s in range(ia.shape[1]):
                         for t in range(ib.shape[1]):
@@ -268,24 +282,28 @@ def _kernels():
                         oo, u = out[a, i, j], wr[i, j]
                         for k in range(nb_):
                             oo[k] += u[k] * row[k]
+                    elif mode == 3:
+                        oo = out[a, i, j]
+                        for k in range(nb_):
+                            oo[k] += row[k]
 
     def galerkin(fine_index, fine_mats, fine_free, elems, out):
         over_rows(galerkin_rows, elems.shape[0], fine_index, fine_mats, fine_free, elems, out)
 
-    def transfer(src, out, stencils, last_first, weight=None):
+    def transfer(src, out, stencils, last_first, weight=None, add=False):
         from .mechanics_cl import aligned_empty
 
         # src (m, 3, s1, s2, s3) -> out (m, 3, n1, n2, n3) through stencils[axis] = (idx, w); the
         # last axis first (a prolongation: the intermediate is the coarse planes' fine rows) or
         # after the first two (a restriction: the fine rows of the coarse planes). With `weight` on
         # the fine grid ((1 or 3, fine nodes)): a prolongation is added onto out times it, a
-        # restriction restricts src times it
+        # restriction restricts src times it; with `add` and no weight, a prolongation is added onto out
         (ia, wa), (ib, wb), (ig, wg) = [(i, w.astype(src.dtype)) for i, w in stencils]
         m = src.shape[0] * 3
         s1, s2, s3 = src.shape[2:]
         n1, n2, n3 = out.shape[2:]
         if weight is None:
-            mode, w = 0, np.ones((1, 1, 1, 1), src.dtype)
+            mode, w = 3 if add and last_first else 0, np.ones((1, 1, 1, 1), src.dtype)
         else:  # on the fine grid: out's for a prolongation, src's for a restriction
             mode, w = (2, weight.reshape(-1, n1, n2, n3)) if last_first else (1, weight.reshape(-1, s1, s2, s3))
         if last_first:
@@ -352,14 +370,14 @@ def prolong(y: np.ndarray, fine_shape) -> np.ndarray:
     return out.reshape(m, 3, -1)
 
 
-def prolong_add(y: np.ndarray, x: np.ndarray, w: np.ndarray, fine_shape) -> None:
-    """``x += w * prolong(y)`` in place, in one pass over x (`w` (1, N) or (3, N) on the fine grid;
-    the same arithmetic, without the whole-grid correction)."""
+def prolong_add(y: np.ndarray, x: np.ndarray, w: np.ndarray | None, fine_shape) -> None:
+    """``x += w * prolong(y)`` in place, in one pass over x (`w` (1, N) or (3, N) on the fine grid, or None:
+    ``x += prolong(y)``; the same arithmetic, without the whole-grid correction)."""
     fine_shape = tuple(int(v) for v in fine_shape)
     m = y.shape[0]
     _kernels()[2](np.ascontiguousarray(y).reshape((m, 3) + coarse_shape(fine_shape)),
                   x.reshape((m, 3) + fine_shape), [_stencils(n)[:2] for n in fine_shape], True,
-                  np.ascontiguousarray(w, x.dtype))
+                  None if w is None else np.ascontiguousarray(w, x.dtype), add=True)
 
 
 def restrict(r: np.ndarray, fine_shape, w: np.ndarray | None = None) -> np.ndarray:
@@ -452,21 +470,31 @@ class Level:
         return A
 
 
+#: the neighbours whose blocks :func:`node_stencils` stores per node: the node itself (13) and the 13 at
+#: offsets after it; the others' blocks are their transposes, stored at the neighbour (the matrix is symmetric)
+STENCIL_OWN = 13
+
+
 def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
-    """A level's product as assembled node stencils (the layout of ``stencil_rows`` in
+    """A level's product as assembled node stencils, half of them (the layout of ``stencil_rows`` in
     ``kernels/mechanics.cl``).
 
-    Built a node plane (along the first axis) at a time, into the array returned: on the 128^3 benchmark
-    scaffold the 32^3 level's stencils are 32 MiB, made beside its element matrices (72 MiB), at the
-    solve's peak with one load case a block; a whole-grid build and then a copy to the kernel's layout
-    held them twice.
+    A level's matrix is symmetric: the 3 x 3 block of neighbour q at node n is the transpose of the
+    block of neighbour ``26 - q`` at node ``n + offset(q)``. So each node keeps the blocks of the
+    neighbours ``q >= 13`` (:data:`STENCIL_OWN`: itself and the 13 after it), 126 words where the 27
+    blocks took 243, and the kernel reads the others, transposed, at the neighbour: on the 128^3
+    benchmark scaffold the 32^3 level's stencils and those below took 58 bytes a solid voxel of the
+    one-case solve's peak. :func:`full_stencils` gives the 27 blocks back.
+
+    Built a node plane (along the first axis) at a time, into the array returned: a whole-grid build and
+    then a copy to the kernel's layout held them twice.
 
     Returns
     -------
-    stencils : (n1 n2, 243, n3) float ndarray of the level's float, page-aligned, GPa mm
+    stencils : (n1 n2, 126, n3) float ndarray of the level's float, page-aligned, GPa mm
         By node row, as the kernel reads them (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`:
         the device reads the array in place): ``[r, x, k]`` is entry x of node (r, k) (r = i n2 + j),
-        entry ``9 q + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q (offset
+        entry ``9 (q - 13) + 3 d + e`` row d, column e of the 3 x 3 block that neighbour q >= 13 (offset
         ``(q % 3, q // 3 % 3, q // 9) - 1``) adds to a node's force, summed over the elements
         around the node (rows ``3 b + d`` and columns ``3 a + e`` of each one's matrix, the node
         its corner b and the neighbour its corner a).
@@ -478,9 +506,10 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
 
     n1, n2, n3 = level.shape
     plane = n2 * n3
-    out = aligned_empty((n1 * n2, 243, n3), level.mats.dtype)
+    kept = 27 - STENCIL_OWN
+    out = aligned_empty((n1 * n2, 9 * kept, n3), level.mats.dtype)
     live = np.zeros(n1 * plane, np.uint8)
-    one = np.zeros((27, 3, 3, plane), level.mats.dtype)
+    one = np.zeros((kept, 3, 3, plane), level.mats.dtype)
     for i in range(n1):
         one.fill(0)
         for b in range(8):
@@ -491,9 +520,26 @@ def node_stencils(level: Level) -> tuple[np.ndarray, np.ndarray]:
             live[i * plane + has] = 1
             rows = level.mats[e[has], 3 * b: 3 * b + 3]  # (k, 3, 24)
             for a in range(8):
-                one[_QTAB[b, a]][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
-        out[i * n2:(i + 1) * n2] = one.reshape(243, n2, n3).transpose(1, 0, 2)
+                q = int(_QTAB[b, a])
+                if q >= STENCIL_OWN:
+                    one[q - STENCIL_OWN][:, :, has] += rows[:, :, 3 * a: 3 * a + 3].transpose(1, 2, 0)
+        out[i * n2:(i + 1) * n2] = one.reshape(9 * kept, n2, n3).transpose(1, 0, 2)
     return out, live
+
+
+def full_stencils(stencils: np.ndarray, shape) -> np.ndarray:
+    """All 27 blocks per node from :func:`node_stencils`' half: (27, 3, 3, N), block q of node n, those of
+    ``q < 13`` the transposes of block ``26 - q`` of node ``n + offset(q)`` (periodic)."""
+    n1, n2, n3 = (int(v) for v in shape)
+    kept = 27 - STENCIL_OWN
+    own = stencils.reshape(n1, n2, kept, 3, 3, n3).transpose(2, 3, 4, 0, 1, 5)  # (kept, 3, 3, n1, n2, n3)
+    out = np.empty((27, 3, 3, n1, n2, n3), stencils.dtype)
+    out[STENCIL_OWN:] = own
+    for q in range(STENCIL_OWN):
+        off = (q % 3 - 1, q // 3 % 3 - 1, q // 9 - 1)
+        # block 26 - q of node n + off, at node n
+        out[q] = np.roll(own[26 - q - STENCIL_OWN], tuple(-v for v in off), axis=(2, 3, 4)).transpose(1, 0, 2, 3, 4)
+    return out.reshape(27, 3, 3, -1)
 
 
 def _first_coarse(model, free3: np.ndarray, dtype=np.float64) -> Level:
@@ -589,6 +635,28 @@ def _inverse_diagonal(d: np.ndarray) -> np.ndarray:
     return np.where(live, 1.0 / np.where(live, d, 1.0), 0.0)
 
 
+def _fine_inverse_diagonal(d: np.ndarray, free: np.ndarray, dtype) -> np.ndarray:
+    """``free * _inverse_diagonal(d)`` in `dtype`, bit for bit, without its whole-grid temporaries in double
+    (three beside `d`: on the 128^3 benchmark scaffold the peak of the one-case solve's set-up); one row,
+    (1, N), where its three rows are equal.
+
+    The rows are equal where the mask is per node, as the solvers' are, and the element matrix's diagonal
+    is one value, as an isotropic material's is (a node's diagonal is then the number of solid voxels around
+    it times that value): the V-cycle's passes broadcast a row (12 against 4 bytes a node in float32, on
+    that scaffold 27 bytes a solid voxel at the peak of its set-up).
+    """
+    # _inverse_diagonal's test and quotient, written straight into the result's float (the product by the
+    # 0/1 mask, in double before, is exact either way)
+    live = d > 1e-12 * d.max() if d.size else d > 0
+    out = np.zeros(d.shape, dtype)
+    np.divide(1.0, d, out=out, where=live)
+    del live
+    out *= free
+    if len(out) == 3 and np.array_equal(out[0], out[1]) and np.array_equal(out[0], out[2]):
+        out = out[:1].copy()
+    return out
+
+
 def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """The largest eigenvalue of ``D^-1 A`` (`inv_diag` ``D^-1``), estimated from below by
     :data:`LANCZOS_STEPS` Lanczos steps on ``D^-1/2 A D^-1/2`` (the same spectrum), from a random start.
@@ -606,10 +674,11 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     """
     from scipy.linalg import eigvalsh_tridiagonal
 
-    from .mechanics_cl import reusing
+    from .mechanics_cl import aligned_empty, reusing
 
+    # `inv_diag` (3, N), or (1, N) for three equal rows (_fine_inverse_diagonal): the vectors are (1, 3, N)
     g = np.sqrt(inv_diag)
-    v = (rng.standard_normal((1,) + inv_diag.shape) * (inv_diag > 0)).astype(inv_diag.dtype)
+    v = _random_start(rng, inv_diag)
     norm = float(np.linalg.norm(v))
     if norm == 0:
         return 1.0
@@ -619,16 +688,23 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     # the products' outputs from one pool: fresh pages every step otherwise (a fine grid vector
     # of the 200^3 benchmark scaffold is 96 MB)
     with reusing():
+        # one scratch vector for the product's input (aligned: the device reads it in place, where v * g was
+        # a temporary and its aligned copy) and for the steps' alpha v and beta prev (temporaries too): on the
+        # 128^3 benchmark scaffold three whole-grid vectors (120 bytes a solid voxel) at the one-case solve's peak
+        t = aligned_empty(v.shape, v.dtype)
         for step in range(LANCZOS_STEPS):
-            w = apply(v * g)
+            np.multiply(v, g, out=t)
+            w = apply(t)
             w *= g
             alpha = float(np.vdot(v, w))
             alphas.append(alpha)
             if step == LANCZOS_STEPS - 1:
                 break
-            w -= alpha * v
+            np.multiply(v, alpha, out=t)  # alpha v, rounded to the vectors' float as before
+            w -= t
             if prev is not None:
-                w -= beta * prev
+                np.multiply(prev, beta, out=t)
+                w -= t
             beta = float(np.linalg.norm(w))
             if not beta > 1e-12 * max(abs(alpha), 1e-300):  # an invariant subspace: its Ritz values are exact
                 break
@@ -640,39 +716,70 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     return max(top, 1e-12)
 
 
+#: the random start of :func:`_largest_eigenvalue` is drawn this many values at a time (in double)
+RANDOM_CHUNK = 1 << 20
+
+
+def _random_start(rng, inv_diag: np.ndarray) -> np.ndarray:
+    """(1, 3, N) normal values of `rng` in `inv_diag`'s float, 0 where it is 0: the values a single draw of
+    (1, 3, N) would give (a generator's draws run on in order), drawn a chunk at a time, without the whole
+    draw and its masked copy in double (on the 128^3 benchmark scaffold 80 bytes a solid voxel each)."""
+    n = inv_diag.shape[-1]
+    v = np.empty((1, 3, n), inv_diag.dtype)
+    for d in range(3):
+        row = inv_diag[d if len(inv_diag) == 3 else 0]
+        for a in range(0, n, RANDOM_CHUNK):
+            b = min(n, a + RANDOM_CHUNK)
+            v[0, d, a:b] = rng.standard_normal(b - a) * (row[a:b] > 0)
+    return v
+
+
 def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
     """Chebyshev smoothing of ``A x = b`` in ``D^-1 A`` on ``[LOWER, UPPER] * lmax``.
 
     `x` (updated in place) and the new iterate are aligned (:func:`~implicit_scaffold.measure.mechanics_cl.aligned_empty`),
     so the OpenCL operator reads them in place."""
-    from .mechanics_cl import aligned_copy, aligned_empty
+    from .fused import chebyshev_step
+    from .mechanics_cl import aligned_empty
 
     lo, hi = LOWER * lmax, UPPER * lmax
     theta, delta = (hi + lo) / 2, (hi - lo) / 2
     sigma = theta / delta
     rho = 1 / sigma
-    if x is None:
-        r = b if degree == 1 else b.copy()  # read only when there is no further step
+    d = aligned_empty(b.shape, b.dtype)
+    if x is None and degree == 1:
+        r = b  # read only when there is no further step
+        np.multiply(inv_diag, r, out=d)
+        d *= 1 / theta
+        x = d
+    elif x is None:
+        r, x = aligned_empty(b.shape, b.dtype), aligned_empty(b.shape, b.dtype)
+        if not chebyshev_step(r, b, d, x, inv_diag, 0.0, 1 / theta, b=b, start=True):
+            r[...] = b
+            np.multiply(inv_diag, r, out=d)
+            d *= 1 / theta
+            x[...] = d
     else:
+        # each step one compiled pass where NumPy made five or six over the block's vectors (the same bits)
         r = apply(x)
-        np.subtract(b, r, out=r)
-    d = aligned_empty(r.shape, r.dtype)
-    np.multiply(inv_diag, r, out=d)
-    d *= 1 / theta
-    if x is None:
-        x = d if degree == 1 else aligned_copy(d)
-    else:
-        x += d
+        if not chebyshev_step(r, r, d, x, inv_diag, 0.0, 1 / theta, b=b):
+            np.subtract(b, r, out=r)
+            np.multiply(inv_diag, r, out=d)
+            d *= 1 / theta
+            x += d
     for _ in range(degree - 1):
-        r -= apply(d)
+        a = apply(d)
         rho_new = 1 / (2 * sigma - rho)
-        d *= rho_new * rho
-        t = inv_diag * r
-        t *= 2 * rho_new / delta
-        d += t
-        del t
+        if not chebyshev_step(r, a, d, x, inv_diag, rho_new * rho, 2 * rho_new / delta):
+            r -= a
+            d *= rho_new * rho
+            t = inv_diag * r
+            t *= 2 * rho_new / delta
+            d += t
+            del t
+            x += d
+        del a
         rho = rho_new
-        x += d
     return x
 
 
@@ -720,9 +827,12 @@ class Multigrid:
     dtype : numpy float type
         Of the cycle's vectors (float32 halves its time and memory; the coarse matrices and
         the coarsest solve stay float64).
+    slab_nodes : int, optional
+        The fine level by slabs of this many nodes' planes (:func:`fine_slab_planes`), on any grid;
+        default: by :data:`FINE_SLAB_NODES`.
     """
 
-    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64):
+    def __init__(self, model, op, free, *, seed: int = 0, dtype=np.float64, slab_nodes: int | None = None):
         from .mechanics import diagonal
 
         n = int(np.prod(model.shape))
@@ -734,12 +844,13 @@ class Multigrid:
         # the mask the result is multiplied by (the caller's own array)
         self._free_out = free.reshape(-1, n)
         self.fine_shape = tuple(model.shape)
+        self.slab_nodes = slab_nodes
         # the nodes a solid voxel touches: where they are all free (periodic), a fine product reads no other
         # node into a free one's, so the cycle need not zero the rest (_fine_cases)
         self._touched = int(np.count_nonzero(model.active))
         self.op = op
         rng = np.random.default_rng(seed)
-        self._inv_diag = (self.free * _inverse_diagonal(diagonal(model))).astype(self.dtype)
+        self._inv_diag = _fine_inverse_diagonal(diagonal(model), self.free, self.dtype)
         # (live nodes, the inverse diagonal on them) once compact() has let the whole grid's go
         self._inv_diag_live = None
         self.lmax = _largest_eigenvalue(self.op, self._inv_diag, rng)
@@ -773,19 +884,20 @@ class Multigrid:
                 if isinstance(level.device, LevelOperator):
                     # the device reads the matrices in place: the level keeps that one copy
                     level.mats = level.device.host_mats(level.mats.shape)
-                if level is self.levels[0] and fine_slab_planes(self.fine_shape) >= self.fine_shape[0]:
+                if level is self.levels[0] and fine_slab_planes(self.fine_shape, slab_nodes) >= self.fine_shape[0]:
                     level.device = _GalerkinOneCase(level.device, self)
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
 
     @property
     def inv_diag(self) -> np.ndarray:
-        """(3, N) the fine grid's inverse diagonal, 0 on the fixed unknowns, in the cycle's float (spread
-        again from the live nodes' when :meth:`compact` has let the whole grid's go)."""
+        """(3, N) the fine grid's inverse diagonal, or (1, N) where its rows are equal
+        (:func:`_fine_inverse_diagonal`), 0 on the fixed unknowns, in the cycle's float (spread again from
+        the live nodes' when :meth:`compact` has let the whole grid's go)."""
         if self._inv_diag is None:
-            from .fused import put
-
             live, g = self._inv_diag_live
-            self._inv_diag = put(g[None], live, self.free.shape[1], np.ones((1, live.size), self.dtype))[0]
+            whole = np.zeros((len(g), self.free.shape[1]), g.dtype)
+            whole[:, live] = g
+            self._inv_diag = whole
         return self._inv_diag
 
     def _live_inverse_diagonal(self, live: np.ndarray) -> np.ndarray:
@@ -844,7 +956,11 @@ class Multigrid:
             for _ in range(4):
                 x = _chebyshev(apply, inv_diag, lmax, b, x)
             return x
-        degree = FINE_DEGREE if depth == 0 else (FIRST_DEGREE if depth == 1 else DEGREE)
+        if depth == 1:
+            # a block's cases are the same ones every cycle of a CG: its preconditioner stays one operator
+            degree = FIRST_BLOCK_DEGREE if b.shape[0] >= FIRST_BLOCK_CASES else FIRST_DEGREE
+        else:
+            degree = FINE_DEGREE if depth == 0 else DEGREE
         if depth == 0 and degree == 1:
             return self._fine_jacobi(b)
         x = _chebyshev(apply, inv_diag, lmax, b, degree=degree)
@@ -854,12 +970,16 @@ class Multigrid:
             r *= self.free
         rc = restrict(r, shape)
         del r
-        corr = prolong(self._cycle(depth + 1, rc), shape)
+        e = self._cycle(depth + 1, rc)
         del rc
         if depth == 0:
+            corr = prolong(e, shape)
             corr *= self.free
-        x += corr
-        del corr
+            x += corr
+            del corr
+        else:  # x += P e in one pass (no whole-grid correction, and the same bits)
+            prolong_add(e, x, None, shape)
+        del e
         return _chebyshev(apply, inv_diag, lmax, b, x, degree=degree)
 
     def _fine_jacobi(self, b: np.ndarray) -> np.ndarray:
@@ -890,8 +1010,9 @@ class Multigrid:
         the residual is spread over the grid in the cycle's float, the result's live nodes
         taken back in `dtype` (default the residual's; one pass each, no whole-grid vector in the
         solver's float).
-        ``apply(r, sink)`` hands each case's result to ``sink(case, z)`` ((1, 3, len(live))) as soon as
-        it is made, and returns None: the caller need not hold the block's result.
+        ``apply(r, sink)`` hands each case's result to ``sink(case, z, rz)`` ((1, 3, len(live)), and ``r.z``
+        summed as :func:`~implicit_scaffold.measure.fused.wdot` sums it, or None) as soon as it is made, and
+        returns None: the caller need not hold the block's result.
 
         With degree-1 fine smoothing (the default) the fine level runs one load case at a time
         (:meth:`_fine_cases`): the whole-grid vectors are one case's, not the block's.
@@ -926,7 +1047,7 @@ class Multigrid:
             if sink is None:
                 return z
             for c in range(len(z)):
-                sink(c, z[c:c + 1])
+                sink(c, z[c:c + 1], None)
 
         return apply
 
@@ -987,11 +1108,15 @@ class Multigrid:
                 x = put_smoothed(r[c:c + 1], live, n, w, g, s, self.dtype)
                 prolong_add(coarse[c:c + 1], x, self.free, self.fine_shape)  # x += F P e (no whole-grid P e)
             ax = self.op(x)
+            if sink is not None:
+                # r.z in the same pass, handed over with z: the CG's own, the same bits (it weighs r.z by ones)
+                one, rz = take_smoothed(x, ax, r[c:c + 1], live, w, g, s, r.dtype if dtype is None else dtype,
+                                        dot=True)
+                del x, ax
+                sink(c, one, float(rz[0]))
+                continue
             one = take_smoothed(x, ax, r[c:c + 1], live, w, g, s, r.dtype if dtype is None else dtype)
             del x, ax
-            if sink is not None:
-                sink(c, one)
-                continue
             if z is None:  # made here, beside one whole-grid vector only
                 z = np.empty(r.shape, one.dtype)
             z[c] = one[0]
@@ -1004,7 +1129,7 @@ class Multigrid:
         the coarse planes its planes interpolate from and theirs)."""
         n1, n2, n3 = self.fine_shape
         plane = n2 * n3
-        thick = fine_slab_planes(self.fine_shape)
+        thick = fine_slab_planes(self.fine_shape, self.slab_nodes)
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
         starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
@@ -1084,7 +1209,7 @@ class Multigrid:
                               s, out=one[:, :, k0:k1])
                 del x, ax
             if sink is not None:
-                sink(c, one)
+                sink(c, one, None)
                 continue
             if z is None:
                 z = np.empty(r.shape, one.dtype)
