@@ -260,7 +260,7 @@ def check_series(path, reader, files, image):
     if across.max() > tol:
         k = int(np.argmax(across))
         tilt = math.degrees(math.atan2(across[k], abs(along[k])))
-        image = _untilt(image, pos[order], ori[0], along[order])
+        image = _untilt(image, pos, ori[0], along)
         warnings.warn(f"the slices of {name} are not stacked along their normal (a gantry-tilted or sheared series, "
                       f"{tilt:.3g} degrees): each slice is shifted in its plane to where its tags put it, up to "
                       f"{across.max():.3g} mm, onto an orthogonal grid (linear interpolation, as dcm2niix corrects a "
@@ -270,10 +270,10 @@ def check_series(path, reader, files, image):
 
 def _untilt(image, pos, orientation, along):
     """A sheared DICOM series, as ITK stacked it (`image`: slice k at the first slice's position plus k steps
-    along the normal), with each slice moved in its plane to where its ImagePositionPatient `pos` (mm, in
-    ITK's slice order) puts it: bilinear in the slice, the image's lowest value where a slice has no data,
-    the step along the normal the slices' mean (`along`, their positions along it). Rows along `orientation`'s
-    first three cosines, columns along its last three."""
+    along the normal), with each slice moved in its plane to where its ImagePositionPatient `pos` (mm, slice k's
+    in row k: ITK's order, its files') puts it: bilinear in the slice, the image's lowest value where a slice has
+    no data, the step along the normal the slices' mean (`along`, their positions along it). Rows along
+    `orientation`'s first three cosines, columns along its last three."""
     import numpy as np
     import SimpleITK as sitk
     from scipy import ndimage
@@ -293,7 +293,7 @@ def _untilt(image, pos, orientation, along):
     fixed = sitk.GetImageFromArray(out)
     fixed.SetOrigin(tuple(float(v) for v in pos[0]))
     fixed.SetDirection(image.GetDirection())
-    step = float((along[-1] - along[0]) / (len(along) - 1))
+    step = float((along.max() - along.min()) / (len(along) - 1))
     fixed.SetSpacing((spacing[0], spacing[1], step))
     for key in image.GetMetaDataKeys():
         fixed.SetMetaData(key, image.GetMetaData(key))
