@@ -1063,8 +1063,8 @@ class Multigrid:
         ``-F K x`` with ``b`` added on the live nodes, and the post-smoothing step and the taking of
         the live nodes are one pass (:mod:`~implicit_scaffold.measure.fused`); `g` is the inverse diagonal
         on the live nodes (:meth:`_live_inverse_diagonal`). With `sink`, each case's
-        result goes to ``sink(case, z)`` as it is made (None is returned). The result is in `dtype`
-        (default the residual's)."""
+        result goes to ``sink(case, z, r.z)`` as it is made, ``r.z`` summed in the pass that takes z (None is
+        returned). The result is in `dtype` (default the residual's)."""
         from .fused import put_add, put_smoothed, put_smoothed_onto, take_smoothed
         from .mechanics_cl import aligned_empty
 
