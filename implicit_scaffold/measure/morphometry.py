@@ -1400,17 +1400,6 @@ def _watertight(faces: np.ndarray, nverts: int) -> bool:
     return bool(np.array_equal(key[0::2], key[1::2]) and not np.any(key[1:-1:2] == key[2::2]))
 
 
-def _signed_volume(vertices: np.ndarray, faces: np.ndarray) -> float:
-    """The volume a closed mesh encloses, mm^3, negative when its normals point in: trimesh's sum
-    (``mass_properties``: the x term of the divergence theorem), a block of faces at a time."""
-    total = 0.0
-    for f0 in range(0, len(faces), STL_READ_CHUNK):
-        tri = vertices[faces[f0:f0 + STL_READ_CHUNK]]
-        cross = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-        total += float(np.sum(cross[:, 0] * tri[:, :, 0].sum(axis=1)))
-    return total / 6.0
-
-
 #: what reading a binary STL and voxelising it holds at most beyond what the process held before: a fixed
 #: part (the crossings' compiled kernel and the imports it brings, 145 MiB of a small mesh's 147), bytes a
 #: triangle (the read's sort and merge; the mesh then held), bytes a triangle of one block of the crossings
@@ -1465,7 +1454,9 @@ def read_mesh_arrays(path):
     vertices, faces = read
     if not _watertight(faces, len(vertices)):
         raise ScaffoldError(_NOT_CLOSED.format(name=path.name))
-    if _signed_volume(vertices, faces) < 0:
+    from ..mesh.marching import face_measures
+
+    if face_measures(vertices, faces)[1].sum() < 0:
         faces = np.ascontiguousarray(faces[:, ::-1])  # normals pointing in: the same solid (trimesh's invert)
     return vertices, faces
 
