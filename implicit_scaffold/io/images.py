@@ -280,8 +280,8 @@ def _untilt(image, pos, orientation, along):
 
     row, col = np.asarray(orientation[:3], float), np.asarray(orientation[3:], float)
     spacing = image.GetSpacing()
-    array = sitk.GetArrayFromImage(image)  # (slice, column index j, row index i)
-    out = np.empty(array.shape, array.dtype)
+    # (slice, column index j, row index i): ITK's copy, each slice replaced in it (it reads only its own)
+    array = sitk.GetArrayFromImage(image)
     fill = float(array.min())
     for k in range(array.shape[0]):
         # slice k's offset in its plane from the normal through the first: where its pixel (i, j) lies, the
@@ -289,8 +289,8 @@ def _untilt(image, pos, orientation, along):
         off = pos[k] - pos[0]
         di, dj = off @ row / spacing[0], off @ col / spacing[1]
         moved = ndimage.shift(array[k].astype(np.float64), (dj, di), order=1, mode="constant", cval=fill)
-        out[k] = np.rint(moved).astype(array.dtype) if array.dtype.kind in "iu" else moved.astype(array.dtype)
-    fixed = sitk.GetImageFromArray(out)
+        array[k] = np.rint(moved) if array.dtype.kind in "iu" else moved
+    fixed = sitk.GetImageFromArray(array)
     fixed.SetOrigin(tuple(float(v) for v in pos[0]))
     fixed.SetDirection(image.GetDirection())
     step = float((along.max() - along.min()) / (len(along) - 1))
