@@ -415,12 +415,13 @@ def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g
     ``r = b - a``, ``d = c2 g r``, ``x += d``; with `b` and `start`, the first step from 0 (`a` not read):
     ``r = b``, ``d = c2 g b``, ``x = d``. `g` is the level's inverse diagonal, (1, N) or (3, N). The
     same bits as those NumPy operations (each product rounded to the vectors' float). Returns False, with
-    nothing done, where the arrays are not all C-contiguous (m, 3, N) of one float32 or float64 type."""
+    nothing done, where the arrays are not all (m, 3, N) of one float32 or float64 type (a product may come
+    strided: the NumPy operator's coarse levels)."""
     from ..run.threads import over_rows
 
     arrays = [r, a, d, x] + ([] if b is None else [b])
     dtype = r.dtype
-    if dtype.kind != "f" or any(v.dtype != dtype or not v.flags.c_contiguous or v.shape != r.shape for v in arrays) \
+    if dtype.kind != "f" or any(v.dtype != dtype or v.shape != r.shape for v in arrays) \
             or g.dtype != dtype or g.ndim != 2 or g.shape[1] != r.shape[2]:
         return False
     n = r.shape[2]
