@@ -36,6 +36,7 @@ Units: mm and GPa (so forces are in kN: GPa times mm^2). Voigt order xx, yy, zz,
 """
 from __future__ import annotations
 
+import functools
 import time
 from dataclasses import dataclass, field
 
@@ -661,8 +662,6 @@ def _one_blas_thread(solve):
     cores the OpenCL operator runs on next: on the 128^3 benchmark scaffold (six cases, one run each, the
     machine shared) the fine product's median in the solve took 16.5 ms against 11.6 with BLAS on one
     thread (8.5 and 9.2 ms by itself in the same processes), and the solve 20.1 s against 15.6."""
-    import functools
-
     @functools.wraps(solve)
     def run(*args, **kwargs):
         if not ONE_BLAS_THREAD:
@@ -2811,9 +2810,8 @@ def load_sample(path, *, voxel: float | None = None, spacing=None, mechanics_vox
     from ..run.grid import Grid
     from .morphometry import read_scaffold
 
-    from .morphometry import report_beside
-
     from ..run.memory import budget
+    from .morphometry import report_beside
 
     path = Path(path)
     # no region is measured here: the run's patient is not built again. A mesh's read is checked against the
