@@ -992,8 +992,10 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     # the run's grid from the report beside the mesh, also under a patient given as a mesh or volume (its voxel was
     # asked for again, and a grid placed from the patient's bounds broke walls a voxel thick)
     beside = run_grid_beside(path, voxel) if run_grid is None else None
-    mesh = _read_mesh(path)
-    lo, hi = mesh.bounds
+    # the arrays, not a trimesh: a binary STL read by numpy, and the measures and bodies from them (trimesh's mesh
+    # of the default cube's 5.2 M triangles and its caches took the run to a 3.4 GB peak)
+    mesh = SurfaceArrays(*read_mesh_arrays(path))
+    lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     if voxel is None and run_grid is None and beside is None:
         raise ScaffoldError(_voxel_needed(lo, hi))
     if patient is None:
@@ -1017,9 +1019,12 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; "
                             "use a smaller --voxel")
-    area, volume = float(mesh.area), float(mesh.volume)
+    from ..mesh.marching import face_measures, mesh_summary
+
+    areas, volumes = face_measures(mesh.vertices, mesh.faces)
+    area, volume = float(areas.sum()), float(volumes.sum())
+    del areas, volumes
     report = morphometry(solid, voxel, region=inside, surface_area_mm2=area, solid_volume_mm3=volume)
-    from ..mesh.marching import mesh_summary
 
     report.update({"version": __version__, "source": path.name, "kind": "mesh", "voxel_mm": float(voxel),
                    "grid_shape": list(grid.shape), "region": what, "region_volume_mm3": region_volume,
@@ -1029,6 +1034,15 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         report["box_volume_mm3"] = region_volume
     return Analysis(report, solid, grid, mesh)
 
+
+
+@dataclass(frozen=True)
+class SurfaceArrays:
+    """A closed triangle mesh as its arrays (:func:`read_mesh_arrays`): ``vertices`` (nv, 3) float64, mm, and
+    ``faces`` (nf, 3) int64, outward; what the measures, the body count and the pictures read of a mesh."""
+
+    vertices: np.ndarray
+    faces: np.ndarray
 
 
 @dataclass(frozen=True)
