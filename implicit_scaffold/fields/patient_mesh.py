@@ -454,21 +454,43 @@ def inside_votes_reference(V, F, grid: Grid, x_range=None) -> tuple[np.ndarray, 
     return inside, (odd / hit if hit else 0.0)
 
 
+#: triangles packed at a time by :func:`_pack_triangles` (its float64 temporaries, some 400 bytes a triangle)
+PACK_CHUNK = 1 << 18
+
+
 def _pack_triangles(V, F, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Triangles relative to `origin` as 6 float4 each (v0, v1, v2, (n, n.v0), lo, hi), and their boxes."""
-    tri = V[F] - np.asarray(origin)
-    n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    norm = np.linalg.norm(n, axis=1)
-    n /= norm[:, None]
-    lo, hi = tri.min(axis=1), tri.max(axis=1)
-    data = np.zeros((len(F), 6, 4), np.float32)
-    data[:, :3, :3] = tri
-    data[:, 3, :3] = n
-    data[:, 3, 3] = np.einsum("ij,ij->i", n, tri[:, 0])
-    # float32 boxes grown by a hair so rounding never makes a box test skip the nearest triangle
-    pad = 1e-5 * (1 + np.abs(tri).max())
-    data[:, 4, :3] = lo - pad
-    data[:, 5, :3] = hi + pad
+    """Triangles relative to `origin` as 6 float4 each (v0, v1, v2, (n, n.v0), lo, hi), and their boxes.
+
+    A chunk of :data:`PACK_CHUNK` triangles at a time (each triangle's values are its own: the same bits as all at
+    once): the whole mesh's float64 corners, normals and their temporaries held 1.4 GB for the default cube's STL
+    (5.2 M triangles)."""
+    V = np.asarray(V, np.float64)
+    F = np.asarray(F)
+    origin = np.asarray(origin, np.float64)
+    m = len(F)
+    # float32 boxes grown by a hair so rounding never makes a box test skip the nearest triangle (the largest
+    # corner coordinate of any triangle, as all the corners at once would give)
+    used = np.zeros(len(V), bool)
+    used[F.ravel()] = True
+    pad = 1e-5 * (1 + (np.abs(V[used] - origin).max() if m else 0.0))
+    del used
+    data = np.zeros((m, 6, 4), np.float32)
+    lo = np.empty((m, 3))
+    hi = np.empty((m, 3))
+    for a in range(0, m, PACK_CHUNK):
+        b = min(m, a + PACK_CHUNK)
+        tri = V[F[a:b]] - origin
+        n = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        norm = np.linalg.norm(n, axis=1)
+        n /= norm[:, None]
+        np.min(tri, axis=1, out=lo[a:b])
+        np.max(tri, axis=1, out=hi[a:b])
+        part = data[a:b]
+        part[:, :3, :3] = tri
+        part[:, 3, :3] = n
+        part[:, 3, 3] = np.einsum("ij,ij->i", n, tri[:, 0])
+        part[:, 4, :3] = lo[a:b] - pad
+        part[:, 5, :3] = hi[a:b] + pad
     return data, lo, hi
 
 
@@ -517,6 +539,7 @@ def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndar
     data, lo, hi = _pack_triangles(V, F, grid.origin)
     rel = Grid((0.0, 0.0, 0.0), h, grid.shape)
     tris = opencl.to_device(data.reshape(-1, 4))
+    del data  # the device's copy is the one read
     nearest = np.empty(grid.shape, np.int32)
     cutoff = band
     for _ in range(2):
@@ -575,8 +598,10 @@ def clamped_distance(V, F, grid: Grid, *, reach: float, x_range=None) -> np.ndar
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
     b0, b1 = x0 // BLOCK, -(-x1 // BLOCK)
     lists = bin_boxes(lo, hi, rel, block=BLOCK, cutoff=reach, block_range=(b0, b1))
+    del lo, hi
     cy, cz = block_counts(grid, BLOCK)[1:]
     tris = opencl.to_device(data.reshape(-1, 4))
+    del data  # the device's copy is the one read
     out = np.empty((x1 - x0,) + tuple(grid.shape[1:]), np.float32)
     # one pass (triangle_clamped): the nearest triangle's distance, or `reach` where none is within it
     _run(opencl.kernel("patient", "triangle_clamped", BLOCK=BLOCK), grid, out, [],
