@@ -687,7 +687,7 @@ LOAD_CHUNK = 1 << 18
 def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, tol: float = 1e-8,
         maxiter: int = 2000, progress=None, fast=None, rhs=None, cross: bool = False,
         energy: np.ndarray | None = None, accuracy: float | None = None, info: dict | None = None,
-        whole: bool = True, slab_nodes: int | None = None):
+        whole: bool = True, slab_nodes: int | None = None, periodic: bool = False):
     """Preconditioned conjugate gradients on m systems at once (a block of load cases).
 
     Each system is its own CG (its own step lengths), run in step with the others so that one
@@ -754,6 +754,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         ``live_product``) on a grid of at most
         :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLABS_FROM` nodes (above it they run by slabs of
         :data:`~implicit_scaffold.measure.mechanics_cl.FLOAT_SLAB_NODES` anyway); default: over the whole grid.
+    periodic : bool
+        The system is periodic (every solid voxel's corners free): singular, its null space the translations,
+        which each preconditioned residual is kept off (its mean taken out per component).
 
     Returns
     -------
@@ -859,7 +862,24 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         # `given`: the preconditioner summed it as it made z (the same bits)
         return float(wdot(r[c:c + 1], z, ones)[0]) if given is None else given
 
+    # a periodic system is singular, its null space the translations (constant on the live nodes). A V-cycle's
+    # z = B r is not orthogonal to them, and in a float product K t is rounding, not 0: on the default cube's
+    # STL (193^3, periodic) a shear case's z gathered so much translation that its float CG met p.Kp <= 0 at
+    # its third step and restarted in double. z less its mean per component (the preconditioner Pi B Pi, Pi the
+    # projection off the translations: the same on the range of K, where r lies) kept every case in float: the
+    # homogenization 88.9 s against 74.0 s (40 and 42 iterations); the 128^3 benchmark scaffold's 19 iterations
+    # stay 19, some 3 ms a case and step more
+    singular = bool(periodic)
+
+    def projected(z, given):
+        """`z` off the translations (in place) and r.z to be summed again, where the system is singular."""
+        if not singular:
+            return z, given
+        z -= z.mean(axis=2, keepdims=True, dtype=np.float64).astype(z.dtype)
+        return z, None
+
     def first(c, z, given=None):
+        z, given = projected(z, given)
         p[c] = z[0]
         rz[c] = r_dot(c, z, given)
 
@@ -938,6 +958,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             rz_new = np.zeros(m)
 
             def step(c, z, given=None):
+                z, given = projected(z, given)
                 rz_new[c] = r_dot(c, z, given)
                 if live_cases[c]:
                     rhos[c].append(rz_new[c])
@@ -972,12 +993,12 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 # a + (-b)), without K x's own vector in double beside x, r and F b's (on the 128^3 benchmark
                 # scaffold, one case a block, 35 bytes a solid voxel of the solve's peak)
                 apply.live_product(x[one], live, ones, wl, np.float64, out=r[one])
-                x_kx = float(np.vdot(x[one], r[one]))
+                x_kx = float(wdot(x[one], r[one], ones)[0])
                 np.negative(r[one], out=r[one])
                 on_live(rhs(c), out=r[one], add=True)
             else:
                 kx = on_live_product(apply, x[one], wl)
-                x_kx = float(np.vdot(x[one], kx))
+                x_kx = float(wdot(x[one], kx, ones)[0])
                 on_live(rhs(c), out=r[one])
                 r[one] -= kx
                 del kx
@@ -988,7 +1009,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                 # step). Summed on, a shear case of the default cube's STL (193^3, periodic) whose float CG met
                 # p.Kp <= 0 at its third step took 27,411 of a total energy of 9,010 (the others 7,290 of it):
                 # its relative error read 3.9e293, and it ran on to its residual, the block 73 iterations (40 now)
-                solved[c] = 2.0 * float(np.vdot(x[one], r[one])) + x_kx
+                solved[c] = 2.0 * float(wdot(x[one], r[one], ones)[0]) + x_kx
         res = _norms(r) / scale
         # a case still above tol restarts (p = z): its directions and steps belong to the recurrence's
         # r. Kept (residual replacement), a drift of 1e-3 stalled the CG, its next beta some 1e10,
@@ -1001,6 +1022,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         true_rz = np.zeros(m)
 
         def again_from(c, z, given=None):
+            z, given = projected(z, given)
             true_rz[c] = r_dot(c, z, given)
             first(c, z, given)  # p = z and rz, for a case that restarts
 
@@ -1395,7 +1417,7 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
         (x, live), its, r, xr = pcg(op, precond, loads(cases), free, scale=scale[list(cases)], tol=tol,
                                     maxiter=maxiter, progress=tell, fast=fast, rhs=lambda c: loads([cases[c]]),
                                     cross=True, energy=lifting[list(cases)], accuracy=accuracy, info=info,
-                                    whole=False, slab_nodes=slab_nodes)
+                                    whole=False, slab_nodes=slab_nodes, periodic=periodic)
         if tell is not None:
             tell.next()
         cross[np.ix_(list(cases), list(cases))] = xr
