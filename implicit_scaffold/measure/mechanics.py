@@ -868,15 +868,15 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # its third step and restarted in double. z less its mean per component (the preconditioner Pi B Pi, Pi the
     # projection off the translations: the same on the range of K, where r lies) kept every case in float: the
     # homogenization 88.9 s against 74.0 s (40 and 42 iterations); the 128^3 benchmark scaffold's 19 iterations
-    # stay 19, some 3 ms a case and step more
+    # stay 19, two passes over z a case and step more (some 2 ms there)
     singular = bool(periodic)
 
     def projected(z, given):
-        """`z` off the translations (in place) and r.z to be summed again, where the system is singular."""
-        if not singular:
-            return z, given
-        z -= z.mean(axis=2, keepdims=True, dtype=np.float64).astype(z.dtype)
-        return z, None
+        """`z` off the translations (in place), where the system is singular. r.z as given: r lies off them (its sum
+        is rounding), so r.z is r.(z less its mean) but for that rounding, and a pass over r and z less a step."""
+        if singular:
+            z -= z.mean(axis=2, keepdims=True, dtype=np.float64).astype(z.dtype)
+        return z, given
 
     def first(c, z, given=None):
         z, given = projected(z, given)
