@@ -45,10 +45,13 @@ class BlockLists:
 @functools.lru_cache(maxsize=None)
 def _binning_kernels():
     """The two passes of :func:`bin_boxes` (numba, built on first use, cached on disk)."""
+    # the helpers are module globals, not closure cells: numba keys its disk cache on a closure's cells, and a
+    # dispatcher pickles differently in every process (a fresh compile each run)
+    global _span, _outside
     import numba as nb
 
     @nb.njit(cache=True, nogil=True, boundscheck=False, inline="always")
-    def span(lo, hi, i, a, origin, h, block, cutoff, whole, b0, b1):  # pragma: no cover - compiled
+    def _span(lo, hi, i, a, origin, h, block, cutoff, whole, b0, b1):  # pragma: no cover - compiled
         """Primitive i's first block and its blocks' count along axis a (0: none): the block holding its box's
         grown end, ``floor((lo - cutoff - origin) / h / block)``, clipped to the grid and the slab's blocks."""
         first = int(np.floor((lo[i, a] - cutoff - origin[a]) / h / block - 1e-9 / block))
@@ -61,7 +64,7 @@ def _binning_kernels():
         return first, max(last - first + 1, 0)
 
     @nb.njit(cache=True, nogil=True, boundscheck=False)
-    def outside(lo, hi, i, origin, h, cutoff, whole, block):  # pragma: no cover - compiled
+    def _outside(lo, hi, i, origin, h, cutoff, whole, block):  # pragma: no cover - compiled
         out = False
         for a in range(3):
             if (hi[i, a] + cutoff - origin[a]) < -h * 1e-6:
@@ -73,11 +76,11 @@ def _binning_kernels():
     @nb.njit(cache=True, nogil=True, boundscheck=False)
     def walk(lo, hi, origin, h, block, cutoff, whole, b0, b1, counts, per_block, items, fill):  # pragma: no cover
         for i in range(lo.shape[0]):
-            if outside(lo, hi, i, origin, h, cutoff, whole, block):
+            if _outside(lo, hi, i, origin, h, cutoff, whole, block):
                 continue
-            fx, sx = span(lo, hi, i, 0, origin, h, block, cutoff, whole, b0, b1)
-            fy, sy = span(lo, hi, i, 1, origin, h, block, cutoff, whole, b0, b1)
-            fz, sz = span(lo, hi, i, 2, origin, h, block, cutoff, whole, b0, b1)
+            fx, sx = _span(lo, hi, i, 0, origin, h, block, cutoff, whole, b0, b1)
+            fy, sy = _span(lo, hi, i, 1, origin, h, block, cutoff, whole, b0, b1)
+            fz, sz = _span(lo, hi, i, 2, origin, h, block, cutoff, whole, b0, b1)
             for bx in range(fx, fx + sx):
                 for by in range(fy, fy + sy):
                     for bz in range(fz, fz + sz):
