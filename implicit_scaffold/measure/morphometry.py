@@ -1036,7 +1036,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
 
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SurfaceArrays:
     """A closed triangle mesh as its arrays (:func:`read_mesh_arrays`): ``vertices`` (nv, 3) float64, mm, and
     ``faces`` (nf, 3) int64, outward; what the measures, the body count and the pictures read of a mesh."""
