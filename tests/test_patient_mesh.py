@@ -8,6 +8,7 @@ import trimesh
 from implicit_scaffold import generate
 from implicit_scaffold.run.grid import Grid
 from implicit_scaffold.fields.patient import CutPatient, Cylinder, Sphere, cut_halfspaces
+from implicit_scaffold.fields import patient_mesh
 from implicit_scaffold.fields.patient_mesh import (clamped_distance, inside_votes, mesh_patient_from_trimesh,
                                             triangle_distance, triangle_distance_reference)
 
@@ -100,13 +101,18 @@ def test_sign_counts_a_line_through_a_vertex_once():
     assert not inside[np.any((want < 0) | (want > 2), axis=-1)].any()
 
 
-def test_kernel_distance_equals_brute_force():
+@pytest.mark.parametrize("dense", [False, True])
+def test_kernel_distance_equals_brute_force(dense, monkeypatch):
+    # dense: the blocks of a mesh of many triangles a voxel (patient_mesh.DENSE_BLOCK), asked for here
+    if dense:
+        monkeypatch.setattr(patient_mesh, "DENSE_TRIANGLES_PER_VOXEL", 0.0)
     rng = np.random.default_rng(11)
     centres = rng.uniform(0.5, 2.5, (25, 1, 3))
     triangles = centres + rng.normal(0, 0.5, (25, 3, 3))
     V = triangles.reshape(-1, 3)
     F = np.arange(len(V)).reshape(-1, 3)
     grid = Grid((-0.37, -0.41, -0.29), 0.13, (29, 31, 27))  # odd sizes: partial blocks and tiles
+    assert patient_mesh.block_for(len(F), grid) == (patient_mesh.DENSE_BLOCK if dense else patient_mesh.BLOCK)
     got = triangle_distance(V, F, grid)
     points = grid.points()
     want = brute_distance(points, triangles)
@@ -124,7 +130,10 @@ def test_kernel_distance_equals_brute_force():
     assert np.max(got[~band] - want[~band]) < grid.spacing
 
 
-def test_clamped_distance_is_exact_within_reach_and_slab_by_slab():
+@pytest.mark.parametrize("dense", [False, True])
+def test_clamped_distance_is_exact_within_reach_and_slab_by_slab(dense, monkeypatch):
+    if dense:
+        monkeypatch.setattr(patient_mesh, "DENSE_TRIANGLES_PER_VOXEL", 0.0)
     rng = np.random.default_rng(11)
     centres = rng.uniform(0.5, 2.5, (25, 1, 3))
     triangles = centres + rng.normal(0, 0.5, (25, 3, 3))
