@@ -641,6 +641,68 @@ def test_fused_vector_passes_match_numpy(dtype, rows):
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_centering_takes_each_components_mean_off_as_numpy_does(dtype):
+    # the periodic CG's z off the translations: each case's and component's mean (summed in double) rounded to
+    # z's float and taken off, as NumPy's mean and in-place subtraction did (its pairwise sum in another order:
+    # the same to rounding); the result sums to ~0
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(5)
+    z = (rng.standard_normal((2, 3, 100_003)) + np.arange(6).reshape(2, 3, 1) * 10).astype(dtype)
+    mean = z.mean(axis=2, keepdims=True, dtype=np.float64)
+    want = z - mean.astype(dtype)
+    got = fused.center(z)
+    assert got is z
+    # a mean within 1e-12 of NumPy's (two sums of 1e5 terms in double), then at most an ulp apart once rounded
+    step = max(1e-12, np.finfo(dtype).eps) * np.abs(mean).max()
+    assert np.abs(got - want).max() <= step
+    assert np.abs(got.astype(float).mean(axis=2)).max() < 4 * np.finfo(dtype).eps * np.abs(mean).max()
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("rows", [1, 3])
+def test_a_lanczos_steps_passes_are_numpys_operations(dtype, rows):
+    # oracle: the NumPy operations of a Lanczos step they replace (each product rounded alike; the sums, in double
+    # here, within the vectors' rounding of NumPy's)
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(rows + 3)
+    n = 2003
+    w, v, prev = (rng.standard_normal((1, 3, n)).astype(dtype) for _ in range(3))
+    g = rng.random((rows, n)).astype(dtype)
+    tol = 1e-12 if dtype == np.float64 else 1e-5
+    want = w * g
+    dot = fused.lanczos_pass(0, w, v, g)
+    assert np.array_equal(w, want) and dot == pytest.approx(float(np.vdot(v.astype(float), want)), rel=tol)
+    alpha, beta = dtype(0.37), dtype(1.9)
+    for before in (prev, None):
+        want = w - v * alpha
+        if before is not None:
+            want = want - before * beta
+        got = fused.lanczos_pass(1, w, v, g, alpha=float(alpha), beta=float(beta), prev=before)
+        assert np.array_equal(w, want)
+        assert got == pytest.approx(float((want.astype(float) ** 2).sum()), rel=tol)
+    t = np.empty_like(w)
+    want = w / beta
+    assert fused.lanczos_pass(2, w, v, g, beta=float(beta), t=t) == 0.0
+    assert np.array_equal(w, want) and np.array_equal(t, want * g)
+    # a product in another float is left to NumPy
+    assert fused.lanczos_pass(0, w.astype(np.float64 if dtype == np.float32 else np.float32), v, g) is None
+
+
+def test_a_node_codes_table_lookup_is_numpys_take():
+    # the periodic right-hand side: a value of a (case, component) table of 256 per node by its corner bits
+    from implicit_scaffold.measure import fused
+
+    rng = np.random.default_rng(6)
+    table = rng.standard_normal((6, 3, 256))
+    code = rng.integers(0, 256, 10_007).astype(np.uint8)
+    got = fused.lookup(table, code)
+    assert got.shape == (6, 3, code.size) and got.dtype == np.float64
+    assert np.array_equal(got, np.take(table, code.astype(np.intp), axis=2))
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
 @pytest.mark.parametrize("rows", [1, 3])
 def test_dots_summed_while_taking_are_wdots_bit_for_bit(dtype, rows):
     # the CG's p.Kp summed as the product's live nodes are taken, and r.z as the V-cycle takes z: the same

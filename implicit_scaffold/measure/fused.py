@@ -227,7 +227,87 @@ def _kernels():
                             dd[i] = t
                             xd[i] = t
 
-    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows, chebyshev_rows
+    # each case's and component's sum over a piece (in double), then that component's mean taken off (center);
+    # a value of a table per node by the node's code (lookup: table (m, 3, codes), out (m, 3, len(code)))
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def sums_rows(a, out, lo, hi):  # pragma: no cover - compiled
+        m, _, n = a.shape
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // out.shape[0], (piece + 1) * n // out.shape[0]
+            for c in range(m):
+                for d in range(3):
+                    ad = a[c, d, n0:n1]
+                    s = 0.0
+                    for i in range(n1 - n0):
+                        s += np.float64(ad[i])
+                    out[piece, c, d] = s
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def shift_rows(a, mu, pieces, lo, hi):  # pragma: no cover - compiled
+        m, _, n = a.shape
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    ad = a[c, d, n0:n1]
+                    v = mu[c, d]
+                    for i in range(n1 - n0):
+                        ad[i] -= v
+
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def lookup_rows(table, code, out, pieces, lo, hi):  # pragma: no cover - compiled
+        m, _, n = out.shape
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            for c in range(m):
+                for d in range(3):
+                    td, od = table[c, d], out[c, d]
+                    for i in range(n0, n1):
+                        od[i] = td[code[i]]
+
+    # a Lanczos step of multigrid._largest_eigenvalue on w = A (g v): mode 0, w *= g and each piece's v.w; mode 1,
+    # w -= alpha v, then w -= beta prev (prev given), and each piece's w.w; mode 2, w /= beta and t = g w (the
+    # next product's input). Each product rounded to the vectors' float as NumPy's in-place operations round it,
+    # the sums in double
+    @nb.njit(cache=True, nogil=True, boundscheck=False)
+    def lanczos_rows(w, v, prev, g, t, alpha, beta, mode, out, lo, hi):  # pragma: no cover - compiled
+        m, _, n = w.shape
+        pieces = out.shape[0]
+        for piece in range(lo, hi):
+            n0, n1 = piece * n // pieces, (piece + 1) * n // pieces
+            acc = 0.0
+            for c in range(m):
+                for d in range(3):
+                    wd, vd = w[c, d, n0:n1], v[c, d, n0:n1]
+                    gd = g[d if g.shape[0] == 3 else 0, n0:n1]
+                    if mode == 0:
+                        for i in range(n1 - n0):
+                            x = wd[i] * gd[i]
+                            wd[i] = x
+                            acc += np.float64(vd[i]) * x
+                    elif mode == 1:
+                        if prev.shape[2] == n:
+                            pd = prev[c, d, n0:n1]
+                            for i in range(n1 - n0):
+                                x = wd[i] - alpha * vd[i]
+                                x = x - beta * pd[i]
+                                wd[i] = x
+                                acc += np.float64(x) * x
+                        else:
+                            for i in range(n1 - n0):
+                                x = wd[i] - alpha * vd[i]
+                                wd[i] = x
+                                acc += np.float64(x) * x
+                    else:
+                        td = t[c, d, n0:n1]
+                        for i in range(n1 - n0):
+                            x = wd[i] / beta
+                            wd[i] = x
+                            td[i] = x * gd[i]
+            out[piece] = acc
+
+    return wdot_rows, cg_rows, xpby_rows, weighted_rows, move_rows, live_rows, chebyshev_rows, sums_rows, shift_rows, \
+        lookup_rows, lanczos_rows
 
 
 def _weight(w, n: int, dtype) -> np.ndarray:
@@ -429,3 +509,57 @@ def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g
     over_rows(_kernels()[6], pieces, r, a, r if b is None else b, d, x, np.ascontiguousarray(g), dtype.type(c1),
               dtype.type(c2), 0 if b is None else (2 if start else 1), pieces)
     return True
+
+
+def center(z: np.ndarray) -> np.ndarray:
+    """`z` (m, 3, N) less each case's and component's mean, in place: the mean summed in double (a piece's sum at a
+    time, added in order), rounded to `z`'s float and taken off, as ``z -= z.mean(axis=2, keepdims=True,
+    dtype=np.float64).astype(z.dtype)`` (whose pairwise sum rounds in another order); returns `z`. Two passes on both cores, where NumPy's mean and subtraction were two on one (128^3 benchmark
+    scaffold: some 0.3 s of a homogenization's 11 s)."""
+    from ..run.threads import over_rows
+
+    kernels = _kernels()
+    n = z.shape[2]
+    pieces = _pieces(n)
+    sums = np.zeros((pieces, z.shape[0], 3))
+    over_rows(kernels[7], pieces, z, sums)
+    mu = (sums.sum(axis=0) / max(n, 1)).astype(z.dtype)
+    over_rows(kernels[8], pieces, z, mu, pieces)
+    return z
+
+
+def lookup(table: np.ndarray, code: np.ndarray, dtype=np.float64) -> np.ndarray:
+    """(m, 3, len(code)): ``table[c, d, code[i]]`` for each case c and component d (`table` (m, 3, K), `code`
+    integers in ``range(K)``), in `dtype`, one pass on both cores (NumPy's take: 18 passes on one)."""
+    from ..run.threads import over_rows
+
+    table = np.ascontiguousarray(table, dtype)
+    out = np.empty(table.shape[:2] + (len(code),), dtype)
+    pieces = _pieces(len(code))
+    over_rows(_kernels()[9], pieces, table, np.ascontiguousarray(code), out, pieces)
+    return out
+
+
+def lanczos_pass(mode: int, w: np.ndarray, v: np.ndarray, g: np.ndarray, *, alpha: float = 0.0, beta: float = 1.0,
+                 prev: np.ndarray | None = None, t: np.ndarray | None = None) -> float | None:
+    """One pass of a Lanczos step (:func:`~implicit_scaffold.measure.multigrid._largest_eigenvalue`) on the product
+    ``w = A (g v)``, in place: mode 0, ``w *= g``, returns ``v . w``; mode 1, ``w -= alpha v`` and ``w -= beta prev``
+    (with `prev`), returns ``w . w``; mode 2, ``w /= beta`` and ``t = g w``, returns 0. `g` is (1, N) or (3, N), the
+    vectors (m, 3, N); each product rounded to their float as NumPy's in-place operations round it, the sums in
+    double (NumPy's vdot and norm summed in the vectors' float). On both cores, where NumPy made some ten passes a
+    step on one (128^3 benchmark scaffold: 0.19 s of the fine level's 0.33 s estimate). None, with nothing done,
+    where the arrays are not all of one float32 or float64 type and shape (a product may come in another float:
+    the NumPy operator's)."""
+    from ..run.threads import over_rows
+
+    arrays = [w, v] + [a for a in (prev, t) if a is not None]
+    dtype = w.dtype
+    if dtype.kind != "f" or any(a.dtype != dtype or a.shape != w.shape or not a.flags.c_contiguous for a in arrays) \
+            or g.dtype != dtype or g.ndim != 2 or g.shape[1] != w.shape[2]:
+        return None
+    n = w.shape[2]
+    out = np.zeros(_pieces(n))
+    over_rows(_kernels()[10], out.shape[0], w, v, _NONE3.astype(dtype) if prev is None else prev,
+              np.ascontiguousarray(g), _NONE3.astype(dtype) if t is None else t, dtype.type(alpha), dtype.type(beta),
+              mode, out)
+    return float(out.sum())

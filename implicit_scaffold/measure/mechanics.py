@@ -419,6 +419,8 @@ def element_loads(model: VoxelModel, fe: np.ndarray, nodes: np.ndarray | None = 
     """(m, 3, N) nodal sums of one element force vector per load case, the same in every solid
     voxel (``fe``: (m, 24), corner-major), as ``apply_stiffness`` assembles a uniform ``element_extra``;
     with `nodes` (flat node indices), (m, 3, len(nodes)): those nodes' sums only."""
+    from .fused import lookup
+
     m = fe.shape[0]
     # a node's load is the sum of fe's corner blocks over the corners it is of solid voxels: one of
     # 256 values per case and component, by its 8 corner bits (one lookup pass, not 8 masked adds
@@ -426,13 +428,7 @@ def element_loads(model: VoxelModel, fe: np.ndarray, nodes: np.ndarray | None = 
     # each case's again to check its residual)
     bits = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
     table = np.einsum("ka,mad->mdk", bits.astype(float), np.asarray(fe, float).reshape(m, 8, 3))
-    flat = model.corner_code if nodes is None else model.corner_code[nodes]
-    out = np.empty((m, 3, flat.size))
-    flat = flat.astype(np.intp)  # np.take casts any other index array on every call
-    for c in range(m):
-        for d in range(3):
-            np.take(table[c, d], flat, out=out[c, d], mode="clip")  # every code is in range; "raise" buffers
-    return out
+    return lookup(table, model.corner_code if nodes is None else model.corner_code[nodes])
 
 
 def apply_stiffness(model: VoxelModel, u: np.ndarray, element_extra: np.ndarray | None = None) -> np.ndarray:
@@ -764,7 +760,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     """
     if fast is not None and rhs is None:
         raise ValueError("pcg with a fast operator needs rhs, to compute the true residuals")
-    from .fused import cg_update, put, take, take_dot, wdot, xpby
+    from .fused import center, cg_update, put, take, take_dot, wdot, xpby
     from .mechanics_cl import FLOAT_SLAB_NODES, FLOAT_SLABS_FROM, reusing
 
     n = np.shape(free)[-1]
@@ -875,7 +871,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         """`z` off the translations (in place), where the system is singular. r.z as given: r lies off them (its sum
         is rounding), so r.z is r.(z less its mean) but for that rounding, and a pass over r and z less a step."""
         if singular:
-            z -= z.mean(axis=2, keepdims=True, dtype=np.float64).astype(z.dtype)
+            center(z)
         return z, given
 
     def first(c, z, given=None):

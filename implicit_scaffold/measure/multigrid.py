@@ -20,8 +20,9 @@ is built from the solid itself:
   element), which are computed once and shared; deeper levels keep one matrix per element.
   Galerkin operators keep a thin strut's stiffness on the coarse grid, where re-discretising
   with averaged moduli would smear it over its neighbours' void.
-- **Smoothing**: Chebyshev polynomials in ``D^-1 A`` on the upper part ``[0.1, 1.1] x`` the
-  largest eigenvalue (estimated by Lanczos steps), the smoother of PETSc's GAMG: degree 1
+- **Smoothing**: Chebyshev polynomials in ``D^-1 A`` on the upper part ``[0.02, 1.1] x`` the
+  largest eigenvalue (estimated by Lanczos steps), the smoother of PETSc's GAMG (whose default
+  lower end, 0.1, took more iterations here: :data:`LOWER`): degree 1
   (damped Jacobi) on the fine grid, where every product costs a pass of the OpenCL operator
   (on a 30 % Voronoi scaffold at 32^3: 23 iterations with 3 fine products each, against 25
   with 5 for degree 2 everywhere), degree 1 on the first coarse level too, whose product builds
@@ -66,7 +67,13 @@ FIRST_DEGREE = 1
 #: then a fraction of a fine product's, and a stronger smoother there saves iterations (see the module's notes)
 FIRST_BLOCK_DEGREE = 2
 FIRST_BLOCK_CASES = 6
-LOWER = 0.1
+#: the smoothing's interval, ``[LOWER, UPPER] x`` each level's largest eigenvalue (degree 1: the damped Jacobi
+#: step ``1 / theta``, theta its middle). A lower end of 0.02 where PETSc's GAMG takes 0.1 (a throw-away script,
+#: the CG to 1e-6 or an energy accuracy of 1e-6, iterations at 0.1 and 0.02): the 128^3 benchmark scaffold's six
+#: periodic cases 19 and 18, one case a block 23 and 23; its 96^3 corner, six kinematic cases 18 and 17; its
+#: compression 44 and 43; the lumbar micro-CT's central 96^3 (../shared/data) compressed 121 and 107 (0.01:
+#: 106; 0.03: 109; 0.05: 113), its six kinematic cases 23 and 20
+LOWER = 0.02
 UPPER = 1.1
 #: Lanczos steps of the estimate of each level's largest eigenvalue of ``D^-1 A`` (one product each)
 LANCZOS_STEPS = 12
@@ -672,8 +679,11 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
     the same twelve products it lay within 2.5 % of that figure on every level there (within 3.6 % on
     the 64^3 benchmark scaffold's levels, where power iterations were 5 to 14 % under).
     """
+    import math
+
     from scipy.linalg import eigvalsh_tridiagonal
 
+    from .fused import lanczos_pass
     from .mechanics_cl import aligned_empty, reusing
 
     # `inv_diag` (3, N), or (1, N) for three equal rows (_fine_inverse_diagonal): the vectors are (1, 3, N)
@@ -692,24 +702,36 @@ def _largest_eigenvalue(apply, inv_diag: np.ndarray, rng) -> float:
         # a temporary and its aligned copy) and for the steps' alpha v and beta prev (temporaries too): on the
         # 128^3 benchmark scaffold three whole-grid vectors (120 bytes a solid voxel) at the one-case solve's peak
         t = aligned_empty(v.shape, v.dtype)
+        np.multiply(v, g, out=t)
         for step in range(LANCZOS_STEPS):
-            np.multiply(v, g, out=t)
             w = apply(t)
-            w *= g
-            alpha = float(np.vdot(v, w))
+            # each step's vector arithmetic in three compiled passes on both cores (lanczos_pass), where the
+            # product comes in the vectors' float; NumPy's otherwise (the same steps)
+            alpha = lanczos_pass(0, w, v, g)
+            fused = alpha is not None
+            if not fused:
+                w *= g
+                alpha = float(np.vdot(v, w))
             alphas.append(alpha)
             if step == LANCZOS_STEPS - 1:
                 break
-            np.multiply(v, alpha, out=t)  # alpha v, rounded to the vectors' float as before
-            w -= t
-            if prev is not None:
-                np.multiply(prev, beta, out=t)
+            if fused:
+                beta = math.sqrt(lanczos_pass(1, w, v, g, alpha=alpha, beta=beta, prev=prev))
+            else:
+                np.multiply(v, alpha, out=t)  # alpha v, rounded to the vectors' float as before
                 w -= t
-            beta = float(np.linalg.norm(w))
+                if prev is not None:
+                    np.multiply(prev, beta, out=t)
+                    w -= t
+                beta = float(np.linalg.norm(w))
             if not beta > 1e-12 * max(abs(alpha), 1e-300):  # an invariant subspace: its Ritz values are exact
                 break
             betas.append(beta)
-            w /= beta
+            if fused:
+                lanczos_pass(2, w, v, g, beta=beta, t=t)  # w /= beta; t = g w, the next product's input
+            else:
+                w /= beta
+                np.multiply(w, g, out=t)
             prev, v = v, w
     top = float(eigvalsh_tridiagonal(np.array(alphas), np.array(betas[:len(alphas) - 1]),
                                      select="i", select_range=(len(alphas) - 1, len(alphas) - 1))[0])
