@@ -20,7 +20,7 @@ is built from the solid itself:
   element), which are computed once and shared; deeper levels keep one matrix per element.
   Galerkin operators keep a thin strut's stiffness on the coarse grid, where re-discretising
   with averaged moduli would smear it over its neighbours' void.
-- **Smoothing**: Chebyshev polynomials in ``D^-1 A`` on the upper part ``[0.02, 1.1] x`` the
+- **Smoothing**: Chebyshev polynomials in ``D^-1 A`` on the upper part ``[0.05, 1.1] x`` the
   largest eigenvalue (estimated by Lanczos steps), the smoother of PETSc's GAMG (whose default
   lower end, 0.1, took more iterations here: :data:`LOWER`): degree 1
   (damped Jacobi) on the fine grid, where every product costs a pass of the OpenCL operator
@@ -68,12 +68,13 @@ FIRST_DEGREE = 1
 FIRST_BLOCK_DEGREE = 2
 FIRST_BLOCK_CASES = 6
 #: the smoothing's interval, ``[LOWER, UPPER] x`` each level's largest eigenvalue (degree 1: the damped Jacobi
-#: step ``1 / theta``, theta its middle). A lower end of 0.02 where PETSc's GAMG takes 0.1 (a throw-away script,
-#: the CG to 1e-6 or an energy accuracy of 1e-6, iterations at 0.1 and 0.02): the 128^3 benchmark scaffold's six
-#: periodic cases 19 and 18, one case a block 23 and 23; its 96^3 corner, six kinematic cases 18 and 17; its
-#: compression 44 and 43; the lumbar micro-CT's central 96^3 (../shared/data) compressed 121 and 107 (0.01:
-#: 106; 0.03: 109; 0.05: 113), its six kinematic cases 23 and 20
-LOWER = 0.02
+#: step ``1 / theta``, theta its middle). A lower end of 0.05 where PETSc's GAMG takes 0.1 (throw-away scripts, the
+#: CG to 1e-6 or an energy accuracy of 1e-6; iterations at 0.1, 0.05 and 0.02): the 128^3 benchmark scaffold's
+#: six periodic cases 19, 18 and 18, one case a block 23, 23 and 23, its compression 44, 43 and 43; its 96^3
+#: corner's six kinematic cases 18, 17 and 17; the 200^3 benchmark scaffold's six periodic cases 20, 20 and 24
+#: (0.03: 24; fine products 400, 400 and 447); the lumbar micro-CT's central 96^3 (../shared/data) compressed
+#: 121, 113 and 107, its six kinematic cases 23, 21 and 20
+LOWER = 0.05
 UPPER = 1.1
 #: Lanczos steps of the estimate of each level's largest eigenvalue of ``D^-1 A`` (one product each)
 LANCZOS_STEPS = 12
