@@ -123,7 +123,8 @@ __kernel void stiffness_apply(__global const int *owner, __global const real *ma
     const int K[3] = {K0, k, K2};
 
 /* The 3-D kernels' arguments, and their bodies over a node function: <name>_rows covers
- * k = 1 .. n3 - 2 (gid 0 + 1), whose neighbours k - 1, k + 1 need no wrap (contiguous loads);
+ * k = 1 .. n3 - 2 (gid 0 + 1), whose neighbours k - 1, k + 1 need no wrap (contiguous loads), and
+ * j = gid 1 < n2 (the host rounds that range up to its work groups' rows);
  * <name>_ends covers k = 0 and k = n3 - 1 (gid 0 = 0, 1), wrapped. */
 #define NODE_ARGS                                                                                          \
     __global const uchar *flags, __constant real *mat, __global const real *u, __global real *f, const int n1, \
@@ -131,7 +132,7 @@ __kernel void stiffness_apply(__global const int *owner, __global const real *ma
 #define ROWS_BODY(node_fn)                                                                                 \
     {                                                                                                      \
         const int k = (int)get_global_id(0) + 1;                                                           \
-        if (k >= n3 - 1) return;                                                                           \
+        if (k >= n3 - 1 || (int)get_global_id(1) >= n2) return;                                           \
         node_fn(flags, mat, u, f, n1, n2, n3, first, (int)get_global_id(2), (int)get_global_id(1), k, k - 1, \
                 k + 1, VOTE);                                                                              \
     }

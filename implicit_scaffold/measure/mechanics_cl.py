@@ -97,6 +97,12 @@ SLAB_NODES = 1 << 18
 #: the benchmark's, where memory is what stops a solve (the lumbar micro-CT's 27.3 million nodes)
 FLOAT_SLAB_NODES = 1 << 22
 FLOAT_SLABS_FROM = 1 << 24
+#: the 3-D kernels' work groups hold this many rows (consecutive j) of a node plane: a group's rows share six of
+#: the nine rows of u each reads. On the 128^3 benchmark scaffold's six-case homogenization (a throw-away script,
+#: two rounds) the fine product fell from 9.96 and 10.02 ms a case to 8.94 and 9.17 with 8 rows a group, the
+#: 32^3 level's from 2.56 and 2.76 to 2.29 and 2.37 ms; alone (medians of 31, three rounds) 8.87, 8.85 and
+#: 9.09 ms with 1 row, 8.33, 8.54 and 8.30 with 8 (2, 4, 16, 32: 8.26 to 8.74)
+ROWS_PER_GROUP = 8
 #: a homogenization of one load case a block (what a tight memory budget takes: ``block_for``) runs its float
 #: products, the CG's and the V-cycle's fine level, by slabs of this many nodes' planes on any grid (the
 #: default of six a block keeps its whole-grid vectors, which are a small part of its peak): on the 128^3
@@ -248,15 +254,19 @@ class _Gather:
     def _rows(self, name: str, opts: dict, args: tuple) -> list:
         """The launches of a 3-D gather kernel pair: ``<name>_rows`` over the rows' inner nodes, in
         work groups along a row whose length is a multiple of 16 (a CPU runtime packs 16 work items
-        into a vector: a row of 126 would leave 14 to run one by one), and ``<name>_ends`` over the
-        rows' two end nodes; `args` are the kernels' first two arguments."""
+        into a vector: a row of 126 would leave 14 to run one by one), :data:`ROWS_PER_GROUP` rows
+        (consecutive j) a group, and ``<name>_ends`` over the rows' two end nodes; `args` are the
+        kernels' first two arguments."""
         n1, n2, n3 = self.shape
         out = []
         inner = n3 - 2
         if inner > 0:
-            group = min(16 * -(-inner // 16), 256, opencl.device().max_work_group_size)
-            out.append((opencl.kernel("mechanics", f"{name}_rows", **opts), (group * -(-inner // group), n2, n1),
-                        (group, 1, 1), args))
+            most = opencl.device().max_work_group_size
+            group = min(16 * -(-inner // 16), 256, most)
+            rows = max(1, min(ROWS_PER_GROUP, n2, most // group))
+            # the rows' range rounded up to whole groups (the kernel leaves j >= n2 out)
+            out.append((opencl.kernel("mechanics", f"{name}_rows", **opts),
+                        (group * -(-inner // group), rows * -(-n2 // rows), n1), (group, rows, 1), args))
         out.append((opencl.kernel("mechanics", f"{name}_ends", **opts), (min(n3, 2), n2, n1), None, args))
         return out
 
