@@ -514,8 +514,9 @@ def chebyshev_step(r: np.ndarray, a: np.ndarray, d: np.ndarray, x: np.ndarray, g
 def center(z: np.ndarray) -> np.ndarray:
     """`z` (m, 3, N) less each case's and component's mean, in place: the mean summed in double (a piece's sum at a
     time, added in order), rounded to `z`'s float and taken off, as ``z -= z.mean(axis=2, keepdims=True,
-    dtype=np.float64).astype(z.dtype)`` (whose pairwise sum rounds in another order); returns `z`. Two passes on both cores, where NumPy's mean and subtraction were two on one (128^3 benchmark
-    scaffold: some 0.3 s of a homogenization's 11 s)."""
+    dtype=np.float64).astype(z.dtype)`` (whose pairwise sum rounds in another order); returns `z`. Two passes on
+    both cores, where NumPy's mean and subtraction were two on one (128^3 benchmark scaffold: some 0.3 s of a
+    homogenization's 11 s)."""
     from ..run.threads import over_rows
 
     kernels = _kernels()
