@@ -310,13 +310,14 @@ def _mechanics(args) -> int:
                                    mechanics_voxel=args.mechanics_voxel, max_memory=args.max_memory,
                                    boundary=args.boundary, label=args.label, threshold=args.threshold)
     solid, h = sample.solid, sample.voxel
-    from .measure.mechanics import measure_sample, solve_goal
+    from .measure.mechanics import measure_sample, solve_accuracy, solve_goal
 
     detail = (f"{'x'.join(str(v) for v in solid.shape)} voxels of {h:.4g} mm: the platens' compression, then the "
               "homogenization's six load cases")
     with progress.stage("solving", detail, after=2.0):
         report, comp = measure_sample(sample, mat, boundary=args.boundary, axis="xyz".index(args.axis),
-                                      progress=progress.solver(goal=solve_goal(tol)), tol=tol)
+                                      progress=progress.solver(goal=solve_goal(tol), accuracy=solve_accuracy(tol)),
+                                      tol=tol)
     report = {"version": __version__, "source": Path(args.file).name, "kind": kind, **report}
     if sample.selection is not None:
         report["selection"] = sample.selection

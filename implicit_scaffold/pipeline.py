@@ -1486,10 +1486,12 @@ def _build(run: _RunPlan, params: Params, patient, grid: Grid, cells, skeleton, 
     finally:
         tf.close()
     if mechanics is not None:
-        from .measure.mechanics import solve_goal
+        from .measure.mechanics import solve_accuracy, solve_goal
 
+        tol = mechanics[0].tol
         with prog.stage("mechanics", "voxel finite elements"):
-            _measure_mechanics(result, *mechanics, progress=prog.solver(goal=solve_goal(mechanics[0].tol)))
+            _measure_mechanics(result, *mechanics,
+                               progress=prog.solver(goal=solve_goal(tol), accuracy=solve_accuracy(tol)))
     from .run.memory import peak_memory
 
     if out_path is not None:

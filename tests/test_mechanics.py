@@ -430,6 +430,40 @@ def test_an_energy_accuracy_stops_sooner_within_it(small_scaffold, boundary):
     assert err.max() > 0  # not a converged solve: the stop had something to do
 
 
+def test_a_progress_that_asks_for_it_gets_each_iterations_energy_estimate(small_scaffold):
+    # oracle: the solve's own estimate at its stop (the NumPy operator: no float products, so no true
+    # residual replaces the recurrence's and the last iteration's estimate is the one reported); a callback
+    # of the iteration and the residual alone is called as before
+    solid, h = small_scaffold
+    seen, plain = [], []
+
+    def tell(it, res, energy):
+        seen.append((it, res, energy))
+
+    tell.takes_energy = True
+    hom = m.homogenize(solid, h, TI, boundary="periodic", tol=1e-12, accuracy=1e-6, progress=tell)
+    m.homogenize(solid, h, TI, boundary="periodic", tol=1e-12, accuracy=1e-6, progress=lambda it, r: plain.append(it))
+    assert [s[0] for s in seen] == plain == list(range(1, hom.iterations + 1))
+    energies = [s[2] for s in seen]
+    assert all(np.isinf(e) for e in energies[:m.ENERGY_STEPS - 1])  # no estimate before its steps
+    assert energies[-1] == hom.energy_error <= 1e-6 < energies[-2]  # the energy stop, not the residual's
+    assert seen[-1][1] > 1e-12
+    # without an accuracy: none
+    seen.clear()
+    m.homogenize(solid, h, TI, boundary="periodic", tol=1e-4, progress=tell)
+    assert seen and all(s[2] is None for s in seen)
+    # measure's solves name themselves, and hand it on
+    named = []
+
+    def by_name(name, it, res, energy):
+        named.append((name, energy))
+
+    by_name.takes_energy = True
+    m.measure(solid, h, TI, boundary="periodic", progress=by_name)
+    assert {n for n, _ in named} == {"compression", "homogenization"}
+    assert min(e for _, e in named) <= m.ACCURACY
+
+
 def test_an_energy_accuracy_bounds_the_compression_modulus():
     # oracle: the same compression to 1e-11. The modulus is the platens' work over the strain: an energy,
     # above the converged one by the solution's energy error

@@ -63,6 +63,37 @@ def test_a_solver_note_gives_the_pace_of_its_own_solve_only(capsys):
     assert Progress(False).solver(goal=1e-6) is None
 
 
+def test_a_solver_note_with_an_energy_accuracy_gives_the_sooner_pace(capsys):
+    # the residual falls by 1.1 an iteration, the energy estimate (none for its first 4 iterations, as the
+    # CG's) by 2: 2^-k <= 1e-6 first at k = ceil(6 log2(10)) = 20, 8 after the 12th iteration, where the
+    # residual's 1e-6 is some 120 more
+    progress = Progress(True)
+    tell = progress.solver(every=0.0, goal=1e-6, accuracy=1e-6)
+    for k in range(1, 13):
+        tell("homogenization", k, 1.1 ** -k, float("inf") if k < 5 else 0.5 ** k)
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("    homogenization: CG iteration 12, residual 3.2e-01, energy error 2.4e-04 "
+                           "(to energy error 1e-06 at this pace: ~8 more iterations")
+    # an estimate above 1 (a piece's own ratio) is none: 6 estimates, too few for a pace, and the residual's
+    # (0.9 an iteration, 1e-3 some 58 more) lies beyond its horizon
+    tell = progress.solver(every=0.0, goal=1e-3, accuracy=1e-6)
+    for k in range(1, 9):
+        tell("compression", k, 0.9 ** k, 1e297 if k < 3 else 0.5 ** k)
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last == "    compression: CG iteration 8, residual 4.3e-01, energy error 3.9e-03"
+    tell = progress.solver(every=0.0, goal=1e-3, accuracy=1e-6)
+    for k in range(1, 9):
+        tell("compression", k, 0.5 ** k, 0.5 ** k)
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert "energy error 3.9e-03 (to 0.001 at this pace: ~2 more iterations, ~1 s)" in last  # the residual's, sooner
+    tell("compression", 9, 0.5 ** 9, 0.5 ** 9)  # 2^-9 to 1e-3: one more halving
+    assert "~1 more iteration, " in capsys.readouterr().err
+    # no accuracy asked (a tolerance given): the residual's note, as before
+    tell = progress.solver(every=0.0, goal=1e-6)
+    tell("compression", 1, 0.5, 0.1)
+    assert "energy" not in capsys.readouterr().err
+
+
 def test_a_wait_is_given_in_the_unit_a_person_would_name():
     from implicit_scaffold.progress import format_duration
 

@@ -211,6 +211,12 @@ def solve_goal(tol: float | None) -> float:
     return TOL if tol is None else float(tol)
 
 
+def solve_accuracy(tol: float | None) -> float | None:
+    """The energy accuracy a solve of :func:`measure` stops at when it comes first: :data:`ACCURACY` for the
+    default stop (`tol` None), none when a tolerance is given (the residual alone)."""
+    return ACCURACY if tol is None else None
+
+
 def check_tol(tol) -> float | None:
     """The CG's relative residual `tol` as a float, or None: the default stop (:func:`measure`).
 
@@ -717,7 +723,9 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     tol : float
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
-        Called after every iteration with (iteration, largest relative residual).
+        Called after every iteration with (iteration, largest relative residual); when it has a true
+        ``takes_energy`` attribute, also with the largest estimated relative energy error of the block's
+        cases (inf before their estimates' steps; None without `accuracy`): :func:`_call_progress`.
     fast : callable, optional
         A cheaper approximation of `apply` (the OpenCL operator in float: half the time of
         double) for the first iterations, to :func:`fast_goal` (or until a case
@@ -968,7 +976,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             best = np.minimum(best, res)
             it += 1
             if progress is not None:
-                progress(it, float(res.max()))
+                _call_progress(progress, it, float(res.max()),
+                               energy=float(relative_error().max()) if by_energy else None)
 
     with reusing():
         if fast is None:
@@ -1331,23 +1340,35 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
                           pieces=sum(len(ids) for _, ids, _ in crops), converged=converged)
 
 
+def _call_progress(progress, *args, energy: float | None = None) -> None:
+    """``progress(*args)``, with `energy` (a solve's estimated relative energy error) added as the last
+    argument when `progress` asks for it (a true ``takes_energy`` attribute, as
+    :meth:`~implicit_scaffold.progress.Progress.solver`'s callback has): a caller's callback of the
+    iteration and the residual alone is called as before."""
+    if getattr(progress, "takes_energy", False):
+        progress(*args, energy)
+    else:
+        progress(*args)
+
+
 def _counting(progress):
-    """`progress` (iteration, residual) over solves one after another, their iterations counted on
-    from one solve to the next (``.next()`` between them); None for None."""
+    """`progress` (iteration, residual[, energy error]) over solves one after another, their iterations
+    counted on from one solve to the next (``.next()`` between them); None for None."""
     if progress is None:
         return None
     state = {"done": 0, "last": 0}
 
-    def tell(it, r):
+    def counted(it, r, energy=None):
         state["last"] = max(state["last"], it)
-        progress(state["done"] + it, r)
+        _call_progress(progress, state["done"] + it, r, energy=energy)
 
     def next_solve():
         state["done"] += state["last"]
         state["last"] = 0
 
-    tell.next = next_solve
-    return tell
+    counted.next = next_solve
+    counted.takes_energy = True
+    return counted
 
 
 def one_case_slabs(node_shape, block: int) -> int | None:
@@ -1978,19 +1999,26 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
     if boundary == "auto":
         boundary = choose_boundary(solid)
     # compression first: it refuses a solid with no load path
-    def tell(name):
-        return None if progress is None else (lambda it, res: progress(name, it, res))
+    def named(name):
+        if progress is None:
+            return None
 
-    accuracy = ACCURACY if tol is None else None
+        def one(it, res, energy=None):
+            _call_progress(progress, name, it, res, energy=energy)
+
+        one.takes_energy = True
+        return one
+
+    accuracy = solve_accuracy(tol)
     tol = solve_goal(tol)
     if backend == "opencl":
         from .mechanics_cl import prebuild, solve_variants
 
         prebuild(solve_variants(cases_per_block, solid.shape, boundary))
     comp = compress(solid, h, mat, axis=axis, tol=tol, backend=backend, preconditioner=preconditioner,
-                    progress=tell("compression"), accuracy=accuracy)
+                    progress=named("compression"), accuracy=accuracy)
     hom = homogenize(solid, h, mat, boundary=boundary, tol=tol, backend=backend, preconditioner=preconditioner,
-                     progress=tell("homogenization"), cases_per_block=cases_per_block, accuracy=accuracy)
+                     progress=named("homogenization"), cases_per_block=cases_per_block, accuracy=accuracy)
     errors = [e for e in (hom.energy_error, comp.energy_error) if np.isfinite(e)]
     consts = engineering_constants(hom.stiffness, float(np.diag(isotropic_tensor(mat.E_gpa, mat.nu)).max()))
     K_hs, G_hs = hashin_shtrikman_upper(mat.E_gpa, mat.nu, hom.solid_fraction)
