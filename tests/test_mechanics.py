@@ -431,9 +431,9 @@ def test_an_energy_accuracy_stops_sooner_within_it(small_scaffold, boundary):
 
 
 def test_a_progress_that_asks_for_it_gets_each_iterations_energy_estimate(small_scaffold):
-    # oracle: the solve's own estimate at its stop (the NumPy operator: no float products, so no true
-    # residual replaces the recurrence's and the last iteration's estimate is the one reported); a callback
-    # of the iteration and the residual alone is called as before
+    # oracle: the solve's own estimates at its stop (the NumPy operator: no float products, so no true
+    # residual replaces the recurrence's), the largest of every case's, where each line gives the largest of
+    # the cases that stepped; a callback of the iteration and the residual alone is called as before
     solid, h = small_scaffold
     seen, plain = [], []
 
@@ -446,7 +446,7 @@ def test_a_progress_that_asks_for_it_gets_each_iterations_energy_estimate(small_
     assert [s[0] for s in seen] == plain == list(range(1, hom.iterations + 1))
     energies = [s[2] for s in seen]
     assert all(np.isinf(e) for e in energies[:m.ENERGY_STEPS - 1])  # no estimate before its steps
-    assert energies[-1] == hom.energy_error <= 1e-6 < energies[-2]  # the energy stop, not the residual's
+    assert 0 < energies[-1] <= hom.energy_error <= 1e-6 < energies[-2]  # the energy stop, not the residual's
     assert seen[-1][1] > 1e-12
     # without an accuracy: none
     seen.clear()
@@ -1044,6 +1044,31 @@ def _lifted_solves():
         return np.einsum("cdn,cdn->c", e, op(e) * free) / total
 
     return model, free, op, b, energy, scale, pre, relative_error
+
+
+def test_the_progress_follows_the_cases_still_stepping():
+    # case 0's energy made huge: its relative error meets the accuracy as soon as it is estimated, and it stops
+    # while its residual is still high. Oracle: case 1 solved alone; from then on the block's progress reports
+    # case 1's residual and estimate, not case 0's last ones
+    model, free, op, b, energy, scale, pre, _ = _lifted_solves()
+
+    def recorder(seen):
+        def tell(it, res, e):
+            seen.append((it, res, e))
+
+        tell.takes_energy = True
+        return tell
+
+    block, alone = [], []
+    m.pcg(op, pre, b.copy(), free, scale=scale, tol=1e-12, energy=energy * [1e12, 1.0], accuracy=1e-6,
+          progress=recorder(block))
+    m.pcg(op, pre, b[1:].copy(), free, scale=scale[1:], tol=1e-12, energy=energy[1:], accuracy=1e-6,
+          progress=recorder(alone))
+    first = m.ENERGY_STEPS + 1  # case 0's first iteration out of the block
+    assert len(block) == len(alone) > first + 3
+    for (it, res, e), (it1, res1, e1) in zip(block[first:], alone[first:]):
+        assert it == it1 and res == pytest.approx(res1, rel=1e-9) and e == pytest.approx(e1, rel=1e-6)
+    assert block[first][1] < block[first - 1][1]  # case 0's residual, left behind, was the larger
 
 
 @pytest.mark.parametrize("shift", [1e-3, 1e-2])

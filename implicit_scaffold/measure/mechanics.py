@@ -723,7 +723,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     tol : float
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
-        Called after every iteration with (iteration, largest relative residual); when it has a true
+        Called after every iteration with (iteration, largest relative residual of the cases that stepped);
+        when it has a true
         ``takes_energy`` attribute, also with the largest estimated relative energy error of the block's
         cases (inf before their estimates' steps; None without `accuracy`): :func:`_call_progress`.
     fast : callable, optional
@@ -976,8 +977,13 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
             best = np.minimum(best, res)
             it += 1
             if progress is not None:
-                _call_progress(progress, it, float(res.max()),
-                               energy=float(relative_error().max()) if by_energy else None)
+                # the cases that stepped: one that has stopped (met, stalled on the fast products' rounding,
+                # halted) keeps its last figures, which stood for the block's to its end (a kinematic
+                # homogenization of the L3 vertebra's scaffold: a residual of 6.3e-5 and an estimate of 3.2e-5,
+                # frozen for 20 iterations, whose pace said some 100 iterations more, then 4 minutes)
+                moved = live_cases if live_cases.any() else np.ones(m, bool)
+                _call_progress(progress, it, float(res[moved].max()),
+                               energy=float(relative_error()[moved].max()) if by_energy else None)
 
     with reusing():
         if fast is None:
