@@ -724,9 +724,8 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
         Stop when every ``|r| / scale`` is below it.
     progress : callable, optional
         Called after every iteration with (iteration, largest relative residual of the cases that stepped);
-        when it has a true
-        ``takes_energy`` attribute, also with the largest estimated relative energy error of the block's
-        cases (inf before their estimates' steps; None without `accuracy`): :func:`_call_progress`.
+        when it has a true ``takes_energy`` attribute, also with their largest estimated relative energy
+        error (inf before their estimates' steps; None without `accuracy`): :func:`_call_progress`.
     fast : callable, optional
         A cheaper approximation of `apply` (the OpenCL operator in float: half the time of
         double) for the first iterations, to :func:`fast_goal` (or until a case
