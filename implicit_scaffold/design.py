@@ -32,6 +32,7 @@ Definitions (one each, used by the search and the verification alike)
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
@@ -49,6 +50,11 @@ MAX_STRUT_VOXELS_SIDE = 200
 #: the search aims the strut this much above its target, so that other seeds (whose p1 spreads by
 #: a few per cent) stay above it too
 STRUT_MARGIN = 1.08
+#: a first build whose porosity misses its target (the offset meets it in voxels unless the walls break
+#: into fragments, which are removed) builds the cube again at this share of its voxel, down to
+#: MAX_STRUT_VOXELS_SIDE voxels a side: 4 mm pores at 95 %, 0.333 mm voxels (1.3 across the walls):
+#: porosity 0.9605 with 4,982 fragments removed, "infeasible", where generate meets 0.9500 as printed
+FINER_VOXEL = 0.75
 #: the search and its verification over the seeds at most this many times (again when a seed's
 #: thinnest strut falls below the target that seed 0 met)
 VERIFY_PASSES = 3
@@ -200,6 +206,42 @@ def representative_volume(targets: Targets, sv_min: float = SV_RANGE[0]) -> dict
     return {"size": size, "voxel": voxel, "margin": margin}
 
 
+def finer_voxel(rve: dict, targets: Targets, porosity: float) -> float | None:
+    """The voxel of the representative cube built again when a build's `porosity` misses the target by
+    more than :data:`POROSITY_POINTS` (:data:`FINER_VOXEL` of it, no finer than
+    :data:`MAX_STRUT_VOXELS_SIDE` voxels a side), or None: the porosity is met, or the cube is at
+    its finest (mm)."""
+    if abs(porosity - targets.porosity) <= POROSITY_POINTS:
+        return None
+    finest = rve["size"] / MAX_STRUT_VOXELS_SIDE
+    if rve["voxel"] <= finest * (1 + 1e-9):
+        return None
+    return max(rve["voxel"] * FINER_VOXEL, finest)
+
+
+def holding_voxel(rve: dict, targets: Targets, coarsest: float) -> float:
+    """The representative cube's voxel when generate refuses its voxel as too coarse for the walls:
+    :data:`FINER_VOXEL` times `coarsest` (mm, the refusal's: the coarsest that holds the walls of the
+    seed built) or the cube's own voxel, whichever is finer; never finer than :data:`MAX_STRUT_VOXELS_SIDE`
+    voxels a side.
+
+    Raises
+    ------
+    ScaffoldError
+        The walls need more voxels a side than that: one line naming the porosity, which sets the
+        walls' share of the cube whatever the pore size.
+    """
+    finest = rve["size"] / MAX_STRUT_VOXELS_SIDE
+    if coarsest < finest:
+        raise ScaffoldError(
+            f"--porosity {targets.porosity:g} leaves walls too thin for the design cube: they need voxels of "
+            f"{coarsest:.3g} mm or finer, {rve['size'] / coarsest:.0f} a side over its {rve['size']:.3g} mm, more "
+            f"than {MAX_STRUT_VOXELS_SIDE} (at a given porosity the walls and the cube both scale with the pore "
+            f"size); give a lower --porosity")
+    # a step under the refusal's voxel: another seed's walls may be a little thinner than this one's
+    return max(FINER_VOXEL * min(coarsest, rve["voxel"]), finest)
+
+
 def min_strut_p1(solid: np.ndarray, inside: np.ndarray, voxel: float) -> float:
     """1st percentile (mm) of the local thickness counted to the voxel boundaries over ``solid & inside``."""
     from .measure.morphometry import local_thickness
@@ -239,8 +281,17 @@ def forward(params: dict, targets: Targets, rve: dict, seed: int, *, stiffness: 
     """
     from .pipeline import generate
 
-    r = generate(size=rve["size"], voxel=rve["voxel"], mesh=False, morphometry=False, seed=seed,
-                 porosity=targets.porosity, pore_size=targets.pore_size, seed_rule="pore-size", **params)
+    try:
+        r = generate(size=rve["size"], voxel=rve["voxel"], mesh=False, morphometry=False, seed=seed,
+                     porosity=targets.porosity, pore_size=targets.pore_size, seed_rule="pore-size", **params)
+    except ScaffoldError as err:
+        if err.voxel is None:
+            raise
+        # generate's refusal names its --voxel, which design does not take
+        raise ScaffoldError.for_voxel(
+            f"the design cube's {rve['voxel']:.4g} mm voxels cannot hold the walls of seed {seed} at porosity "
+            f"{targets.porosity:g} ({_describe(params)}): they need {err.voxel:.3g} mm or finer; give a lower "
+            f"--porosity", err.voxel) from None
     solid = np.asarray(r.field) < 0
     inside = np.asarray(r.patient_sdf) < -rve["margin"]
     out = {"porosity": float(r.report["porosity_voxel"]),
@@ -375,17 +426,46 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
     strut_goal = None if targets.min_strut is None else targets.min_strut * STRUT_MARGIN
     log: list[dict] = []
 
+    builds = []  # the voxel of every forward build of the search (those of a coarser cube too)
+
     def build(params):
         for e in log:
             if e["parameters"] == params:
                 return e["measured"]
-        if len(log) >= max_builds:
+        m = None
+        while len(builds) < max_builds:
+            # the build's warnings held until its cube is kept: a coarse cube's ("use a finer --voxel") is
+            # answered here, by the cube built again
+            with warnings.catch_warnings(record=True) as said:
+                warnings.simplefilter("always")
+                try:
+                    m = forward(params, targets, rve, seed=0, stiffness=want_e)
+                except ScaffoldError as err:
+                    # generate refused the cube's voxel as too coarse for the walls (the first build's only)
+                    if err.voxel is None or log:
+                        raise
+                    rve["voxel"] = holding_voxel(rve, targets, err.voxel)
+                    if progress is not None:
+                        progress.note(f"the walls are too thin for the cube's voxels: the cube at {rve['voxel']:.4g} mm")
+                    continue
+            builds.append(rve["voxel"])
+            if progress is not None:
+                text = ", ".join(f"{k} {v:.4g}" for k, v in m.items())
+                progress.note(f"build {len(builds)}: {_describe(params)}: {text}")
+            # the first build settles the cube's voxel: its walls broke where the offset could not meet the
+            # porosity (a later build, another style or Sv, is measured on the cube its points share)
+            finer = finer_voxel(rve, targets, m["porosity"]) if not log else None
+            if finer is None or len(builds) >= max_builds:
+                for w in said:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+                break
+            if progress is not None:
+                progress.note(f"porosity {m['porosity']:.4f} misses the target {targets.porosity:g}: the walls "
+                              f"break at {rve['voxel']:.4g} mm voxels; the cube again at {finer:.4g} mm")
+            rve["voxel"] = finer
+        if m is None:
             return None
-        m = forward(params, targets, rve, seed=0, stiffness=want_e)
         log.append({"parameters": dict(params), "measured": m})
-        if progress is not None:
-            text = ", ".join(f"{k} {v:.4g}" for k, v in m.items())
-            progress.note(f"build {len(log)}: {_describe(params)}: {text}")
         return m
 
     def strut_ok(m):
@@ -439,7 +519,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
             pts = [(e["parameters"]["sv"], e["measured"]["stiffness"]) for e in same if e["parameters"] != chosen]
             pts.append((chosen["sv"], chosen_m["stiffness"]))
             best = (abs(stiff_miss(chosen_m)), chosen, chosen_m)
-            while len(log) < max_builds:
+            while len(builds) < max_builds:
                 es = [e for _, e in pts]
                 spread = max(es) - min(es)
                 if len(pts) >= 2 and not min(es) - 2 * spread < targets.stiffness < max(es) + 2 * spread:
@@ -480,7 +560,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
         achieved, cube = _verify(final, targets, targets.porosity, rve, seeds, want_e, progress)
         met = _met(targets, achieved)
         thinnest = achieved["min_strut"]["min"]
-        if (chosen is None or met.get("min_strut", True) or len(log) >= max_builds or thinnest <= 0
+        if (chosen is None or met.get("min_strut", True) or len(builds) >= max_builds or thinnest <= 0
                 or attempt == VERIFY_PASSES - 1):
             break
         # seed 0's strut scaled by the thinnest seed's shortfall, with a little margin
@@ -522,7 +602,7 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
                   **final, "voxel": rve["voxel"]}
     return Design(parameters=parameters, targets={k: v for k, v in asdict(targets).items() if v is not None},
                   achieved=achieved, feasible=all(met.values()), conflicts=conflicts, tradeoff=tradeoff,
-                  search=log, representative_volume={**rve, "seeds": list(range(int(seeds))), "builds": len(log),
+                  search=log, representative_volume={**rve, "seeds": list(range(int(seeds))), "builds": len(builds),
                                                      **({"modulus": cube} if want_e else {})},
                   definitions=DEFINITIONS)
 

@@ -11,12 +11,22 @@ class ScaffoldError(ValueError):
     #: bytes: the --max-memory a refusal for memory names (None for any other error), so that a run
     #: refused by one stage can name the budget its later stages need too
     budget: int | None = None
+    #: mm: the coarsest voxel that holds what a refusal for resolution found too thin (None for any other
+    #: error), so that a caller that chose the voxel (design's cube) can choose again
+    voxel: float | None = None
 
     @classmethod
     def for_budget(cls, message: str, budget) -> "ScaffoldError":
         """A refusal for memory naming `budget` (bytes) in `message`."""
         err = cls(message)
         err.budget = int(budget)
+        return err
+
+    @classmethod
+    def for_voxel(cls, message: str, voxel: float) -> "ScaffoldError":
+        """A refusal for resolution: `voxel` (mm) is the coarsest that would hold the geometry."""
+        err = cls(message)
+        err.voxel = float(voxel)
         return err
 
 

@@ -249,12 +249,12 @@ def _check_resolved(printed_wall: float | None, voxel: float, pore_size_given: b
             fix = " (--calibration sets the pore sizes)"
         else:
             fix = ", or larger pore sizes in the grade" if graded else ", or a larger --pore-size"
-        raise ScaffoldError(
+        raise ScaffoldError.for_voxel(
             f"--voxel {voxel:.4g} mm cannot hold the lattice: "
             + ("the walls of its smallest pores" if graded else "its walls")
             + f", about {printed_wall:.3g} mm thick as "
             f"printed, would be {printed_wall / voxel:.2f} voxels across and break into fragments (at least "
-            f"{least:g} are needed); use --voxel {round_down(printed_wall / 2)} or finer" + fix)
+            f"{least:g} are needed); use --voxel {round_down(printed_wall / 2)} or finer" + fix, printed_wall / least)
 
 
 def _check_collapsed(tf, params: Params, voxel: float, printed_wall: float | None, calibration: dict) -> None:
