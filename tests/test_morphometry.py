@@ -1,6 +1,7 @@
 """Voxel morphometry against shapes whose answers are known, and against brute force."""
 import itertools
 import math
+import re
 
 import numpy as np
 import pytest
@@ -741,3 +742,88 @@ def test_volume_of_a_voxel_ball_is_the_spheres():
     # the mesh runs halfway between solid and void centres: the ball's volume within a couple of per cent
     # (its area is not the sphere's: marching cubes on voxels is a terraced surface)
     assert volume == pytest.approx(4 / 3 * np.pi * (r * h) ** 3, rel=0.02)
+
+
+def _corners(vertices, faces):
+    """The triangles as sorted rows of their corners' coordinates (numbering and order left out)."""
+    tri = np.round(np.asarray(vertices)[np.asarray(faces)], 6)  # (F, 3, 3)
+    tri = np.sort(tri.view([("x", float), ("y", float), ("z", float)]).reshape(len(faces), 3), axis=1)
+    return np.sort(tri.view(float).reshape(len(faces), 9), axis=0)
+
+
+def _torus_3mf(path):
+    import trimesh
+
+    from implicit_scaffold.mesh.writers import write_mesh
+
+    mesh = trimesh.creation.torus(major_radius=3.0, minor_radius=1.0, major_sections=24, minor_sections=12)
+    write_mesh(mesh, path)
+    return mesh
+
+
+@pytest.mark.parametrize("chunk", [1 << 24, 97])
+def test_a_3mf_is_read_in_chunks_as_trimesh_reads_it(tmp_path, monkeypatch, chunk):
+    # the oracle: trimesh's own 3MF reader, on a torus written by generate's writer; in chunks of 97 bytes every
+    # element and tag is cut somewhere
+    import trimesh
+
+    monkeypatch.setattr(M, "MODEL_CHUNK", chunk)
+    path = tmp_path / "t.3mf"
+    _torus_3mf(path)
+    read = M._read_3mf(path)
+    assert read is not None
+    vertices, faces = read
+    theirs = trimesh.load(str(path), force="mesh")
+    assert len(vertices) == len(theirs.vertices) and len(faces) == len(theirs.faces)
+    np.testing.assert_array_equal(_corners(vertices, faces), _corners(theirs.vertices, theirs.faces))
+    v, f = M.read_mesh_arrays(path)  # closed, outward
+    grid = Grid.covering(v.min(axis=0), v.max(axis=0), 0.25)
+    np.testing.assert_array_equal(M.voxelize(v, f, grid), M.voxelize(theirs.vertices, theirs.faces, grid))
+
+
+def test_a_3mf_with_repeated_vertices_is_merged_as_trimesh_merges_it(tmp_path):
+    import zipfile
+
+    path = tmp_path / "t.3mf"
+    _torus_3mf(path)
+    with zipfile.ZipFile(path) as z:
+        xml = z.read("3D/3dmodel.model")
+    # every triangle's corners written as vertices of their own: three times the vertices, each one repeated
+    head, rest = xml.split(b"<vertices>\n")
+    rows, rest = rest.split(b"</vertices>\n<triangles>\n")
+    tris, tail = rest.split(b"</triangles>")
+    verts = rows.splitlines()
+    faces = [[int(w.split(b'"')[1]) for w in t.split()[1:4]] for t in tris.splitlines()]
+    corners = [verts[i] for f in faces for i in f]
+    own = b"".join(b'<triangle v1="%d" v2="%d" v3="%d"/>\n' % (3 * k, 3 * k + 1, 3 * k + 2) for k in range(len(faces)))
+    odd = tmp_path / "odd.3mf"
+    with zipfile.ZipFile(odd, "w") as z:
+        z.writestr("3D/3dmodel.model", head + b"<vertices>\n" + b"\n".join(corners) + b"\n</vertices>\n<triangles>\n"
+                   + own + b"</triangles>" + tail)
+    v, f = M._read_3mf(odd)
+    v0, f0 = M._read_3mf(path)
+    assert len(v) == len(v0) and len(f) == len(f0)
+    np.testing.assert_array_equal(_corners(v, f), _corners(v0, f0))
+
+
+@pytest.mark.parametrize("edit", [
+    lambda xml: xml.replace(b'<item objectid="1"/>', b'<item objectid="1" transform="1 0 0 0 1 0 0 0 1 5 0 0"/>'),
+    lambda xml: xml.replace(b'unit="millimeter"', b'unit="inch"'),
+    lambda xml: re.sub(rb'<vertex x="([^"]*)" y="([^"]*)" z="([^"]*)"/>', rb'<vertex z="\3" y="\2" x="\1"/>', xml),
+])
+def test_a_3mf_beyond_one_plain_mesh_is_left_to_trimesh(tmp_path, edit):
+    # a transform, another unit, attributes in another order: the streamed reader declines (None), trimesh reads
+    import zipfile
+
+    path = tmp_path / "t.3mf"
+    _torus_3mf(path)
+    with zipfile.ZipFile(path) as z:
+        parts = {n: z.read(n) for n in z.namelist()}
+    plain = parts["3D/3dmodel.model"]
+    parts["3D/3dmodel.model"] = edit(plain)
+    assert parts["3D/3dmodel.model"] != plain
+    other = tmp_path / "other.3mf"
+    with zipfile.ZipFile(other, "w") as z:
+        for n, data in parts.items():
+            z.writestr(n, data)
+    assert M._read_3mf(other) is None
