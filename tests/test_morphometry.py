@@ -751,7 +751,7 @@ def _corners(vertices, faces):
     return np.sort(tri.view(float).reshape(len(faces), 9), axis=0)
 
 
-def _torus_3mf(path):
+def _torus_file(path):
     import trimesh
 
     from implicit_scaffold.mesh.writers import write_mesh
@@ -769,7 +769,7 @@ def test_a_3mf_is_read_in_chunks_as_trimesh_reads_it(tmp_path, monkeypatch, chun
 
     monkeypatch.setattr(M, "MODEL_CHUNK", chunk)
     path = tmp_path / "t.3mf"
-    _torus_3mf(path)
+    _torus_file(path)
     read = M._read_3mf(path)
     assert read is not None
     vertices, faces = read
@@ -785,7 +785,7 @@ def test_a_3mf_with_repeated_vertices_is_merged_as_trimesh_merges_it(tmp_path):
     import zipfile
 
     path = tmp_path / "t.3mf"
-    _torus_3mf(path)
+    _torus_file(path)
     with zipfile.ZipFile(path) as z:
         xml = z.read("3D/3dmodel.model")
     # every triangle's corners written as vertices of their own: three times the vertices, each one repeated
@@ -816,7 +816,7 @@ def test_a_3mf_beyond_one_plain_mesh_is_left_to_trimesh(tmp_path, edit):
     import zipfile
 
     path = tmp_path / "t.3mf"
-    _torus_3mf(path)
+    _torus_file(path)
     with zipfile.ZipFile(path) as z:
         parts = {n: z.read(n) for n in z.namelist()}
     plain = parts["3D/3dmodel.model"]
@@ -827,3 +827,46 @@ def test_a_3mf_beyond_one_plain_mesh_is_left_to_trimesh(tmp_path, edit):
         for n, data in parts.items():
             z.writestr(n, data)
     assert M._read_3mf(other) is None
+
+
+@pytest.mark.parametrize("suffix, chunk", [(".obj", 1 << 24), (".obj", 61), (".ply", None)])
+def test_an_obj_or_ply_is_read_as_trimesh_reads_it(tmp_path, monkeypatch, suffix, chunk):
+    # the oracle: trimesh's readers, on a torus written by generate's writers (in 61-byte chunks every line is cut)
+    import trimesh
+
+    if chunk is not None:
+        monkeypatch.setattr(M, "OBJ_CHUNK", chunk)
+    path = tmp_path / f"t{suffix}"
+    _torus_file(path)
+    read = {".obj": M._read_obj, ".ply": M._read_ply}[suffix](path)
+    assert read is not None
+    vertices, faces = read
+    theirs = trimesh.load(str(path), force="mesh")
+    assert len(vertices) == len(theirs.vertices) and len(faces) == len(theirs.faces)
+    np.testing.assert_array_equal(_corners(vertices, faces), _corners(theirs.vertices, theirs.faces))
+
+
+@pytest.mark.parametrize("edit", [
+    lambda text: text.replace(b"f ", b"vn 0 0 1\nf ", 1),  # normals
+    lambda text: re.sub(rb"^f (\d+) (\d+) (\d+)$", rb"f \1/\1 \2/\2 \3/\3", text, count=1, flags=re.M),
+    lambda text: text + b"f 1 2 3 4\n",  # a quad
+    lambda text: text.replace(b"v ", b"o torus\nv ", 1),  # an object name
+])
+def test_an_obj_beyond_vertices_and_triangles_is_left_to_trimesh(tmp_path, edit):
+    path = tmp_path / "t.obj"
+    _torus_file(path)
+    plain = path.read_bytes()
+    assert M._read_obj(path) is not None
+    path.write_bytes(edit(plain))
+    assert path.read_bytes() != plain and M._read_obj(path) is None
+
+
+def test_a_ply_of_another_layout_is_left_to_trimesh(tmp_path):
+    import trimesh
+
+    mesh = trimesh.creation.icosphere(subdivisions=2)
+    path = tmp_path / "ascii.ply"
+    path.write_bytes(trimesh.exchange.ply.export_ply(mesh, encoding="ascii"))
+    assert M._read_ply(path) is None
+    v, f = M.read_mesh_arrays(path)  # trimesh's read, closed and outward
+    assert len(f) == len(mesh.faces)

@@ -1522,13 +1522,19 @@ def _read_3mf(path):
     vertices = np.concatenate(lists[b"vertices"][3])
     faces = np.concatenate(lists[b"triangles"][3])
     del lists
-    if not np.isfinite(vertices).all() or faces.min() < 0 or faces.max() >= len(vertices):
+    return _merged(vertices, faces)
+
+
+def _merged(vertices: np.ndarray, faces: np.ndarray):
+    """An indexed mesh's vertices merged as trimesh merges them (coordinates times 1e8, rounded, equal: one
+    vertex, the first in the file's order, numbered by it) and its faces renumbered; None when a coordinate is
+    not finite or an index names no vertex (trimesh then reads the file, and says what is wrong)."""
+    if not len(faces) or not np.isfinite(vertices).all() or faces.min() < 0 or faces.max() >= len(vertices):
         return None
     keys = np.round(vertices * 1e8).astype(np.int64)
     merged, first = _group_rows([keys[:, a] for a in range(3)], len(keys))
     del keys
     if len(first) < len(vertices):
-        # each merged vertex its first in the file's order, numbered by it
         rep = np.full(len(first), len(vertices), np.int64)
         np.minimum.at(rep, merged, np.arange(len(vertices)))
         rank = np.argsort(rep, kind="stable")
@@ -1536,6 +1542,74 @@ def _read_3mf(path):
         number[rank] = np.arange(len(rank))
         vertices, faces = vertices[rep[rank]], number[merged][faces]
     return vertices, faces
+
+
+def _read_ply(path):
+    """A binary PLY as :func:`~implicit_scaffold.mesh.writers.write_mesh` writes it (float64 x y z, triangles
+    as uchar/int lists), vertices and faces read by numpy and merged as trimesh merges them (:func:`_merged`);
+    None for any other PLY (trimesh reads it). trimesh held some 650 bytes a triangle reading, merging and
+    checking one (3.4 GB for the default cube's 5.2 M triangles)."""
+    from ..mesh.writers import _PLY_FACE, _ply_layout
+
+    try:
+        head, nverts, nfaces = _ply_layout(path)
+    except ScaffoldError:
+        return None
+    size = path.stat().st_size
+    if size != head + 24 * nverts + _PLY_FACE.itemsize * nfaces:
+        return None
+    with open(path, "rb") as fh:
+        fh.seek(head)
+        vertices = np.fromfile(fh, "<f8", 3 * nverts).reshape(nverts, 3).astype(np.float64)
+        records = np.fromfile(fh, _PLY_FACE, nfaces)
+    if np.any(records["n"] != 3):
+        return None
+    faces = records["v"].astype(np.int64)
+    del records
+    return _merged(vertices, faces)
+
+
+#: bytes of an OBJ read at a time (:func:`_read_obj`)
+OBJ_CHUNK = 1 << 24
+
+
+def _read_obj(path):
+    """An OBJ of vertices and triangles alone (``v x y z`` and ``f a b c`` lines, comments and blank lines
+    beside them), read a chunk at a time (:data:`OBJ_CHUNK`) and merged as trimesh merges it; None for any other
+    (normals, texture coordinates, faces of other polygons or with slashes, groups, materials: trimesh reads it).
+    trimesh held some 580 bytes a triangle reading one (3.0 GB for the default cube's 5.2 M triangles)."""
+    import re
+
+    vertex = re.compile(rb"^v[ \t]+(\S+)[ \t]+(\S+)[ \t]+(\S+)[ \t]*\r?$", re.M)
+    triangle = re.compile(rb"^f[ \t]+(\d+)[ \t]+(\d+)[ \t]+(\d+)[ \t]*\r?$", re.M)
+    other = re.compile(rb"^(?:#[^\n]*|[ \t]*\r?)$", re.M)
+    vblocks, fblocks, rest = [], [], b""
+    with open(path, "rb") as fh:
+        while True:
+            data = fh.read(OBJ_CHUNK)
+            text = rest + data
+            cut = text.rfind(b"\n") + 1 if data else len(text)
+            # the chunk's whole lines, without the last one's newline: each line then matches once at most
+            body, rest = text[:cut - 1] if cut and text[cut - 1:cut] == b"\n" else text[:cut], text[cut:]
+            del text
+            if not body and data:
+                continue
+            v, f = vertex.findall(body), triangle.findall(body)
+            if len(v) + len(f) + len(other.findall(body)) != body.count(b"\n") + 1:
+                return None  # some line is neither a vertex, a triangle, a comment nor blank
+            try:
+                if v:
+                    vblocks.append(np.array(v, "S").astype(np.float64))
+                if f:
+                    fblocks.append(np.array(f, "S").astype(np.int64) - 1)
+            except ValueError:
+                return None
+            del body, v, f
+            if not data:
+                break
+    if not vblocks or not fblocks:
+        return None
+    return _merged(np.concatenate(vblocks), np.concatenate(fblocks))
 
 
 def _watertight(faces: np.ndarray, nverts: int) -> bool:
@@ -1600,7 +1674,8 @@ def read_mesh_arrays(path):
 
     path = Path(path)
     n = binary_stl_triangles(path)
-    read = _read_binary_stl(path, n) if n else _read_3mf(path) if _suffix(path) == ".3mf" else None
+    streamed = {".3mf": _read_3mf, ".ply": _read_ply, ".obj": _read_obj}.get(_suffix(path))
+    read = _read_binary_stl(path, n) if n else streamed(path) if streamed is not None else None
     if read is None:
         mesh = _read_mesh(path)
         return np.asarray(mesh.vertices), np.asarray(mesh.faces)
