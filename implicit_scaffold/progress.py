@@ -105,18 +105,21 @@ class Progress:
         last = [time.perf_counter()]
         history: list = []
 
-        def tell(name, it, res, energy=None):
+        def tell(name, it, res, energy=None, part=()):
             now = time.perf_counter()
+            part = tuple(part)
             # a new solve, or the next part of one (a block of load cases, a piece) whose residual
             # starts again from its own right-hand side: the pace of the one before says nothing
-            if history and (history[-1][0] != name or res > 10 * history[-1][2]):
+            if history and (history[-1][0] != (name, part) or res > 10 * history[-1][2]):
                 history.clear()
             # an estimate above 1 says nothing (a piece that keeps almost none of its energy: its own ratio)
             known = energy is not None and math.isfinite(energy) and energy < 1
-            history.append((name, it, res, now, energy if known else None))
+            history.append(((name, part), it, res, now, energy if known else None))
             if now - last[0] >= every:
                 last[0] = now
-                text = f"{name}: CG iteration {it}, residual {res:.1e}"
+                # the part named (block 1 of 3): its pace is its own, and the parts after it follow
+                label = name + "".join(f", {what} {k} of {n}" for what, k, n in part)
+                text = f"{label}: CG iteration {it}, residual {res:.1e}"
                 if known and accuracy is not None:
                     text += f", energy error {energy:.1e}"
                 paces = []
@@ -126,13 +129,20 @@ class Progress:
                     paces.append((cg_pace([(h[1], h[4], h[3]) for h in history if h[4] is not None], accuracy),
                                   f"energy error {accuracy:g}"))
                 paces = [p for p in paces if p[0] is not None]
+                after = ""
+                if part and part[-1][2] > part[-1][1]:
+                    what, k, n = part[-1]
+                    after = f"then {n - k} more {what}{'' if n - k == 1 else 's'}"
                 if paces:
                     (more, seconds), what = min(paces, key=lambda p: p[0][0])
                     text += (f" (to {what} at this pace: ~{more} more iteration{'' if more == 1 else 's'}, "
-                             f"~{format_duration(seconds)})")
+                             f"~{format_duration(seconds)}" + (f"; {after})" if after else ")"))
+                elif after:
+                    text += f" ({after})"
                 self.note(text)
 
         tell.takes_energy = True
+        tell.takes_part = True
         return tell
 
     def bar(self, label: str, every: float = 10.0):

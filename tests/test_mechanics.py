@@ -464,6 +464,33 @@ def test_a_progress_that_asks_for_it_gets_each_iterations_energy_estimate(small_
     assert min(e for _, e in named) <= m.ACCURACY
 
 
+def test_a_progress_that_asks_for_it_is_told_which_block_each_iteration_is_in(small_scaffold):
+    # six cases in blocks of 2: three solves one after another, their iterations counted on. Oracle: the
+    # solve's own count (its iterations: the largest block's) and the blocks' order; a block of six is one solve
+    solid, h = small_scaffold
+
+    def recorder(seen):
+        def tell(it, res, energy, part=()):
+            seen.append((it, part))
+
+        tell.takes_energy = True
+        tell.takes_part = True
+        return tell
+
+    seen, plain, whole = [], [], []
+    hom = m.homogenize(solid, h, TI, boundary="periodic", tol=1e-8, cases_per_block=2, progress=recorder(seen))
+    parts = [p for _, p in seen]
+    assert parts[0] == (("block", 1, 3),) and parts[-1] == (("block", 3, 3),) and parts == sorted(parts)
+    counts = [sum(1 for p in parts if p == (("block", k, 3),)) for k in (1, 2, 3)]
+    assert sum(counts) == len(parts) and max(counts) == hom.iterations
+    its = [it for it, _ in seen]
+    assert its == list(range(1, len(its) + 1))  # counted on from one block to the next
+    m.homogenize(solid, h, TI, boundary="periodic", tol=1e-8, cases_per_block=2, progress=lambda it, r: plain.append(it))
+    assert plain == its  # a callback that does not ask is called as before
+    m.homogenize(solid, h, TI, boundary="periodic", tol=1e-8, cases_per_block=6, progress=recorder(whole))
+    assert whole and all(p == () for _, p in whole)
+
+
 def test_an_energy_accuracy_bounds_the_compression_modulus():
     # oracle: the same compression to 1e-11. The modulus is the platens' work over the strain: an energy,
     # above the converged one by the solution's energy error

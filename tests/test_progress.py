@@ -136,3 +136,22 @@ def test_elapsed_times_thirty_seconds_apart_read_apart():
 
     assert [format_elapsed(t) for t in (0.2, 40, 60, 90, 120, 150, 3599.6, 3900)] == \
         ["1 s", "40 s", "1 min", "1 min 30 s", "2 min", "2 min 30 s", "1 h 00 min", "1 h 05 min"]
+
+
+def test_a_solver_note_names_the_part_and_the_parts_after_it(capsys):
+    # a block of load cases (or a piece) names itself; its pace is its own, and the note says what follows it
+    progress = Progress(True)
+    tell = progress.solver(every=0.0, goal=0.5 ** 30)
+    for k in range(1, 21):
+        tell("homogenization", k, 0.5 ** k, None, part=(("block", 1, 3),))
+    line = capsys.readouterr().err.splitlines()[-1]
+    assert line.startswith("    homogenization, block 1 of 3: CG iteration 20, residual 9.5e-07 (to 9.31323e-10 at "
+                           "this pace: ~10 more iterations")
+    assert line.endswith("; then 2 more blocks)")
+    # the next block starts its pace afresh (its residual starts again), and the last has none after it
+    for k in range(1, 4):
+        tell("homogenization", 20 + k, 0.5 ** k, None, part=(("piece", 2, 2), ("block", 3, 3)))
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[-1] == "    homogenization, piece 2 of 2, block 3 of 3: CG iteration 23, residual 1.2e-01"
+    tell("compression", 1, 0.5, None, part=(("piece", 1, 2),))
+    assert capsys.readouterr().err.splitlines()[-1].endswith("residual 5.0e-01 (then 1 more piece)")

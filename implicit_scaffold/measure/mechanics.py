@@ -1325,7 +1325,7 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
     # pieces that share no node are independent systems: each solved on its own box, whose grid and
     # coarse levels hold it alone, the tensor the sum of theirs (each over the whole box's volume)
     C, iterations, res, errors, converged = np.zeros((6, 6)), 0, 0.0, np.zeros(6), True
-    tell = _counting(progress)
+    tell = _counting(progress, len(crops), "piece")
     for box, ids, small in crops:
         Cp, its, r, _, e, met = _homogenize_held(np.isin(labels[box], ids), h, mat, False, total, tol, maxiter,
                                                  backend, "direct" if small else preconditioner, tell,
@@ -1345,34 +1345,44 @@ def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", to
                           pieces=sum(len(ids) for _, ids, _ in crops), converged=converged)
 
 
-def _call_progress(progress, *args, energy: float | None = None) -> None:
+def _call_progress(progress, *args, energy: float | None = None, part: tuple = ()) -> None:
     """``progress(*args)``, with `energy` (a solve's estimated relative energy error) added as the last
     argument when `progress` asks for it (a true ``takes_energy`` attribute, as
     :meth:`~implicit_scaffold.progress.Progress.solver`'s callback has): a caller's callback of the
-    iteration and the residual alone is called as before."""
+    iteration and the residual alone is called as before. `part`, the solves of which this is one
+    (``(what, k, n)`` from the outermost, :func:`_counting`'s), goes as ``part=`` to a callback with a true
+    ``takes_part`` attribute."""
     if getattr(progress, "takes_energy", False):
-        progress(*args, energy)
+        if part and getattr(progress, "takes_part", False):
+            progress(*args, energy, part=part)
+        else:
+            progress(*args, energy)
     else:
         progress(*args)
 
 
-def _counting(progress):
+def _counting(progress, parts: int = 1, what: str = "block"):
     """`progress` (iteration, residual[, energy error]) over solves one after another, their iterations
-    counted on from one solve to the next (``.next()`` between them); None for None."""
+    counted on from one solve to the next (``.next()`` between them); None for None. With `parts` > 1 each
+    call also names its solve, ``(what, k, parts)`` (k from 1), before the parts of the solve's own
+    (:func:`_call_progress`): the blocks of load cases, the pieces."""
     if progress is None:
         return None
-    state = {"done": 0, "last": 0}
+    state = {"done": 0, "last": 0, "k": 1}
 
-    def counted(it, r, energy=None):
+    def counted(it, r, energy=None, part=()):
         state["last"] = max(state["last"], it)
-        _call_progress(progress, state["done"] + it, r, energy=energy)
+        mine = ((what, state["k"], int(parts)),) if parts > 1 else ()
+        _call_progress(progress, state["done"] + it, r, energy=energy, part=mine + tuple(part))
 
     def next_solve():
         state["done"] += state["last"]
         state["last"] = 0
+        state["k"] += 1
 
     counted.next = next_solve
     counted.takes_energy = True
+    counted.takes_part = True
     return counted
 
 
@@ -1420,7 +1430,8 @@ def _homogenize_held(solid, h, mat, periodic, total, tol, maxiter, backend, prec
     # each unit strain's lifting energy (u = E x: every solid voxel holds the same corner displacements,
     # up to a translation), the total a case's solved part relaxes
     lifting = ns * np.einsum("ka,ab,kb->k", u0e, model.ke, u0e)
-    tell = _counting(progress)  # the blocks' iterations counted on from one to the next
+    # the blocks' iterations counted on from one to the next, each block named
+    tell = _counting(progress, -(-6 // block), "block")
     for k0 in range(0, 6, block):
         cases = range(k0, min(6, k0 + block))
         # the right-hand side is handed to pcg with no reference kept here, so that it is
@@ -1702,7 +1713,7 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
         # the platens' force the sum of theirs
         force, field_vm, iterations, res, err = 0.0, np.zeros(solid.shape, np.float32), 0, 0.0, 0.0
         converged = True
-        tell = _counting(progress)
+        tell = _counting(progress, len(crops), "piece")
         for box, ids, small in crops:
             f, field, its, r, e, met = _compress_kept(np.isin(labels[box], ids), h, mat, axis, strain, bonded, tol,
                                                  maxiter, backend, "direct" if small else preconditioner, tell,
@@ -2008,10 +2019,11 @@ def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int
         if progress is None:
             return None
 
-        def one(it, res, energy=None):
-            _call_progress(progress, name, it, res, energy=energy)
+        def one(it, res, energy=None, part=()):
+            _call_progress(progress, name, it, res, energy=energy, part=part)
 
         one.takes_energy = True
+        one.takes_part = True
         return one
 
     accuracy = solve_accuracy(tol)
