@@ -444,9 +444,12 @@ def design(targets: Targets, *, seeds: int = 5, progress=None, max_builds: int =
                     # generate refused the cube's voxel as too coarse for the walls (the first build's only)
                     if err.voxel is None or log:
                         raise
-                    rve["voxel"] = holding_voxel(rve, targets, err.voxel)
+                    finer = holding_voxel(rve, targets, err.voxel)
+                    if finer >= rve["voxel"]:
+                        raise  # refused at the finest cube already
+                    rve["voxel"] = finer
                     if progress is not None:
-                        progress.note(f"the walls are too thin for the cube's voxels: the cube at {rve['voxel']:.4g} mm")
+                        progress.note(f"the walls are too thin for the cube's voxels: the cube at {finer:.4g} mm")
                     continue
             builds.append(rve["voxel"])
             if progress is not None:

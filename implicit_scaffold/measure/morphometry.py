@@ -1668,7 +1668,8 @@ def check_mesh_read(name: str, triangles: int, voxels: int, held: int, total: in
 
 def read_mesh_arrays(path):
     """A closed mesh's vertices (float64, mm) and faces (int64): a binary STL read by numpy
-    (:func:`_read_binary_stl`, a sixth of trimesh's memory), any other mesh by trimesh (:func:`_read_mesh`).
+    (:func:`_read_binary_stl`, a sixth of trimesh's memory), a 3MF, PLY or OBJ as generate writes them by
+    :func:`_read_3mf`, :func:`_read_ply` and :func:`_read_obj`, any other mesh by trimesh (:func:`_read_mesh`).
     The same arrays either way; the same one-line refusals of a mesh that holds no triangles or is not closed."""
     from pathlib import Path
 
