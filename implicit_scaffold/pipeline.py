@@ -1893,10 +1893,15 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
     if tolerance <= 0 and ext in MESH_STREAMED:
         with prog.stage("mesh", "streamed to " + out_path.name):
             return write_mesh_slabs(field, out_path, max_voxels=slab_voxels, progress=prog.bar("mesh")), None, []
+    from .io.files import discard, written_path
+
     staged = out_path.with_name(f".{out_path.name}.tmp-mesh.ply")
     try:
         with prog.stage("mesh", "streamed to " + staged.name):
             summary = write_mesh_slabs(field, staged, max_voxels=slab_voxels, progress=prog.bar("mesh"))
+        # inside a command's run the staged PLY waits under its temporary name for the run's end: read it there
+        # (a CT's scaffold in slabs, written as .3mf, stopped with "No such file or directory")
+        readable = written_path(staged)
         info, found = None, []
         if tolerance > 0:
             import trimesh
@@ -1904,7 +1909,7 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
             need = summary["triangles"] * (WHOLE_MESH_BYTES_PER_TRIANGLE + SIMPLIFY_BYTES_PER_TRIANGLE) \
                 + process_memory()
             if need <= run.max_memory:
-                whole = trimesh.load(staged, file_type="ply", process=False)
+                whole = trimesh.load(readable, file_type="ply", process=False)
                 simple, info, found = _simplify(whole, tolerance, voxel, patient_volume, prog, run.max_memory)
                 del whole
                 if info["applied"]:
@@ -1927,11 +1932,11 @@ def _stream_mesh(field, out_path: Path, run: _RunPlan, slab_voxels: int, prog, *
                 place(staged, out_path)
                 staged = None  # in place, or to be when the run ends: not removed here
             else:
-                write_mesh_from_ply(staged, out_path)
+                write_mesh_from_ply(readable, out_path)
         return summary, info, found
     finally:
         if staged is not None:
-            staged.unlink(missing_ok=True)
+            discard(staged)
 
 
 def _write_stack(field, grid: Grid, slices: dict, prog, **kwargs) -> dict:

@@ -380,3 +380,27 @@ def test_fragments_are_blamed_for_a_porosity_miss_only_when_they_could_make_it()
     why, blamed = _fragments_why({**report, "fragments_removed_mm3": 0.5}, 9, "other", 0.0035)
     assert blamed and "removing 9 solid fragments (0.5 mm3, 0.78 % of the patient)" in why
     assert _fragments_why(report, 0, "other", 0.01) == ("other", False)
+
+
+@pytest.mark.parametrize("name, tolerance", [("s.3mf", 0.0), ("s.obj", 0.0), ("s.stl", 0.01), ("s.ply", 0.0)])
+def test_a_run_in_slabs_inside_a_commands_run_writes_every_mesh_format(tmp_path, name, tolerance):
+    # a command's run (run_outputs) keeps each output under its temporary name until the run ends: the mesh
+    # staged as PLY (for 3MF and OBJ, or to simplify) was read back at its final name, which did not exist yet
+    # ("No such file or directory" after the mesh of a CT's scaffold in slabs). Oracle: the whole-grid run's mesh
+    import trimesh
+
+    from implicit_scaffold import generate
+    from implicit_scaffold.io.files import run_outputs
+
+    kw = dict(size=1.6, pore_size=0.6, porosity=0.7, voxel=0.04, seed=3, morphometry=False)
+    whole = generate(**kw)
+    plane = whole.grid.shape[1] * whole.grid.shape[2]
+    with run_outputs():
+        r = generate(output=tmp_path / name, tiled=24 * plane, tolerance=tolerance, **kw)
+    assert r.report["tiled"]["slabs"] > 1
+    # the mesh and its report, no staged or temporary file left
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted([name, "s.json"])
+    m = trimesh.load(str(tmp_path / name), force="mesh")
+    if tolerance == 0:
+        assert len(m.faces) == len(whole.mesh.faces)
+    assert m.is_watertight and m.volume == pytest.approx(whole.mesh.volume, rel=1e-3 if tolerance else 1e-6)

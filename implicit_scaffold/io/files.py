@@ -19,7 +19,7 @@ import numpy as np
 from ..errors import ScaffoldError
 
 __all__ = ["PiecewiseDeflate", "atomic_path", "check_format", "check_writable", "folder_of", "mark_written", "new_temp",
-           "place", "remove_quietly", "run_outputs", "written_path",
+           "discard", "place", "remove_quietly", "run_outputs", "written_path",
            "write_field", "write_json"]
 
 #: planes of about this many voxels are converted and written at a time (.npy)
@@ -180,6 +180,18 @@ def place(tmp, final) -> None:
         _put_in_place(tmp, final)
     else:
         _PENDING.append((tmp, final))
+
+
+def discard(final) -> None:
+    """Remove an intermediate file a run wrote as an output (a staged mesh read back into another format):
+    under its temporary name while it waits for the run's end (:func:`place`), or in place. The run's end
+    then has nothing to put there."""
+    final = Path(final)
+    if _PENDING is not None:
+        for entry in [e for e in _PENDING if e[1] == final]:
+            _PENDING.remove(entry)
+            _remove_any(entry[0])
+    remove_quietly(final)
 
 
 def written_path(final) -> Path:
