@@ -564,8 +564,7 @@ def surface_mesh(solid, grid):
         return None
     h = float(grid.spacing)
     # one layer of outside all round, so that solid on the array's faces closes
-    field = np.pad(np.where(solid, np.float32(-0.5 * h), np.float32(0.5 * h)), 1,
-                   constant_values=np.float32(0.5 * h))
+    field = _PaddedSolid(solid, h).read(0, solid.shape[0] + 2)
     origin = tuple(float(o) - h for o in grid.origin)
     return mesh_field(field, Grid(origin, h, field.shape), check=False)
 
@@ -1431,20 +1430,9 @@ def _read_binary_stl(path, n: int):
     group, first = _group_rows([bits[:, a] for a in range(3)], len(pts))
     del bits
     exact = pts[first].astype(np.float64)
-    keys = np.round(exact * 1e8).astype(np.int64)
-    merged, _ = _group_rows([keys[:, a] for a in range(3)], len(keys))
-    del keys
-    # each merged vertex is its first corner in the file; vertices numbered by it
-    rep = np.full(int(merged.max()) + 1, len(pts), np.int64)
-    np.minimum.at(rep, merged, first)
-    rank = np.argsort(rep, kind="stable")
-    number = np.empty(len(rank), np.int64)
-    number[rank] = np.arange(len(rank))
-    vertices = pts[rep[rank]].astype(np.float64)
     del pts
-    # each distinct corner's vertex, then each corner's
-    faces = number[merged][group].reshape(n, 3)
-    return vertices, faces
+    # the distinct corners, each at its first place in the file, merged by the rounded keys
+    return _merged(exact, group.reshape(n, 3), position=first)
 
 
 #: bytes of a 3MF's model XML parsed at a time (:func:`_read_3mf`): some 300,000 vertices
@@ -1525,23 +1513,31 @@ def _read_3mf(path):
     return _merged(vertices, faces)
 
 
-def _merged(vertices: np.ndarray, faces: np.ndarray):
+def _merged(vertices: np.ndarray, faces: np.ndarray, position: np.ndarray | None = None):
     """An indexed mesh's vertices merged as trimesh merges them (coordinates times 1e8, rounded, equal: one
     vertex, the first in the file's order, numbered by it) and its faces renumbered; None when a coordinate is
-    not finite or an index names no vertex (trimesh then reads the file, and says what is wrong)."""
+    not finite or an index names no vertex (trimesh then reads the file, and says what is wrong).
+
+    `position`, each vertex's place in the file (distinct), where that is not its row: the vertices are then
+    numbered in its order (a binary STL's distinct corners, :func:`_read_binary_stl`)."""
     if not len(faces) or not np.isfinite(vertices).all() or faces.min() < 0 or faces.max() >= len(vertices):
         return None
     keys = np.round(vertices * 1e8).astype(np.int64)
     merged, first = _group_rows([keys[:, a] for a in range(3)], len(keys))
     del keys
-    if len(first) < len(vertices):
-        rep = np.full(len(first), len(vertices), np.int64)
-        np.minimum.at(rep, merged, np.arange(len(vertices)))
-        rank = np.argsort(rep, kind="stable")
-        number = np.empty(len(rank), np.int64)
-        number[rank] = np.arange(len(rank))
-        vertices, faces = vertices[rep[rank]], number[merged][faces]
-    return vertices, faces
+    if position is None and len(first) == len(vertices):
+        return vertices, faces
+    place = np.arange(len(vertices)) if position is None else np.asarray(position, np.int64)
+    rep = np.full(len(first), np.iinfo(np.int64).max, np.int64)
+    np.minimum.at(rep, merged, place)
+    # the row of each merged vertex's first place
+    owner = np.empty(len(first), np.int64)
+    hit = place == rep[merged]
+    owner[merged[hit]] = np.flatnonzero(hit)
+    rank = np.argsort(rep, kind="stable")
+    number = np.empty(len(rank), np.int64)
+    number[rank] = np.arange(len(rank))
+    return vertices[owner[rank]], number[merged][faces]
 
 
 def _read_ply(path):
@@ -1560,7 +1556,7 @@ def _read_ply(path):
         return None
     with open(path, "rb") as fh:
         fh.seek(head)
-        vertices = np.fromfile(fh, "<f8", 3 * nverts).reshape(nverts, 3).astype(np.float64)
+        vertices = np.fromfile(fh, "<f8", 3 * nverts).reshape(nverts, 3).astype(np.float64, copy=False)
         records = np.fromfile(fh, _PLY_FACE, nfaces)
     if np.any(records["n"] != 3):
         return None
