@@ -1118,8 +1118,13 @@ FAST_FLOOR = 1e-4
 ENERGY_STEPS = 4
 #: the default energy accuracy of a solve (:func:`measure`): each solution's energy error ``e.K e`` at most
 #: this share of its total energy, so the stiffness tensor's entries and the apparent modulus (energies,
-#: second order in the error) to some six digits, beside a voxel discretisation error of percents
-ACCURACY = 1e-6
+#: second order in the error) within it: the four digits the report prints, beside a voxel discretisation
+#: error of percents. Against solves to 1e-10 (``bench_mechanics.py --accuracies`` / ``--bone-accuracies``,
+#: README, Mechanics, the default stop measured), at 1e-4: the 128^3 benchmark scaffold's tensor 4.5e-5 off
+#: in 11 iterations (1e-6: 2.2e-7 in 18); the lumbar micro-CT's central 128^3, its compression modulus 2.5e-5
+#: off in 27 (7.3e-7 in 58), its kinematic tensor 2.5e-5 in 17 (1.7e-7 in 49). 1e-6 took the default cube's
+#: mechanics 134 s, 1e-4 73 s
+ACCURACY = 1e-4
 
 
 #: the node of :func:`energy_error`'s Gauss-Radau bound, as a share of the smallest Ritz value (an upper
@@ -1738,7 +1743,6 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     whether the CG met its residual tolerance or its energy accuracy)."""
     model = voxel_model(kept, h, mat, periodic=False)
     shape = model.shape
-    n = int(np.prod(shape))
     length = (shape[axis] - 1) * h
     # the platens' node planes (as masks: a flat index of every node would take 8 bytes a node)
     bottom, top = np.zeros(shape, bool), np.zeros(shape, bool)
@@ -1758,62 +1762,47 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     free = free.astype(np.float32)
     op = _operator(model, backend)
     ns = model.solid_voxels
-    unit = macro_displacements(h)[axis] * strain
-    scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ unit))
+    macro = macro_displacements(h)
+    scale = np.sqrt(ns) * np.atleast_1d(np.linalg.norm(model.ke @ (macro[axis] * strain)))
     precond = make_preconditioner(preconditioner, model, op, free, tol)
     # no fast products here: in float this system's residual stalls some 3 times over the
     # recurrence's, and the restart in double costs more than float saves (64^3 benchmark
     # scaffold along z: 44 iterations, 2.4 and 3.0 s, against 40 and 2.2 and 2.3 s in double);
     # and to a loose tolerance in float the modulus is further off (a 128^3 crop of the lumbar
-    # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double)
-    # the platens' displacement is the lifting; the modulus is its energy over the solve's (the reaction
-    # force's work), so `accuracy` bounds the modulus's error as it does the energy's. A whole-grid
-    # vector needed for its product only (the total displacement is x with the upper platen's plane set
-    # again): kept, it held 624 MiB through the solve on the whole lumbar micro-CT's grid
-    if hasattr(op, "live_product"):
-        # K base is 0 but on the nodes of the upper platen's plane and the plane under it: it is taken on
-        # those alone, by slabs (live_product), and pcg gets the right-hand side as a callable of its live
-        # nodes. The whole grid's base and K base held 48 bytes a node before the solve, its peak there
-        # (a 128^3 crop of the lumbar micro-CT, traced by a throw-away script with the V-cycle's fine level
-        # forced to slabs of 2^18 nodes: 269 MiB, 267 in the CG's iterations)
-        near = np.zeros(shape, bool)
-        plane[axis] = slice(shape[axis] - 2, None)
-        near[tuple(plane)] = True
-        near = np.flatnonzero(near.ravel() & model.active)
-        on_top = np.flatnonzero(top[near])
-        u_near = np.zeros((1, 3, near.size))
-        u_near[0, axis, on_top] = -strain * length
-        ones = np.ones((1, near.size))
-        k_near = op.live_product(u_near, near, ones, ones)
-        lifting = np.array([float(np.einsum("cdn,cdn->", u_near, k_near))])  # not np.vdot: see pcg's dot products
-        del u_near
+    # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double; the default cube's 96^3 corner at an energy
+    # accuracy of 1e-4: 73 iterations and 3.8e-4 off, under an estimate of 6.4e-6, against 45 and 2.8e-5)
+    # The lifting the CG corrects is the homogeneous block's solution, not the platens' planes alone: the
+    # axial strain and the material's lateral expansion, u = E x with E = diag(nu s, nu s, -s) along the axis
+    # (no lateral part under bonded platens, which hold it). It meets the platens, and a dense block's
+    # solution it is; on a scaffold the CG starts nearer (the default cube's 96^3 corner to an energy
+    # accuracy of 1e-4: 32 iterations against 45 from the planes; the lumbar micro-CT's central 128^3: 23
+    # against 27; the whole cube: 60 against 97, 29.8 s against 42.3). Its loads are an element's own in
+    # every solid voxel (an affine field differs from voxel to voxel by a translation), looked up on the
+    # live nodes pcg asks for (no whole-grid vector), and its energy is the voxels' sum in closed form.
+    lateral = 0.0 if bonded else mat.nu
+    ue = -strain * macro[axis] + lateral * strain * sum(macro[a] for a in range(3) if a != axis)
+    fe = -(model.ke @ ue)[None]
+    lifting = np.array([ns * float(ue @ model.ke @ ue)])
 
-        def rhs(nodes: np.ndarray) -> np.ndarray:
-            out = np.zeros((1, 3, nodes.size))
-            at = np.clip(np.searchsorted(nodes, near), 0, max(nodes.size - 1, 0))
-            hit = nodes[at] == near if nodes.size else np.zeros(near.size, bool)
-            out[:, :, at[hit]] = -k_near[:, :, hit]
-            return out  # masked to the free unknowns by pcg
+    def loads(nodes: np.ndarray) -> np.ndarray:
+        return element_loads(model, fe, nodes)  # masked to the free unknowns by pcg
 
-        hand = [rhs]
-    else:
-        base = np.zeros((1, 3, n))
-        base[0, axis, top] = -strain * length
-        kb = op(base)
-        lifting = np.array([float(np.einsum("cdn,cdn->", base, kb))])  # not np.vdot: see pcg's dot products
-        del base
-        np.negative(kb, out=kb)
-        kb *= free  # the right-hand side, in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
-        # handed to pcg with no name left on it here, so that pcg releases it once it has read its live nodes
-        hand = [kb]
-        del kb
     info = {}
-    x, iterations, res = pcg(op, precond, hand.pop(), free, scale=scale, tol=tol, maxiter=maxiter,
+    x, iterations, res = pcg(op, precond, loads, free, scale=scale, tol=tol, maxiter=maxiter,
                              progress=progress, energy=lifting, accuracy=accuracy, info=info)
     del precond  # the levels' matrices and the cycle's masks, before the whole-grid vectors below
-    u = x
-    u[0, axis, top] = -strain * length  # x is 0 there (a fixed unknown): base + x, bit for bit
-    force = -op(u)[0, axis, top & model.active].sum()  # kN on the upper platen, compression positive
+    u = x  # the lifting added in place: u = E x + x, the fixed unknowns E x's (x is 0 there)
+    for d in range(3):
+        stretch = -strain if d == axis else lateral * strain
+        if stretch:
+            coords = np.arange(shape[d], dtype=float).reshape([-1 if a == d else 1 for a in range(3)]) * h
+            u[0, d].reshape(shape)[...] += stretch * coords
+    # the platens' work is u.K u, above the converged one by the solution's energy error e.K e (u's error
+    # lies on the free unknowns, where K u* is 0): second order in it, whatever the CG started from (the
+    # upper platen's reaction times its travel is that only where the CG's iterate keeps Galerkin's
+    # orthogonality to its start)
+    work = float(np.einsum("cdn,cdn->", u, op(u)))  # not np.vdot: see pcg's dot products
+    force = work / (strain * length)  # kN on the upper platen, compression positive
     eps = element_strains(model, u[0])  # (6, ns)
     field_vm = np.zeros(shape, np.float32)
     field_vm[model.solid] = von_mises_strain(eps)
