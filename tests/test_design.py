@@ -372,14 +372,23 @@ def test_ct_design_local_moduli_match_the_bone(tmp_path):
     z = o[2] + np.arange(f.shape[2]) * h
     # each half's core: 0.25 mm in from the bone's faces (the design's margin), 0.35 mm from the interface
     ys, zs = (y > 0.25) & (y < CT_SIZE[1] - 0.25), (z > 0.25) & (z < CT_SIZE[2] - 0.25)
+    # the design rebuilt with two more seeds, as a user gets other draws (generate --design --seed): a half's
+    # core is some 5 cells across at the pore size asked, and one draw's modulus spreads by +-10 % (the
+    # default rule's pores since 577460a: the 500 HU half's core -11.1, -9.0 and +1.3 % off over seeds 0-2,
+    # the 900 HU half's -4.3, -1.5 and -10.4 %)
+    fields = [f]
+    for seed in (1, 2):
+        again = tmp_path / f"g{seed}.npy"
+        assert main(["generate", "--design", str(out), "--patient", str(ct_path), "--threshold", "0",
+                     "--seed", str(seed), "-o", str(again), "-q"]) == 0
+        fields.append(_halves(again)[0])
     a, b = MORGAN["pooled"]
     for (lo, hi), hu in zip(((0.25, 2.6), (3.3, 5.75)), CT_HU):
         sel = (x > lo) & (x < hi)
-        core = f[np.ix_(sel, ys, zs)] < 0
         # platens along z on every voxel of the core, solved tighter than the design's 1e-3
-        e = compress(core, h, material("ti64"), axis=2, tol=1e-5, backend="opencl").apparent_modulus_gpa
+        e = np.mean([compress(g[np.ix_(sel, ys, zs)] < 0, h, material("ti64"), axis=2, tol=1e-5,
+                              backend="opencl").apparent_modulus_gpa for g in fields])
         target = a * (hu / 1000) ** b / 1000
-        print(f"CT {hu} HU: modulus measured {e!r} GPa, Morgan's {target!r} GPa")
         # the 10 %: the fitted law's scatter over seeds, and a half's other faces than the cube's
         assert abs(e / target - 1) <= 0.10, (hu, e, target)
 

@@ -1686,8 +1686,10 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     ``strain * L``; the other faces are free. By default the platens are lubricated (the
     nodes slide on them), so a homogeneous block gives its material's own modulus, the
     ideal ISO 13314 test; ``bonded=True`` holds them laterally too (no slip, the stiff end
-    of the friction range). The apparent modulus is the platen force over the box's
-    cross-section, over the strain. The sliding system keeps the rigid in-plane motions: it
+    of the friction range). The apparent modulus is the platen force (the platens' work ``u.K u``
+    over their travel) over the box's cross-section, over the strain. The CG starts from the
+    homogeneous block's solution (the axial strain and the material's lateral strain, none under
+    bonded platens). The sliding system keeps the rigid in-plane motions: it
     is singular but consistent, which CG solves (they carry no force). With `accuracy` the CG
     also stops once the solution's energy error is estimated at most that share of its energy
     (:func:`pcg`): the modulus, the platens' work, is then that close above the converged one.
