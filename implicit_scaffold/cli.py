@@ -236,7 +236,7 @@ def _add_mechanics_options(p) -> None:
     mg.add_argument("--axis", choices=["x", "y", "z"], default="z", help="the compression axis (default z)")
     mg.add_argument("--mechanics-tol", dest="mechanics_tol", type=float, default=None, metavar="R",
                     help="the CG's relative residual, 1e-12 to 1e-3, the solves' only stop (default: 1e-6, or sooner "
-                         "each solution's energy within 1e-4 of converged; the README's mechanics section measures "
+                         "each solution's energy within 1e-5 of converged; the README's mechanics section measures "
                          "what each saves and costs)")
     mg.add_argument("--mechanics-voxel", type=float, default=None, metavar="MM",
                     help="the solve's voxel, sampled (trilinear) from the signed distance (generate's, or a .npy "

@@ -491,6 +491,74 @@ def test_a_progress_that_asks_for_it_is_told_which_block_each_iteration_is_in(sm
     assert whole and all(p == () for _, p in whole)
 
 
+def _column_with_a_shelf():
+    """A one-voxel column between the platens (z) with a thin shelf hanging off it at mid-height: solid that
+    joins the load path but carries no load."""
+    solid = np.zeros((18, 18, 10), bool)
+    solid[9, 9, :] = True
+    solid[1:17, 1:17, 4] = True  # the shelf, joined to the column by its middle
+    return solid
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencl"])
+@pytest.mark.parametrize("sample", ["shelf", "block"])
+def test_the_compression_starts_from_the_lifting_of_less_energy(backend, sample, monkeypatch):
+    # two liftings meet the platens: the planes alone, and the homogeneous block's solution E x. The CG is
+    # handed the one of less energy (its energy error the smaller). Oracles: each lifting's energy w.K w by the
+    # NumPy reference over the whole grid; on the shelf (solid that joins the load path but carries no load,
+    # which E x strains) the planes' is the less, on a dense block E x's (the solution itself). From either
+    # start the same modulus, that of a solve to 1e-11
+    solid = _column_with_a_shelf() if sample == "shelf" else np.ones((6, 5, 8), bool)
+    h, s = 0.1, 1e-3
+    model = m.voxel_model(solid, h, TI, periodic=False)
+    nodes = np.indices(model.shape).reshape(3, -1) * h
+    top = nodes[2] == nodes[2].max()
+    block = np.stack([TI.nu * s * nodes[0], TI.nu * s * nodes[1], -s * nodes[2]])[None]
+    planes = np.zeros_like(block)
+    planes[0, 2, top] = -s * nodes[2].max()
+    energy = {name: float(np.sum(w * m.apply_stiffness(model, w))) for name, w in (("block", block), ("planes", planes))}
+    assert (energy["planes"] < energy["block"]) == (sample == "shelf")
+    handed = []
+    pcg = m.pcg
+
+    def spy(*args, **kwargs):
+        handed.append(float(kwargs["energy"][0]))
+        return pcg(*args, **kwargs)
+
+    monkeypatch.setattr(m, "pcg", spy)
+    chosen = m.compress(solid, h, TI, strain=s, tol=1e-8, backend=backend)
+    assert handed[-1] == pytest.approx(min(energy.values()), rel=1e-9)
+    monkeypatch.setattr(m, "_platen_planes", lambda *a: (np.inf, None))  # the block's, whatever the energies
+    from_block = m.compress(solid, h, TI, strain=s, tol=1e-8, backend=backend)
+    assert handed[-1] == pytest.approx(energy["block"], rel=1e-9)
+    ref = m.compress(solid, h, TI, strain=s, tol=1e-11, backend=backend, maxiter=5000)
+    for c in (chosen, from_block):
+        assert c.apparent_modulus_gpa == pytest.approx(ref.apparent_modulus_gpa, rel=1e-9)
+
+
+def test_the_platen_planes_lifting_is_the_same_on_the_device():
+    # the device takes K w on the two node planes under the upper platen, by slabs; the NumPy reference over
+    # the whole grid. Oracle: the energy and the loads of the reference, and w.K w of the element sums
+    rng = np.random.default_rng(5)
+    solid = rng.random((7, 6, 9)) < 0.6
+    model = m.voxel_model(solid, 0.1, TI, periodic=False)
+    top = np.zeros(model.shape, bool)
+    top[:, :, -1] = True
+    top = top.ravel()
+    free = np.repeat(model.active[None], 3, axis=0).astype(np.float32)
+    free[2, top] = 0
+    from implicit_scaffold.measure.mechanics_cl import StiffnessOperator
+
+    e_ref, b_ref = m._platen_planes(lambda u: m.apply_stiffness(model, u), model, 2, top, -0.02, free)
+    e_dev, b_dev = m._platen_planes(StiffnessOperator(model), model, 2, top, -0.02, free)
+    w = np.zeros((3, int(np.prod(model.shape))))
+    w[2, top] = -0.02
+    assert e_ref == pytest.approx(float(w.ravel() @ m.apply_stiffness(model, w[None])[0].ravel()), rel=1e-12)
+    assert e_dev == pytest.approx(e_ref, rel=1e-12)
+    live = np.flatnonzero(free.any(axis=0))
+    assert np.allclose(b_dev(live) * free[:, live], b_ref[:, :, live], rtol=0, atol=1e-12 * np.abs(b_ref).max())
+
+
 def test_an_energy_accuracy_bounds_the_compression_modulus():
     # oracle: the same compression to 1e-11. The modulus is the platens' work over the strain: an energy,
     # above the converged one by the solution's energy error

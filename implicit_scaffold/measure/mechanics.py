@@ -1118,13 +1118,16 @@ FAST_FLOOR = 1e-4
 ENERGY_STEPS = 4
 #: the default energy accuracy of a solve (:func:`measure`): each solution's energy error ``e.K e`` at most
 #: this share of its total energy, so the stiffness tensor's entries and the apparent modulus (energies,
-#: second order in the error) within it: the four digits the report prints, beside a voxel discretisation
-#: error of percents. Against solves to 1e-10 (``bench_mechanics.py --accuracies`` / ``--bone-accuracies``,
-#: README, Mechanics, the default stop measured), at 1e-4: the 128^3 benchmark scaffold's tensor 4.5e-5 off
-#: in 11 iterations (1e-6: 2.2e-7 in 18); the lumbar micro-CT's central 128^3, its compression modulus 2.5e-5
-#: off in 27 (7.3e-7 in 58), its kinematic tensor 2.5e-5 in 17 (1.7e-7 in 49). 1e-6 took the default cube's
-#: mechanics 134 s, 1e-4 73 s
-ACCURACY = 1e-4
+#: second order in the error) within it: under the last of the four digits the report prints, beside a voxel
+#: discretisation error of percents. Against solves to 1e-10 (``bench_mechanics.py --accuracies`` /
+#: ``--bone-accuracies``; README, Mechanics, the default stop measured), at 1e-5: the 128^3 benchmark
+#: scaffold's tensor 1.8e-6 off in 15 iterations (1e-6: 2.2e-7 in 18); the lumbar micro-CT's central 128^3,
+#: its compression 6.8e-7 off in 42 (5.9e-8 in 52), its kinematic tensor 2.1e-6 in 39 (1.7e-7 in 49); the data
+#: folder's CT at its own voxel compressed 9.6e-7 off in 194 (a throw-away script). Not 1e-4, which took the
+#: default cube's mechanics 62 s against 90 at 1e-5 and 134 at 1e-6: there that CT's compression stopped 4.8e-4
+#: off (148 iterations) under an estimate of 1.0e-4, its smallest Ritz value still far above the slow modes of
+#: ribs that hang off the load path
+ACCURACY = 1e-5
 
 
 #: the node of :func:`energy_error`'s Gauss-Radau bound, as a share of the smallest Ritz value (an upper
@@ -1739,6 +1742,48 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
 
 
 @_one_blas_thread
+def _platen_planes(op, model: VoxelModel, axis: int, top: np.ndarray, travel: float, free: np.ndarray):
+    """The lifting of the upper platen's plane alone (its nodes moved by `travel` along `axis`, every other node
+    still): (its energy ``w.K w``, pcg's right-hand side ``-F K w``, a callable of the nodes with an operator
+    that multiplies by slabs, else a whole-grid array).
+
+    ``K w`` is 0 but on the nodes of the upper platen's plane and the plane under it: with ``live_product`` it
+    is taken on those alone, by slabs (the whole grid's ``w`` and ``K w`` held 48 bytes a node before the
+    solve, its peak there: a 128^3 crop of the lumbar micro-CT, traced with the V-cycle's fine level forced
+    to slabs of 2^18 nodes, 269 MiB, 267 in the CG's iterations)."""
+    shape = model.shape
+    if not hasattr(op, "live_product"):
+        base = np.zeros((1, 3, int(np.prod(shape))))
+        base[0, axis, top] = travel
+        kb = op(base)
+        energy = float(np.einsum("cdn,cdn->", base, kb))  # not np.vdot: see pcg's dot products
+        del base
+        np.negative(kb, out=kb)
+        kb *= free  # in place (a whole-grid vector: 320 MB on the femoral shaft's grid)
+        return energy, kb
+    near = np.zeros(shape, bool)
+    plane = [slice(None)] * 3
+    plane[axis] = slice(shape[axis] - 2, None)
+    near[tuple(plane)] = True
+    near = np.flatnonzero(near.ravel() & model.active)
+    on_top = np.flatnonzero(top[near])
+    u_near = np.zeros((1, 3, near.size))
+    u_near[0, axis, on_top] = travel
+    ones = np.ones((1, near.size))
+    k_near = op.live_product(u_near, near, ones, ones)
+    energy = float(np.einsum("cdn,cdn->", u_near, k_near))
+    del u_near
+
+    def loads(nodes: np.ndarray) -> np.ndarray:
+        out = np.zeros((1, 3, nodes.size))
+        at = np.clip(np.searchsorted(nodes, near), 0, max(nodes.size - 1, 0))
+        hit = nodes[at] == near if nodes.size else np.zeros(near.size, bool)
+        out[:, :, at[hit]] = -k_near[:, :, hit]
+        return out  # masked to the free unknowns by pcg
+
+    return energy, loads
+
+
 def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, preconditioner, progress, accuracy):
     """:func:`compress` of the pieces that join both platens: (the upper platen's force in kN, the von
     Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error,
@@ -1773,32 +1818,46 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     # and to a loose tolerance in float the modulus is further off (a 128^3 crop of the lumbar
     # micro-CT at 1e-4: 2.1e-3 against 2.5e-6 in double; the default cube's 96^3 corner at an energy
     # accuracy of 1e-4: 73 iterations and 3.8e-4 off, under an estimate of 6.4e-6, against 45 and 2.8e-5)
-    # The lifting the CG corrects is the homogeneous block's solution, not the platens' planes alone: the
-    # axial strain and the material's lateral expansion, u = E x with E = diag(nu s, nu s, -s) along the axis
-    # (no lateral part under bonded platens, which hold it). It meets the platens, and a dense block's
-    # solution it is; on a scaffold the CG starts nearer (the default cube's 96^3 corner to an energy
-    # accuracy of 1e-4: 32 iterations against 45 from the planes; the lumbar micro-CT's central 128^3: 23
-    # against 27; the whole cube: 60 against 97, 29.8 s against 42.3). Its loads are an element's own in
-    # every solid voxel (an affine field differs from voxel to voxel by a translation), looked up on the
-    # live nodes pcg asks for (no whole-grid vector), and its energy is the voxels' sum in closed form.
+    # Two liftings meet the platens: their planes alone (the upper one's nodes moved by -s L, every other
+    # node still) and the homogeneous block's solution (u = E x, E = diag(nu s, nu s, -s) along the axis; no
+    # lateral part under bonded platens, which hold it). The CG corrects the one of less energy: the
+    # solution's energy is the least of every field that meets the platens, so a lifting's energy error is
+    # its energy less the solution's. The block's is the nearer on a scaffold cut flat at its ends (the
+    # default cube's 96^3 corner to an energy accuracy of 1e-4: 32 iterations against 45 from the planes;
+    # the lumbar micro-CT's central 128^3: 23 against 27; the whole cube: 60 against 97, 29.8 s against
+    # 42.3) and the solution itself on a dense block; the planes' where the platens touch little and much
+    # solid hangs off the load path (the data folder's CT at its own voxel: a piece of ribs from the block's
+    # stood at an energy error of 3.5e-2 after 737 iterations). The block's loads are an element's own in
+    # every solid voxel (an affine field differs from voxel to voxel by a translation), looked up on the live
+    # nodes pcg asks for, and its energy is the voxels' sum in closed form.
     lateral = 0.0 if bonded else mat.nu
     ue = -strain * macro[axis] + lateral * strain * sum(macro[a] for a in range(3) if a != axis)
-    fe = -(model.ke @ ue)[None]
-    lifting = np.array([ns * float(ue @ model.ke @ ue)])
-
-    def loads(nodes: np.ndarray) -> np.ndarray:
-        return element_loads(model, fe, nodes)  # masked to the free unknowns by pcg
-
+    block_energy = ns * float(ue @ model.ke @ ue)
+    planes_energy, planes_loads = _platen_planes(op, model, axis, top, -strain * length, free)
+    from_block = block_energy <= planes_energy
+    if from_block:
+        del planes_loads
+        fe = -(model.ke @ ue)[None]
+        hand = [lambda nodes: element_loads(model, fe, nodes)]  # masked to the free unknowns by pcg
+    else:
+        # handed to pcg with no name left on it here, so that pcg releases a whole-grid one once it has read
+        # its live nodes
+        hand = [planes_loads]
+        del planes_loads
+    lifting = np.array([block_energy if from_block else planes_energy])
     info = {}
-    x, iterations, res = pcg(op, precond, loads, free, scale=scale, tol=tol, maxiter=maxiter,
+    x, iterations, res = pcg(op, precond, hand.pop(), free, scale=scale, tol=tol, maxiter=maxiter,
                              progress=progress, energy=lifting, accuracy=accuracy, info=info)
     del precond  # the levels' matrices and the cycle's masks, before the whole-grid vectors below
-    u = x  # the lifting added in place: u = E x + x, the fixed unknowns E x's (x is 0 there)
-    for d in range(3):
-        stretch = -strain if d == axis else lateral * strain
-        if stretch:
-            coords = np.arange(shape[d], dtype=float).reshape([-1 if a == d else 1 for a in range(3)]) * h
-            u[0, d].reshape(shape)[...] += stretch * coords
+    u = x  # the lifting added in place (x is 0 on the fixed unknowns)
+    if from_block:
+        for d in range(3):
+            stretch = -strain if d == axis else lateral * strain
+            if stretch:
+                coords = np.arange(shape[d], dtype=float).reshape([-1 if a == d else 1 for a in range(3)]) * h
+                u[0, d].reshape(shape)[...] += stretch * coords
+    else:
+        u[0, axis, top] = -strain * length
     # the platens' work is u.K u, above the converged one by the solution's energy error e.K e (u's error
     # lies on the free unknowns, where K u* is 0): second order in it, whatever the CG started from (the
     # upper platen's reaction times its travel is that only where the CG's iterate keeps Galerkin's
