@@ -1124,9 +1124,9 @@ ENERGY_STEPS = 4
 #: scaffold's tensor 1.8e-6 off in 15 iterations (1e-6: 2.2e-7 in 18); the lumbar micro-CT's central 128^3,
 #: its compression 6.8e-7 off in 42 (5.9e-8 in 52), its kinematic tensor 2.1e-6 in 39 (1.7e-7 in 49); the data
 #: folder's CT at its own voxel compressed 9.6e-7 off in 194 (a throw-away script). Not 1e-4, which took the
-#: default cube's mechanics 62 s against 90 at 1e-5 and 134 at 1e-6: there that CT's compression stopped 4.8e-4
-#: off (148 iterations) under an estimate of 1.0e-4, its smallest Ritz value still far above the slow modes of
-#: ribs that hang off the load path
+#: default cube's mechanics (``generate --mechanics``) 61.9 s against 109.4 at 1e-5 and 136.7 at 1e-6: there
+#: that CT's compression stopped 4.8e-4 off under an estimate of 1.0e-4, two of its pieces at the estimate's
+#: first steps (4 iterations), 2.7e-4 and 1.6e-3 off under estimates of 3.4e-5 and 3.8e-5
 ACCURACY = 1e-5
 
 
@@ -1690,9 +1690,10 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
     nodes slide on them), so a homogeneous block gives its material's own modulus, the
     ideal ISO 13314 test; ``bonded=True`` holds them laterally too (no slip, the stiff end
     of the friction range). The apparent modulus is the platen force (the platens' work ``u.K u``
-    over their travel) over the box's cross-section, over the strain. The CG starts from the
-    homogeneous block's solution (the axial strain and the material's lateral strain, none under
-    bonded platens). The sliding system keeps the rigid in-plane motions: it
+    over their travel) over the box's cross-section, over the strain. The CG corrects the lifting of
+    less energy of two that meet the platens: their planes alone, or the homogeneous block's solution
+    (the axial strain and the material's lateral strain, none under bonded platens). The sliding
+    system keeps the rigid in-plane motions: it
     is singular but consistent, which CG solves (they carry no force). With `accuracy` the CG
     also stops once the solution's energy error is estimated at most that share of its energy
     (:func:`pcg`): the modulus, the platens' work, is then that close above the converged one.
@@ -1741,7 +1742,6 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
                        sum(len(ids) for _, ids, _ in crops) or 1, bool(converged))
 
 
-@_one_blas_thread
 def _platen_planes(op, model: VoxelModel, axis: int, top: np.ndarray, travel: float, free: np.ndarray):
     """The lifting of the upper platen's plane alone (its nodes moved by `travel` along `axis`, every other node
     still): (its energy ``w.K w``, pcg's right-hand side ``-F K w``, a callable of the nodes with an operator
@@ -1784,6 +1784,7 @@ def _platen_planes(op, model: VoxelModel, axis: int, top: np.ndarray, travel: fl
     return energy, loads
 
 
+@_one_blas_thread
 def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, preconditioner, progress, accuracy):
     """:func:`compress` of the pieces that join both platens: (the upper platen's force in kN, the von
     Mises strain field of `kept`'s shape, iterations, the relative residual, the estimated energy error,
