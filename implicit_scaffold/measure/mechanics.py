@@ -1124,7 +1124,7 @@ ENERGY_STEPS = 4
 #: scaffold's tensor 1.8e-6 off in 15 iterations (1e-6: 2.2e-7 in 18); the lumbar micro-CT's central 128^3,
 #: its compression 6.8e-7 off in 42 (5.9e-8 in 52), its kinematic tensor 2.1e-6 in 39 (1.7e-7 in 49); the data
 #: folder's CT at its own voxel compressed 9.6e-7 off in 194 (a throw-away script). Not 1e-4, which took the
-#: default cube's mechanics (``generate --mechanics``) 61.9 s against 109.4 at 1e-5 and 136.7 at 1e-6: there
+#: default cube's mechanics (``generate --mechanics``) 61.9 s against 101.3 at 1e-5 and 136.7 at 1e-6: there
 #: that CT's compression stopped 4.8e-4 off under an estimate of 1.0e-4, two of its pieces at the estimate's
 #: first steps (4 iterations), 2.7e-4 and 1.6e-3 off under estimates of 3.4e-5 and 3.8e-5
 ACCURACY = 1e-5
