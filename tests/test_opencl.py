@@ -263,3 +263,22 @@ def test_every_working_device_matches_the_numpy_references(small_cells):
         for a, b in zip(fields[0], other):
             assert np.abs(a - b).max() < TOL
         assert abs(p - porosity[0]) <= 1e-4
+
+
+@pytest.mark.parametrize("offset", [0, 4])
+def test_a_host_buffer_reads_the_hosts_values_aligned_or_not(offset):
+    # an aligned array is read in place, any other is copied: either way the device reads the host's values
+    # (oracle: the array itself, read back)
+    import pyopencl as cl
+
+    host = opencl.aligned_empty((1000 + offset,), np.int32)
+    assert host.ctypes.data % opencl.ALIGN == 0 and host.flags.c_contiguous
+    host[:] = np.arange(host.size, dtype=np.int32) * 7 - 3
+    view = host[offset:]  # 16 bytes past the boundary when offset is 4
+    buf = opencl.host_buffer(view)
+    back = np.empty_like(view)
+    _, queue = opencl.context()
+    cl.enqueue_copy(queue, back, buf)
+    queue.finish()
+    assert np.array_equal(back, view)
+    assert opencl.host_buffer(np.zeros(0, np.float32)).size > 0  # an empty array: a dummy, as to_device's

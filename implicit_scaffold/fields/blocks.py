@@ -103,7 +103,7 @@ def block_counts(grid: Grid, block: int) -> tuple[int, int, int]:
     return tuple(int(-(-n // block)) for n in grid.shape)
 
 
-def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float, block_range=None) -> BlockLists:
+def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float, block_range=None, empty=np.empty) -> BlockLists:
     """List each box ``[lo_i, hi_i]``, grown by `cutoff`, in every block of voxel centres it meets.
 
     Parameters
@@ -118,6 +118,9 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float, block_range=None
     block_range : (b0, b1), optional
         Only the blocks ``b0 <= bx < b1`` along x (a slab of a tiled run), numbered
         from ``b0``; their lists are those of the whole grid.
+    empty : callable
+        ``empty(n, dtype)``, the items' array (:func:`~implicit_scaffold.opencl.aligned_empty`: a device
+        reads it in place).
 
     Returns
     -------
@@ -147,6 +150,6 @@ def bin_boxes(lo, hi, grid: Grid, *, block: int, cutoff: float, block_range=None
     del per_block
     if offsets[-1] > np.iinfo(np.int32).max:
         raise OverflowError(f"{int(offsets[-1]):,} (primitive, block) pairs do not fit the kernels' int32 lists")
-    items = np.empty(int(offsets[-1]), np.int32)
+    items = empty(int(offsets[-1]), np.int32)
     fill_pairs(*args, offsets[:-1].copy(), items)
     return BlockLists(block, tuple(int(c) for c in counts), offsets.astype(np.int32), items)

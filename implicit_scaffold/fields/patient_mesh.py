@@ -481,7 +481,10 @@ def _pack_triangles(V, F, origin) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     used[F.ravel()] = True
     pad = 1e-5 * (1 + (np.abs(V[used] - origin).max() if m else 0.0))
     del used
-    data = np.zeros((m, 6, 4), np.float32)
+    # read by the device in place (opencl.host_buffer): a dense mesh's copy on the device held 96 bytes a
+    # triangle more (g2.3mf, 12.5 M triangles: 1.2 GB)
+    data = opencl.aligned_empty((m, 6, 4), np.float32)
+    data[...] = 0
     lo = np.empty((m, 3))
     hi = np.empty((m, 3))
     for a in range(0, m, PACK_CHUNK):
@@ -508,9 +511,16 @@ def block_for(triangles: int, grid: Grid) -> int:
 
 
 def _lists_on_device(lists) -> tuple:
-    """A :class:`~implicit_scaffold.fields.blocks.BlockLists`' offsets and items as device buffers; the host's
-    arrays go once copied (a dense mesh's items are some 80 bytes a triangle)."""
-    return opencl.to_device(lists.offsets, np.int32), opencl.to_device(lists.items, np.int32)
+    """A :class:`~implicit_scaffold.fields.blocks.BlockLists`' offsets and items as device buffers, and the host
+    array the items' buffer reads in place (keep it while the buffers are used): a dense mesh's items are
+    some 80 bytes a triangle, which a copy on the device held twice."""
+    return (opencl.to_device(lists.offsets, np.int32), opencl.host_buffer(lists.items)), lists.items
+
+
+def _binned(lo, hi, grid: Grid, **kwargs) -> tuple:
+    """:func:`_lists_on_device` of the boxes' :func:`~implicit_scaffold.fields.blocks.bin_boxes`, its items made
+    for the device to read in place."""
+    return _lists_on_device(bin_boxes(lo, hi, grid, empty=opencl.aligned_empty, **kwargs))
 
 
 def _tiles(grid: Grid, tile_blocks: int = 8, x_range=None, block: int = BLOCK):
@@ -558,16 +568,15 @@ def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndar
     band = BAND_VOXELS * h if band is None else float(band)
     data, lo, hi = _pack_triangles(V, F, grid.origin)
     rel = Grid((0.0, 0.0, 0.0), h, grid.shape)
-    tris = opencl.to_device(data.reshape(-1, 4))
-    del data  # the device's copy is the one read
+    tris = opencl.host_buffer(data.reshape(-1, 4))  # `data` read in place: kept to the end
     block = block_for(len(F), grid)
     nearest = np.empty(grid.shape, np.int32)
     cutoff = band
     for _ in range(2):
-        lists = _lists_on_device(bin_boxes(lo, hi, rel, block=block, cutoff=cutoff))
+        lists, held = _binned(lo, hi, rel, block=block, cutoff=cutoff)
         _run(opencl.kernel("patient", "triangle_nearest", BLOCK=block), grid, nearest, [], [*lists, tris],
              [np.float32(cutoff), np.int32(0)], block=block)
-        del lists
+        del lists, held
         far = nearest < 0
         if not far.all():
             break
@@ -589,8 +598,10 @@ def triangle_distance(V, F, grid: Grid, *, band: float | None = None) -> np.ndar
         def which(x0, x1):
             return nearest[x0:x1]
 
+    del lo, hi
     out = np.empty(grid.shape, np.float32)
     _run(opencl.kernel("patient", "triangle_distance", BLOCK=BLOCK), grid, out, [which], [tris], [])
+    del tris, data
     return out
 
 
@@ -619,15 +630,15 @@ def clamped_distance(V, F, grid: Grid, *, reach: float, x_range=None) -> np.ndar
     rel = Grid((0.0, 0.0, 0.0), grid.spacing, grid.shape)
     block = block_for(len(F), grid)
     b0, b1 = x0 // block, -(-x1 // block)
-    lists = _lists_on_device(bin_boxes(lo, hi, rel, block=block, cutoff=reach, block_range=(b0, b1)))
+    lists, held = _binned(lo, hi, rel, block=block, cutoff=reach, block_range=(b0, b1))
     del lo, hi
     cy, cz = block_counts(grid, block)[1:]
-    tris = opencl.to_device(data.reshape(-1, 4))
-    del data  # the device's copy is the one read
+    tris = opencl.host_buffer(data.reshape(-1, 4))  # `data` read in place: kept to the end
     out = np.empty((x1 - x0,) + tuple(grid.shape[1:]), np.float32)
     # one pass (triangle_clamped): the nearest triangle's distance, or `reach` where none is within it
     _run(opencl.kernel("patient", "triangle_clamped", BLOCK=block), grid, out, [], [*lists, tris],
          [np.float32(reach), np.int32(b0 * cy * cz)], x_range=(x0, x1), block=block)
+    del lists, held, tris, data
     return out
 
 

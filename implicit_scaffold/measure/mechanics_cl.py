@@ -69,11 +69,8 @@ def prebuild(variants) -> None:
         opencl.build_in_child(__name__, todo)
 
 
-#: host arrays the device reads and writes in place are aligned to this many bytes: a CPU
-#: device then uses them as its buffers (``USE_HOST_PTR``, zero copy); at any other address
-#: the Intel CPU runtime keeps a copy of its own (measured: 16-byte-aligned NumPy arrays of
-#: 400 MB doubled the resident set, 4096-byte-aligned ones added nothing)
-ALIGN = 4096
+#: host arrays the device reads and writes in place are aligned to this many bytes (:data:`opencl.ALIGN`)
+ALIGN = opencl.ALIGN
 
 
 #: arrays of at least this many bytes are taken from the pool of :func:`reusing` while one is open
@@ -183,12 +180,8 @@ def _raw(nbytes: int) -> np.ndarray:
 def aligned_empty(shape, dtype=np.float64) -> np.ndarray:
     """An uninitialised C-contiguous array whose data start on an :data:`ALIGN`-byte boundary
     (inside :func:`reusing`, maybe memory that an array dropped before held)."""
-    dtype = np.dtype(dtype)
-    shape = tuple(int(v) for v in np.atleast_1d(shape))
-    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
-    raw = _raw(nbytes)
-    start = (-raw.ctypes.data) % ALIGN
-    return raw[start:start + nbytes].view(dtype).reshape(shape)
+    nbytes = int(np.prod(np.atleast_1d(shape), dtype=np.int64)) * np.dtype(dtype).itemsize
+    return opencl.aligned_view(_raw(nbytes), shape, dtype)
 
 
 def aligned_copy(a: np.ndarray, dtype=None) -> np.ndarray:
