@@ -1566,15 +1566,11 @@ def _kinematic_loads(op, model, h: float, cases):
         pos = np.clip(np.searchsorted(touched, nodes), 0, max(touched.size - 1, 0))
         hit = touched[pos] == nodes if touched.size else np.zeros(nodes.size, bool)
         ones = np.ones((1, touched.size))
-        coords = np.unravel_index(touched, shape)
+        coords = [c * h for c in np.unravel_index(touched, shape)]
         out = np.zeros((len(cases), 3, nodes.size))
         for c, k in enumerate(cases):
             u = np.zeros((1, 3, touched.size))
-            eps = strain_tensor(k)
-            for d in range(3):
-                for j in range(3):
-                    if eps[d, j]:
-                        u[0, d] += eps[d, j] * (coords[j] * h)
+            add_strain(u[0], coords, strain_tensor(k))
             f = op.live_product(u, touched, ones, ones)
             del u
             out[c][:, hit] = -f[0][:, pos[hit]]
@@ -1584,17 +1580,28 @@ def _kinematic_loads(op, model, h: float, cases):
     return at
 
 
+def node_axes(shape, h: float) -> list:
+    """The node coordinates along each axis of a node grid of `shape` (index times `h`, mm), shaped to
+    broadcast over it."""
+    return [np.arange(n, dtype=float).reshape([-1 if a == ax else 1 for a in range(3)]) * h
+            for ax, n in enumerate(shape)]
+
+
+def add_strain(u: np.ndarray, coords, eps: np.ndarray) -> None:
+    """Add the displacements ``E x`` of the strain tensor `eps` (3, 3) to `u` (3, ...) in place, x the
+    coordinates `coords` (three arrays that broadcast over ``u[d]``, mm): no whole-grid temporary."""
+    for d in range(3):
+        for j in range(3):
+            if eps[d, j]:
+                u[d] += eps[d, j] * coords[j]
+
+
 def _affine(shape, h: float, cases) -> np.ndarray:
     """(m, 3, N) nodal displacements ``E x`` of the unit Voigt strains `cases` (x = node index times `h`)."""
-    axes = [np.arange(n, dtype=float).reshape([-1 if a == ax else 1 for a in range(3)]) * h
-            for ax, n in enumerate(shape)]
+    axes = node_axes(shape, h)
     out = np.zeros((len(cases), 3) + tuple(shape))
     for c, k in enumerate(cases):
-        eps = strain_tensor(k)
-        for d in range(3):
-            for j in range(3):
-                if eps[d, j]:
-                    out[c, d] += eps[d, j] * axes[j]
+        add_strain(out[c], axes, strain_tensor(k))
     return out.reshape(len(cases), 3, -1)
 
 
@@ -1832,6 +1839,8 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     # every solid voxel (an affine field differs from voxel to voxel by a translation), looked up on the live
     # nodes pcg asks for, and its energy is the voxels' sum in closed form.
     lateral = 0.0 if bonded else mat.nu
+    stretch = np.full(3, lateral * strain)
+    stretch[axis] = -strain
     ue = -strain * macro[axis] + lateral * strain * sum(macro[a] for a in range(3) if a != axis)
     block_energy = ns * float(ue @ model.ke @ ue)
     planes_energy, planes_loads = _platen_planes(op, model, axis, top, -strain * length, free)
@@ -1852,11 +1861,7 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     del precond  # the levels' matrices and the cycle's masks, before the whole-grid vectors below
     u = x  # the lifting added in place (x is 0 on the fixed unknowns)
     if from_block:
-        for d in range(3):
-            stretch = -strain if d == axis else lateral * strain
-            if stretch:
-                coords = np.arange(shape[d], dtype=float).reshape([-1 if a == d else 1 for a in range(3)]) * h
-                u[0, d].reshape(shape)[...] += stretch * coords
+        add_strain(u[0].reshape((3,) + tuple(shape)), node_axes(shape, h), np.diag(stretch))
     else:
         u[0, axis, top] = -strain * length
     # the platens' work is u.K u, above the converged one by the solution's energy error e.K e (u's error
