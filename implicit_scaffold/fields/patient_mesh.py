@@ -510,17 +510,12 @@ def block_for(triangles: int, grid: Grid) -> int:
     return DENSE_BLOCK if triangles >= DENSE_TRIANGLES_PER_VOXEL * float(np.prod(grid.shape)) else BLOCK
 
 
-def _lists_on_device(lists) -> tuple:
-    """A :class:`~implicit_scaffold.fields.blocks.BlockLists`' offsets and items as device buffers, and the host
-    array the items' buffer reads in place (keep it while the buffers are used): a dense mesh's items are
-    some 80 bytes a triangle, which a copy on the device held twice."""
-    return (opencl.to_device(lists.offsets, np.int32), opencl.host_buffer(lists.items)), lists.items
-
-
 def _binned(lo, hi, grid: Grid, **kwargs) -> tuple:
-    """:func:`_lists_on_device` of the boxes' :func:`~implicit_scaffold.fields.blocks.bin_boxes`, its items made
-    for the device to read in place."""
-    return _lists_on_device(bin_boxes(lo, hi, grid, empty=opencl.aligned_empty, **kwargs))
+    """The boxes' :func:`~implicit_scaffold.fields.blocks.bin_boxes` as device buffers (offsets, items), and
+    the host array the items' buffer reads in place (keep it while the buffers are used): a dense mesh's
+    items are some 80 bytes a triangle, which a copy on the device held twice."""
+    lists = bin_boxes(lo, hi, grid, empty=opencl.aligned_empty, **kwargs)
+    return (opencl.to_device(lists.offsets, np.int32), opencl.host_buffer(lists.items)), lists.items
 
 
 def _tiles(grid: Grid, tile_blocks: int = 8, x_range=None, block: int = BLOCK):
