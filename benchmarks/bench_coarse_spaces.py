@@ -1,0 +1,255 @@
+"""Issue 14 study: why the compression's CG needs more iterations than the homogenization's, and which
+multigrid would need fewer.
+
+    pip install pyamg   # the algebraic peer of this study; not a dependency of the tool
+    python benchmarks/bench_coarse_spaces.py [--size 48] [--tol 1e-7]
+
+The default cube of ``implicit-scaffold generate`` (10 mm, P = 80 %, Dp = 0.6 mm, at its own voxel) is
+built once; its corner of --size^3 voxels is compressed along z between lubricated platens (the system
+``F K F`` of :func:`~implicit_scaffold.measure.mechanics.compress`, from the homogeneous block's lifting),
+with its four lateral faces free (the ISO 13314 test) and, to tell what slows it, held. Every system is
+assembled (:func:`~implicit_scaffold.measure.mechanics.stiffness_matrix`) and solved by one and the same CG
+(SciPy's, to the relative residual --tol) with each preconditioner:
+
+- **ours**: the tool's V-cycle (:class:`~implicit_scaffold.measure.multigrid.Multigrid`, the NumPy operator in
+  double): trilinear transfers between every other node, Galerkin coarse operators, Chebyshev-Jacobi smoothing;
+- **ours + 8-colour SGS on the fine level**: the same, its fine smoothing a symmetric Gauss-Seidel sweep
+  over the nodes in 8 colours of their index parities (nodes of one colour share no voxel);
+- **our grids, SGS (Jacobi) on every level**: the same transfers and Galerkin operators as PyAMG levels,
+  with PyAMG's symmetric Gauss-Seidel (damped Jacobi, 0.8) on each;
+- **node aggregates + rigid modes (smoothed)**: each 2x2x2 block of nodes one aggregate, the six rigid
+  motions its coarse unknowns (PyAMG's tentative prolongator, then smoothed by a Jacobi step or not), the
+  deeper levels PyAMG's own aggregates, symmetric Gauss-Seidel;
+- **smoothed aggregation**: PyAMG's defaults with the six rigid motions, symmetric Gauss-Seidel (or damped
+  Jacobi).
+
+Iterations are the figure; the seconds are serial SciPy and PyAMG on a small sample, for scale only.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from benchmarks._common import table  # noqa: E402
+
+JACOBI_WEIGHT = 0.8
+
+
+def default_cube_corner(size: int) -> tuple[np.ndarray, float]:
+    """The solid of the default cube (as ``generate --mechanics`` solves it) cut to its corner of size^3."""
+    from implicit_scaffold.measure.mechanics import solid_for_solve
+    from implicit_scaffold.pipeline import generate
+
+    run = generate(output=None, mesh=False)
+    sample = solid_for_solve(run.field, run.grid, boundary="periodic")
+    return np.ascontiguousarray(sample.solid[:size, :size, :size]), float(sample.voxel)
+
+
+def compression_system(solid: np.ndarray, h: float, *, held_sides: bool):
+    """(model, free mask (3, N) float, assembled F K F, its unknowns' flat indices, right-hand side) of the
+    compression along z from the homogeneous block's lifting (no lateral part: any lifting that meets the
+    platens poses the same system)."""
+    from implicit_scaffold.measure import mechanics as m
+
+    model = m.voxel_model(m.load_path(solid, 2), h, m.material("ti64"), periodic=False)
+    shape = model.shape
+    platens = np.zeros(shape, bool)
+    platens[:, :, 0] = platens[:, :, -1] = True
+    free = np.repeat(model.active[None], 3, axis=0)
+    free[2] &= ~platens.ravel()
+    if held_sides:
+        sides = np.zeros(shape, bool)
+        sides[0] = sides[-2] = True  # the padded grid's last node plane is void: the sample's face is -2
+        sides[:, 0] = sides[:, -2] = True
+        free &= ~sides.ravel()
+    free = free.astype(np.float64)
+    lifting = np.zeros((3,) + tuple(shape))
+    m.add_strain(lifting, m.node_axes(shape, h), np.diag([0.0, 0.0, -1e-3]))
+    b = -(m.apply_stiffness(model, lifting.reshape(1, 3, -1) * model.active) * free)
+    K, dofs = m.stiffness_matrix(model, free)
+    return model, free, K.tocsr(), dofs, b.reshape(-1)[dofs]
+
+
+def cg_iterations(K, b, M, tol: float) -> tuple[int, float]:
+    import scipy.sparse.linalg as sla
+
+    count = [0]
+
+    def step(_):
+        count[0] += 1
+
+    t0 = time.perf_counter()
+    _, info = sla.cg(K, b, rtol=tol, maxiter=2000, M=M, callback=step)
+    return (count[0] if info == 0 else -1), time.perf_counter() - t0
+
+
+def rigid_modes(model, dofs: np.ndarray) -> np.ndarray:
+    """(len(dofs), 6) the three translations and three rotations on the unknowns `dofs`, mm."""
+    n = int(np.prod(model.shape))
+    comp, node = np.divmod(dofs, n)
+    x = np.array(np.unravel_index(node, model.shape), float) * model.h
+    B = np.zeros((dofs.size, 6))
+    B[np.arange(dofs.size), comp] = 1.0
+    for k, (i, j) in enumerate(((1, 2), (2, 0), (0, 1))):  # the rotation about axis k moves i by -x_j, j by x_i
+        B[:, 3 + k] = np.where(comp == i, -x[j], np.where(comp == j, x[i], 0.0))
+    return B
+
+
+def ours(model, free, dofs, fine_colours: bool, K):
+    """The tool's V-cycle on the assembled unknowns; with `fine_colours` its fine smoothing an 8-colour SGS."""
+    import scipy.sparse.linalg as sla
+
+    from implicit_scaffold.measure.mechanics import apply_stiffness, make_preconditioner
+    from implicit_scaffold.measure.multigrid import prolong, restrict
+
+    n = int(np.prod(model.shape))
+    mg = make_preconditioner("multigrid", model, lambda u: apply_stiffness(model, u), free, 1e-8)
+
+    def spread(v):
+        out = np.zeros(3 * n)
+        out[dofs] = v
+        return out.reshape(1, 3, n)
+
+    if not fine_colours:
+        return sla.LinearOperator(K.shape, lambda r: mg(spread(r)).reshape(-1)[dofs], dtype=float)
+    ijk = np.array(np.unravel_index(dofs % n, model.shape)) % 2
+    colour = ijk[0] * 4 + ijk[1] * 2 + ijk[2]
+    rows = [np.flatnonzero(colour == c) for c in range(8)]
+    blocks = [K[r] for r in rows]
+    diag = K.diagonal()
+
+    def sweep(x, b, order):
+        for c in order:
+            x[rows[c]] += (b[rows[c]] - blocks[c] @ x) / diag[rows[c]]
+
+    def cycle(b):
+        b = np.asarray(b, float).ravel()
+        x = np.zeros_like(b)
+        sweep(x, b, range(8))
+        coarse = mg._cycle(1, restrict(spread(b - K @ x), mg.fine_shape))
+        x += prolong(coarse, mg.fine_shape).reshape(-1)[dofs]
+        sweep(x, b, range(7, -1, -1))
+        return x
+
+    return sla.LinearOperator(K.shape, cycle, dtype=float)
+
+
+def our_grids(model, dofs, K, smoother, fine=None):
+    """PyAMG levels with the tool's transfers (trilinear, every other node) and Galerkin operators, `smoother` on
+    each (`fine`, if given, on the fine level)."""
+    import scipy.sparse as sp
+    from pyamg.multilevel import MultilevelSolver
+    from pyamg.relaxation.smoothing import change_smoothers
+
+    from implicit_scaffold.measure.multigrid import COARSEST_UNKNOWNS, _stencils, coarse_shape
+
+    def axis(nf):
+        parents, weights = _stencils(nf)[:2]
+        return sp.csr_matrix((weights.ravel(), (np.repeat(np.arange(nf), 2), parents.ravel())),
+                             shape=(nf, (nf + 1) // 2))
+
+    levels, A, shape, kept = [], K, tuple(model.shape), dofs
+    while A.shape[0] > COARSEST_UNKNOWNS and min(shape) >= 4:
+        P = sp.kron(sp.kron(axis(shape[0]), axis(shape[1])), axis(shape[2])).tocsr()
+        P = sp.block_diag([P] * 3).tocsr()[kept]
+        kept = np.flatnonzero(np.asarray(abs(P).sum(axis=0)).ravel() > 0)
+        P = P[:, kept].tocsr()
+        level = MultilevelSolver.Level()
+        level.A, level.P, level.R = A, P, P.T.tocsr()
+        levels.append(level)
+        A, shape = (P.T @ A @ P).tocsr(), coarse_shape(shape)
+    last = MultilevelSolver.Level()
+    last.A = A
+    ml = MultilevelSolver(levels + [last], coarse_solver="pinv")
+    if fine is not None:
+        smoother = [fine] + [smoother] * (len(levels) - 1)
+    change_smoothers(ml, presmoother=smoother, postsmoother=smoother)
+    return ml.aspreconditioner(cycle="V")
+
+
+def our_weight(K) -> float:
+    """The tool's fine smoothing as a Jacobi weight: Chebyshev degree 1 on [LOWER, UPPER] x the largest
+    eigenvalue of D^-1 K is the step 1 / theta, theta the interval's middle."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    from implicit_scaffold.measure.multigrid import LOWER, UPPER
+
+    scaled = sp.diags(1.0 / K.diagonal()) @ K
+    top = float(abs(sla.eigs(scaled, k=1, which="LM", return_eigenvectors=False)[0]))
+    return 1.0 / (0.5 * (LOWER + UPPER) * top)
+
+
+def aggregation(model, dofs, K, *, geometric: bool, smooth: bool, smoother):
+    import pyamg
+    import scipy.sparse as sp
+
+    kw = {}
+    if geometric:
+        n = int(np.prod(model.shape))
+        node = np.array(np.unravel_index(dofs % n, model.shape)) // 2
+        _, agg = np.unique(np.ravel_multi_index(tuple(node), tuple(-(-np.array(model.shape) // 2))),
+                           return_inverse=True)
+        first = sp.csr_matrix((np.ones(dofs.size), (np.arange(dofs.size), agg)), shape=(dofs.size, agg.max() + 1))
+        kw["aggregate"] = [("predefined", {"AggOp": first})] + ["standard"] * 10
+    ml = pyamg.smoothed_aggregation_solver(K, B=rigid_modes(model, dofs), max_coarse=1000,
+                                           strength=("symmetric", {"theta": 0.0}),
+                                           smooth="jacobi" if smooth else None,
+                                           presmoother=smoother, postsmoother=smoother, **kw)
+    return ml.aspreconditioner(cycle="V")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--size", type=int, default=48, help="the corner's edge, voxels")
+    parser.add_argument("--tol", type=float, default=1e-7, help="the CG's relative residual")
+    args = parser.parse_args(argv)
+    try:
+        import pyamg  # noqa: F401
+    except ImportError:
+        print("pyamg is not installed (pip install pyamg): only the tool's own rows are measured")
+        pyamg = None
+    solid, h = default_cube_corner(args.size)
+    sgs = ("gauss_seidel", {"sweep": "symmetric"})
+    jacobi = ("jacobi", {"omega": JACOBI_WEIGHT})
+    rows = []
+    for held in (False, True):
+        model, free, K, dofs, b = compression_system(solid, h, held_sides=held)
+        makers = [("ours", lambda: ours(model, free, dofs, False, K)),
+                  ("ours + 8-colour SGS on the fine level", lambda: ours(model, free, dofs, True, K))]
+        if pyamg is not None:
+            makers += [
+                ("our grids, SGS on every level", lambda: our_grids(model, dofs, K, sgs)),
+                (f"our grids, Jacobi {JACOBI_WEIGHT} on every level", lambda: our_grids(model, dofs, K, jacobi)),
+                ("our grids, ours' Jacobi on the fine level, SGS below",
+                 lambda: our_grids(model, dofs, K, sgs, fine=("jacobi", {"omega": our_weight(K)}))),
+                ("node aggregates + rigid modes, SGS", lambda: aggregation(model, dofs, K, geometric=True,
+                                                                           smooth=False, smoother=sgs)),
+                ("node aggregates + rigid modes, smoothed, SGS",
+                 lambda: aggregation(model, dofs, K, geometric=True, smooth=True, smoother=sgs)),
+                ("smoothed aggregation, SGS", lambda: aggregation(model, dofs, K, geometric=False, smooth=True,
+                                                                  smoother=sgs)),
+                (f"smoothed aggregation, Jacobi {JACOBI_WEIGHT}",
+                 lambda: aggregation(model, dofs, K, geometric=False, smooth=True, smoother=jacobi))]
+        for name, make in makers:
+            t0 = time.perf_counter()
+            M = make()
+            setup = time.perf_counter() - t0
+            its, seconds = cg_iterations(K, b, M, args.tol)
+            rows.append(["held" if held else "free", name, its if its >= 0 else "no convergence",
+                         f"{setup:.1f}", f"{seconds:.1f}"])
+            print(table(rows[-1:], ["lateral faces", "preconditioner", "CG its", "setup s", "solve s"]), flush=True)
+    print(f"\nthe default cube's {args.size}^3 corner ({K.shape[0]:,} unknowns with held faces), compressed along z, "
+          f"CG to {args.tol:g}:")
+    print(table(rows, ["lateral faces", "preconditioner", "CG its", "setup s", "solve s"]))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
