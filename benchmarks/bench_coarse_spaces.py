@@ -2,7 +2,7 @@
 multigrid would need fewer.
 
     pip install pyamg   # the algebraic peer of this study; not a dependency of the tool
-    python benchmarks/bench_coarse_spaces.py [--size 48] [--tol 1e-7]
+    python benchmarks/bench_coarse_spaces.py [--size 48] [--tol 1e-7] [--only TEXT]
 
 The default cube of ``implicit-scaffold generate`` (10 mm, P = 80 %, Dp = 0.6 mm, at its own voxel) is
 built once; its corner of --size^3 voxels is compressed along z between lubricated platens (the system
@@ -16,7 +16,8 @@ assembled (:func:`~implicit_scaffold.measure.mechanics.stiffness_matrix`) and so
 - **ours + 8-colour SGS on the fine level**: the same, its fine smoothing a symmetric Gauss-Seidel sweep
   over the nodes in 8 colours of their index parities (nodes of one colour share no voxel);
 - **our grids, SGS (Jacobi) on every level**: the same transfers and Galerkin operators as PyAMG levels,
-  with PyAMG's symmetric Gauss-Seidel (damped Jacobi, 0.8) on each;
+  with PyAMG's symmetric Gauss-Seidel (damped Jacobi, 0.8) on each, or an 8-colour symmetric Gauss-Seidel
+  (the order a device could run in parallel), or our fine Jacobi with Gauss-Seidel below;
 - **node aggregates + rigid modes (smoothed)**: each 2x2x2 block of nodes one aggregate, the six rigid
   motions its coarse unknowns (PyAMG's tentative prolongator, then smoothed by a Jacobi step or not), the
   deeper levels PyAMG's own aggregates, symmetric Gauss-Seidel;
@@ -155,7 +156,9 @@ def our_grids(model, dofs, K, smoother, fine=None):
                              shape=(nf, (nf + 1) // 2))
 
     levels, A, shape, kept = [], K, tuple(model.shape), dofs
+    colours = []
     while A.shape[0] > COARSEST_UNKNOWNS and min(shape) >= 4:
+        colours.append(colour_sweeps(A, kept, shape))
         P = sp.kron(sp.kron(axis(shape[0]), axis(shape[1])), axis(shape[2])).tocsr()
         P = sp.block_diag([P] * 3).tocsr()[kept]
         kept = np.flatnonzero(np.asarray(abs(P).sum(axis=0)).ravel() > 0)
@@ -167,10 +170,34 @@ def our_grids(model, dofs, K, smoother, fine=None):
     last = MultilevelSolver.Level()
     last.A = A
     ml = MultilevelSolver(levels + [last], coarse_solver="pinv")
+    if smoother == "colours":
+        for level, (forward, backward) in zip(ml.levels, colours):
+            level.presmoother, level.postsmoother = forward, backward
+        return ml.aspreconditioner(cycle="V")
     if fine is not None:
         smoother = [fine] + [smoother] * (len(levels) - 1)
     change_smoothers(ml, presmoother=smoother, postsmoother=smoother)
     return ml.aspreconditioner(cycle="V")
+
+
+def colour_sweeps(A, kept: np.ndarray, shape) -> tuple:
+    """(forward, backward) Gauss-Seidel sweeps ``f(A, x, b)`` over the nodes of a level in 8 colours of their
+    index parities (a node's three unknowns together; nodes of one colour share no entry of A on these grids,
+    whose operators couple neighbours at most one node apart): the order a device could run in parallel."""
+    n = int(np.prod(shape))
+    parity = np.array(np.unravel_index(kept % n, shape)) % 2
+    colour = parity[0] * 4 + parity[1] * 2 + parity[2]
+    rows = [np.flatnonzero(colour == c) for c in range(8)]
+    blocks = [A[r] for r in rows]
+    diag = A.diagonal()
+
+    def sweep(order):
+        def run(_, x, b):
+            for c in order:
+                x[rows[c]] += (b[rows[c]] - blocks[c] @ x) / diag[rows[c]]
+        return run
+
+    return sweep(range(8)), sweep(range(7, -1, -1))
 
 
 def our_weight(K) -> float:
@@ -209,6 +236,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=48, help="the corner's edge, voxels")
     parser.add_argument("--tol", type=float, default=1e-7, help="the CG's relative residual")
+    parser.add_argument("--only", default="", help="only the preconditioners whose name holds this text")
     args = parser.parse_args(argv)
     try:
         import pyamg  # noqa: F401
@@ -227,6 +255,7 @@ def main(argv=None) -> int:
             makers += [
                 ("our grids, SGS on every level", lambda: our_grids(model, dofs, K, sgs)),
                 (f"our grids, Jacobi {JACOBI_WEIGHT} on every level", lambda: our_grids(model, dofs, K, jacobi)),
+                ("our grids, 8-colour SGS on every level", lambda: our_grids(model, dofs, K, "colours")),
                 ("our grids, ours' Jacobi on the fine level, SGS below",
                  lambda: our_grids(model, dofs, K, sgs, fine=("jacobi", {"omega": our_weight(K)}))),
                 ("node aggregates + rigid modes, SGS", lambda: aggregation(model, dofs, K, geometric=True,
@@ -238,6 +267,8 @@ def main(argv=None) -> int:
                 (f"smoothed aggregation, Jacobi {JACOBI_WEIGHT}",
                  lambda: aggregation(model, dofs, K, geometric=False, smooth=True, smoother=jacobi))]
         for name, make in makers:
+            if args.only not in name:
+                continue
             t0 = time.perf_counter()
             M = make()
             setup = time.perf_counter() - t0
