@@ -4,10 +4,11 @@ multigrid would need fewer.
     pip install pyamg   # the algebraic peer of this study; not a dependency of the tool
     python benchmarks/bench_coarse_spaces.py [--size 48] [--tol 1e-7] [--only TEXT]
 
-The default cube of ``implicit-scaffold generate`` (10 mm, P = 80 %, Dp = 0.6 mm, at its own voxel) is
-built once; its corner of --size^3 voxels is compressed along z between lubricated platens (the system
-``F K F`` of :func:`~implicit_scaffold.measure.mechanics.compress`, from the homogeneous block's lifting),
-with its four lateral faces free (the ISO 13314 test) and, to tell what slows it, held. Every system is
+The default cube of ``implicit-scaffold generate`` (10 mm, P = 80 %, Dp = 0.6 mm, at its own voxel, before
+the mesh's level correction) is built once. Its corner of --size^3 voxels is compressed along z between
+lubricated platens (the system ``F K F`` of :func:`~implicit_scaffold.measure.mechanics.compress`, from the
+homogeneous block's lifting), with its four lateral faces free (the ISO 13314 test) and, to tell what slows
+it, held. Every system is
 assembled (:func:`~implicit_scaffold.measure.mechanics.stiffness_matrix`) and solved by one and the same CG
 (SciPy's, to the relative residual --tol) with each preconditioner:
 
@@ -43,7 +44,8 @@ JACOBI_WEIGHT = 0.8
 
 
 def default_cube_corner(size: int) -> tuple[np.ndarray, float]:
-    """The solid of the default cube (as ``generate --mechanics`` solves it) cut to its corner of size^3."""
+    """The solid of the default cube at its own voxel (generate's field before the mesh's level correction:
+    some 20 % solid, where ``generate --mechanics`` solves 21 %), cut to its corner of size^3."""
     from implicit_scaffold.measure.mechanics import solid_for_solve
     from implicit_scaffold.pipeline import generate
 
@@ -66,8 +68,8 @@ def compression_system(solid: np.ndarray, h: float, *, held_sides: bool):
     free[2] &= ~platens.ravel()
     if held_sides:
         sides = np.zeros(shape, bool)
-        sides[0] = sides[-2] = True  # the padded grid's last node plane is void: the sample's face is -2
-        sides[:, 0] = sides[:, -2] = True
+        sides[0] = sides[-1] = True  # n + 1 node planes: the sample's faces are the first and the last
+        sides[:, 0] = sides[:, -1] = True
         free &= ~sides.ravel()
     free = free.astype(np.float64)
     lifting = np.zeros((3,) + tuple(shape))
@@ -182,8 +184,9 @@ def our_grids(model, dofs, K, smoother, fine=None):
 
 def colour_sweeps(A, kept: np.ndarray, shape) -> tuple:
     """(forward, backward) Gauss-Seidel sweeps ``f(A, x, b)`` over the nodes of a level in 8 colours of their
-    index parities (a node's three unknowns together; nodes of one colour share no entry of A on these grids,
-    whose operators couple neighbours at most one node apart): the order a device could run in parallel."""
+    index parities (a node's three unknowns together). These grids' operators couple nodes at most one apart
+    (and across an axis' ends only through the padding's void), so nodes of one colour share no entry of A:
+    the order a device could run in parallel."""
     n = int(np.prod(shape))
     parity = np.array(np.unravel_index(kept % n, shape)) % 2
     colour = parity[0] * 4 + parity[1] * 2 + parity[2]
