@@ -198,13 +198,11 @@ def _aligned(a: np.ndarray, dtype) -> np.ndarray:
     return aligned_copy(a, dtype)
 
 
-def _shared(array, dtype, flags):
-    """A device buffer over a host array (kept alive beside it): no copy on a CPU device."""
-    import pyopencl as cl
-
-    ctx, _ = opencl.context()
+def _shared(array, dtype):
+    """(the aligned host array, a read-only device buffer over it: :func:`opencl.host_buffer`, no copy on a CPU
+    device); keep the host array beside the buffer."""
     host = _aligned(np.asarray(array).reshape(-1) if np.size(array) else np.zeros(1, dtype), dtype)
-    return host, cl.Buffer(ctx, flags | cl.mem_flags.USE_HOST_PTR, hostbuf=host)
+    return host, opencl.host_buffer(host)
 
 
 def plane_runs(planes: np.ndarray) -> list:
@@ -223,14 +221,12 @@ class _Gather:
     arrays): no device copies of the vectors, the element matrices or the solid flags."""
 
     def __init__(self, shape, owner, mats, *, double: bool, per_element: bool):
-        import pyopencl as cl
-
         self.shape = tuple(int(v) for v in shape)
         self.double = bool(double)
         self.dtype = np.float64 if self.double else np.float32
         self.per_element = int(per_element)
-        self._owner_host, self.owner = _shared(owner, np.int32 if per_element else np.uint8, cl.mem_flags.READ_ONLY)
-        self._mats_host, self.mats = _shared(mats, self.dtype, cl.mem_flags.READ_ONLY)
+        self._owner_host, self.owner = _shared(owner, np.int32 if per_element else np.uint8)
+        self._mats_host, self.mats = _shared(mats, self.dtype)
         self.n = int(np.prod(self.shape))
 
     def _launches(self, ncase: int) -> list:
@@ -443,18 +439,15 @@ class PatternLevelOperator(LevelOperator):
     """
 
     def __init__(self, level, pattern: np.ndarray, children: np.ndarray):
-        import pyopencl as cl
-
         super().__init__(level)
         pattern = np.asarray(pattern, np.uint8)
-        self._code_host, self.code = _shared(pattern, np.uint8, cl.mem_flags.READ_ONLY)
-        self._children_host, self.children = _shared(children, self.dtype, cl.mem_flags.READ_ONLY)
+        self._code_host, self.code = _shared(pattern, np.uint8)
+        self._children_host, self.children = _shared(children, self.dtype)
         # the other elements' matrices by the per-element kernel, added over the pattern's product;
         # none (a periodic solve on even axes) saves its launch
         rest = np.where(pattern.reshape(level.index.shape) == 0, level.index, -1)
         self.any_rest = bool((rest >= 0).any())
-        self._rest_host, self.rest = _shared(rest if self.any_rest else np.zeros(1, np.int32), np.int32,
-                                             cl.mem_flags.READ_ONLY)
+        self._rest_host, self.rest = _shared(rest if self.any_rest else np.zeros(1, np.int32), np.int32)
 
     #: fewer cases a launch than this run the per-element kernel alone: the 27 stencil blocks cost
     #: the same for any number of cases (64^3 first level of the 128^3 benchmark, the machine shared,
