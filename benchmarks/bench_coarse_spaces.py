@@ -62,10 +62,7 @@ def compression_system(solid: np.ndarray, h: float, *, held_sides: bool):
 
     model = m.voxel_model(m.load_path(solid, 2), h, m.material("ti64"), periodic=False)
     shape = model.shape
-    platens = np.zeros(shape, bool)
-    platens[:, :, 0] = platens[:, :, -1] = True
-    free = np.repeat(model.active[None], 3, axis=0)
-    free[2] &= ~platens.ravel()
+    free, _ = m.platen_unknowns(model, 2)
     if held_sides:
         sides = np.zeros(shape, bool)
         sides[0] = sides[-1] = True  # n + 1 node planes: the sample's faces are the first and the last

@@ -1749,6 +1749,29 @@ def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1
                        sum(len(ids) for _, ids, _ in crops) or 1, bool(converged))
 
 
+def platen_unknowns(model: VoxelModel, axis: int, bonded: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """The unknowns of a compression between platens on the box's faces normal to `axis` (:func:`compress`):
+    (free (3, N) bool, the upper platen's node plane (N,) bool). The platens hold their nodes' displacement
+    along `axis`; bonded ones, every component.
+
+    `model` is a box sample's (:func:`voxel_model`, not periodic): its first and last node planes are the
+    faces. The planes are masks: a flat index of every node would take 8 bytes a node."""
+    shape = model.shape
+    bottom, top = np.zeros(shape, bool), np.zeros(shape, bool)
+    plane = [slice(None)] * 3
+    plane[axis] = 0
+    bottom[tuple(plane)] = True
+    plane[axis] = shape[axis] - 1
+    top[tuple(plane)] = True
+    bottom, top = bottom.ravel(), top.ravel()
+    platen = bottom | top
+    free = np.repeat(model.active[None], 3, axis=0)
+    free[axis] &= ~platen
+    if bonded:
+        free &= ~platen
+    return free, top
+
+
 def _platen_planes(op, model: VoxelModel, axis: int, top: np.ndarray, travel: float, free: np.ndarray):
     """The lifting of the upper platen's plane alone (its nodes moved by `travel` along `axis`, every other node
     still): (its energy ``w.K w``, pcg's right-hand side ``-F K w``, a callable of the nodes with an operator
@@ -1799,19 +1822,7 @@ def _compress_kept(kept, h, mat, axis, strain, bonded, tol, maxiter, backend, pr
     model = voxel_model(kept, h, mat, periodic=False)
     shape = model.shape
     length = (shape[axis] - 1) * h
-    # the platens' node planes (as masks: a flat index of every node would take 8 bytes a node)
-    bottom, top = np.zeros(shape, bool), np.zeros(shape, bool)
-    plane = [slice(None)] * 3
-    plane[axis] = 0
-    bottom[tuple(plane)] = True
-    plane[axis] = shape[axis] - 1
-    top[tuple(plane)] = True
-    bottom, top = bottom.ravel(), top.ravel()
-    platen = bottom | top
-    free = np.repeat(model.active[None], 3, axis=0)
-    free[axis] &= ~platen
-    if bonded:
-        free &= ~platen
+    free, top = platen_unknowns(model, axis, bonded)
     # float32 (0 and 1 exactly), which the float32 V-cycle shares rather than copies: in float64 the
     # mask and the cycle's copy held 36 bytes a node, 936 MiB on the whole lumbar micro-CT's grid
     free = free.astype(np.float32)
