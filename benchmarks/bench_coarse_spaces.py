@@ -16,6 +16,10 @@ assembled (:func:`~implicit_scaffold.measure.mechanics.stiffness_matrix`) and so
   double): trilinear transfers between every other node, Galerkin coarse operators, Chebyshev-Jacobi smoothing;
 - **ours + 8-colour SGS on the fine level**: the same, its fine smoothing a symmetric Gauss-Seidel sweep
   over the nodes in 8 colours of their index parities (nodes of one colour share no voxel);
+- **ours assembled**: the same cycle on the assembled levels (SciPy only, no PyAMG), first as the tool runs
+  it, then with one level changed at a time, to tell where it loses iterations: a level solved directly (level 1
+  solved so, the cycle is a two-level one), a higher Chebyshev degree or 8-colour Gauss-Seidel on level 1
+  (the first coarse level), Chebyshev degree 2 or damped Jacobi in each node's 3 x 3 block on the fine level;
 - **our grids, SGS (Jacobi) on every level**: the same transfers and Galerkin operators as PyAMG levels,
   with PyAMG's symmetric Gauss-Seidel (damped Jacobi, 0.8) on each, or an 8-colour symmetric Gauss-Seidel
   (the order a device could run in parallel), or our fine Jacobi with Gauss-Seidel below;
@@ -41,6 +45,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from benchmarks._common import table  # noqa: E402
 
 JACOBI_WEIGHT = 0.8
+
+#: the rows of :func:`ours_assembled`: (what differs from the tool's cycle, its arguments)
+ASSEMBLED = [("", {}),
+             (", level 1 solved exactly (two levels)", {"exact_at": 1}),
+             (", level 2 solved exactly", {"exact_at": 2}),
+             (", Chebyshev degree 2 on level 1", {"smoothers": {1: ("chebyshev", 2)}}),
+             (", Chebyshev degree 3 on level 1", {"smoothers": {1: ("chebyshev", 3)}}),
+             (", Chebyshev degree 5 on level 1", {"smoothers": {1: ("chebyshev", 5)}}),
+             (", 8-colour SGS on level 1", {"smoothers": {1: ("colours",)}}),
+             (", Chebyshev degree 2 on the fine level", {"smoothers": {0: ("chebyshev", 2)}}),
+             (", node-block Jacobi on the fine level", {"smoothers": {0: ("node blocks",)}})]
 
 
 def default_cube_corner(size: int) -> tuple[np.ndarray, float]:
@@ -140,12 +155,11 @@ def ours(model, free, dofs, fine_colours: bool, K):
     return sla.LinearOperator(K.shape, cycle, dtype=float)
 
 
-def our_grids(model, dofs, K, smoother, fine=None):
-    """PyAMG levels with the tool's transfers (trilinear, every other node) and Galerkin operators, `smoother` on
-    each (`fine`, if given, on the fine level)."""
+def galerkin_levels(model, dofs, K) -> list:
+    """The tool's hierarchy assembled: [(A, P, node grid, kept unknowns)] from the fine level down, with the
+    tool's transfers (trilinear, every other node) and Galerkin operators ``P^T A P``; the coarsest level's P is
+    None. The unknowns kept on a level are those its prolongation reaches (flat ``d N + node`` of its grid)."""
     import scipy.sparse as sp
-    from pyamg.multilevel import MultilevelSolver
-    from pyamg.relaxation.smoothing import change_smoothers
 
     from implicit_scaffold.measure.multigrid import COARSEST_UNKNOWNS, _stencils, coarse_shape
 
@@ -154,29 +168,146 @@ def our_grids(model, dofs, K, smoother, fine=None):
         return sp.csr_matrix((weights.ravel(), (np.repeat(np.arange(nf), 2), parents.ravel())),
                              shape=(nf, (nf + 1) // 2))
 
-    levels, A, shape, kept = [], K, tuple(model.shape), dofs
-    colours = []
+    levels, A, shape, kept = [], K.tocsr(), tuple(model.shape), dofs
     while A.shape[0] > COARSEST_UNKNOWNS and min(shape) >= 4:
-        colours.append(colour_sweeps(A, kept, shape))
         P = sp.kron(sp.kron(axis(shape[0]), axis(shape[1])), axis(shape[2])).tocsr()
         P = sp.block_diag([P] * 3).tocsr()[kept]
-        kept = np.flatnonzero(np.asarray(abs(P).sum(axis=0)).ravel() > 0)
-        P = P[:, kept].tocsr()
+        coarse = np.flatnonzero(np.asarray(abs(P).sum(axis=0)).ravel() > 0)
+        P = P[:, coarse].tocsr()
+        levels.append((A, P, shape, kept))
+        A, shape, kept = (P.T @ A @ P).tocsr(), coarse_shape(shape), coarse
+    levels.append((A, None, shape, kept))
+    return levels
+
+
+def our_grids(model, dofs, K, smoother, fine=None):
+    """PyAMG levels with the tool's transfers (trilinear, every other node) and Galerkin operators, `smoother` on
+    each (`fine`, if given, on the fine level)."""
+    from pyamg.multilevel import MultilevelSolver
+    from pyamg.relaxation.smoothing import change_smoothers
+
+    built, levels = galerkin_levels(model, dofs, K), []
+    for A, P, _, _ in built:
         level = MultilevelSolver.Level()
-        level.A, level.P, level.R = A, P, P.T.tocsr()
+        level.A = A
+        if P is not None:
+            level.P, level.R = P, P.T.tocsr()
         levels.append(level)
-        A, shape = (P.T @ A @ P).tocsr(), coarse_shape(shape)
-    last = MultilevelSolver.Level()
-    last.A = A
-    ml = MultilevelSolver(levels + [last], coarse_solver="pinv")
+    ml = MultilevelSolver(levels, coarse_solver="pinv")
     if smoother == "colours":
-        for level, (forward, backward) in zip(ml.levels, colours):
-            level.presmoother, level.postsmoother = forward, backward
+        for level, (A, P, shape, kept) in zip(ml.levels, built):
+            if P is not None:
+                level.presmoother, level.postsmoother = colour_sweeps(A, kept, shape)
         return ml.aspreconditioner(cycle="V")
     if fine is not None:
-        smoother = [fine] + [smoother] * (len(levels) - 1)
+        smoother = [fine] + [smoother] * (len(levels) - 2)
     change_smoothers(ml, presmoother=smoother, postsmoother=smoother)
     return ml.aspreconditioner(cycle="V")
+
+
+def largest_eigenvalue(A, inverse) -> float:
+    """The largest eigenvalue of ``B^-1 A``, `inverse` applying ``B^-1`` (ARPACK, to 1e-3)."""
+    import scipy.sparse.linalg as sla
+
+    op = sla.LinearOperator(A.shape, lambda v: inverse(A @ v), dtype=float)
+    return float(abs(sla.eigs(op, k=1, which="LM", return_eigenvectors=False, tol=1e-3)[0]))
+
+
+def node_blocks(A, kept: np.ndarray, n: int):
+    """``B^-1`` of A's node-block diagonal (each node's coupled unknowns, up to 3 x 3) as a callable."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    node = kept % n
+    coo = A.tocoo()
+    same = node[coo.row] == node[coo.col]
+    B = sp.csc_matrix((coo.data[same], (coo.row[same], coo.col[same])), shape=A.shape)
+    return sla.splu(B).solve
+
+
+def exact_solve(A):
+    """A direct solve of a level (SuperLU), its rigid motions (the lubricated platens leave three free) held by a
+    shift of 1e-9 times the mean diagonal."""
+    import scipy.sparse as sp
+    import scipy.sparse.linalg as sla
+
+    shift = 1e-9 * float(A.diagonal().mean())
+    return sla.splu((A + shift * sp.identity(A.shape[0])).tocsc()).solve
+
+
+def ours_assembled(model, dofs, K, *, exact_at: int | None = None, smoothers: dict | None = None):
+    """The tool's V-cycle on :func:`galerkin_levels`: Chebyshev-Jacobi smoothing on ``[LOWER, UPPER]`` times each
+    level's largest eigenvalue of ``D^-1 A``, of the tool's degrees (FINE_DEGREE, FIRST_DEGREE, DEGREE), the
+    coarsest level solved by a pseudo-inverse as the tool solves it; one level changed at a time to tell where
+    the cycle loses iterations: `exact_at`, a level solved directly (:func:`exact_solve`); `smoothers`,
+    {level: ("chebyshev", degree) | ("colours",) | ("node blocks",)}, the 8-colour Gauss-Seidel sweeps of
+    :func:`colour_sweeps` (forward before the coarse correction, backward after), or damped Jacobi in the nodes'
+    3 x 3 blocks (the tool's step ``1 / theta`` on ``B^-1 A``'s largest eigenvalue)."""
+    import scipy.sparse.linalg as sla
+
+    from implicit_scaffold.measure.multigrid import DEGREE, FINE_DEGREE, FIRST_DEGREE, LOWER, UPPER, _chebyshev
+
+    levels = galerkin_levels(model, dofs, K)
+    chosen = {0: ("chebyshev", FINE_DEGREE), 1: ("chebyshev", FIRST_DEGREE)}
+    chosen.update(smoothers or {})
+    steps = []
+    for depth, (A, P, shape, kept) in enumerate(levels):
+        kind = chosen.get(depth, ("chebyshev", DEGREE))
+        if P is None or depth == exact_at:
+            if A.shape[0] <= 1000:
+                w, v = np.linalg.eigh(A.toarray())
+                keep = w > 1e-10 * w.max()
+                pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
+                steps.append(("exact", lambda b, pinv=pinv: pinv @ b))
+            else:
+                steps.append(("exact", exact_solve(A)))
+            break
+        if kind[0] == "colours":
+            steps.append(kind + (colour_sweeps(A, kept, shape),))
+            continue
+        if kind[0] == "node blocks":
+            inverse = node_blocks(A, kept, int(np.prod(shape)))
+        else:
+            d = A.diagonal()
+            inverse = (lambda v, g=1.0 / d: g * v)
+        lmax = largest_eigenvalue(A, inverse)
+        steps.append(kind + (inverse, lmax))
+
+    def smooth(depth, A, b, x):
+        kind = steps[depth]
+        if kind[0] == "colours":
+            forward, backward = kind[-1]
+            if x is None:
+                x = np.zeros_like(b)
+                forward(A, x, b)
+            else:
+                backward(A, x, b)
+            return x
+        if kind[0] == "node blocks":
+            inverse, lmax = kind[-2:]
+            s = 1.0 / ((LOWER + UPPER) / 2 * lmax)
+            return s * inverse(b) if x is None else x + s * inverse(b - A @ x)
+        degree, inverse, lmax = kind[1], kind[-2], kind[-1]
+        n = A.shape[0]
+
+        def cases(v):  # the tool's (cases, 3, nodes) layout, padded with zeros to a multiple of 3
+            out = np.zeros(3 * -(-n // 3))
+            out[:n] = v.reshape(-1)[:n]
+            return out.reshape(1, 3, -1)
+
+        y = _chebyshev(lambda v: cases(A @ v.reshape(-1)[:n]), cases(inverse(np.ones(n)))[0], lmax, cases(b),
+                       None if x is None else cases(x), degree=degree)
+        return np.asarray(y).reshape(-1)[:n]
+
+    def cycle(depth, b):
+        A, P = levels[depth][:2]
+        if steps[depth][0] == "exact":
+            return steps[depth][1](b)
+        x = smooth(depth, A, b, None)
+        x = x + P @ cycle(depth + 1, P.T @ (b - A @ x))
+        return smooth(depth, A, b, x)
+
+    return sla.LinearOperator(K.shape, lambda r: cycle(0, np.asarray(r, float).ravel()), dtype=float)
 
 
 def colour_sweeps(A, kept: np.ndarray, shape) -> tuple:
@@ -203,14 +334,9 @@ def colour_sweeps(A, kept: np.ndarray, shape) -> tuple:
 def our_weight(K) -> float:
     """The tool's fine smoothing as a Jacobi weight: Chebyshev degree 1 on [LOWER, UPPER] x the largest
     eigenvalue of D^-1 K is the step 1 / theta, theta the interval's middle."""
-    import scipy.sparse as sp
-    import scipy.sparse.linalg as sla
-
     from implicit_scaffold.measure.multigrid import LOWER, UPPER
 
-    scaled = sp.diags(1.0 / K.diagonal()) @ K
-    top = float(abs(sla.eigs(scaled, k=1, which="LM", return_eigenvectors=False)[0]))
-    return 1.0 / (0.5 * (LOWER + UPPER) * top)
+    return 1.0 / (0.5 * (LOWER + UPPER) * largest_eigenvalue(K, lambda v, g=1.0 / K.diagonal(): g * v))
 
 
 def aggregation(model, dofs, K, *, geometric: bool, smooth: bool, smoother, fine_colours: bool = False):
@@ -255,6 +381,8 @@ def main(argv=None) -> int:
         model, free, K, dofs, b = compression_system(solid, h, held_sides=held)
         makers = [("ours", lambda: ours(model, free, dofs, False, K)),
                   ("ours + 8-colour SGS on the fine level", lambda: ours(model, free, dofs, True, K))]
+        makers += [(f"ours assembled{name}", lambda kw=kw: ours_assembled(model, dofs, K, **kw))
+                   for name, kw in ASSEMBLED]
         if pyamg is not None:
             makers += [
                 ("our grids, SGS on every level", lambda: our_grids(model, dofs, K, sgs)),
