@@ -336,7 +336,8 @@ def our_weight(K) -> float:
     eigenvalue of D^-1 K is the step 1 / theta, theta the interval's middle."""
     from implicit_scaffold.measure.multigrid import LOWER, UPPER
 
-    return 1.0 / (0.5 * (LOWER + UPPER) * largest_eigenvalue(K, lambda v, g=1.0 / K.diagonal(): g * v))
+    g = 1.0 / K.diagonal()
+    return 1.0 / (0.5 * (LOWER + UPPER) * largest_eigenvalue(K, lambda v: g * v))
 
 
 def aggregation(model, dofs, K, *, geometric: bool, smooth: bool, smoother, fine_colours: bool = False):
