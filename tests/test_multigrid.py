@@ -532,6 +532,36 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
     assert all(type(getattr(level.device, "device", level.device)) is LevelOperator for level in mg.levels)
 
 
+def test_one_cases_first_level_product_is_the_masked_galerkin_product(scaffolds):
+    # the first coarse level's one-case product zeroes only the fixed unknowns a solid voxel touches: against
+    # P^T F K F P x with both masks multiplied over the whole grid (the same float operator, the same bits), and
+    # against the level's own per-element matrices (the pattern kernel: another computation, to float rounding),
+    # for a coarse x nonzero everywhere, under platens along z (the planes' z unknowns fixed) and with a face held
+    from implicit_scaffold.measure.mechanics_cl import StiffnessOperator
+
+    model = M.voxel_model(scaffolds[0.08], 0.08, MAT, periodic=False)
+    n = int(np.prod(model.shape))
+    platens, _ = M.platen_unknowns(model, 2)
+    face = np.repeat(model.active[None], 3, axis=0)
+    face[:, : model.shape[1] * model.shape[2]] = False
+    op = StiffnessOperator(model, double=False)
+    for free in (platens.astype(np.float32), face.astype(np.float32)):
+        mg = G.Multigrid(model, op, free, dtype=np.float32)
+        first = mg.levels[0].device
+        assert type(first) is G._GalerkinOneCase
+        comp, node = first.fixed
+        assert comp.size == np.count_nonzero((free == 0) & model.active[None]) > 0
+        x = np.random.default_rng(5).standard_normal((1, 3, int(np.prod(mg.levels[0].shape)))).astype(np.float32)
+        fine = G.prolong(x, model.shape)
+        fine *= free
+        want = G.restrict(op(fine), model.shape, free)
+        got = first(x)
+        assert np.array_equal(got, want)
+        pattern = first.device(x)
+        assert np.abs(got - pattern).max() <= 1e-5 * np.abs(pattern).max()
+        assert np.abs(want).max() > 0 and n == free.shape[1]
+
+
 def test_the_eigenvalue_estimate_reuses_its_products_memory():
     # a diagonal operator (D^-1 A's spectrum known: its largest entry bounds the estimate, a Ritz
     # value), with every product's output from one pool: a few buffers for the twelve products, not
