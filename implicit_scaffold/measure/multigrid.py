@@ -809,8 +809,12 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
 def fixed_touched(free: np.ndarray, touched: np.ndarray) -> tuple:
     """(components, nodes) int32 of the fixed unknowns (0 in `free`, (1, N) or (3, N)) of the nodes `touched`
     ((N,) bool: the corners of solid voxels)."""
-    fixed = (np.broadcast_to(free, (3, free.shape[-1])) == 0) & touched.reshape(1, -1)
-    return tuple(v.astype(np.int32) for v in np.nonzero(fixed))
+    touched = touched.reshape(-1)
+    rows = np.broadcast_to(free, (3, free.shape[-1]))
+    # a component at a time: one bool temporary of a byte a node, not three
+    nodes = [np.flatnonzero((rows[d] == 0) & touched).astype(np.int32) for d in range(3)]
+    comps = [np.full(v.size, d, np.int32) for d, v in enumerate(nodes)]
+    return np.concatenate(comps), np.concatenate(nodes)
 
 
 class _GalerkinOneCase:
