@@ -183,9 +183,19 @@ def test_programs_not_built_on_this_machine_are_compiled_in_a_child(monkeypatch,
     # a compile loads the runtime's compiler into the process (+152 MiB measured), which a solve's memory
     # estimate does not count: a measure's programs not built on this machine yet are built by a child, and
     # this process loads their binaries from the cache
+    import shutil
+
     from implicit_scaffold.measure import mechanics_cl
 
+    opencl.context()  # this process's device, chosen (and its probes cached) before the cache moves
+    probes = list(opencl.cache_dir().glob("devices-*.json"))
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    # the child reads the same probes, so it builds for this process's device: probing again, it would choose
+    # by its own timing, and two devices can be near (Intel's runtime 38.1 and PoCL 35.4 Mvoxel/s on one
+    # machine; a CI run, 2026-12-07, had the child build for the other one, and this process compiled)
+    opencl.cache_dir().mkdir(parents=True, exist_ok=True)
+    for path in probes:
+        shutil.copy(path, opencl.cache_dir() / path.name)
     monkeypatch.setattr(opencl, "_COMPILED", [])
     # defines of their own: builds, not this process's programs kept from an earlier test
     mine = [dict(NCASE=1, USE_DOUBLE=0, CHILD=1), dict(NCASE=2, USE_DOUBLE=0, CHILD=1)]
