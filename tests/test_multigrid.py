@@ -535,7 +535,8 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
 def test_one_cases_first_level_product_is_the_masked_galerkin_product(scaffolds):
     # the first coarse level's one-case product zeroes only the fixed unknowns a solid voxel touches: against
     # P^T F K F P x with both masks multiplied over the whole grid (the same float operator, the same bits), and
-    # against the level's own per-element matrices (the pattern kernel: another computation, to float rounding),
+    # against the level's own per-element matrices (its device product, for one case the per-element kernel:
+    # another computation, to float rounding),
     # for a coarse x nonzero everywhere, under platens along z (the planes' z unknowns fixed) and with a face held
     from implicit_scaffold.measure.mechanics_cl import StiffnessOperator
 

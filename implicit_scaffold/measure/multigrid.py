@@ -826,7 +826,7 @@ class _GalerkinOneCase:
     gather a matrix per node, where the fine operator runs in full vectors on one constant matrix. On the
     default 10 mm cube's 193^3 grid (97^3 level, one case, medians of 7, a throw-away script) 56.4 ms against
     80.6, the two within 3.6e-7 of each other (float32); on another machine of the same kind (2026-12-07, medians
-    of 9) the pattern kernel was the faster, 60.5 ms against 99.3 (79.3 and 77.1 after the change below): which
+    of 9) the level's own kernel was the faster, 60.5 ms against 99.3 (79.3 and 77.1 after the change below): which
     one wins depends on the machine. Only where the fine level is not cut into slabs
     (:func:`fine_slab_planes`): the fine vectors are whole grids, one case's.
 
