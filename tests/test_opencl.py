@@ -86,6 +86,19 @@ def test_the_default_is_the_fastest_and_the_variable_picks_any_working_device():
     assert opencl.choose(checks, "AMD EPYC:1").position == (3, 0)
 
 
+def test_devices_within_the_probes_noise_of_the_fastest_give_the_first_found():
+    # two runtimes on one CPU probe near each other, and which is faster moves with the load: the first found of
+    # those near the fastest is used, whichever of them timed faster; one clearly faster is used wherever it is
+    platforms = _fake_platforms()
+    top = 38.1
+    near = top * (1 - opencl.PROBE_NOISE) * 1.01
+    far = top * (1 - opencl.PROBE_NOISE) * 0.99
+    for rates, want in (({0: top, 3: near}, (0, 0)), ({0: near, 3: top}, (0, 0)),
+                        ({0: far, 3: top}, (3, 0)), ({0: top, 3: far}, (0, 0))):
+        probe, _ = _probe(rates)
+        assert opencl.choose(opencl.check_devices(platforms, probe)).position == want, rates
+
+
 def test_a_named_device_that_failed_or_does_not_exist_is_refused_in_one_line():
     probe, _ = _probe({3: 20.0})
     checks = opencl.check_devices(_fake_platforms(), probe)
