@@ -133,23 +133,15 @@ def ours(model, free, dofs, fine_colours: bool, K):
 
     if not fine_colours:
         return sla.LinearOperator(K.shape, lambda r: mg(spread(r)).reshape(-1)[dofs], dtype=float)
-    ijk = np.array(np.unravel_index(dofs % n, model.shape)) % 2
-    colour = ijk[0] * 4 + ijk[1] * 2 + ijk[2]
-    rows = [np.flatnonzero(colour == c) for c in range(8)]
-    blocks = [K[r] for r in rows]
-    diag = K.diagonal()
-
-    def sweep(x, b, order):
-        for c in order:
-            x[rows[c]] += (b[rows[c]] - blocks[c] @ x) / diag[rows[c]]
+    forward, backward = colour_sweeps(K, dofs, model.shape)
 
     def cycle(b):
         b = np.asarray(b, float).ravel()
         x = np.zeros_like(b)
-        sweep(x, b, range(8))
+        forward(K, x, b)
         coarse = mg._cycle(1, restrict(spread(b - K @ x), mg.fine_shape))
         x += prolong(coarse, mg.fine_shape).reshape(-1)[dofs]
-        sweep(x, b, range(7, -1, -1))
+        backward(K, x, b)
         return x
 
     return sla.LinearOperator(K.shape, cycle, dtype=float)
