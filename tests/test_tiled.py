@@ -119,9 +119,6 @@ def test_bad_memory_sizes(text):
 
 
 def test_what_a_tiled_run_cannot_do_is_refused_before_the_work(tmp_path):
-    from implicit_scaffold.fields.patient_mesh import MeshPatient
-    import trimesh
-
     with pytest.raises(ScaffoldError, match=r"pass --max-memory [\d.]+[MG] or more"):
         generate(output=tmp_path / "a.npy", mesh=False, max_memory="1M", **SMALL)
     assert not list(tmp_path.iterdir())
@@ -424,10 +421,7 @@ def test_a_patients_slabs_keep_the_budget_and_leave_nothing_behind(tmp_path):
     run's peak resident set stays within it; and no slab leaves its primitives behind for the
     next (they sat beside the next slab's skeleton, uncounted, and took the L3 vertebra 0.2 GiB
     over 4 GiB): the process holds the same as every slab starts, the first's kernels loaded."""
-    import json
     import re
-    import subprocess
-    import sys
 
     def run(budget):
         return _run_fresh(tmp_path / "a.npy", budget)

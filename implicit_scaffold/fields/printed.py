@@ -17,7 +17,6 @@ what was written (the mesh's volume, the stack's grey levels), never assumed.
 """
 from __future__ import annotations
 
-import math
 
 import numpy as np
 

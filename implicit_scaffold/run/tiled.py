@@ -30,7 +30,7 @@ import numpy as np
 
 from ..errors import ScaffoldError
 from .executor import InProcess, Processes
-from ..fields.field import blend_field, level_between, scaffold_field, solid_voxels, void_mask
+from ..fields.field import level_between, scaffold_field, solid_voxels, void_mask
 from .grid import Grid
 from .memory import release
 from .tiles import ArraySlabs, FieldFile, Slab, SlabComponents, StreamQuantile, blend_halo, level_ranks, \
