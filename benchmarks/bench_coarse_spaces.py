@@ -260,8 +260,8 @@ def ours_assembled(model, dofs, K, *, exact_at: int | None = None, smoothers: di
         if kind[0] == "node blocks":
             inverse = node_blocks(A, kept, int(np.prod(shape)))
         else:
-            d = A.diagonal()
-            inverse = (lambda v, g=1.0 / d: g * v)
+            def inverse(v, g=1.0 / A.diagonal()):
+                return g * v
         lmax = largest_eigenvalue(A, inverse)
         steps.append(kind + (inverse, lmax))
 

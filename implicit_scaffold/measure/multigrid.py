@@ -1215,7 +1215,6 @@ class Multigrid:
         c_plane = cshape[1] * cshape[2]
         transfer = _kernels()[2]
         along = [_stencils(n2), _stencils(n3)]
-        rows = self.free.shape[0]
         rc = aligned_empty((m, 3, cshape[0] * c_plane), self.dtype)
         rc.fill(0)
         for c in range(m):
