@@ -520,8 +520,8 @@ def device() -> Device:
 #: seconds spent building programs in this process
 BUILD_SECONDS: dict = {}
 
-#: defines a program's caller takes from the device (the same on one machine): a built marker leaves them out,
-#: so that it can be read before the device is chosen (:func:`unbuilt`)
+#: defines a program's caller takes from the device: a built marker leaves them out, since it names the device
+#: (:func:`unbuilt` is asked before a caller reads them)
 DEVICE_DEFINES = ("VOTE",)
 #: set when this process has compiled a program (a miss of the binary cache: the runtime's compiler is loaded)
 _COMPILED: list = []
@@ -529,15 +529,36 @@ _COMPILED: list = []
 BUILD_TIMEOUT = 900.0
 
 
-def _built_marker(name: str, defines: dict) -> Path:
-    """The file that says ``kernels/<name>.cl`` with `defines` was built on this machine, by these kernels,
-    this PyOpenCL and this Python (:func:`_program` writes it): read without loading any OpenCL library."""
+def _device_identity(platform: str, platform_version: str, device: str, driver_version: str) -> str:
+    """One device's name in the built markers: what the loader reports of it and of its platform."""
+    return f"{platform}|{platform_version}|{device}|{driver_version}"
+
+
+def _context_identity(ctx) -> str:
+    d = ctx.devices[0]
+    return _device_identity(d.platform.name, d.platform.version, d.name, d.driver_version)
+
+
+def build_device() -> DeviceCheck | None:
+    """The device this process builds for: the active one (:func:`context`, or :class:`using`'s), else the one
+    it would choose (:func:`chosen`); None when the active device is not among the probed ones (a probe's)."""
+    if _ACTIVE:
+        return next((c for c in device_checks() if tuple(c.position) == tuple(_ACTIVE["position"])), None)
+    return chosen()
+
+
+def _built_marker(name: str, defines: dict, identity: str) -> Path:
+    """The file that says ``kernels/<name>.cl`` with `defines` was built on this machine for the device
+    `identity` (:func:`_device_identity`), by these kernels, this PyOpenCL and this Python (:func:`_program`
+    writes it). The device is in it: a binary is one device's, and a process whose device changed (one
+    :data:`PROBE_NOISE` faster appeared, or ``IMPLICIT_SCAFFOLD_DEVICE`` names another) found its variants
+    marked built, and compiled them in place, with the compiler's memory."""
     from importlib.metadata import version
 
     kept = sorted((k, int(v)) for k, v in defines.items() if k not in DEVICE_DEFINES)
     h = hashlib.sha256()
     h.update(f"{name}\n{kept}\n{version('pyopencl')}\n{sys.version}\n{_cpu_identity()}\n{BUILD_OPTIONS}\n"
-             f"{os.environ.get(DEVICE_ENV, '')}\n".encode())
+             f"{identity}\n".encode())
     _hash_kernels(h)
     return _built_dir() / h.hexdigest()[:24]
 
@@ -549,8 +570,20 @@ def _built_dir() -> Path:
 
 def unbuilt(name: str, variants) -> list:
     """The `variants` (dicts of ``-D`` defines; the device's, :data:`DEVICE_DEFINES`, may be left out) of
-    ``kernels/<name>.cl`` not built on this machine yet: their build would compile, not load a binary."""
-    return [d for d in variants if not _built_marker(name, d).exists()]
+    ``kernels/<name>.cl`` not built on this machine for :func:`build_device` yet: their build would compile,
+    not load a binary."""
+    check = build_device()
+    if check is None:
+        return list(variants)
+    identity = _device_identity(check.platform, check.platform_version, check.device, check.driver_version)
+    return [d for d in variants if not _built_marker(name, d, identity).exists()]
+
+
+def _device_spec(check: DeviceCheck) -> str:
+    """An ``IMPLICIT_SCAFFOLD_DEVICE`` value that names `check` alone (:func:`choose`)."""
+    text = re.sub(r"\s+", " ", f"{check.platform} {check.platform_version} {check.device}").strip()
+    same = [c for c in device_checks() if c.position[1] >= 0 and c.matches(text)]
+    return f"{text}:{[tuple(c.position) for c in same].index(tuple(check.position))}"
 
 
 def build_in_child(module: str, variants) -> bool:
@@ -571,10 +604,16 @@ def build_in_child(module: str, variants) -> bool:
         return False
     if not os.access(folder, os.W_OK):
         return False
+    check = build_device()
+    if check is None:
+        return False
     cmd = [sys.executable, "-m", module, json.dumps(list(variants))]
+    # the child builds for this process's device, which it names: a device of :class:`using`'s, or of this
+    # process's choice where a child probing afresh could choose another (:data:`PROBE_NOISE`)
+    env = {**os.environ, "PYTHONWARNINGS": "ignore", DEVICE_ENV: _device_spec(check)}
     try:
-        run = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT,
-                             env={**os.environ, "PYTHONWARNINGS": "ignore"}, stdin=subprocess.DEVNULL)
+        run = subprocess.run(cmd, capture_output=True, text=True, timeout=BUILD_TIMEOUT, env=env,
+                             stdin=subprocess.DEVNULL)
     except (OSError, subprocess.TimeoutExpired):
         return False
     return run.returncode == 0
@@ -638,7 +677,7 @@ def _program(ctx, name: str, defines: tuple):
         _COMPILED.append(True)
     if folder is not None:  # its binary is in the cache: a later build loads it
         try:
-            marker = _built_marker(name, dict(defines))
+            marker = _built_marker(name, dict(defines), _context_identity(ctx))
             if not marker.exists():
                 _write_atomic(marker, "")
         except OSError:

@@ -2,6 +2,7 @@
 and every device that works on this machine against the NumPy references."""
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 
@@ -97,6 +98,21 @@ def test_devices_within_the_probes_noise_of_the_fastest_give_the_first_found():
                         ({0: far, 3: top}, (3, 0)), ({0: top, 3: far}, (0, 0))):
         probe, _ = _probe(rates)
         assert opencl.choose(opencl.check_devices(platforms, probe)).position == want, rates
+
+
+def test_a_devices_spec_names_it_alone_among_devices_of_the_same_name(monkeypatch):
+    # a build child is told its parent's device by IMPLICIT_SCAFFOLD_DEVICE: two devices of one name (two of one
+    # GPU), and a name inside another's ("AMD EPYC" in "pthread-AMD EPYC"), each chosen by its own spec
+    platforms = _fake_platforms()
+    platforms[0]._devices = [FakeDevice("pthread-AMD EPYC"), FakeDevice("pthread-AMD EPYC")]
+    platforms[3]._devices = [FakeDevice("AMD EPYC"), FakeDevice("AMD EPYC")]
+    probe, _ = _probe({0: 10.0, 3: 30.0})
+    checks = opencl.check_devices(platforms, probe)
+    monkeypatch.setattr(opencl, "device_checks", lambda: tuple(checks))
+    working = [c for c in checks if c.ok]
+    assert len(working) == 4
+    for c in working:
+        assert opencl.choose(checks, opencl._device_spec(c)).position == c.position
 
 
 def test_a_named_device_that_failed_or_does_not_exist_is_refused_in_one_line():
@@ -224,6 +240,39 @@ def test_programs_not_built_on_this_machine_are_compiled_in_a_child(monkeypatch,
     alone = dict(NCASE=1, USE_DOUBLE=0, CHILD=2)
     opencl.program("mechanics", VOTE=0, **alone)
     assert opencl._COMPILED and opencl.unbuilt("mechanics", [alone]) == []
+
+
+def test_a_built_marker_is_one_devices(monkeypatch, tmp_path):
+    # a binary is one device's: variants built for this process's device are not built for another, whose
+    # process has a child build them; with two working devices here, a child builds for the device of `using`
+    # (whether this process then loads a binary is the runtime's: PyOpenCL leaves PoCL's to PoCL's own cache)
+    import shutil
+
+    from implicit_scaffold.measure import mechanics_cl
+
+    opencl.context()
+    probes = list(opencl.cache_dir().glob("devices-*.json"))
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    opencl.cache_dir().mkdir(parents=True, exist_ok=True)
+    for path in probes:
+        shutil.copy(path, opencl.cache_dir() / path.name)
+    mine = [dict(NCASE=1, USE_DOUBLE=0, CHILD=3)]
+    opencl.program("mechanics", VOTE=int(mechanics_cl.has_vote()), **mine[0])
+    assert opencl.unbuilt("mechanics", mine) == []
+    here = opencl.build_device()
+    other = dataclasses.replace(here, device=here.device + " (another)")
+    monkeypatch.setattr(opencl, "build_device", lambda: other)
+    assert opencl.unbuilt("mechanics", mine) == mine
+    monkeypatch.undo()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    rest = [c for c in opencl.working_devices() if c.position != here.position]
+    if not rest:
+        return
+    with opencl.using(rest[0]):
+        assert opencl.unbuilt("mechanics", mine) == mine
+        # the child marks what it built for the device its context holds: this one, which it was told
+        mechanics_cl.prebuild(mine)
+        assert opencl.unbuilt("mechanics", mine) == []
 
 
 def test_a_cache_folder_that_cannot_be_made_leaves_the_build_uncached(monkeypatch, tmp_path):
