@@ -126,6 +126,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="count porosity inside this patient, as generate does: a patient mesh or volume, or the "
                         "run's .json report (its patient, on its grid; then --voxel may be left out); default: "
                         "the mesh's bounding box")
+    _add_measure_budget(a, "the measures")
     a.add_argument("-o", "--output", metavar="JSON", default=None, help="write the measures as JSON")
     a.add_argument("--report", metavar="HTML", default=None,
                    help="also write a visual report: picture, section, histograms, measures")
@@ -140,6 +141,7 @@ def build_parser() -> argparse.ArgumentParser:
                           "CT with --threshold")
     c.add_argument("--printer", required=True, metavar="NAME",
                    help=", ".join(_printer_names()) + ", or custom:min_strut=MM,min_throat=MM,...")
+    _add_measure_budget(c, "the certificate")
     c.add_argument("-o", "--output", metavar="JSON", default=None, help="write the certificate as JSON")
     c.add_argument("--require-printable", action="store_true",
                    help="exit with code 3 (after writing the certificate) when it fails")
@@ -275,6 +277,14 @@ def _only_with(options: list, what: str, needed: str) -> str:
     many = len(options) > 1
     return (f"{', '.join(options)} {'apply' if many else 'applies'} to {what}; add {needed} or drop "
             f"{'them' if many else 'it'}")
+
+
+def _add_measure_budget(parser, what: str) -> None:
+    parser.add_argument("--max-memory", default=None, metavar="SIZE",
+                        help="memory the run may hold, e.g. 4G or 800M (default: 4G, or 80%% of the free memory when "
+                             f"less); a binary STL's read is checked before it is read, {what} on the grid before "
+                             "they start; a refusal names the budget (and the voxel, where --voxel sets it) that "
+                             "would do")
 
 
 def _check_json_output(args) -> None:
@@ -598,13 +608,14 @@ def _certificate_lines(cert: dict) -> list[str]:
 
 def _check(args) -> int:
     from .measure.morphometry import read_scaffold
-    from .measure.printability import certificate, printer_profile
+    from .measure.printability import certificate, certificate_memory, printer_profile
+    from .run.memory import budget
 
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)
     _check_json_output(args)
     scaffold = read_scaffold(args.file, voxel=args.voxel, spacing=args.spacing, label=args.label, mesh_field=True,
-                             threshold=args.threshold)
+                             threshold=args.threshold, max_memory=budget(args.max_memory), work=certificate_memory())
     cert = certificate(scaffold.solid, scaffold.voxel, profile, field=scaffold.field, region=scaffold.region,
                        origin=scaffold.origin, exact_distance=scaffold.exact_distance)
     cert.update({"source": Path(args.file).name, "region": scaffold.region_name,
@@ -984,13 +995,14 @@ def analyze_table(report: dict) -> str:
 
 def _analyze(args) -> int:
     from .measure.morphometry import analyze_file
+    from .run.memory import budget
 
     t0 = time.perf_counter()
     _check_json_output(args)
     if args.report is not None:
         _check_report(args.report)
     result = analyze_file(args.file, voxel=args.voxel, spacing=args.spacing, region=args.region, label=args.label,
-                          threshold=args.threshold)
+                          threshold=args.threshold, max_memory=budget(args.max_memory))
     r = result.report
     r["timings_s"] = {"analyze": round(time.perf_counter() - t0, 4)}
     if args.output is not None:

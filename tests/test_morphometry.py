@@ -870,3 +870,84 @@ def test_a_ply_of_another_layout_is_left_to_trimesh(tmp_path):
     assert M._read_ply(path) is None
     v, f = M.read_mesh_arrays(path)  # trimesh's read, closed and outward
     assert len(f) == len(mesh.faces)
+
+
+# --------------------------------------------------------------------------- the measures' memory
+
+
+def test_a_measure_over_its_budget_is_refused_naming_a_budget_and_a_voxel_that_fit():
+    from implicit_scaffold.measure.mechanics import held_margin
+    from implicit_scaffold.run.memory import parse_memory
+
+    mib = 2**20
+    work = M.MeasureMemory("the test", 40 * mib, 32)
+    extent, voxel, held, total = 10.0, 0.05, 60 * mib, 200 * mib
+    shape = (200, 200, 200)
+    # its need by hand: the larger of what the process holds and the fixed part, and 32 bytes a voxel
+    assert work.need(200**3, held) == 60 * mib + 32 * 200**3
+    with pytest.raises(ScaffoldError) as err:
+        M.check_measure_memory(work, "s.stl", shape, voxel, held, total, coarser=True)
+    text = str(err.value)
+    named = re.search(r"use --max-memory (\S+) or --voxel (\S+)$", text)
+    assert named and "\n" not in text and "200x200x200" in text, text
+    assert parse_memory(named.group(1)) >= 60 * mib + 32 * 200**3 + held_margin(held)
+    assert err.value.budget >= work.need(200**3, held)
+    # the voxel named fits the budget on the same extent, and one a tenth finer does not
+    fit = float(named.group(2))
+    for h, fits in ((fit, True), (fit * 0.9, False)):
+        n = math.ceil(extent / h)
+        assert (work.need(n**3, held) + held_margin(held) <= total) == fits, (h, n)
+    # a field's voxel is its own: only a budget is named; a grid that fits passes
+    with pytest.raises(ScaffoldError, match=r"use --max-memory \S+$"):
+        M.check_measure_memory(work, "s.npy", shape, voxel, held, total, coarser=False)
+    M.check_measure_memory(work, "s.npy", (100, 100, 100), voxel, held, total, coarser=False)
+
+
+def _gyroid_field(path, n):
+    x = np.linspace(0, 2 * np.pi * 2, n, dtype=np.float32)
+    X, Y, Z = np.meshgrid(x, x, x, indexing="ij", sparse=True)
+    g = np.sin(X) * np.cos(Y) + np.sin(Y) * np.cos(Z) + np.sin(Z) * np.cos(X)
+    np.save(path, (np.abs(g) - 0.6).astype(np.float32))
+    return path
+
+
+# the process's own peak: VmHWM, its memory's high-water mark (getrusage's keeps the parent's from before exec:
+# a child of this test process read 446 MiB where the same command run from a shell read 311)
+PEAK = ("import sys\nfrom implicit_scaffold.cli import main\ncode = main(sys.argv[1:])\n"
+        "hwm = [ln for ln in open('/proc/self/status') if ln.startswith('VmHWM')][0].split()[1]\n"
+        "print('PEAK', int(hwm) * 1024, code)\n")
+
+
+@pytest.mark.parametrize("command", ["analyze", "check"])
+def test_the_measures_peak_lies_under_its_estimate_and_a_refusal_names_what_fits(command, tmp_path, capsys):
+    # the estimate (MeasureMemory) is the budget's word for the measure: a fresh process's own peak stays under it;
+    # a budget under it is refused in one line, before the measure, naming the budget that runs it
+    import subprocess
+    import sys
+
+    from implicit_scaffold.cli import main
+    from implicit_scaffold.measure.printability import certificate_memory
+    from implicit_scaffold.run.memory import parse_memory
+
+    n = 200
+    src = _gyroid_field(tmp_path / "g.npy", n)
+    work = M.ANALYSIS_MEMORY if command == "analyze" else certificate_memory()
+    extra = ["--printer", "lpbf-ti64"] if command == "check" else []
+    argv = [command, str(src), "--voxel", "0.05", "-q", "-o", str(tmp_path / "r.json")] + extra
+    run = subprocess.run([sys.executable, "-c", PEAK] + argv, capture_output=True, text=True, timeout=600)
+    peak, code = run.stdout.split("PEAK")[-1].split()
+    assert code == "0", run.stderr
+    assert int(peak) <= work.need(n**3, 0), (int(peak) / 2**20, work.need(n**3, 0) / 2**20)
+    measured = []
+    real = M.morphometry
+    M.morphometry = lambda *a, **k: measured.append(1) or real(*a, **k)
+    try:
+        assert main(argv + ["--max-memory", "1M"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err and not measured, err
+        named = re.search(r"needs about \S+, over --max-memory \S+; use --max-memory (\S+)$", err.strip())
+        assert named, err
+        assert parse_memory(named.group(1)) >= work.need(n**3, 0)
+        assert main(argv + ["--max-memory", named.group(1)]) == 0, capsys.readouterr().err
+    finally:
+        M.morphometry = real

@@ -949,7 +949,8 @@ def load_region(path):
     return patient, grid, f"the patient of {path.name} ({Path(source['file']).name})"
 
 
-def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, threshold=None) -> Analysis:
+def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, threshold=None,
+                 max_memory: int | None = None) -> Analysis:
     """Voxel morphometry of a scaffold mesh or a volume file (binary, a label map or a CT).
 
     Parameters
@@ -974,6 +975,10 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         Mesh only: count porosity inside this patient (a mesh or volume file, or the JSON
         report of the run that built the scaffold: its patient, on its grid), as generate
         does. By default the region is the mesh's bounding box (the report says so).
+    max_memory : int, optional
+        Bytes the run may hold: a binary STL's read, and the measures on the grid, are checked against it
+        before the work (:data:`ANALYSIS_MEMORY`), and refused in one line that names the budget (and where
+        the voxel can be chosen, the voxel) that would do.
 
     Returns
     -------
@@ -1003,7 +1008,8 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         if spacing is not None and suffix in MESH_SUFFIXES:
             raise ScaffoldError("--spacing applies to a volume; a mesh is voxelised at --voxel")
         # generate's own field (its report beside it) over its run's patient, as read_scaffold reads it for check
-        scaffold = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold)
+        scaffold = read_scaffold(path, voxel=voxel, spacing=spacing, label=label, threshold=threshold,
+                                 max_memory=max_memory, work=ANALYSIS_MEMORY)
         solid, step = scaffold.solid, scaffold.voxel
         grid = Grid(scaffold.origin, step, solid.shape)  # where the file places its voxels (read_scaffold's)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
@@ -1018,7 +1024,8 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
                                 "(the report beside it), else its grid")
         if spacing is not None:
             raise ScaffoldError("--spacing applies to a volume; a .npy field's voxel comes from its report or --voxel")
-        scaffold = read_scaffold(path, voxel=voxel, label=label, threshold=threshold)
+        scaffold = read_scaffold(path, voxel=voxel, label=label, threshold=threshold, max_memory=max_memory,
+                                 work=ANALYSIS_MEMORY)
         grid = Grid(scaffold.origin, scaffold.voxel, scaffold.solid.shape)
         check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
         # over the region read_scaffold names (its run's patient, when its report is beside it), not the grid
@@ -1041,6 +1048,12 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     beside = run_grid_beside(path, voxel) if run_grid is None else None
     # the arrays, not a trimesh: a binary STL read by numpy, and the measures and bodies from them (trimesh's mesh
     # of the default cube's 5.2 M triangles and its caches took the run to a 3.4 GB peak)
+    triangles = binary_stl_triangles(path) if max_memory is not None else None
+    if triangles:
+        from ..run.memory import release
+
+        held = release()
+        check_mesh_read(path.name, triangles, 0 if beside is None else int(np.prod(beside.shape)), held, max_memory)
     mesh = SurfaceArrays(*read_mesh_arrays(path))
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     if voxel is None and run_grid is None and beside is None:
@@ -1054,6 +1067,13 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         own = beside if run_grid is None else (run_grid if voxel is None else None)
         grid = own if own is not None else Grid.covering(patient.lo, patient.hi, voxel)
         voxel = grid.spacing
+    if max_memory is not None:
+        from ..run.memory import process_memory
+
+        if triangles:
+            check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory)
+        check_measure_memory(ANALYSIS_MEMORY, path.name, grid.shape, float(voxel), process_memory(), max_memory,
+                             coarser=grid is not beside and (patient is None or grid is not run_grid))
     check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
     solid = voxelize(mesh.vertices, mesh.faces, grid)
     if patient is None:
@@ -1228,7 +1248,7 @@ def run_grid_beside(path, voxel=None):
 
 
 def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None, mesh_field: bool = False,
-                  region: bool = True, max_memory: int | None = None) -> Scaffold:
+                  region: bool = True, max_memory: int | None = None, work: MeasureMemory | None = None) -> Scaffold:
     """Read a scaffold as voxels: a closed mesh (voxelised at `voxel`), a ``.npy`` signed distance
     written by ``generate`` (the run's JSON beside it gives the voxel, origin and patient), or a
     volume: binary (solid = non-zero), or a label map's `label` or a CT's intensities from
@@ -1244,7 +1264,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     moved nothing).
 
     With `max_memory` (bytes), a binary STL's read and voxels are checked against it before the work
-    (:func:`check_mesh_read`): before the file is read, and once its bounds give the grid.
+    (:func:`check_mesh_read`): before the file is read, and once its bounds give the grid. With `work` too,
+    the measure that follows is (:func:`check_measure_memory`): a mesh's with its read, once its grid is known,
+    a field's or a volume's once it is read, before the measure.
     """
     from pathlib import Path
 
@@ -1281,6 +1303,10 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         origin = tuple(report.get("grid_origin_mm", (0.0, 0.0, 0.0)))
         if voxel is None:
             raise ScaffoldError(f"{path.name} carries no voxel size and no run report beside it; give --voxel")
+        if max_memory is not None and work is not None:
+            from ..run.memory import release
+
+            check_measure_memory(work, path.name, field.shape, float(voxel), release(), max_memory, coarser=False)
         field = np.asarray(field, np.float32)
         bad = int(field.size - np.count_nonzero(np.isfinite(field)))
         if bad:
@@ -1292,6 +1318,10 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     if path.is_dir() or suffix in VOLUME_SUFFIXES:
         solid, step, note, selection, distance, axes, origin = _read_volume(path, spacing, voxel, label, threshold)
         where, name = None, "the whole volume"
+        if max_memory is not None and work is not None:
+            from ..run.memory import release
+
+            check_measure_memory(work, path.name, solid.shape, float(step), release(), max_memory, coarser=True)
         if distance is not None:
             # generate's own field (:func:`_own_field`): its voxels are its run's grid, placed by the report
             own = tuple((report_beside(path) or {}).get("grid_origin_mm", origin))
@@ -1311,7 +1341,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         held = release()
         # the grid's voxels when the run's report gives it; else the triangles alone, and the voxels once read
         check_mesh_read(path.name, triangles, 0 if run_grid is None else int(np.prod(run_grid.shape)), held,
-                        max_memory)
+                        max_memory, work)
     vertices, faces = read_mesh_arrays(path)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     if voxel is None and run_grid is None:
@@ -1320,7 +1350,12 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
     if triangles and run_grid is None:
-        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory)
+        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory, work)
+    if max_memory is not None and work is not None:
+        from ..run.memory import process_memory
+
+        check_measure_memory(work, path.name, grid.shape, float(voxel), process_memory(), max_memory,
+                             coarser=run_grid is None)
     solid = voxelize(vertices, faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
@@ -1637,22 +1672,81 @@ MESH_READ_BYTES_PER_CROSSED_FACE = 120
 MESH_READ_BYTES_PER_VOXEL = 6
 
 
-def mesh_read_memory(triangles: int, voxels: int) -> int:
+def mesh_read_memory(triangles: int, voxels: int, work: "MeasureMemory | None" = None) -> int:
     """Bytes reading a binary STL of `triangles` and voxelising it on `voxels` holds at most beyond what the
-    process held (:data:`MESH_READ_FIXED_BYTES` and the rest: an upper bound of the peaks measured)."""
+    process held (:data:`MESH_READ_FIXED_BYTES` and the rest: an upper bound of the peaks measured); with
+    `work`, also what the measure after the read holds while the triangles are kept (its
+    ``bytes_per_triangle``)."""
     n = int(triangles)
-    return int(MESH_READ_FIXED_BYTES + MESH_READ_BYTES_PER_TRIANGLE * n
+    extra = 0 if work is None else work.bytes_per_triangle * n
+    return int(MESH_READ_FIXED_BYTES + MESH_READ_BYTES_PER_TRIANGLE * n + extra
                + MESH_READ_BYTES_PER_CROSSED_FACE * min(n, VOXELIZE_FACES) + MESH_READ_BYTES_PER_VOXEL * int(voxels))
 
 
-def check_mesh_read(name: str, triangles: int, voxels: int, held: int, total: int) -> None:
-    """Refuse, before the work, a mesh whose read and voxels (:func:`mesh_read_memory`) do not fit `total` bytes
-    beside the `held` ones: one line naming the ``--max-memory`` that would do (a coarser voxel saves little:
-    the triangles take most)."""
+@dataclass(frozen=True)
+class MeasureMemory:
+    """What a measure of a scaffold read by :func:`read_scaffold` holds, for its budget (:func:`check_measure_memory`).
+
+    Attributes
+    ----------
+    what : str
+        The measure in words ("the print check").
+    fixed : int
+        Bytes the process holds at the measure's peak beside its arrays (the libraries it loads).
+    bytes_per_voxel : int
+        Bytes a voxel of the grid at the measure's peak, once the triangles are let go.
+    bytes_per_triangle : int
+        Bytes a triangle of a mesh beyond its read (:func:`mesh_read_memory`) while the measure keeps it.
+    """
+
+    what: str
+    fixed: int
+    bytes_per_voxel: int
+    bytes_per_triangle: int = 0
+
+    def need(self, voxels: int, held: int) -> int:
+        """Bytes of the measure's own peak on `voxels`, past the triangles, with `held` held before it."""
+        return int(max(held, self.fixed) + self.bytes_per_voxel * int(voxels))
+
+
+#: what analyze holds (:func:`check_measure_memory`): the libraries and a fixed part, and
+#: :data:`ANALYSIS_BYTES_PER_VOXEL`. Measured (``/usr/bin/time``'s peak, 2026-12-07) on sheet gyroids written as
+#: .npy fields of 160^3, 260^3 and 400^3 voxels: 280, 514 and 1,168 MiB (bounds 334, 642 and 1,705); on the
+#: default cube's STL (5.2 M triangles) at 0.05 mm, 675 MiB, its read's bound (:func:`mesh_read_memory`) 634
+#: beside the 100 the process held
+ANALYSIS_MEMORY = MeasureMemory("the analysis", 240 * 2**20, ANALYSIS_BYTES_PER_VOXEL)
+
+
+def check_measure_memory(work: MeasureMemory, name: str, shape, voxel: float, held: int, total: int,
+                         coarser: bool) -> None:
+    """Refuse, before the measure, a grid of `shape` whose measure (`work`) does not fit `total` bytes: one line
+    naming the ``--max-memory`` that would do and, where the voxel can be chosen (`coarser`: a mesh voxelised
+    or a volume resampled at ``--voxel``), the voxel that would fit."""
     from ..run.memory import format_size
     from .mechanics import held_margin
 
-    need = mesh_read_memory(triangles, voxels)
+    voxels = int(np.prod(shape))
+    need = work.need(voxels, held)
+    if need <= total:
+        return
+    named = need + held_margin(held)
+    room = total - max(held, work.fixed) - held_margin(held)
+    fit = voxel * (work.bytes_per_voxel * voxels / room) ** (1 / 3) * 1.02 if coarser and room > 0 else None
+    raise ScaffoldError.for_budget(
+        f"{work.what} of {name} on {'x'.join(str(int(v)) for v in shape)} voxels at {voxel:.4g} mm needs about "
+        f"{format_size(need)}, over --max-memory {format_size(total)}; use --max-memory {format_size(named)}"
+        + (f" or --voxel {fit:.4g}" if fit is not None else ""), named)
+
+
+def check_mesh_read(name: str, triangles: int, voxels: int, held: int, total: int,
+                    work: MeasureMemory | None = None) -> None:
+    """Refuse, before the work, a mesh whose read and voxels (:func:`mesh_read_memory`, with what `work` holds
+    while the triangles are kept) do not fit `total` bytes beside the `held` ones: one line naming the
+    ``--max-memory`` that would do (a coarser voxel saves little: the triangles take most)."""
+    from ..run.memory import format_size
+    from .mechanics import held_margin
+
+    need = mesh_read_memory(triangles, voxels, work)
     if held + need > total:
         named = held + need + held_margin(held)
         grid = f" on {voxels:,} voxels" if voxels else ""
