@@ -286,7 +286,8 @@ def _analyze_bad(tmp_path):
         # the option that names the file, in the fix
         ([str(stl), "--voxel", "0.1", "--report", str(tmp_path / "nowhere" / "r.html")],
          "pick an existing folder with --report"),
-        ([str(stl), "--voxel", "0.0001"], "GiB but only"),
+        # refused by the run's budget (--max-memory's default) before anything is read or allocated
+        ([str(stl), "--voxel", "0.0001"], "over --max-memory"),
     ]
 
 

@@ -1070,10 +1070,9 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     if max_memory is not None:
         from ..run.memory import process_memory
 
-        if triangles:
-            check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory)
+        read = held + mesh_read_memory(triangles, int(np.prod(grid.shape))) if triangles else 0
         check_measure_memory(ANALYSIS_MEMORY, path.name, grid.shape, float(voxel), process_memory(), max_memory,
-                             coarser=grid is not beside and (patient is None or grid is not run_grid))
+                             coarser=grid is not beside and (patient is None or grid is not run_grid), read=read)
     check_memory(grid, ANALYSIS_BYTES_PER_VOXEL)
     solid = voxelize(mesh.vertices, mesh.faces, grid)
     if patient is None:
@@ -1349,13 +1348,21 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     # its layer of outside all round: the scaffold's faces open onto free space (the run's grid has one)
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
-    if triangles and run_grid is None:
-        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory, work)
     if max_memory is not None and work is not None:
-        from ..run.memory import process_memory
+        from ..run.memory import release
 
-        check_measure_memory(work, path.name, grid.shape, float(voxel), process_memory(), max_memory,
-                             coarser=run_grid is None)
+        voxels = int(np.prod(grid.shape))
+        if triangles:
+            read, now = held + mesh_read_memory(triangles, voxels, work), held
+        else:
+            # a mesh of another format, its triangles counted once read: what its voxels and the measure's
+            # triangles still take, beside what the process holds now (the mesh read)
+            now = release()
+            read = now + mesh_read_memory(len(faces), voxels, work) - MESH_READ_BYTES_PER_TRIANGLE * len(faces)
+        check_measure_memory(work, path.name, grid.shape, float(voxel), now, max_memory, coarser=run_grid is None,
+                             read=read)
+    elif triangles and run_grid is None:
+        check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory, work)
     solid = voxelize(vertices, faces, grid)
     if not solid.any():
         raise ScaffoldError(f"no voxel centre of {path.name} lies inside it at --voxel {voxel:g}; use a smaller --voxel")
@@ -1718,20 +1725,23 @@ ANALYSIS_MEMORY = MeasureMemory("the analysis", 240 * 2**20, ANALYSIS_BYTES_PER_
 
 
 def check_measure_memory(work: MeasureMemory, name: str, shape, voxel: float, held: int, total: int,
-                         coarser: bool) -> None:
+                         coarser: bool, read: int = 0) -> None:
     """Refuse, before the measure, a grid of `shape` whose measure (`work`) does not fit `total` bytes: one line
     naming the ``--max-memory`` that would do and, where the voxel can be chosen (`coarser`: a mesh voxelised
-    or a volume resampled at ``--voxel``), the voxel that would fit."""
+    or a volume resampled at ``--voxel``), the voxel that would fit. `read`: the peak of a mesh's read on that
+    grid (`held` and :func:`mesh_read_memory`), not yet done: the budget named holds both."""
     from ..run.memory import format_size
     from .mechanics import held_margin
 
     voxels = int(np.prod(shape))
-    need = work.need(voxels, held)
+    need = max(work.need(voxels, held), int(read))
     if need <= total:
         return
     named = need + held_margin(held)
     room = total - max(held, work.fixed) - held_margin(held)
-    fit = voxel * (work.bytes_per_voxel * voxels / room) ** (1 / 3) * 1.02 if coarser and room > 0 else None
+    fit = None
+    if coarser and room > 0 and read + held_margin(held) <= total:
+        fit = voxel * (work.bytes_per_voxel * voxels / room) ** (1 / 3) * 1.02
     raise ScaffoldError.for_budget(
         f"{work.what} of {name} on {'x'.join(str(int(v)) for v in shape)} voxels at {voxel:.4g} mm needs about "
         f"{format_size(need)}, over --max-memory {format_size(total)}; use --max-memory {format_size(named)}"
