@@ -3,6 +3,7 @@ multigrid would need fewer.
 
     pip install pyamg   # the algebraic peer of this study; not a dependency of the tool
     python benchmarks/bench_coarse_spaces.py [--size 48] [--tol 1e-7] [--only TEXT]
+    python benchmarks/bench_coarse_spaces.py --products [--size 193] [--runs 15]
 
 The default cube of ``implicit-scaffold generate`` (10 mm, P = 80 %, Dp = 0.6 mm, at its own voxel, before
 the mesh's level correction) is built once. Its corner of --size^3 voxels is compressed along z between
@@ -28,6 +29,12 @@ assembled (:func:`~implicit_scaffold.measure.mechanics.stiffness_matrix`) and so
   deeper levels PyAMG's own aggregates, symmetric Gauss-Seidel;
 - **smoothed aggregation**: PyAMG's defaults with the six rigid motions, symmetric Gauss-Seidel (or damped
   Jacobi, or the 8-colour sweeps on the fine level and Gauss-Seidel below: what a device could run).
+
+With ``--products``, no CG: the compression's first coarse level (the tool's own, OpenCL, float32) is applied to
+one case's vector by each product the tool has for it, timed (medians of --runs) and compared (the largest
+difference from the per-element product, over its largest value): the one a compression uses
+(``level.device``), the level's own per-element matrices (``stiffness_apply``), and the level's assembled
+node stencils (``stencil_rows``, as the levels below it run), with the bytes each holds.
 
 Iterations are the figure; the seconds are serial SciPy and PyAMG on a small sample, for scale only.
 """
@@ -355,12 +362,52 @@ def aggregation(model, dofs, K, *, geometric: bool, smooth: bool, smoother, fine
     return ml.aspreconditioner(cycle="V")
 
 
+def first_level_products(solid: np.ndarray, h: float, runs: int) -> list:
+    """Rows (product, ms median, ms min, relative difference, MiB held) of one case's product on the first coarse
+    level of the compression of `solid` along z (lateral faces free), on the tool's OpenCL operator."""
+    from implicit_scaffold.measure import mechanics as m
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    model = m.voxel_model(m.load_path(solid, 2), h, m.material("ti64"), periodic=False)
+    free, _ = m.platen_unknowns(model, 2)
+    op = m._operator(model, "opencl")
+    level = m.make_preconditioner("multigrid", model, op, free.astype(np.float32), m.TOL).levels[0]
+    x = np.random.default_rng(0).standard_normal((1, 3, int(np.prod(level.shape)))).astype(np.float32)
+    x *= level.inv_diag != 0
+    stencils = mc.StencilLevelOperator(level)
+    products = [(f"in use ({type(level.device).__name__})", level.device, 0),
+                ("per element (stiffness_apply)", mc.LevelOperator(level), level.mats.nbytes + level.index.nbytes),
+                ("node stencils (stencil_rows)", stencils, stencils._mats_host.nbytes)]
+    reference = products[1][1](x)
+    rows = []
+    for name, product, held in products:
+        diff = float(np.abs(product(x) - reference).max() / np.abs(reference).max())
+        times = []
+        for _ in range(runs):
+            t0 = time.perf_counter()
+            product(x)
+            times.append(time.perf_counter() - t0)
+        rows.append([name, f"{1e3 * np.median(times):.1f}", f"{1e3 * min(times):.1f}", f"{diff:.1e}",
+                     f"{held / 2**20:.0f}" if held else "-"])
+    print(f"the default cube's {solid.shape[0]}^3 corner compressed along z: its first coarse level "
+          f"{'x'.join(str(v) for v in level.shape)}, {int((level.index >= 0).sum()):,} elements, one case, "
+          f"medians of {runs}:")
+    print(table(rows, ["product", "ms (median)", "ms (min)", "differs by", "MiB held"]))
+    return rows
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--size", type=int, default=48, help="the corner's edge, voxels")
     parser.add_argument("--tol", type=float, default=1e-7, help="the CG's relative residual")
     parser.add_argument("--only", default="", help="only the preconditioners whose name holds this text")
+    parser.add_argument("--products", action="store_true",
+                        help="time the first coarse level's one-case products instead (OpenCL; no CG)")
+    parser.add_argument("--runs", type=int, default=15, help="--products: timed runs of each product")
     args = parser.parse_args(argv)
+    if args.products:
+        first_level_products(*default_cube_corner(args.size), args.runs)
+        return 0
     try:
         import pyamg  # noqa: F401
     except ImportError:

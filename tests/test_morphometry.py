@@ -951,3 +951,36 @@ def test_the_measures_peak_lies_under_its_estimate_and_a_refusal_names_what_fits
         assert main(argv + ["--max-memory", named.group(1)]) == 0, capsys.readouterr().err
     finally:
         M.morphometry = real
+
+
+def test_a_mesh_of_another_format_is_counted_once_read_and_its_refusal_names_a_budget_that_runs(tmp_path, capsys):
+    # a PLY's triangles are not known before it is read (a binary STL's header says them): once read, its grid and
+    # its triangles (check's signed distance) are estimated before the voxels, and the budget named runs the check
+    import trimesh
+
+    from implicit_scaffold.cli import main
+    from implicit_scaffold.measure.printability import certificate_memory
+    from implicit_scaffold.run.memory import parse_memory
+
+    mesh = trimesh.creation.icosphere(subdivisions=5, radius=1.0)
+    mesh.export(tmp_path / "ball.ply")
+    argv = ["check", str(tmp_path / "ball.ply"), "--voxel", "0.04", "--printer", "lpbf-ti64", "-q",
+            "-o", str(tmp_path / "c.json"), "--max-memory"]
+    voxelized = []
+    real = M.voxelize
+    M.voxelize = lambda *a, **k: voxelized.append(1) or real(*a, **k)
+    try:
+        assert main(argv + ["1M"]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and "Traceback" not in err and not voxelized, err
+        named = re.search(r"the print check of ball\.ply on (\d+)x(\d+)x(\d+) voxels at 0\.04 mm needs about \S+, "
+                          r"over --max-memory \S+; use --max-memory (\S+)$", err.strip())
+        assert named, err
+        voxels = math.prod(int(v) for v in named.groups()[:3])
+        # at least the triangles' share of the signed distance and the certificate's voxels
+        assert parse_memory(named.group(4)) >= certificate_memory().bytes_per_triangle * len(mesh.faces)
+        assert parse_memory(named.group(4)) >= certificate_memory().need(voxels, 0)
+        assert main(argv + [named.group(4)]) == 0, capsys.readouterr().err
+        assert voxelized
+    finally:
+        M.voxelize = real

@@ -41,21 +41,6 @@ INFILTRATION_MM = 0.1
 THROAT_PORE_SHARE = 0.9
 #: the overhang check's marching cubes runs on at most about this many voxels a side
 OVERHANG_CELLS = 160
-
-
-def certificate_memory():
-    """What ``check`` holds for a scaffold read by :func:`~implicit_scaffold.measure.morphometry.read_scaffold`
-    (a :class:`~implicit_scaffold.measure.morphometry.MeasureMemory`): a fixed part (numba's, the OpenCL
-    runtime's), bytes a voxel of the certificate (thickness, distances, labels, the field), and bytes a
-    triangle of a mesh's signed distance (its triangles' structures), held beside the read's. Bounds of the
-    peaks ``/usr/bin/time`` measured (2026-12-07): sheet gyroids written as .npy fields of 160^3, 260^3 and
-    400^3 voxels 416, 649 and 1,790 MiB (bounds 545, 956 and 2,373); the default cube's STL (5.2 M triangles) at
-    0.08, 0.05 and 0.03 mm (2.0, 8.2 and 38 M voxels) 1,677, 1,782 and 2,086 MiB (its read's bound 2,088, 2,123
-    and 2,289 beside the 100 held); the 5 mm cube's (692 k) at 0.05 and 0.025 mm 504 and 646 MiB (the read's
-    bound 534, the certificate's 675)."""
-    from .morphometry import MeasureMemory
-
-    return MeasureMemory("the print check", 420 * 2**20, 32, 280)
 AXES = {"+x": (1, 0, 0), "-x": (-1, 0, 0), "+y": (0, 1, 0), "-y": (0, -1, 0), "+z": (0, 0, 1), "-z": (0, 0, -1)}
 _KEYS = {"min_strut": "min_strut_mm", "min_throat": "min_throat_mm", "layer": "layer_mm",
          "overhang": "overhang_deg", "drain": "drain_mm", "deviation": "deviation_mm", "axis": "build_axis"}
@@ -662,6 +647,21 @@ def _verdict(value, warn, fail, *, higher_is_worse=True) -> str:
     if higher_is_worse:
         return "fail" if value > fail else "warn" if value > warn else "pass"
     return "fail" if value < fail else "warn" if value < warn else "pass"
+
+
+def certificate_memory():
+    """What ``check`` holds for a scaffold read by :func:`~implicit_scaffold.measure.morphometry.read_scaffold`
+    (a :class:`~implicit_scaffold.measure.morphometry.MeasureMemory`): a fixed part (numba's, the OpenCL
+    runtime's), bytes a voxel of the certificate (thickness, distances, labels, the field), and bytes a
+    triangle of a mesh's signed distance (its triangles' structures), held beside the read's. Bounds of the
+    peaks ``/usr/bin/time`` measured (2026-12-07): sheet gyroids written as .npy fields of 160^3, 260^3 and
+    400^3 voxels 416, 649 and 1,790 MiB (bounds 545, 956 and 2,373); the default cube's STL (5.2 M triangles) at
+    0.08, 0.05 and 0.03 mm (2.0, 8.2 and 38 M voxels) 1,677, 1,782 and 2,086 MiB (its read's bound 2,088, 2,123
+    and 2,289 beside the 100 held); the 5 mm cube's (692 k) at 0.05 and 0.025 mm 504 and 646 MiB (the read's
+    bound 534, the certificate's 675)."""
+    from .morphometry import MeasureMemory
+
+    return MeasureMemory("the print check", 420 * 2**20, 32, 280)
 
 
 def certificate(solid, voxel: float, profile: PrinterProfile, *, field=None, region=None, origin=(0.0, 0.0, 0.0),
