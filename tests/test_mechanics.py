@@ -1840,8 +1840,9 @@ def test_cli_mechanics_refuses_a_mesh_whose_read_does_not_fit_before_reading_it(
     argv = ["mechanics", tmp_path / "box.stl", "--voxel", 0.25, "-q", "--max-memory"]
     code, cap = _run(argv + [small], capsys)
     assert code == 2 and cap.err.count("\n") == 1 and "Traceback" not in cap.err and not reads, cap.err
-    named = re.search(r"reading box\.stl \(12 triangles\) needs about \S+ beside the \S+ held, over --max-memory "
-                      r"\S+; use --max-memory (\S+)$", cap.err.strip())
+    # its voxels from the file's bounds and the voxel, before it is read: (2 / 0.25 + 2)^3, a layer outside all round
+    named = re.search(r"reading box\.stl \(12 triangles on 1,000 voxels\) needs about \S+ beside the \S+ held, over "
+                      r"--max-memory \S+; use --max-memory (\S+)$", cap.err.strip())
     assert named, cap.err
     assert parse_memory(named.group(1)) > parse_memory(small)
     # the budget named reads it (the solve is checked on its own after)

@@ -984,3 +984,33 @@ def test_a_mesh_of_another_format_is_counted_once_read_and_its_refusal_names_a_b
         assert voxelized
     finally:
         M.voxelize = real
+
+
+def test_a_binary_stls_bounds_and_grid_are_known_before_it_is_read(tmp_path, capsys, monkeypatch):
+    # a binary STL's corners give its grid before the read: one refusal names a budget that holds the read and the
+    # measure both, and the read it refuses never starts
+    import trimesh
+
+    from implicit_scaffold.cli import main
+
+    mesh = trimesh.creation.icosphere(subdivisions=4, radius=1.5)
+    mesh.apply_translation((3.0, -2.0, 0.5))
+    path = tmp_path / "ball.stl"
+    mesh.export(path)
+    lo, hi = M.binary_stl_bounds(path, M.binary_stl_triangles(path))
+    assert np.allclose(lo, mesh.bounds[0], atol=1e-6) and np.allclose(hi, mesh.bounds[1], atol=1e-6)
+    reads = []
+    real = M.read_mesh_arrays
+    monkeypatch.setattr(M, "read_mesh_arrays", lambda p: reads.append(p) or real(p))
+    for command, extra in (("check", ["--printer", "lpbf-ti64"]), ("analyze", [])):
+        argv = [command, str(path), "--voxel", "0.02", "-q", "-o", str(tmp_path / f"{command}.json")] + extra
+        assert main(argv + ["--max-memory", "1M"]) == 2
+        err = capsys.readouterr().err
+        named = re.search(r"on (\d+)x(\d+)x(\d+) voxels at 0\.02 mm needs about \S+, over --max-memory \S+; "
+                          r"use --max-memory (\S+)$", err.strip())
+        assert named and not reads, err
+        # the ball's 3 mm across at 0.02 mm, and a layer outside all round: 152 voxel centres a side
+        assert [int(v) for v in named.groups()[:3]] == [152, 152, 152], err
+        assert main(argv + ["--max-memory", named.group(4)]) == 0, capsys.readouterr().err
+        assert reads
+        reads.clear()

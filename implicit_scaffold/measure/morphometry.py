@@ -1053,7 +1053,18 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         from ..run.memory import release
 
         held = release()
-        check_mesh_read(path.name, triangles, 0 if beside is None else int(np.prod(beside.shape)), held, max_memory)
+        # the grid's voxels: the report beside the mesh gives it, or the file's bounds and the voxel asked for
+        planned = beside
+        if planned is None and patient is None and voxel is not None:
+            bounds = binary_stl_bounds(path, triangles)
+            planned = None if bounds is None else Grid.covering(*bounds, voxel)
+        if planned is not None:
+            voxels = int(np.prod(planned.shape))
+            check_measure_memory(ANALYSIS_MEMORY, path.name, planned.shape, float(planned.spacing), held,
+                                 max_memory, coarser=planned is not beside,
+                                 read=held + mesh_read_memory(triangles, voxels))
+        else:
+            check_mesh_read(path.name, triangles, 0, held, max_memory)
     mesh = SurfaceArrays(*read_mesh_arrays(path))
     lo, hi = mesh.vertices.min(axis=0), mesh.vertices.max(axis=0)
     if voxel is None and run_grid is None and beside is None:
@@ -1338,9 +1349,17 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
         from ..run.memory import release
 
         held = release()
-        # the grid's voxels when the run's report gives it; else the triangles alone, and the voxels once read
-        check_mesh_read(path.name, triangles, 0 if run_grid is None else int(np.prod(run_grid.shape)), held,
-                        max_memory, work)
+        # the grid's voxels: the run's report gives it, or the file's bounds and the voxel asked for
+        planned = run_grid
+        if planned is None and voxel is not None:
+            bounds = binary_stl_bounds(path, triangles)
+            planned = None if bounds is None else Grid.covering(*bounds, voxel)
+        voxels = 0 if planned is None else int(np.prod(planned.shape))
+        if work is not None and planned is not None:
+            check_measure_memory(work, path.name, planned.shape, float(planned.spacing), held, max_memory,
+                                 coarser=run_grid is None, read=held + mesh_read_memory(triangles, voxels, work))
+        else:
+            check_mesh_read(path.name, triangles, voxels, held, max_memory, work)
     vertices, faces = read_mesh_arrays(path)
     lo, hi = vertices.min(axis=0), vertices.max(axis=0)
     if voxel is None and run_grid is None:
@@ -1424,6 +1443,23 @@ def binary_stl_triangles(path) -> int | None:
         fh.seek(80)
         n = int(np.frombuffer(fh.read(4), "<u4")[0])
     return n if size == STL_HEAD_BYTES + STL_RECORD_BYTES * n else None
+
+
+def binary_stl_bounds(path, n: int):
+    """The lowest and highest corner (two (3,) float64 arrays, mm) of a binary STL of `n` triangles, read a chunk
+    of :data:`STL_READ_CHUNK` records at a time (some 50 bytes a triangle of the chunk's): the grid a voxel
+    gives, before the mesh is read. None when a corner is not finite or the file is short."""
+    rec = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attr", "<u2")])
+    lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
+    with open(path, "rb") as fh:
+        fh.seek(STL_HEAD_BYTES)
+        for f0 in range(0, n, STL_READ_CHUNK):
+            k = min(STL_READ_CHUNK, n - f0)
+            corners = np.fromfile(fh, rec, k)["corners"].reshape(-1, 3)
+            if len(corners) != 3 * k or not np.isfinite(corners).all():
+                return None
+            lo, hi = np.minimum(lo, corners.min(axis=0)), np.maximum(hi, corners.max(axis=0))
+    return (lo, hi) if n else None
 
 
 def _group_rows(columns, count: int):
