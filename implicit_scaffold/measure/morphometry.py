@@ -1049,6 +1049,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
     # the arrays, not a trimesh: a binary STL read by numpy, and the measures and bodies from them (trimesh's mesh
     # of the default cube's 5.2 M triangles and its caches took the run to a 3.4 GB peak)
     triangles = binary_stl_triangles(path) if max_memory is not None else None
+    planned = None  # the grid checked before the read
     if triangles:
         from ..run.memory import release
 
@@ -1078,7 +1079,7 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         own = beside if run_grid is None else (run_grid if voxel is None else None)
         grid = own if own is not None else Grid.covering(patient.lo, patient.hi, voxel)
         voxel = grid.spacing
-    if max_memory is not None:
+    if max_memory is not None and (planned is None or planned.shape != grid.shape):
         from ..run.memory import process_memory
 
         read = held + mesh_read_memory(triangles, int(np.prod(grid.shape))) if triangles else 0
@@ -1345,6 +1346,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     _volume_only(path, label, threshold)
     run_grid = run_grid_beside(path, voxel)
     triangles = binary_stl_triangles(path) if max_memory is not None else None
+    planned = None  # the grid checked before the read
     if triangles:
         from ..run.memory import release
 
@@ -1367,7 +1369,9 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
     # its layer of outside all round: the scaffold's faces open onto free space (the run's grid has one)
     grid = run_grid if run_grid is not None else Grid.covering(lo, hi, voxel)
     voxel = grid.spacing
-    if max_memory is not None and work is not None:
+    # the check before the read holds where the file's bounds gave this grid
+    unchecked = planned is None or planned.shape != grid.shape
+    if unchecked and max_memory is not None and work is not None:
         from ..run.memory import release
 
         voxels = int(np.prod(grid.shape))
@@ -1380,7 +1384,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
             read = now + mesh_read_memory(len(faces), voxels, work) - MESH_READ_BYTES_PER_TRIANGLE * len(faces)
         check_measure_memory(work, path.name, grid.shape, float(voxel), now, max_memory, coarser=run_grid is None,
                              read=read)
-    elif triangles and run_grid is None:
+    elif unchecked and triangles and run_grid is None:
         check_mesh_read(path.name, triangles, int(np.prod(grid.shape)), held, max_memory, work)
     solid = voxelize(vertices, faces, grid)
     if not solid.any():
