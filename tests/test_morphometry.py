@@ -919,7 +919,8 @@ PEAK = ("import sys\nfrom implicit_scaffold.cli import main\ncode = main(sys.arg
 
 
 @pytest.mark.parametrize("command", ["analyze", "check"])
-def test_the_measures_peak_lies_under_its_estimate_and_a_refusal_names_what_fits(command, tmp_path, capsys):
+def test_the_measures_peak_lies_under_its_estimate_and_a_refusal_names_what_fits(command, tmp_path, capsys,
+                                                                                   monkeypatch):
     # the estimate (MeasureMemory) is the budget's word for the measure: a fresh process's own peak stays under it;
     # a budget under it is refused in one line, before the measure, naming the budget that runs it
     import subprocess
@@ -940,20 +941,18 @@ def test_the_measures_peak_lies_under_its_estimate_and_a_refusal_names_what_fits
     assert int(peak) <= work.need(n**3, 0), (int(peak) / 2**20, work.need(n**3, 0) / 2**20)
     measured = []
     real = M.morphometry
-    M.morphometry = lambda *a, **k: measured.append(1) or real(*a, **k)
-    try:
-        assert main(argv + ["--max-memory", "1M"]) == 2
-        err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "Traceback" not in err and not measured, err
-        named = re.search(r"needs about \S+, over --max-memory \S+; use --max-memory (\S+)$", err.strip())
-        assert named, err
-        assert parse_memory(named.group(1)) >= work.need(n**3, 0)
-        assert main(argv + ["--max-memory", named.group(1)]) == 0, capsys.readouterr().err
-    finally:
-        M.morphometry = real
+    monkeypatch.setattr(M, "morphometry", lambda *a, **k: measured.append(1) or real(*a, **k))
+    assert main(argv + ["--max-memory", "1M"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and not measured, err
+    named = re.search(r"needs about \S+, over --max-memory \S+; use --max-memory (\S+)$", err.strip())
+    assert named, err
+    assert parse_memory(named.group(1)) >= work.need(n**3, 0)
+    assert main(argv + ["--max-memory", named.group(1)]) == 0, capsys.readouterr().err
 
 
-def test_a_mesh_of_another_format_is_counted_once_read_and_its_refusal_names_a_budget_that_runs(tmp_path, capsys):
+def test_a_mesh_of_another_format_is_counted_once_read_and_its_refusal_names_a_budget_that_runs(tmp_path, capsys,
+                                                                                                monkeypatch):
     # a PLY's triangles are not known before it is read (a binary STL's header says them): once read, its grid and
     # its triangles (check's signed distance) are estimated before the voxels, and the budget named runs the check
     import trimesh
@@ -968,22 +967,19 @@ def test_a_mesh_of_another_format_is_counted_once_read_and_its_refusal_names_a_b
             "-o", str(tmp_path / "c.json"), "--max-memory"]
     voxelized = []
     real = M.voxelize
-    M.voxelize = lambda *a, **k: voxelized.append(1) or real(*a, **k)
-    try:
-        assert main(argv + ["1M"]) == 2
-        err = capsys.readouterr().err
-        assert err.count("\n") == 1 and "Traceback" not in err and not voxelized, err
-        named = re.search(r"the print check of ball\.ply on (\d+)x(\d+)x(\d+) voxels at 0\.04 mm needs about \S+, "
-                          r"over --max-memory \S+; use --max-memory (\S+)$", err.strip())
-        assert named, err
-        voxels = math.prod(int(v) for v in named.groups()[:3])
-        # at least the triangles' share of the signed distance and the certificate's voxels
-        assert parse_memory(named.group(4)) >= certificate_memory().bytes_per_triangle * len(mesh.faces)
-        assert parse_memory(named.group(4)) >= certificate_memory().need(voxels, 0)
-        assert main(argv + [named.group(4)]) == 0, capsys.readouterr().err
-        assert voxelized
-    finally:
-        M.voxelize = real
+    monkeypatch.setattr(M, "voxelize", lambda *a, **k: voxelized.append(1) or real(*a, **k))
+    assert main(argv + ["1M"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "Traceback" not in err and not voxelized, err
+    named = re.search(r"the print check of ball\.ply on (\d+)x(\d+)x(\d+) voxels at 0\.04 mm needs about \S+, "
+                      r"over --max-memory \S+; use --max-memory (\S+)$", err.strip())
+    assert named, err
+    voxels = math.prod(int(v) for v in named.groups()[:3])
+    # at least the triangles' share of the signed distance and the certificate's voxels
+    assert parse_memory(named.group(4)) >= certificate_memory().bytes_per_triangle * len(mesh.faces)
+    assert parse_memory(named.group(4)) >= certificate_memory().need(voxels, 0)
+    assert main(argv + [named.group(4)]) == 0, capsys.readouterr().err
+    assert voxelized
 
 
 def test_a_binary_stls_bounds_and_grid_are_known_before_it_is_read(tmp_path, capsys, monkeypatch):
