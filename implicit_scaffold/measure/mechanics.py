@@ -1054,7 +1054,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
                     final[c] = np.nan
                     rhos[c], pqs[c] = [rz[c]], []  # a new CG: its scalars estimate its own error
             iterate(apply, tol)  # a done case stays met (its scalars are kept): no product
-    del p
+    p = None  # released (the nested steps read it no more)
     if info is not None:
         info["energy_error"] = relative_error()
         info["energy_error_abs"] = absolute_error()
@@ -1063,7 +1063,7 @@ def pcg(apply, precond, b: np.ndarray, free: np.ndarray, *, scale: np.ndarray, t
     # r is F (b - K x) on the live nodes: the true residual just computed, or the recurrence's in
     # double (whose drift from it is rounding)
     out = (np.einsum("idn,jdn->ij", x, r),) if cross else ()
-    del r
+    r = None
     return (put(x, live, n, ones) if whole else (x, live), it, res) + out
 
 

@@ -1328,13 +1328,13 @@ def certificate_by_slabs(source, patient, voxel: float, profile: PrinterProfile,
                 if sec is not None:
                     view = m if a == 0 else m[x0:x0 + sec.shape[0]]
                     view[(sec > 0) & (solid_parts.roots_of(index, sec) != solid_parts.main)] = SECTION_FLOATING
-    del solid_sections
+    solid_sections = None  # released (the slab visits read it no more)
     # the surface elements by blocks of coarse planes, each with a plane of halo: the whole
     # coarse grid's elements in the same order, without its gradients held at once
     cx = coarse.shape[0]
     step = max(1, max_voxels // (coarse.shape[1] * coarse.shape[2]) - 2)
     elements = [_surface_elements(coarse[c0 - 1:min(c0 + step, cx - 1) + 1], h * f) for c0 in range(1, cx - 1, step)]
-    del coarse
+    coarse = None
     shares = _overhang_sums(np.concatenate([w for w, _ in elements] or [np.zeros(0, np.float32)]),
                             np.concatenate([n for _, n in elements] or [np.zeros((0, 3), np.float32)]),
                             profile.overhang_deg)

@@ -535,5 +535,5 @@ def write_mesh_from_ply(ply, path, *, block: int = FACE_CHUNK) -> Path:
             v = np.asarray(vertices, dtype=np.float64)
             f = np.asarray(records["v"], dtype=np.int64)
             {".stl": _write_stl, ".ply": _write_ply}[ext](v, f, fh)
-    del vertices, records
+    vertices = records = None  # the memory maps closed (the block readers read them no more)
     return final
