@@ -1309,6 +1309,50 @@ def test_the_operator_by_slabs_is_the_whole_grid_product_on_the_live_nodes(shape
             assert np.array_equal(got, whole), (double, planes)
 
 
+@pytest.mark.parametrize("periodic", [True, False])
+def test_a_slabs_operator_computes_its_inner_planes_and_zeroes_the_two_it_reads(periodic, monkeypatch):
+    # the slab's operator (planes i0 - 1 .. i1 of the grid) against the whole grid's product: its inner planes the
+    # same bits, its first and last 0 (written, not left as whatever the output's memory held: here NaN), wrapped
+    # at the grid's ends
+    from implicit_scaffold.measure import mechanics_cl as mc
+
+    rng = np.random.default_rng(3)
+    model = m.voxel_model(rng.random((9, 6, 19)) < 0.5, 0.1, TI, periodic=periodic)
+    n1, n2, n3 = model.shape
+    plane = n2 * n3
+    op = mc.StiffnessOperator(model, double=False)
+    u = rng.standard_normal((2, 3, n1 * plane)).astype(np.float32)
+    whole = op(u).reshape(2, 3, n1, plane)
+    for i0, i1 in ((0, 3), (3, 7), (7, n1), (0, n1)):
+        planes, slab = op.slab(i0, i1)
+        assert slab.halo
+        x = mc.aligned_copy(u.reshape(2, 3, n1, plane)[:, :, planes].reshape(2, 3, -1))
+        empty = mc.aligned_empty
+
+        def poisoned(shape, dtype=np.float64):
+            out = empty(shape, dtype)
+            out.fill(np.nan)
+            return out
+
+        monkeypatch.setattr(mc, "aligned_empty", poisoned)
+        got = slab(x).reshape(2, 3, planes.size, plane)
+        monkeypatch.setattr(mc, "aligned_empty", empty)
+        assert np.array_equal(got[:, :, 1:-1], whole[:, :, i0:i1]), (i0, i1)
+        assert not got[:, :, [0, -1]].any(), (i0, i1)
+
+
+def test_plane_starts_are_the_searches_of_the_planes_first_nodes():
+    # oracle: searchsorted in int64, for live nodes in int32 and int64
+    from implicit_scaffold.measure.mechanics_cl import plane_starts
+
+    rng = np.random.default_rng(0)
+    live = np.sort(rng.choice(7 * 30, 90, replace=False))
+    want = np.searchsorted(live.astype(np.int64), np.arange(8, dtype=np.int64) * 30)
+    for dtype in (np.int32, np.int64):
+        got = plane_starts(live.astype(dtype), 7, 30)
+        assert np.array_equal(got, want), dtype
+
+
 def _sparse_rows_solid():
     """A solid whose node rows along z (48 inner nodes: three vectors of 16) hold vectors that no
     solid voxel touches, vectors that one voxel touches at a single lane, and whole rows of none."""

@@ -1177,7 +1177,9 @@ class Multigrid:
         thick = fine_slab_planes(self.fine_shape, self.slab_nodes)
         if thick >= n1 or not hasattr(self.op, "slab"):
             return None
-        starts = np.searchsorted(live, np.arange(n1 + 1, dtype=np.int64) * plane)
+        from .mechanics_cl import plane_starts
+
+        starts = plane_starts(live, n1, plane)
         parents, weights, children, shares = _stencils(n1)
         out = []
         for i0 in range(0, n1, thick):
