@@ -368,15 +368,27 @@ def first_level_products(solid: np.ndarray, h: float, runs: int) -> list:
     from implicit_scaffold.measure import mechanics as m
     from implicit_scaffold.measure import mechanics_cl as mc
 
+    from implicit_scaffold.measure import multigrid as mg
+
     model = m.voxel_model(m.load_path(solid, 2), h, m.material("ti64"), periodic=False)
     free, _ = m.platen_unknowns(model, 2)
+    free = free.astype(np.float32)
     op = m._operator(model, "opencl")
-    level = m.make_preconditioner("multigrid", model, op, free.astype(np.float32), m.TOL).levels[0]
+    level = m.make_preconditioner("multigrid", model, op, free, m.TOL).levels[0]
     x = np.random.default_rng(0).standard_normal((1, 3, int(np.prod(level.shape)))).astype(np.float32)
     x *= level.inv_diag != 0
     stencils = mc.StencilLevelOperator(level)
+    fine = op.single()
+
+    def galerkin(y):
+        """P^T F K F P y by the fine operator and the transfers (the tool's one-case product until 2026-12-08)."""
+        up = mg.prolong(y, model.shape)
+        up *= free
+        return mg.restrict(fine(up), model.shape, free)
+
     products = [(f"in use ({type(level.device).__name__})", level.device, 0),
                 ("per element (stiffness_apply)", mc.LevelOperator(level), level.mats.nbytes + level.index.nbytes),
+                ("Galerkin (fine operator, transfers)", galerkin, 0),
                 ("node stencils (stencil_rows)", stencils, stencils._mats_host.nbytes)]
     reference = products[1][1](x)
     rows = []

@@ -518,49 +518,18 @@ def test_the_pattern_operator_is_the_first_levels_device_product(scaffolds, monk
     op = StiffnessOperator(model, double=False)
     mg = G.Multigrid(model, op, free, dtype=np.float32)
     assert len(mg.levels) >= 2
-    # a block of cases by the pattern kernel; one case by the fine operator (_GalerkinOneCase)
+    # a block of cases by the pattern kernel (one case by its per-element kernel)
     first = mg.levels[0].device
-    assert type(first) is G._GalerkinOneCase and type(first.device) is PatternLevelOperator
+    assert type(first) is PatternLevelOperator
     assert all(type(level.device) is StencilLevelOperator for level in mg.levels[1:])
     # the level keeps the one copy of its matrices the device reads (the per-element ones); a level
     # on stencils keeps none
-    assert np.shares_memory(mg.levels[0].mats, first.device._mats_host)
+    assert np.shares_memory(mg.levels[0].mats, first._mats_host)
     assert all(level.mats is None for level in mg.levels[1:])
     monkeypatch.setattr(G, "FIRST_LEVEL_PATTERNS", False)
     monkeypatch.setattr(G, "STENCIL_LEVELS", False)
     mg = G.Multigrid(model, op, free, dtype=np.float32)
-    assert all(type(getattr(level.device, "device", level.device)) is LevelOperator for level in mg.levels)
-
-
-def test_one_cases_first_level_product_is_the_masked_galerkin_product(scaffolds):
-    # the first coarse level's one-case product zeroes only the fixed unknowns a solid voxel touches: against
-    # P^T F K F P x with both masks multiplied over the whole grid (the same float operator, the same bits), and
-    # against the level's own per-element matrices (its device product, for one case the per-element kernel:
-    # another computation, to float rounding),
-    # for a coarse x nonzero everywhere, under platens along z (the planes' z unknowns fixed) and with a face held
-    from implicit_scaffold.measure.mechanics_cl import StiffnessOperator
-
-    model = M.voxel_model(scaffolds[0.08], 0.08, MAT, periodic=False)
-    n = int(np.prod(model.shape))
-    platens, _ = M.platen_unknowns(model, 2)
-    face = np.repeat(model.active[None], 3, axis=0)
-    face[:, : model.shape[1] * model.shape[2]] = False
-    op = StiffnessOperator(model, double=False)
-    for free in (platens.astype(np.float32), face.astype(np.float32)):
-        mg = G.Multigrid(model, op, free, dtype=np.float32)
-        first = mg.levels[0].device
-        assert type(first) is G._GalerkinOneCase
-        comp, node = first.fixed
-        assert comp.size == np.count_nonzero((free == 0) & model.active[None]) > 0
-        x = np.random.default_rng(5).standard_normal((1, 3, int(np.prod(mg.levels[0].shape)))).astype(np.float32)
-        fine = G.prolong(x, model.shape)
-        fine *= free
-        want = G.restrict(op(fine), model.shape, free)
-        got = first(x)
-        assert np.array_equal(got, want)
-        pattern = first.device(x)
-        assert np.abs(got - pattern).max() <= 1e-5 * np.abs(pattern).max()
-        assert np.abs(want).max() > 0 and n == free.shape[1]
+    assert all(type(level.device) is LevelOperator for level in mg.levels)
 
 
 def test_the_eigenvalue_estimate_reuses_its_products_memory():
@@ -865,8 +834,8 @@ def test_spreading_onto_used_memory_zeroes_every_other_node(kind, dtype):
 
 @pytest.mark.parametrize("periodic", [True, False])
 def test_the_first_levels_product_of_one_case_on_the_device_is_the_galerkin_product(periodic):
-    # oracle: the dense P^T F A F P of the NumPy operator; one case goes through the fine operator and the
-    # transfers, a block through the level's own kernel: both that product within float32's rounding
+    # oracle: the dense P^T F A F P of the NumPy operator; one case by the level's per-element kernel, a block by
+    # its child patterns' kernel: both that product within float32's rounding, and no fine product
     from implicit_scaffold import opencl
     from implicit_scaffold.measure import mechanics_cl as mc
 
@@ -887,7 +856,7 @@ def test_the_first_levels_product_of_one_case_on_the_device_is_the_galerkin_prod
             op = mc.StiffnessOperator(model)
             mg = G.Multigrid(model, op.single(), free.astype(np.float32), dtype=np.float32)
             level = mg.levels[0]
-            assert isinstance(level.device, G._GalerkinOneCase), check.name
+            assert isinstance(level.device, mc.PatternLevelOperator), check.name
             calls = []
             fine = mg.op
             mg.op = lambda u: calls.append(u.shape) or fine(u)
@@ -897,7 +866,7 @@ def test_the_first_levels_product_of_one_case_on_the_device_is_the_galerkin_prod
                 got = level.apply(x.astype(np.float32))
                 assert got.shape == ref.shape and got.dtype == np.float32
                 assert np.abs(got - ref).max() <= 2e-6 * np.abs(ref).max(), (check.name, cases)
-            assert calls == [(1, 3, int(np.prod(model.shape)))]  # the one case through the fine operator only
+            assert calls == []  # the level's own products
 
 
 def test_the_coarsest_solve_is_the_pseudo_inverse_whatever_blas_threads_the_caller_allows():

@@ -39,7 +39,7 @@ is built from the solid itself:
   some 3.7 ms against 11 for a fine product (128^3 benchmark scaffold), and the iterations fell from 23
   to 19 there (64^3 and 96^3 crops of it under kinematic conditions: 20 to 15 and 21 to 17; degree 3:
   18 on the 128^3, higher degrees below the first level: no fewer). One case a block keeps degree 1:
-  its first level's product is a fine product's (:class:`_GalerkinOneCase`).
+  its first level's product, by the per-element kernel, builds each node's stencil for the one case.
 
 The fine operator is the solver's own (the OpenCL kernel or its NumPy reference). With the
 OpenCL one the coarse levels run on the device too (a gather kernel of the same file, one matrix
@@ -806,54 +806,6 @@ def _chebyshev(apply, inv_diag, lmax, b, x=None, degree=DEGREE):
     return x
 
 
-def fixed_touched(free: np.ndarray, touched: np.ndarray) -> tuple:
-    """(components, nodes) int32 of the fixed unknowns (0 in `free`, (1, N) or (3, N)) of the nodes `touched`
-    ((N,) bool: the corners of solid voxels)."""
-    touched = touched.reshape(-1)
-    rows = np.broadcast_to(free, (3, free.shape[-1]))
-    # a component at a time: one bool temporary of a byte a node, not three
-    nodes = [np.flatnonzero((rows[d] == 0) & touched).astype(np.int32) for d in range(3)]
-    comps = [np.full(v.size, d, np.int32) for d, v in enumerate(nodes)]
-    return np.concatenate(comps), np.concatenate(nodes)
-
-
-class _GalerkinOneCase:
-    """The first coarse level's product on the device: for one load case ``P^T F K F P x`` (the Galerkin
-    product the level's matrices are, by the fine operator, :func:`prolong` and :func:`restrict`), for a
-    block the level's own kernel (`device`).
-
-    One case is what a compression solves (and every level's eigenvalue estimate): the level's kernels then
-    gather a matrix per node, where the fine operator runs in full vectors on one constant matrix. On the
-    default 10 mm cube's 193^3 grid (97^3 level, one case, medians of 7, a throw-away script) 56.4 ms against
-    80.6, the two within 3.6e-7 of each other (float32); on another machine of the same kind (2026-12-07, medians
-    of 9) the level's own kernel was the faster, 60.5 ms against 99.3 (79.3 and 77.1 after the change below): which
-    one wins depends on the machine. Only where the fine level is not cut into slabs
-    (:func:`fine_slab_planes`): the fine vectors are whole grids, one case's.
-
-    ``F`` is applied by zeroing `fixed` alone, the fixed unknowns a solid voxel touches ((components, nodes)):
-    the fine product reads a node only through the solid voxels it is a corner of, and is 0 on a node no solid
-    voxel touches, so ``F P x`` and ``F K (F P x)`` differ from ``P x`` and ``K (F P x)`` nowhere else that counts
-    (the same bits as the masks' products). On the default cube's compression (medians of 15, a throw-away
-    script, 2026-12-07, alternating runs) a product took 79.3 and 77.1 ms, against 89.8 and 90.0 with the two
-    passes over the grid's mask."""
-
-    def __init__(self, device, multigrid: "Multigrid", fixed: tuple):
-        self.device = device
-        self.multigrid = multigrid
-        self.fixed = fixed
-
-    def __call__(self, x: np.ndarray) -> np.ndarray:
-        if x.shape[0] != 1:
-            return self.device(x)
-        mg = self.multigrid
-        fine = prolong(x, mg.fine_shape)
-        fine[0][self.fixed] = 0
-        product = mg.op(fine)
-        del fine
-        product[0][self.fixed] = 0
-        return restrict(product, mg.fine_shape)
-
-
 class Multigrid:
     """A V-cycle of the voxel operator as a conjugate-gradient preconditioner.
 
@@ -929,8 +881,6 @@ class Multigrid:
                 if isinstance(level.device, LevelOperator):
                     # the device reads the matrices in place: the level keeps that one copy
                     level.mats = level.device.host_mats(level.mats.shape)
-                if level is self.levels[0] and fine_slab_planes(self.fine_shape, slab_nodes) >= self.fine_shape[0]:
-                    level.device = _GalerkinOneCase(level.device, self, fixed_touched(self.free, model.active))
             level.lmax = _largest_eigenvalue(level.apply, level.inv_diag, rng)
 
     @property
