@@ -381,7 +381,7 @@ def first_level_products(solid: np.ndarray, h: float, runs: int) -> list:
     fine = op.single()
 
     def galerkin(y):
-        """P^T F K F P y by the fine operator and the transfers (the tool's one-case product until 2026-12-08)."""
+        """P^T F K F P y by the fine operator and the transfers (the tool's one-case product from 2026-12-06 to 2026-12-07)."""
         up = mg.prolong(y, model.shape)
         up *= free
         return mg.restrict(fine(up), model.shape, free)
