@@ -417,7 +417,8 @@ class StiffnessOperator(_Gather):
         """(planes, operator): the node planes of the slab of planes ``i0 .. i1 - 1`` with one more on either
         side (wrapped round a periodic grid's ends), and the operator of their voxels (planes of the same
         indices), whose product is this one's on the slab's inner planes (computed there alone; 0 on the first
-        and last, which it reads); made once, and kept with this operator: the slabs' flags copy the solid's, a byte a voxel and two planes a slab more."""
+        and last, which it reads); made once, and kept with this operator: the slabs' flags copy the solid's, a
+        byte a voxel and two planes a slab more."""
         cache = self.__dict__.setdefault("_slabs", {})
         if (i0, i1) not in cache:
             planes = np.arange(i0 - 1, i1 + 1) % self.shape[0]
