@@ -609,9 +609,8 @@ def _certificate_lines(cert: dict) -> list[str]:
 def _check(args) -> int:
     from .measure.morphometry import read_scaffold
     from .measure.printability import certificate, certificate_memory, printer_profile
-    from .run.memory import budget
-
     from .progress import Progress
+    from .run.memory import budget
 
     t0 = time.perf_counter()
     profile = printer_profile(args.printer)

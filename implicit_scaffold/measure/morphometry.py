@@ -1054,11 +1054,9 @@ def analyze_file(path, *, voxel=None, spacing=None, region=None, label=None, thr
         from ..run.memory import release
 
         held = release()
-        # the grid's voxels: the report beside the mesh gives it, or the file's bounds and the voxel asked for
-        planned = beside
-        if planned is None and patient is None and voxel is not None:
-            bounds = binary_stl_bounds(path, triangles)
-            planned = None if bounds is None else Grid.covering(*bounds, voxel)
+        # the grid's voxels: the report beside the mesh gives it, or (no patient's grid) the file's bounds and the
+        # voxel asked for
+        planned = planned_mesh_grid(path, triangles, beside, voxel if patient is None else None)
         if planned is not None:
             voxels = int(np.prod(planned.shape))
             check_measure_memory(ANALYSIS_MEMORY, path.name, planned.shape, float(planned.spacing), held,
@@ -1352,10 +1350,7 @@ def read_scaffold(path, *, voxel=None, spacing=None, label=None, threshold=None,
 
         held = release()
         # the grid's voxels: the run's report gives it, or the file's bounds and the voxel asked for
-        planned = run_grid
-        if planned is None and voxel is not None:
-            bounds = binary_stl_bounds(path, triangles)
-            planned = None if bounds is None else Grid.covering(*bounds, voxel)
+        planned = planned_mesh_grid(path, triangles, run_grid, voxel)
         voxels = 0 if planned is None else int(np.prod(planned.shape))
         if work is not None and planned is not None:
             check_measure_memory(work, path.name, planned.shape, float(planned.spacing), held, max_memory,
@@ -1464,6 +1459,18 @@ def binary_stl_bounds(path, n: int):
                 return None
             lo, hi = np.minimum(lo, corners.min(axis=0)), np.maximum(hi, corners.max(axis=0))
     return (lo, hi) if n else None
+
+
+def planned_mesh_grid(path, triangles: int, known, voxel):
+    """The grid a binary STL of `triangles` will be voxelised on, known before it is read: `known` (a run's grid)
+    when given, else the file's bounds (:func:`binary_stl_bounds`) covered at `voxel` (mm); None when neither
+    gives one."""
+    from ..run.grid import Grid
+
+    if known is not None or voxel is None:
+        return known
+    bounds = binary_stl_bounds(path, triangles)
+    return None if bounds is None else Grid.covering(*bounds, voxel)
 
 
 def _group_rows(columns, count: int):
