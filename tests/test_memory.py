@@ -1,4 +1,4 @@
-"""Tests of implicit_scaffold.run.memory: keeping freed memory in a worker's heap."""
+"""Tests of implicit_scaffold.run.memory: keeping freed memory in a worker's heap, or in a solve's."""
 from __future__ import annotations
 
 import json
@@ -37,6 +37,41 @@ def test_keep_freed_memory_keeps_a_large_freed_block_in_the_process():
     kept = _held_and_after("keep")
     assert plain["held"] - plain["after"] > 200
     assert kept["held"] - kept["after"] < 50
+
+
+#: in a fresh process: what it holds (RSS, MiB) after freeing a 256 MiB array inside keeping_freed_memory(),
+#: nested twice, after leaving the inner block, after leaving the outer one, and after freeing another after it
+_KEEPING_AND_AFTER = """
+import json
+import numpy as np, psutil
+from implicit_scaffold.run.memory import keeping_freed_memory
+rss = lambda: psutil.Process().memory_info().rss / 2**20
+start = rss()
+out = {}
+with keeping_freed_memory():
+    with keeping_freed_memory():
+        a = np.ones(2**25)  # 256 MiB, touched
+        del a
+        out["inner"] = rss() - start
+    out["outer"] = rss() - start
+out["left"] = rss() - start
+b = np.ones(2**25)
+del b
+out["after"] = rss() - start
+print(json.dumps(out))
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's mallopt")
+def test_keeping_freed_memory_keeps_it_in_its_blocks_and_hands_it_back_after():
+    done = subprocess.run([sys.executable, "-c", _KEEPING_AND_AFTER], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    held = json.loads(done.stdout.strip().splitlines()[-1])
+    # freed inside the blocks, the 256 MiB stay with the process until the outermost block ends
+    assert held["inner"] > 200 and held["outer"] > 200
+    # then it goes back to the system, and a large block freed after is returned at once, as by default
+    assert held["left"] < 50
+    assert held["after"] < 50
 
 
 def test_a_size_is_named_as_max_memory_takes_it_a_whole_mib_as_given():

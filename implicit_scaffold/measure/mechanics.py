@@ -43,6 +43,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import ScaffoldError, round_down
+# the solves (compress, homogenize, measure) keep what they free for their next steps' arrays
+from ..run.memory import keeping_freed_memory
 
 VOIGT = ("xx", "yy", "zz", "yz", "xz", "xy")
 #: corner a of a voxel is at offset (a & 1, a >> 1 & 1, a >> 2 & 1) voxels from its low corner
@@ -1264,6 +1266,7 @@ def check_solid(solid) -> np.ndarray:
 CASES_PER_BLOCK = 6
 
 
+@keeping_freed_memory()
 def homogenize(solid, h: float, mat: Material, *, boundary: str = "periodic", tol: float = 1e-8,
                maxiter: int = 2000, backend: str = "numpy", preconditioner: str = "multigrid",
                progress=None, cases_per_block: int = CASES_PER_BLOCK,
@@ -1687,6 +1690,7 @@ def von_mises_strain(strain: np.ndarray) -> np.ndarray:
     return np.sqrt(2 / 3 * ((dev ** 2).sum(axis=0) + 2 * (shear ** 2).sum(axis=0)))
 
 
+@keeping_freed_memory()
 def compress(solid, h: float, mat: Material, *, axis: int = 2, strain: float = 1e-3, bonded: bool = False,
              tol: float = 1e-8, maxiter: int = 2000, backend: str = "numpy",
              preconditioner: str = "multigrid", progress=None, accuracy: float | None = None) -> Compression:
@@ -2044,6 +2048,7 @@ def most_strained(field_vm: np.ndarray, h: float, origin=(0.0, 0.0, 0.0), count:
     return out
 
 
+@keeping_freed_memory()
 def measure(solid, h: float, mat: Material, *, boundary: str = "auto", axis: int = 2, tol: float | None = None,
             backend: str = "numpy", origin=(0.0, 0.0, 0.0),
             preconditioner: str = "multigrid", progress=None,
