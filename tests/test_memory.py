@@ -58,6 +58,10 @@ out["left"] = rss() - start
 b = np.ones(2**25)
 del b
 out["after"] = rss() - start
+with keeping_freed_memory(False):
+    c = np.ones(2**25)
+    del c
+    out["off"] = rss() - start
 print(json.dumps(out))
 """
 
@@ -72,6 +76,27 @@ def test_keeping_freed_memory_keeps_it_in_its_blocks_and_hands_it_back_after():
     # then it goes back to the system, and a large block freed after is returned at once, as by default
     assert held["left"] < 50
     assert held["after"] < 50
+    # keep=False: a block that changes nothing
+    assert held["off"] < 50
+
+
+def test_a_solve_keeps_freed_memory_only_with_six_load_cases_a_block(monkeypatch):
+    import numpy as np
+
+    from implicit_scaffold.measure import mechanics as M
+    from implicit_scaffold.run import memory
+
+    calls = []
+    monkeypatch.setattr(memory, "_glibc", lambda name, *args: calls.append(name))
+    solid = np.ones((3, 3, 3), bool)
+    mat = M.material("ti64")
+    M.homogenize(solid, 0.1, mat, cases_per_block=1, tol=1e-6)
+    # under a budget too short for six cases a block the solve hands its memory back as it goes
+    assert "mallopt" not in calls
+    M.homogenize(solid, 0.1, mat, tol=1e-6)
+    M.compress(solid, 0.1, mat, tol=1e-6)
+    # six a block (the default), and a compression: kept (thresholds raised, then restored), then trimmed
+    assert calls.count("mallopt") == 8 and calls.count("malloc_trim") == 2
 
 
 def test_a_size_is_named_as_max_memory_takes_it_a_whole_mib_as_given():

@@ -180,9 +180,10 @@ _keeping_lock = threading.Lock()
 
 
 @contextlib.contextmanager
-def keeping_freed_memory():
+def keeping_freed_memory(keep: bool = True):
     """Within this block glibc keeps the memory freed (:func:`keep_freed_memory`); on leaving the outermost
-    block it hands it back (:func:`release`) and maps large blocks on their own again.
+    block it hands it back (:func:`release`) and maps large blocks on their own again. With `keep` False
+    the block changes nothing (inside another block, memory stays kept by that one).
 
     For a solver, whose steps free and allocate the same large arrays again and again: a page the system
     took back is zeroed again when touched, and on a virtual machine that reports free memory to its host
@@ -191,6 +192,9 @@ def keeping_freed_memory():
     the process holds within the block is its peak so far, which is what a solve's memory budget counts.
     Nothing on other C libraries; a process that keeps its memory for good stays so."""
     global _keeping
+    if not keep:
+        yield
+        return
     with _keeping_lock:  # solves in two threads: the thresholds go back when the last one ends
         if _keeping == 0 and not _kept_for_good:
             _keep()
