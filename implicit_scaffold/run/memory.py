@@ -165,8 +165,13 @@ def keep_freed_memory() -> None:
 
 def _keep() -> None:
     # (mallopt takes a C int) blocks above 1 GiB are still mapped on their own
-    _glibc("mallopt", _M_MMAP_THRESHOLD, 2**30)
-    _glibc("mallopt", _M_TRIM_THRESHOLD, 2**31 - 1)
+    _thresholds(2**30, 2**31 - 1)
+
+
+def _thresholds(mmap: int, trim: int) -> None:
+    """glibc's mmap and trim thresholds, bytes."""
+    _glibc("mallopt", _M_MMAP_THRESHOLD, mmap)
+    _glibc("mallopt", _M_TRIM_THRESHOLD, trim)
 
 
 #: what glibc's thresholds go back to after :func:`keeping_freed_memory`: its dynamic threshold's ceiling on a
@@ -206,8 +211,7 @@ def keeping_freed_memory(keep: bool = True):
             _keeping -= 1
             last = _keeping == 0 and not _kept_for_good
             if last:
-                _glibc("mallopt", _M_MMAP_THRESHOLD, _MMAP_AFTER)
-                _glibc("mallopt", _M_TRIM_THRESHOLD, _TRIM_AFTER)
+                _thresholds(_MMAP_AFTER, _TRIM_AFTER)
         if last:
             release()
 
