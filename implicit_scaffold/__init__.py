@@ -18,6 +18,11 @@ from here, so that a script can compose its own scaffold::
 __version__ = "0.1.0"
 
 from .errors import ScaffoldError  # noqa: E402
+from .run.memory import avoid_cold_huge_pages as _avoid_cold_huge_pages  # noqa: E402
+
+# before any large array: on a machine whose host takes free memory back, NumPy's huge pages are faulted in
+# from the host, ten times the cost of small pages (run.memory.avoid_cold_huge_pages)
+_avoid_cold_huge_pages()
 
 #: public name -> the module that defines it; loaded on first use, so that importing the
 #: package stays cheap (no OpenCL, no mesh libraries until a stage runs)

@@ -116,3 +116,72 @@ def test_a_messages_amount_is_never_zero_gib():
 
     assert [amount(v) for v in (3.2 * 2**20, 50 * 2**20, 2**30, 3.456 * 2**30)] == \
         ["4 MiB", "50 MiB", "1.00 GiB", "3.46 GiB"]
+
+
+def _sysfs(tmp_path, devices: dict):
+    """A sysfs tree of virtio devices: name -> (device id, features, bound to a driver)."""
+    root = tmp_path / "sys"
+    for name, (device, features, bound) in devices.items():
+        folder = root / "bus" / "virtio" / "devices" / name
+        folder.mkdir(parents=True)
+        (folder / "device").write_text(f"0x{device:04x}\n")
+        (folder / "features").write_text(features + "\n")
+        if bound:
+            (folder / "driver").mkdir()
+    return root
+
+
+def _bits(*on, width=64) -> str:
+    return "".join("1" if i in on else "0" for i in range(width))
+
+
+def test_free_page_reporting_is_a_bound_virtio_balloon_with_feature_bit_5(tmp_path):
+    from implicit_scaffold.run.memory import free_page_reporting
+
+    # the Virtio 1.2 specification: device id 5 is the memory balloon, its feature bit 5 VIRTIO_BALLOON_F_REPORTING;
+    # the other devices and bits below are a block device and the balloon's stats and deflate-on-OOM bits
+    balloon_reports = _bits(1, 2, 5, 32)
+    assert free_page_reporting(_sysfs(tmp_path / "a", {"virtio0": (5, balloon_reports, True),
+                                                       "virtio1": (2, _bits(1, 5), True)}))
+    assert not free_page_reporting(_sysfs(tmp_path / "b", {"virtio0": (5, _bits(1, 2, 32), True)}))
+    assert not free_page_reporting(_sysfs(tmp_path / "c", {"virtio0": (5, balloon_reports, False)}))
+    assert not free_page_reporting(_sysfs(tmp_path / "d", {"virtio1": (2, balloon_reports, True)}))
+    assert not free_page_reporting(tmp_path / "none")
+
+
+def test_numpy_stops_asking_for_huge_pages_only_where_the_host_takes_free_memory_back(tmp_path, monkeypatch):
+    import numpy as np
+
+    from implicit_scaffold.run.memory import avoid_cold_huge_pages
+
+    core = getattr(np, "_core", None) or np.core
+    get, put = core.multiarray._get_madvise_hugepage, core.multiarray._set_madvise_hugepage
+    reporting = _sysfs(tmp_path / "a", {"virtio0": (5, _bits(1, 2, 5), True)})
+    plain = _sysfs(tmp_path / "b", {"virtio0": (5, _bits(1, 2), True)})
+    before = put(True)
+    try:
+        monkeypatch.delenv("NUMPY_MADVISE_HUGEPAGE", raising=False)
+        assert not avoid_cold_huge_pages(plain) and get()
+        assert avoid_cold_huge_pages(reporting) and not get()
+        put(True)
+        # the user's own choice of NumPy's switch stands
+        monkeypatch.setenv("NUMPY_MADVISE_HUGEPAGE", "1")
+        assert not avoid_cold_huge_pages(reporting) and get()
+    finally:
+        put(before)
+
+
+def test_importing_the_package_decides_huge_pages_by_this_machine():
+    # in fresh processes: NumPy's own default, then after importing the package
+    code = ("import sys, numpy as np\ncore = getattr(np, '_core', None) or np.core\nif sys.argv[1] == 'package':\n"
+            "    import implicit_scaffold\n    from implicit_scaffold.run.memory import free_page_reporting\n"
+            "else:\n    free_page_reporting = lambda: None\n"
+            "print(core.multiarray._get_madvise_hugepage(), free_page_reporting())")
+    env = {k: v for k, v in __import__("os").environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    runs = {}
+    for mode in ("numpy", "package"):
+        done = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, env=env)
+        assert done.returncode == 0, done.stderr[-2000:]
+        runs[mode] = done.stdout.split()
+    default, (after, reporting) = runs["numpy"][0], runs["package"]
+    assert after == ("False" if reporting == "True" else default)
