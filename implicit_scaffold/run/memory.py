@@ -193,10 +193,11 @@ def keeping_freed_memory(keep: bool = True):
     the block changes nothing (inside another block, memory stays kept by that one).
 
     For a solver, whose steps free and allocate the same large arrays again and again: a page the system
-    took back is zeroed again when touched, and on a virtual machine that reports free memory to its host
-    (this project's, which does so once memory has stayed free for 2 s) it is faulted in from the host at
-    some 6 ms a MB (a fresh 130 MB array written in 0.7 to 1.2 s, 26 ms while the memory was kept). What
-    the process holds within the block is its peak so far, which is what a solve's memory budget counts.
+    took back is zeroed again when touched. (The 6 ms a MB first measured for that on this project's virtual
+    machines, a fresh 130 MB array written in 0.7 to 1.2 s against 26 ms while the memory was kept, was
+    NumPy's huge pages faulted in from the host: :func:`avoid_cold_huge_pages`. In small pages the 128^3
+    benchmark scaffold's homogenization still took 0.1 to 0.4 s less inside the block, run twice in a process.)
+    What the process holds within the block is its peak so far, which is what a solve's memory budget counts.
     Nothing on other C libraries; a process that keeps its memory for good stays so."""
     global _keeping
     if not keep:
