@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 
@@ -177,7 +178,7 @@ def test_importing_the_package_decides_huge_pages_by_this_machine():
             "    import implicit_scaffold\n    from implicit_scaffold.run.memory import free_page_reporting\n"
             "else:\n    free_page_reporting = lambda: None\n"
             "print(core.multiarray._get_madvise_hugepage(), free_page_reporting())")
-    env = {k: v for k, v in __import__("os").environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
+    env = {k: v for k, v in os.environ.items() if k != "NUMPY_MADVISE_HUGEPAGE"}
     runs = {}
     for mode in ("numpy", "package"):
         done = subprocess.run([sys.executable, "-c", code, mode], capture_output=True, text=True, env=env)
