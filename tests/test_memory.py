@@ -151,12 +151,9 @@ def test_free_page_reporting_is_a_bound_virtio_balloon_with_feature_bit_5(tmp_pa
 
 
 def test_numpy_stops_asking_for_huge_pages_only_where_the_host_takes_free_memory_back(tmp_path, monkeypatch):
-    import numpy as np
+    from implicit_scaffold.run.memory import avoid_cold_huge_pages, numpy_huge_pages_switch
 
-    from implicit_scaffold.run.memory import avoid_cold_huge_pages
-
-    core = getattr(np, "_core", None) or np.core
-    get, put = core.multiarray._get_madvise_hugepage, core.multiarray._set_madvise_hugepage
+    get, put = numpy_huge_pages_switch("get"), numpy_huge_pages_switch("set")
     reporting = _sysfs(tmp_path / "a", {"virtio0": (5, _bits(1, 2, 5), True)})
     plain = _sysfs(tmp_path / "b", {"virtio0": (5, _bits(1, 2), True)})
     before = put(True)

@@ -680,7 +680,8 @@ def _one_blas_thread(solve):
 def _keeping_freed_memory(solve):
     """`solve` (compress, homogenize, measure) inside :func:`~implicit_scaffold.run.memory.keeping_freed_memory`:
     what its steps free is kept for the next ones' arrays (on this project's virtual machine the default cube's
-    ``measure`` took 155.1 and 162.2 s against 180.5 and 165.9). Not with fewer load cases a block than
+    ``measure`` took 155.1 and 162.2 s against 180.5 and 165.9, measured while NumPy still asked for huge pages:
+    see :func:`~implicit_scaffold.run.memory.keeping_freed_memory` for what it gains without them). Not with fewer load cases a block than
     :data:`CASES_PER_BLOCK` (a budget too short for six): there the kept blocks that the next arrays could not
     reuse raised the 200^3 benchmark scaffold's peak from 842 to 993 MiB (one case a block, 226 to 292 bytes a
     solid voxel), for no time gained (78.8 against 76.2 s)."""

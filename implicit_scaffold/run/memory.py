@@ -261,12 +261,18 @@ def avoid_cold_huge_pages(sysfs="/sys") -> bool:
     """
     if "NUMPY_MADVISE_HUGEPAGE" in os.environ or not free_page_reporting(sysfs):
         return False
-    core = getattr(np, "_core", None) or getattr(np, "core", None)
-    setter = getattr(getattr(core, "multiarray", None), "_set_madvise_hugepage", None)
+    setter = numpy_huge_pages_switch("set")
     if setter is None:
         return False
     setter(False)
     return True
+
+
+def numpy_huge_pages_switch(which: str):
+    """NumPy's ``_get_madvise_hugepage`` (`which` "get") or ``_set_madvise_hugepage`` ("set"), where NumPy 2
+    (``numpy._core``) or NumPy 1 (``numpy.core``) keeps it; None in a NumPy without it."""
+    core = getattr(np, "_core", None) or getattr(np, "core", None)
+    return getattr(getattr(core, "multiarray", None), f"_{which}_madvise_hugepage", None)
 
 
 def check_memory(grid, bytes_per_voxel: int, available: int | None = None) -> int:
